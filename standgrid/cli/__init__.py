@@ -1,0 +1,78 @@
+"""The ``standgrid`` command: a thin click group over the Python API.
+
+Subcommands live one per module and are imported only when run, so ``--help`` is instant.
+Library errors become clean one-line messages here, in one place.
+"""
+
+from __future__ import annotations
+
+import importlib
+import sys
+
+import click
+
+from standgrid.errors import StandgridError
+
+#: command name -> "module:attribute" of its click command.
+COMMANDS: dict[str, str] = {
+    "info": "standgrid.cli.info:info",
+    "missions": "standgrid.cli.missions:missions",
+    "retrieve": "standgrid.cli.retrieve:retrieve",
+    "payloads": "standgrid.cli.payloads:payloads",
+    "simulate": "standgrid.cli.simulate:simulate",
+    "georef": "standgrid.cli.georef:georef",
+    "tile": "standgrid.cli.tile:tile",
+    "enrich": "standgrid.cli.enrich:enrich",
+    "compare": "standgrid.cli.compare:compare",
+    "run": "standgrid.cli.run:run",
+}
+
+
+class LazyGroup(click.Group):
+    """A group whose subcommands are imported on first use."""
+
+    def list_commands(self, ctx: click.Context) -> list[str]:
+        return sorted(name for name in COMMANDS if self._load(name) is not None)
+
+    def get_command(self, ctx: click.Context, cmd_name: str) -> click.Command | None:
+        return self._load(cmd_name)
+
+    @staticmethod
+    def _load(name: str) -> click.Command | None:
+        target = COMMANDS.get(name)
+        if target is None:
+            return None
+        module_name, attr = target.split(":")
+        try:
+            module = importlib.import_module(module_name)
+        except ModuleNotFoundError as exc:
+            if exc.name == module_name:  # subcommand not built yet
+                return None
+            raise
+        command: click.Command = getattr(module, attr)
+        return command
+
+    def invoke(self, ctx: click.Context) -> object:
+        try:
+            return super().invoke(ctx)
+        except StandgridError as exc:
+            raise click.ClickException(f"{type(exc).__name__}: {exc}") from exc
+
+
+@click.group(cls=LazyGroup, context_settings={"help_option_names": ["-h", "--help"]})
+@click.version_option(package_name="standgrid")
+def cli() -> None:
+    """Forest-mapping robot missions in; a georeferenced stand-grid map out.
+
+    \b
+    Example:
+      standgrid info data/missions/2024-05-14-wytham-anymal-coyote
+    """
+
+
+def main() -> None:
+    cli(prog_name="standgrid")
+
+
+if __name__ == "__main__":  # pragma: no cover
+    sys.exit(main())

@@ -1,0 +1,84 @@
+"""Options and output helpers shared by every subcommand (defined once, here)."""
+
+from __future__ import annotations
+
+import json
+import sys
+from collections.abc import Callable, Iterable, Iterator
+from pathlib import Path
+from typing import Any, TypeVar
+
+import click
+
+T = TypeVar("T")
+F = TypeVar("F", bound=Callable[..., Any])
+
+json_option = click.option(
+    "--json", "as_json", is_flag=True, help="Print machine-readable JSON on stdout."
+)
+overwrite_option = click.option(
+    "--overwrite", is_flag=True, help="Replace outputs that already exist."
+)
+quiet_option = click.option("-q", "--quiet", is_flag=True, help="No progress output on stderr.")
+
+
+def mission_argument(nargs: int = 1) -> Callable[[F], F]:
+    """A mission folder argument (one, or several with ``nargs=-1``)."""
+    return click.argument(
+        "missions" if nargs != 1 else "mission",
+        nargs=nargs,
+        required=True,
+        type=click.Path(exists=True, file_okay=False, path_type=Path),
+    )
+
+
+def output_option(required: bool = True, help: str = "Output folder.") -> Callable[[F], F]:
+    return click.option(
+        "-o", "--output", required=required, type=click.Path(path_type=Path), help=help
+    )
+
+
+def _default(o: object) -> object:
+    """JSON encoding for numpy scalars/arrays, paths, dates and dataclass-likes."""
+    import dataclasses
+    import datetime as dt
+
+    import numpy as np
+
+    if isinstance(o, np.generic):
+        return o.item()
+    if isinstance(o, np.ndarray):
+        return o.tolist()
+    if isinstance(o, Path):
+        return str(o)
+    if isinstance(o, dt.date | dt.datetime | dt.time):
+        return o.isoformat()
+    if dataclasses.is_dataclass(o) and not isinstance(o, type):
+        return dataclasses.asdict(o)
+    if isinstance(o, set | frozenset | tuple):
+        return list(o)
+    return str(o)
+
+
+def emit(data: object, as_json: bool, human: Callable[[Any], str] | None = None) -> None:
+    """Data on stdout: JSON for machines, or ``human(data)`` text."""
+    if as_json or human is None:
+        click.echo(json.dumps(data, indent=2, default=_default))
+    else:
+        click.echo(human(data))
+
+
+def progress(
+    items: Iterable[T], *, total: int | None = None, desc: str = "", quiet: bool = False
+) -> Iterator[T]:
+    """A tqdm progress bar on stderr (silent when ``quiet`` or stderr is not a terminal)."""
+    from tqdm import tqdm
+
+    disable = quiet or not sys.stderr.isatty()
+    yield from tqdm(items, total=total, desc=desc, disable=disable, file=sys.stderr, leave=False)
+
+
+def status(message: str, quiet: bool = False) -> None:
+    """A progress line on stderr."""
+    if not quiet:
+        click.echo(message, err=True)

@@ -1,0 +1,1 @@
+"""Enrichment: terrain, trees and stand metrics."""

@@ -1,0 +1,1 @@
+"""Exporting: LAS/LAZ tiles, the GeoPackage index, the catalog folder."""

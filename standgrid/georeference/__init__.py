@@ -1,0 +1,1 @@
+"""Georeferencing: GNSS fixes -> a transform from the SLAM map frame into a projected CRS."""

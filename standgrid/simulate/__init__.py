@@ -1,0 +1,1 @@
+"""A deterministic forest-mission simulator with known ground truth."""

@@ -1,0 +1,65 @@
+"""``standgrid info``: what a mission folder holds."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+import click
+
+from standgrid.cli.options import emit, json_option
+
+
+def _human(s: dict[str, Any]) -> str:
+    lines = [f"mission   {s['name']}  ({s['path']})"]
+    meta = s.get("metadata")
+    if meta:
+        shown = ", ".join(f"{k}={v}" for k, v in meta.items() if v not in (None, [], {}, ""))
+        lines.append(f"metadata  {shown}")
+    edges = ", ".join(f"{n} {k}" for k, n in s["edges"].items()) or "none"
+    lines.append(f"graph     {s['graph'] or '-'}: {s['nodes']} nodes, edges: {edges}")
+    folder = f" from {s['payload_folder']}/" if s["payload_folder"] else ""
+    lines.append(f"payloads  {s['payloads']}{folder}, {s['points']:,} points")
+    if s["scans"]:
+        lines.append(f"scans     {s['scans']}, {s['scan_points']:,} points (per-node clouds)")
+    folders = ", ".join(f"{name}/ ({n})" for name, n in s["cloud_folders"].items())
+    lines.append(f"clouds    {folders or 'no cloud folder'}")
+    lines.append(
+        f"sensors   {s['gnss_fixes']} GNSS fixes, {s['imu_samples']} IMU samples, "
+        f"{s['images']} images ({', '.join(s['cameras']) or 'no cameras'})"
+    )
+    span = s["time_span"]
+    if span:
+        lines.append(f"time      {span['start']} .. {span['end']} ({span['seconds']:.1f} s)")
+    ext = s["extent_map"]
+    if ext:
+        lo = ", ".join(f"{v:.2f}" for v in ext["min"])
+        hi = ", ".join(f"{v:.2f}" for v in ext["max"])
+        lines.append(f"extent    map frame min ({lo}) max ({hi})")
+    for problem in s["problems"]:
+        lines.append(f"problem   {problem}")
+    return "\n".join(lines)
+
+
+@click.command(name="info")
+@click.argument("mission", type=click.Path(exists=True, file_okay=False, path_type=Path))
+@click.option(
+    "--strict/--lenient",
+    default=False,
+    help="Fail on the first inconsistency (default: report them).",
+)
+@json_option
+def info(mission: Path, strict: bool, as_json: bool) -> None:
+    """Summarise a mission folder: graph, payloads, points, sensors, time span, extent.
+
+    Point counts come from the cloud headers; no point is read.
+
+    \b
+    Example:
+      standgrid info data/missions/2024-05-14-wytham-anymal-coyote
+      standgrid info MISSION --json | jq .payloads
+    """
+    from standgrid.mission.model import open_mission
+
+    summary = open_mission(mission, strict=strict).summary()
+    emit(summary, as_json, _human)

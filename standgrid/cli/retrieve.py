@@ -1,0 +1,139 @@
+"""``standgrid retrieve``: find a mission's payloads by type, map pose or GNSS coordinate."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+import click
+
+from standgrid.cli.options import emit, json_option
+
+#: Let coordinates such as ``-1.338`` through as arguments instead of unknown options.
+_NEGATIVE_NUMBERS = {"ignore_unknown_options": True}
+_MISSION = click.argument("mission", type=click.Path(exists=True, file_okay=False, path_type=Path))
+
+
+def _records(
+    payloads: list[Any], query: tuple[float, ...] | None = None, mission: Any = None
+) -> list[dict[str, Any]]:
+    import numpy as np
+
+    rows = []
+    for p in payloads:
+        row: dict[str, Any] = {
+            "kind": p.kind,
+            "stamp": str(p.stamp),
+            "stamp_ns": p.stamp.ns,
+            "node_id": p.node_id,
+            "path": str(p.path),
+            "frame": p.frame,
+        }
+        if p.sensor is not None:
+            row["sensor"] = p.sensor
+        if p.layers:
+            row["layers"] = {k: str(v) for k, v in p.layers.items()}
+        if query is not None and mission is not None:
+            position = mission.pose_of(p)[:3, 3]
+            row["position_map"] = position.tolist()
+            row["distance_m"] = float(np.linalg.norm(position - np.asarray(query, dtype=float)))
+        rows.append(row)
+    return rows
+
+
+def _human(rows: list[dict[str, Any]]) -> str:
+    if not rows:
+        return "no payloads"
+    lines = []
+    for r in rows:
+        extra = f"  {r['distance_m']:.2f} m" if "distance_m" in r else ""
+        node = "-" if r["node_id"] is None else r["node_id"]
+        sensor = f" [{r['sensor']}]" if "sensor" in r else ""
+        lines.append(f"{r['kind']:11} {r['stamp']}  node {node}{sensor}{extra}  {r['path']}")
+    return "\n".join(lines)
+
+
+@click.group(name="retrieve")
+def retrieve() -> None:
+    """Find a mission's payloads by data type, by map-frame pose or by GNSS coordinate.
+
+    \b
+    Example:
+      standgrid retrieve by-type MISSION point_cloud
+      standgrid retrieve by-pose MISSION 12.5 -3.0 0.5 -k 2
+      standgrid retrieve by-gnss MISSION 51.776 -1.338
+    """
+
+
+@retrieve.command(name="by-type")
+@_MISSION
+@click.argument("data_type", metavar="TYPE")
+@json_option
+def by_type(mission: Path, data_type: str, as_json: bool) -> None:
+    """Every payload of one TYPE: point_cloud, scan, gnss, imu, image (or camera).
+
+    \b
+    Example:
+      standgrid retrieve by-type MISSION image --json
+    """
+    from standgrid.mission.retrieval import retrieve_payload_by_type
+
+    emit(_records(retrieve_payload_by_type(mission, data_type)), as_json, _human)
+
+
+@retrieve.command(name="by-pose", context_settings=_NEGATIVE_NUMBERS)
+@_MISSION
+@click.argument("x", type=float)
+@click.argument("y", type=float)
+@click.argument("z", type=float, required=False, default=0.0)
+@click.option("-k", "k", type=int, default=1, show_default=True, help="Number of nearest payloads.")
+@click.option("--radius", type=float, help="Every payload whose node is within this many metres.")
+@click.option("--covering", is_flag=True, help="Every payload whose footprint covers the point.")
+@json_option
+def by_pose(
+    mission: Path,
+    x: float,
+    y: float,
+    z: float,
+    k: int,
+    radius: float | None,
+    covering: bool,
+    as_json: bool,
+) -> None:
+    """Payloads nearest a map-frame point X Y [Z], nearest first.
+
+    \b
+    Example:
+      standgrid retrieve by-pose MISSION 12.5 -3.0 0.5 --radius 30
+      standgrid retrieve by-pose MISSION 12.5 -3.0 --covering --json
+    """
+    from standgrid.mission.model import open_mission
+    from standgrid.mission.retrieval import retrieve_payload_by_pose
+
+    opened = open_mission(mission, strict=False)
+    found = retrieve_payload_by_pose(opened, (x, y, z), k=k, radius=radius, covering=covering)
+    emit(_records(found, (x, y, z), opened), as_json, _human)
+
+
+@retrieve.command(name="by-gnss", context_settings=_NEGATIVE_NUMBERS)
+@_MISSION
+@click.argument("lat", type=float)
+@click.argument("lon", type=float)
+@click.argument("alt", type=float, required=False)
+@click.option("-k", "k", type=int, default=1, show_default=True, help="Number of nearest payloads.")
+@json_option
+def by_gnss(
+    mission: Path, lat: float, lon: float, alt: float | None, k: int, as_json: bool
+) -> None:
+    """Payloads nearest a WGS84 coordinate LAT LON [ALT] (needs a georeference).
+
+    \b
+    Example:
+      standgrid retrieve by-gnss MISSION 51.776 -1.338 --json
+    """
+    from standgrid.mission.model import open_mission
+    from standgrid.mission.retrieval import retrieve_payload_by_gnss
+
+    opened = open_mission(mission, strict=False)
+    coord = (lat, lon) if alt is None else (lat, lon, alt)
+    emit(_records(retrieve_payload_by_gnss(opened, coord, k=k)), as_json, _human)

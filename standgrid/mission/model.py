@@ -1,0 +1,570 @@
+"""A mission in memory: its graph, payloads attached to graph nodes, sensor logs, images.
+
+Clouds are read lazily. Base-frame clouds are kept in a bounded LRU cache shared by every
+re-aligned view (:meth:`Mission.with_graph`), so re-aligning after a re-optimised or merged
+graph never reads a cloud file again.
+"""
+
+from __future__ import annotations
+
+from collections import OrderedDict
+from collections.abc import Callable, Iterator
+from dataclasses import dataclass, field, replace
+from pathlib import Path
+from typing import Any, Literal
+
+import numpy as np
+from numpy.typing import NDArray
+
+from standgrid.errors import (
+    DuplicateStampError,
+    MetadataError,
+    MissionConsistencyError,
+    MissionNotFoundError,
+    OrphanPayloadError,
+    StandgridError,
+)
+from standgrid.geometry import Matrix4, invert_pose
+from standgrid.mission.clouds import read_cloud, read_cloud_header
+from standgrid.mission.layout import CloudFolder, Frame, MissionLayout, discover_layout, layer_name
+from standgrid.mission.metadata import MissionMetadata, metadata_from_folder_name, read_metadata
+from standgrid.mission.posegraph import PoseGraph, Vertex
+from standgrid.mission.poses_csv import read_poses_csv
+from standgrid.mission.sensors import (
+    GnssFixes,
+    ImageRef,
+    ImuSamples,
+    concat_gnss,
+    read_gnss,
+    read_imu,
+)
+from standgrid.pointcloud import PointCloud
+from standgrid.stamps import Stamp
+
+PayloadKind = Literal["point_cloud", "scan", "gnss", "imu", "image"]
+
+#: Default bound of the base-frame cloud cache, in points (~24 bytes each for xyz).
+DEFAULT_CACHE_POINTS = 20_000_000
+
+
+@dataclass(frozen=True)
+class Payload:
+    """One stamped piece of mission data, attached to the graph node of the same stamp.
+
+    ``node_id`` is None when no node has the stamp (reported in ``Mission.problems``).
+    ``frame`` is the frame of the file's coordinates; ``layers`` maps a layer name
+    (``ground``) to a cloud file of the same stamp. ``sensor`` names the camera of an image.
+    """
+
+    stamp: Stamp
+    node_id: int | None
+    path: Path
+    frame: Frame = "base"
+    layers: dict[str, Path] = field(default_factory=dict, hash=False, compare=False)
+    kind: PayloadKind = "point_cloud"
+    sensor: str | None = None
+
+
+class CloudCache:
+    """A least-recently-used cache of base-frame clouds, bounded by a total point count."""
+
+    def __init__(self, max_points: int = DEFAULT_CACHE_POINTS) -> None:
+        self.max_points = max_points
+        self._items: OrderedDict[tuple[Path, str | None], PointCloud] = OrderedDict()
+        self._points = 0
+
+    def get(self, key: tuple[Path, str | None]) -> PointCloud | None:
+        cloud = self._items.get(key)
+        if cloud is not None:
+            self._items.move_to_end(key)
+        return cloud
+
+    def put(self, key: tuple[Path, str | None], cloud: PointCloud) -> None:
+        if key in self._items:
+            self._points -= len(self._items.pop(key))
+        self._items[key] = cloud
+        self._points += len(cloud)
+        while self._points > self.max_points and len(self._items) > 1:
+            _, old = self._items.popitem(last=False)
+            self._points -= len(old)
+
+    def __len__(self) -> int:
+        return len(self._items)
+
+
+def _concat_imu(parts: list[ImuSamples]) -> ImuSamples:
+    stamps = np.concatenate([p.stamps_ns for p in parts])
+    order = np.argsort(stamps, kind="stable")
+    return ImuSamples(
+        stamps_ns=stamps[order],
+        accel=np.concatenate([p.accel for p in parts])[order],
+        gyro=np.concatenate([p.gyro for p in parts])[order],
+        source=parts[0].source.parent if parts[0].source is not None else None,
+    )
+
+
+class Mission:
+    """An opened mission. Build it with :func:`open_mission`."""
+
+    def __init__(
+        self,
+        *,
+        layout: MissionLayout,
+        metadata: MissionMetadata | None,
+        graph: PoseGraph | None,
+        payloads: list[Payload],
+        scans: list[Payload],
+        gnss: GnssFixes | None,
+        imu: ImuSamples | None,
+        images: list[ImageRef],
+        problems: list[str],
+        strict: bool,
+        source_poses: dict[Path, Matrix4],
+        cache: CloudCache,
+        read_cloud_fn: Callable[[Path], PointCloud] = read_cloud,
+    ) -> None:
+        self.layout = layout
+        self.path: Path = layout.root
+        self.name: str = layout.root.name
+        self.metadata = metadata
+        self.graph = graph
+        self.payloads = payloads
+        #: Per-node scans (``individual_clouds`` etc.), the input of ``payloads build``.
+        self.scans = scans
+        self.gnss = gnss
+        self.imu = imu
+        self.images = images
+        self.problems = problems
+        self.strict = strict
+        #: The function every cloud file is read with (wrap it to count or trace reads).
+        self.read_cloud: Callable[[Path], PointCloud] = read_cloud_fn
+        # Pose each map-frame file was written with (to bring it back to base), by path.
+        self._source_poses = source_poses
+        self._cache = cache
+        self._by_stamp: dict[Stamp, Vertex] = _vertices_by_stamp(graph)
+        self._viewpoints: dict[Path, Matrix4] = {}
+
+    def __repr__(self) -> str:
+        nodes = len(self.graph) if self.graph is not None else 0
+        return f"Mission({self.name!r}, nodes={nodes}, payloads={len(self.payloads)})"
+
+    # --- poses ---------------------------------------------------------------------------
+
+    @property
+    def vertices_by_stamp(self) -> dict[Stamp, Vertex]:
+        """This mission's graph vertices by stamp (in a merged graph: only its own)."""
+        return dict(self._by_stamp)
+
+    def vertex_of(self, payload: Payload) -> Vertex | None:
+        """The graph node with the payload's stamp (None without a graph or match)."""
+        return self._by_stamp.get(payload.stamp)
+
+    def pose_of(self, payload: Payload) -> Matrix4:
+        """T_map_base of the payload: the graph vertex pose, or (no graph) the PCD VIEWPOINT.
+
+        A cloud without a graph and without a VIEWPOINT has the identity pose (PCD default).
+        """
+        if self.graph is not None:
+            vertex = self.vertex_of(payload)
+            if vertex is None:
+                raise OrphanPayloadError(
+                    f"no pose-graph node has the stamp {payload.stamp}", path=payload.path
+                )
+            return vertex.pose
+        pose = self._viewpoints.get(payload.path)
+        if pose is None:
+            header = read_cloud_header(payload.path)
+            pose = np.eye(4) if header.viewpoint is None else np.asarray(header.viewpoint, float)
+            self._viewpoints[payload.path] = pose
+        return pose
+
+    def trajectory(self) -> tuple[NDArray[np.int64], NDArray[np.float64]]:
+        """Node stamps (ns, int64) and map positions ``(N, 3)``, in time order.
+
+        Without a graph, the payload (or scan) poses stand in for the nodes.
+        """
+        if self.graph is not None and self._by_stamp:
+            vertices = sorted(self._by_stamp.values(), key=lambda v: v.stamp)
+            stamps = np.array([v.stamp.ns for v in vertices], dtype=np.int64)
+            return stamps, np.array([v.pose[:3, 3] for v in vertices], dtype=np.float64).reshape(
+                -1, 3
+            )
+        items = self.payloads or self.scans
+        stamps = np.array([p.stamp.ns for p in items], dtype=np.int64)
+        positions = np.array([self.pose_of(p)[:3, 3] for p in items], dtype=np.float64)
+        return stamps, positions.reshape(-1, 3)
+
+    # --- clouds --------------------------------------------------------------------------
+
+    def load_base(self, payload: Payload, layer: str | None = None) -> PointCloud:
+        """The payload (or one of its layers) in its node's base frame, float64, cached."""
+        path = payload.path if layer is None else self._layer_path(payload, layer)
+        key = (path, layer)
+        cloud = self._cache.get(key)
+        if cloud is not None:
+            return cloud
+        cloud = self.read_cloud(path)
+        frame = payload.frame if layer is None else "base"
+        if frame == "map":
+            cloud = cloud.transformed(invert_pose(self._source_poses[path]))
+        elif frame == "utm":
+            raise MissionConsistencyError(
+                "a UTM-frame cloud cannot be brought to the base frame without a georeference",
+                path=path,
+            )
+        self._cache.put(key, cloud)
+        return cloud
+
+    def load_payload(
+        self,
+        payload: Payload,
+        frame: Literal["map", "base"] = "map",
+        layer: str | None = None,
+    ) -> PointCloud:
+        """The payload cloud (or a layer of it) as float64, in the map or its base frame."""
+        if frame not in ("map", "base"):
+            raise ValueError(f"frame must be 'map' or 'base', not {frame!r}")
+        base = self.load_base(payload, layer)
+        if frame == "base":
+            return base
+        return base.transformed(self.pose_of(payload))
+
+    def iter_payload_clouds(
+        self, frame: Literal["map", "base"] = "map", layer: str | None = None
+    ) -> Iterator[tuple[Payload, PointCloud]]:
+        """``(payload, cloud)`` one payload at a time (payloads without a pose are skipped
+        only when the mission was opened non-strict; they are listed in ``problems``)."""
+        for payload in self.payloads:
+            if layer is not None and layer not in payload.layers:
+                continue
+            if frame == "map" and self.graph is not None and self.vertex_of(payload) is None:
+                if self.strict:
+                    self.pose_of(payload)  # raises OrphanPayloadError
+                continue
+            yield payload, self.load_payload(payload, frame, layer)
+
+    def _layer_path(self, payload: Payload, layer: str) -> Path:
+        try:
+            return payload.layers[layer]
+        except KeyError:
+            raise MissionConsistencyError(
+                f"payload has no layer {layer!r} (has {sorted(payload.layers)})", path=payload.path
+            ) from None
+
+    # --- re-alignment --------------------------------------------------------------------
+
+    def with_graph(self, graph: PoseGraph) -> Mission:
+        """A view of this mission re-aligned on ``graph`` (re-optimised, or a merged graph
+        whose vertices are matched to this mission's payloads by stamp). No cloud is re-read:
+        the base-frame cache is shared."""
+        problems = list(self.problems)
+        by_stamp = _vertices_by_stamp(graph)
+        dups = graph.duplicate_stamps()
+        own = {p.stamp for p in self.payloads} | {p.stamp for p in self.scans}
+        if self.graph is not None:
+            own |= set(_vertices_by_stamp(self.graph))
+        clashing = {s: ids for s, ids in dups.items() if s in own}
+        if clashing:
+            stamp, ids = next(iter(clashing.items()))
+            msg = f"vertices {ids} share the stamp {stamp}"
+            if self.strict:
+                raise DuplicateStampError(msg, path=graph.source)
+            problems.append(f"{graph.source}: {msg}")
+
+        def reattach(items: list[Payload]) -> list[Payload]:
+            out = []
+            for p in items:
+                vertex = by_stamp.get(p.stamp)
+                if vertex is None:
+                    _orphan(p, graph.source, self.strict, problems)
+                out.append(replace(p, node_id=None if vertex is None else vertex.id))
+            return out
+
+        view = Mission(
+            layout=self.layout,
+            metadata=self.metadata,
+            graph=graph,
+            payloads=reattach(self.payloads),
+            scans=reattach(self.scans),
+            gnss=self.gnss,
+            imu=self.imu,
+            images=self.images,
+            problems=problems,
+            strict=self.strict,
+            source_poses=self._source_poses,
+            cache=self._cache,
+            read_cloud_fn=self.read_cloud,
+        )
+        # Keep only this mission's vertices when matching (merged graphs hold others too).
+        view._by_stamp = {s: v for s, v in by_stamp.items() if s in own} if own else by_stamp
+        return view
+
+    # --- summary -------------------------------------------------------------------------
+
+    def summary(self) -> dict[str, Any]:
+        """Counts, time span and map extent, from headers only (no point is read)."""
+        graph = self.graph
+        edges: dict[str, int] = {}
+        if graph is not None:
+            edges = {str(kind): n for kind, n in sorted(graph.edge_counts().items())}
+        points = sum(read_cloud_header(p.path).points for p in self.payloads)
+        scan_points = sum(read_cloud_header(p.path).points for p in self.scans)
+        stamps, positions = self.trajectory()
+        all_ns = [int(s) for s in stamps]
+        all_ns += [p.stamp.ns for p in self.payloads + self.scans]
+        all_ns += [i.stamp.ns for i in self.images]
+        for log in (self.gnss, self.imu):
+            if log is not None and len(log):
+                all_ns += [int(log.stamps_ns.min()), int(log.stamps_ns.max())]
+        span = None
+        if all_ns:
+            first, last = Stamp.from_ns(min(all_ns)), Stamp.from_ns(max(all_ns))
+            span = {"start": str(first), "end": str(last), "seconds": (last.ns - first.ns) / 1e9}
+        extent = None
+        if len(positions):
+            extent = {"min": positions.min(axis=0).tolist(), "max": positions.max(axis=0).tolist()}
+        return {
+            "name": self.name,
+            "path": str(self.path),
+            "metadata": None if self.metadata is None else _metadata_dict(self.metadata),
+            "graph": None if graph is None or graph.source is None else str(graph.source),
+            "nodes": 0 if graph is None else len(graph),
+            "edges": edges,
+            "payloads": len(self.payloads),
+            "payload_folder": None
+            if self.layout.payload_source is None
+            else self.layout.payload_source.name,
+            "points": points,
+            "scans": len(self.scans),
+            "scan_points": scan_points,
+            "cloud_folders": {
+                f.name: len(f.files)
+                for f in (
+                    *self.layout.payload_folders,
+                    *self.layout.scan_folders,
+                    *self.layout.layer_folders,
+                )
+            },
+            "gnss_fixes": 0 if self.gnss is None else len(self.gnss),
+            "imu_samples": 0 if self.imu is None else len(self.imu),
+            "images": len(self.images),
+            "cameras": sorted({i.camera for i in self.images}),
+            "time_span": span,
+            "extent_map": extent,
+            "problems": list(self.problems),
+        }
+
+
+def _metadata_dict(meta: MissionMetadata) -> dict[str, Any]:
+    to_dict = getattr(meta, "to_dict", None)
+    if callable(to_dict):
+        return dict(to_dict())
+    import dataclasses
+
+    return dataclasses.asdict(meta) if dataclasses.is_dataclass(meta) else {"value": str(meta)}
+
+
+def _vertices_by_stamp(graph: PoseGraph | None) -> dict[Stamp, Vertex]:
+    """Stamp -> vertex, keeping the first vertex of a duplicated stamp."""
+    out: dict[Stamp, Vertex] = {}
+    if graph is not None:
+        for v in graph.vertices.values():
+            out.setdefault(v.stamp, v)
+    return out
+
+
+def _orphan(payload: Payload, graph_path: Path | None, strict: bool, problems: list[str]) -> None:
+    msg = f"no pose-graph node has the stamp {payload.stamp}"
+    if graph_path is not None:
+        msg += f" (graph {graph_path})"
+    if strict:
+        raise OrphanPayloadError(msg, path=payload.path)
+    problems.append(f"{payload.path}: {msg}")
+
+
+def _report(exc: StandgridError, strict: bool, problems: list[str]) -> None:
+    if strict:
+        raise exc
+    problems.append(str(exc))
+
+
+def _read_graph(layout: MissionLayout) -> PoseGraph | None:
+    if layout.graph is not None:
+        return read_pose_graph_file(layout.graph)
+    if layout.poses_csv is not None:
+        graph = read_poses_csv(layout.poses_csv).to_pose_graph()
+        if graph.source is None:
+            graph.source = layout.poses_csv
+        return graph
+    return None
+
+
+def read_pose_graph_file(path: Path) -> PoseGraph:
+    from standgrid.mission.posegraph import read_pose_graph
+
+    graph = read_pose_graph(path)
+    if graph.source is None:
+        graph.source = path
+    return graph
+
+
+def _read_metadata(
+    layout: MissionLayout, strict: bool, problems: list[str]
+) -> MissionMetadata | None:
+    if layout.metadata is not None:
+        try:
+            return read_metadata(layout.metadata)
+        except MetadataError as exc:
+            _report(exc, strict, problems)
+            return None
+    try:
+        return metadata_from_folder_name(layout.root)
+    except StandgridError:
+        return None  # an unconventional folder name simply carries no metadata
+
+
+def _cloud_payloads(
+    folder: CloudFolder | None,
+    kind: PayloadKind,
+    layers: dict[Stamp, dict[str, Path]],
+) -> list[Payload]:
+    if folder is None:
+        return []
+    return [
+        Payload(f.stamp, None, f.path, folder.frame, dict(layers.get(f.stamp, {})), kind)
+        for f in folder.files
+    ]
+
+
+def _attach(
+    items: list[Payload],
+    by_stamp: dict[Stamp, Vertex],
+    graph: PoseGraph | None,
+    strict: bool,
+    problems: list[str],
+) -> list[Payload]:
+    if graph is None:
+        return items
+    out = []
+    for p in items:
+        vertex = by_stamp.get(p.stamp)
+        if vertex is None:
+            _orphan(p, graph.source, strict, problems)
+        out.append(replace(p, node_id=None if vertex is None else vertex.id))
+    return out
+
+
+def _check_duplicates(items: list[Payload], strict: bool, problems: list[str]) -> list[Payload]:
+    """Two files of one folder with the same stamp (e.g. ``.pcd`` and ``.ply``)."""
+    seen: dict[Stamp, Payload] = {}
+    for p in items:
+        if p.stamp in seen:
+            exc = DuplicateStampError(
+                f"two files share the stamp {p.stamp}: {seen[p.stamp].path.name}, {p.path.name}",
+                path=p.path.parent,
+            )
+            _report(exc, strict, problems)
+        else:
+            seen[p.stamp] = p
+    return items
+
+
+def open_mission(
+    path: str | Path,
+    *,
+    strict: bool = True,
+    cache_points: int = DEFAULT_CACHE_POINTS,
+) -> Mission:
+    """Open a mission folder of any known layout.
+
+    ``strict`` raises on the first inconsistency (:class:`OrphanPayloadError`,
+    :class:`DuplicateStampError`, unreadable metadata); otherwise each is reported in
+    ``Mission.problems`` and the data is kept (orphan payloads with ``node_id=None``).
+    A missing folder, or one without any mission file, raises :class:`MissionNotFoundError`.
+    """
+    layout = discover_layout(path)
+    if not layout.is_mission:
+        raise MissionNotFoundError(
+            "no mission files (pose graph, pose CSV, metadata.yaml, cloud or sensor folders)",
+            path=layout.root,
+        )
+    problems: list[str] = []
+    metadata = _read_metadata(layout, strict, problems)
+    graph = _read_graph(layout)
+
+    dups = graph.duplicate_stamps() if graph is not None else {}
+    for stamp, ids in dups.items():
+        exc = DuplicateStampError(
+            f"vertices {ids} share the stamp {stamp}", path=graph.source if graph else None
+        )
+        _report(exc, strict, problems)
+    by_stamp = _vertices_by_stamp(graph)
+
+    layers: dict[Stamp, dict[str, Path]] = {}
+    for folder in layout.layer_folders:
+        for f in folder.files:
+            layers.setdefault(f.stamp, {})[layer_name(folder)] = f.path
+
+    source = layout.payload_source
+    payloads = _attach(
+        _check_duplicates(_cloud_payloads(source, "point_cloud", layers), strict, problems),
+        by_stamp,
+        graph,
+        strict,
+        problems,
+    )
+    scans = _attach(
+        _check_duplicates(_cloud_payloads(layout.scans, "scan", layers), strict, problems),
+        by_stamp,
+        graph,
+        strict,
+        problems,
+    )
+    attached = {p.stamp for p in payloads} | {p.stamp for p in scans}
+    for folder in layout.layer_folders:
+        for f in folder.files:
+            if f.stamp not in attached:
+                msg = f"layer cloud matches no payload or scan stamp {f.stamp}"
+                _report(OrphanPayloadError(msg, path=f.path), strict, problems)
+
+    source_poses: dict[Path, Matrix4] = {}
+    if source is not None and source.frame == "map":
+        for p in payloads:
+            vertex = by_stamp.get(p.stamp)
+            if vertex is not None:
+                source_poses[p.path] = vertex.pose
+            else:
+                header = read_cloud_header(p.path)
+                source_poses[p.path] = np.eye(4) if header.viewpoint is None else header.viewpoint
+
+    gnss: GnssFixes | None = None
+    if layout.gnss_log is not None:
+        gnss = read_gnss(layout.gnss_log)
+    elif layout.gnss_payloads:
+        gnss = concat_gnss([read_gnss(f.path) for f in layout.gnss_payloads])
+    imu: ImuSamples | None = None
+    if layout.imu_payloads:
+        imu = _concat_imu([read_imu(f.path) for f in layout.imu_payloads])
+    images = [
+        ImageRef(cam, f.stamp, f.path) for cam, files in layout.cameras.items() for f in files
+    ]
+    images.sort(key=lambda i: (i.stamp, i.camera))
+    if not strict:
+        problems += [
+            f"{extra}: file name carries no stamp; not read" for extra in layout.unrecognised
+        ]
+
+    return Mission(
+        layout=layout,
+        metadata=metadata,
+        graph=graph,
+        payloads=payloads,
+        scans=scans,
+        gnss=gnss,
+        imu=imu,
+        images=images,
+        problems=problems,
+        strict=strict,
+        source_poses=source_poses,
+        cache=CloudCache(cache_points),
+    )

@@ -1,0 +1,206 @@
+"""Retrieve a mission's payloads by data type, by map pose, or by GNSS coordinate."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+from standgrid.errors import NotGeoreferencedError, OrphanPayloadError, PayloadNotFoundError
+from standgrid.geometry import invert_pose, transform_points
+from standgrid.mission.model import Mission, Payload, PayloadKind, open_mission
+from standgrid.stamps import Stamp
+
+#: data_type aliases -> payload kind.
+DATA_TYPES: dict[str, PayloadKind] = {
+    "point_cloud": "point_cloud",
+    "pointcloud": "point_cloud",
+    "cloud": "point_cloud",
+    "lidar": "point_cloud",
+    "scan": "scan",
+    "gnss": "gnss",
+    "gps": "gnss",
+    "imu": "imu",
+    "image": "image",
+    "images": "image",
+    "camera": "image",
+}
+
+
+def _open(mission: str | Path | Mission) -> Mission:
+    return mission if isinstance(mission, Mission) else open_mission(mission, strict=False)
+
+
+def _node_ids(mission: Mission) -> dict[Stamp, int]:
+    return {v.stamp: v.id for v in mission.vertices_by_stamp.values()}
+
+
+def retrieve_payload_by_type(
+    mission_folder_path: str | Path | Mission, data_type: str
+) -> list[Payload]:
+    """All payload records of one data type, in stamp order.
+
+    ``data_type``: ``point_cloud`` (payload clouds), ``scan`` (per-node scans), ``gnss``,
+    ``imu``, ``image``/``camera``. GNSS and IMU records are the per-payload files
+    (``payloads/gnss``, ``payloads/imu``), or the full-rate ``gnss/fixes.txt`` as one record.
+    Raises :class:`PayloadNotFoundError` for an unknown type.
+    """
+    kind: PayloadKind | None = DATA_TYPES.get(data_type.lower().replace("-", "_"))
+    if kind is None:
+        raise PayloadNotFoundError(
+            f"unknown data type {data_type!r}; known: {', '.join(sorted(DATA_TYPES))}"
+        )
+    mission = _open(mission_folder_path)
+    layout = mission.layout
+    if kind == "point_cloud":
+        return list(mission.payloads)
+    if kind == "scan":
+        return list(mission.scans)
+    ids = _node_ids(mission)
+    if kind == "image":
+        return [
+            Payload(i.stamp, ids.get(i.stamp), i.path, "base", {}, "image", i.camera)
+            for i in mission.images
+        ]
+    files = layout.gnss_payloads if kind == "gnss" else layout.imu_payloads
+    records = [Payload(f.stamp, ids.get(f.stamp), f.path, "base", {}, kind) for f in files]
+    if (
+        kind == "gnss"
+        and layout.gnss_log is not None
+        and mission.gnss is not None
+        and len(mission.gnss)
+    ):
+        first = Stamp.from_ns(int(mission.gnss.stamps_ns[0]))
+        records.insert(0, Payload(first, ids.get(first), layout.gnss_log, "base", {}, "gnss"))
+    return records
+
+
+def _query_point(slam_pose: ArrayLike) -> NDArray[np.float64]:
+    arr = np.asarray(slam_pose, dtype=np.float64)
+    if arr.shape == (4, 4):
+        return arr[:3, 3].copy()
+    if arr.shape in ((3,), (2,)):
+        return np.append(arr, 0.0) if arr.shape == (2,) else arr
+    raise ValueError(f"slam_pose must be (x, y, z), (x, y) or a 4x4 pose, got shape {arr.shape}")
+
+
+def footprint(mission: Mission, payload: Payload) -> NDArray[np.float64]:
+    """Axis-aligned map-frame box ``[[xmin, ymin, zmin], [xmax, ymax, zmax]]`` of a payload:
+    the eight corners of its base-frame bounding box, transformed by its pose (conservative)."""
+    xyz = mission.load_base(payload).xyz
+    if len(xyz) == 0:
+        centre = mission.pose_of(payload)[:3, 3]
+        return np.stack([centre, centre])
+    lo, hi = xyz.min(axis=0), xyz.max(axis=0)
+    corners = np.array(
+        [[x, y, z] for x in (lo[0], hi[0]) for y in (lo[1], hi[1]) for z in (lo[2], hi[2])]
+    )
+    mapped = transform_points(mission.pose_of(payload), corners)
+    return np.stack([mapped.min(axis=0), mapped.max(axis=0)])
+
+
+def _posed(mission: Mission) -> tuple[list[Payload], NDArray[np.float64]]:
+    payloads: list[Payload] = []
+    positions: list[NDArray[np.float64]] = []
+    for p in mission.payloads:
+        try:
+            positions.append(mission.pose_of(p)[:3, 3])
+        except OrphanPayloadError:
+            continue  # no pose, cannot be found by pose (listed in mission.problems)
+        payloads.append(p)
+    return payloads, np.array(positions, dtype=np.float64).reshape(-1, 3)
+
+
+def retrieve_payload_by_pose(
+    mission_folder_path: str | Path | Mission,
+    slam_pose: ArrayLike,
+    *,
+    k: int = 1,
+    radius: float | None = None,
+    covering: bool = False,
+) -> list[Payload]:
+    """Payload clouds near a map-frame pose ``(x, y, z)`` or 4x4 T_map_base, nearest first.
+
+    Default: the ``k`` payloads whose node is nearest. ``radius``: every payload whose node
+    lies within ``radius`` metres. ``covering``: every payload whose map-frame footprint
+    (x/y of :func:`footprint`) contains the pose. Raises :class:`PayloadNotFoundError` when
+    nothing matches.
+    """
+    from scipy.spatial import cKDTree
+
+    mission = _open(mission_folder_path)
+    query = _query_point(slam_pose)
+    payloads, positions = _posed(mission)
+    if not payloads:
+        raise PayloadNotFoundError("mission has no payload with a pose", path=mission.path)
+    tree = cKDTree(positions)
+    if covering:
+        dist = np.linalg.norm(positions - query, axis=1)
+        hits = []
+        for idx in np.argsort(dist, kind="stable"):
+            box = footprint(mission, payloads[idx])
+            if np.all(box[0, :2] <= query[:2]) and np.all(query[:2] <= box[1, :2]):
+                hits.append(int(idx))
+    elif radius is not None:
+        found = tree.query_ball_point(query, r=radius)
+        dist = np.linalg.norm(positions[found] - query, axis=1) if found else np.empty(0)
+        hits = [int(found[i]) for i in np.argsort(dist, kind="stable")]
+    else:
+        if k < 1:
+            raise ValueError(f"k must be >= 1, got {k}")
+        _, idx = tree.query(query, k=min(k, len(payloads)))
+        hits = [int(i) for i in np.atleast_1d(idx)]
+    if not hits:
+        how = "covers" if covering else f"lies within {radius} m of"
+        raise PayloadNotFoundError(f"no payload {how} the pose {query.tolist()}", path=mission.path)
+    return [payloads[i] for i in hits]
+
+
+def retrieve_payload_by_gnss(
+    mission_folder_path: str | Path | Mission,
+    gnss: ArrayLike,
+    **by_pose: Any,
+) -> list[Payload]:
+    """Payloads near a GNSS coordinate ``(lat, lon[, alt])`` (WGS84 degrees, metres).
+
+    Needs a georeference: the mission is fitted with
+    ``standgrid.georeference.georeference_mission`` (its graph's GNSS anchor, or a fit of its
+    GNSS fixes) and the coordinate goes LLA -> ENU -> map before
+    :func:`retrieve_payload_by_pose` (keyword arguments are passed on). Raises
+    :class:`NotGeoreferencedError` (no GNSS and no anchor) or :class:`InsufficientGnssError`
+    when no georeference can be made.
+    """
+    coord = np.asarray(gnss, dtype=np.float64).ravel()
+    if coord.shape not in ((2,), (3,)):
+        raise ValueError(f"gnss must be (lat, lon) or (lat, lon, alt), got {coord.tolist()}")
+    mission = _open(mission_folder_path)
+    try:
+        from standgrid.georeference import georeference_mission, lla_to_enu
+    except ImportError:  # pragma: no cover - the georeference stage is part of the package
+        raise NotGeoreferencedError(
+            "retrieval by GNSS needs georeferencing (GNSS -> map), which is not available",
+            path=mission.path,
+        ) from None
+    xyz_map = gnss_to_map(mission, coord, georeference_mission, lla_to_enu)
+    return retrieve_payload_by_pose(mission, xyz_map, **by_pose)
+
+
+def gnss_to_map(
+    mission: Mission, coord: NDArray[np.float64], fit_fn: Any, lla_to_enu: Any
+) -> NDArray[np.float64]:
+    """``(lat, lon[, alt])`` -> map ``(x, y, z)`` through the mission's georeference fit.
+    Without an altitude the height of the trajectory node nearest in x/y is used."""
+    fit = fit_fn(mission)
+    lat, lon = coord[0], coord[1]
+    alt = coord[2] if len(coord) == 3 else float(fit.lla_ref[2])
+    e, n, u = lla_to_enu(np.array([lat]), np.array([lon]), np.array([alt]), fit.lla_ref)
+    enu = np.array([[float(e[0]), float(n[0]), float(u[0])]])
+    xyz = transform_points(invert_pose(fit.T_enu_map), enu)[0]
+    if len(coord) == 2:
+        _, positions = mission.trajectory()
+        if len(positions):
+            nearest = np.argmin(np.linalg.norm(positions[:, :2] - xyz[:2], axis=1))
+            xyz[2] = positions[nearest, 2]
+    return xyz

@@ -1,0 +1,94 @@
+"""CLI: standgrid info / missions / retrieve / payloads build, human and --json output."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import pytest
+from click.testing import CliRunner
+from mission_factory import make_mission
+
+from standgrid.cli import cli
+
+
+def run(*args: str) -> str:
+    result = CliRunner().invoke(cli, [str(a) for a in args])
+    assert result.exit_code == 0, result.output + repr(result.exception)
+    return result.stdout
+
+
+@pytest.mark.parametrize(
+    "command",
+    [
+        ["info"],
+        ["missions"],
+        ["retrieve"],
+        ["retrieve", "by-type"],
+        ["retrieve", "by-pose"],
+        ["retrieve", "by-gnss"],
+        ["payloads"],
+        ["payloads", "build"],
+    ],
+)
+def test_help_has_example(command: list[str]) -> None:
+    out = run(*command, "--help")
+    assert "Example:" in out
+
+
+def test_info(tmp_path: Path) -> None:
+    syn = make_mission(tmp_path, gnss=True, cameras=("front",))
+    data = json.loads(run("info", syn.path, "--json"))
+    assert data["nodes"] == 5 and data["payloads"] == 5 and data["points"] == 1000
+    assert data["gnss_fixes"] == 15 and data["images"] == 2
+    assert data["metadata"]["robot"] == "anymal"
+    human = run("info", syn.path)
+    assert "5 nodes" in human and "1,000 points" in human and "15 GNSS fixes" in human
+
+
+def test_info_reports_orphans_and_fails_strict(tmp_path: Path) -> None:
+    syn = make_mission(tmp_path)
+    src = syn.path / "payload_clouds" / syn.stamps[0].filename("cloud", "pcd")
+    orphan = syn.path / "payload_clouds" / "cloud_1900000000_000000000.pcd"
+    orphan.write_bytes(src.read_bytes())
+    assert orphan.name in run("info", syn.path)
+    result = CliRunner().invoke(cli, ["info", str(syn.path), "--strict"])
+    assert result.exit_code != 0 and "OrphanPayloadError" in result.output
+
+
+def test_missions(tmp_path: Path) -> None:
+    make_mission(tmp_path, "2023-01-13-wytham-anymal-coyote", n_nodes=2, gnss=True)
+    make_mission(tmp_path, "2024-04-21-stein-am-rhein-frontier-v15", n_nodes=2)
+    data = json.loads(run("missions", tmp_path, "--from", "2024-01-01", "--json"))
+    assert data["total"] == 2
+    assert [m["name"] for m in data["missions"]] == ["2024-04-21-stein-am-rhein-frontier-v15"]
+    data = json.loads(run("missions", tmp_path, "--sensor", "gnss", "--sensor", "lidar", "--json"))
+    assert [m["site"] for m in data["missions"]] == ["wytham"]
+    human = run("missions", tmp_path, "--robot", "frontier")
+    assert "stein-am-rhein" in human and "1 of 2 missions" in human
+
+
+def test_retrieve(tmp_path: Path) -> None:
+    syn = make_mission(tmp_path, n_nodes=4, spacing=10.0, cameras=("front",))
+    rows = json.loads(run("retrieve", "by-type", syn.path, "image", "--json"))
+    assert [r["sensor"] for r in rows] == ["front", "front"]
+    x, y, z = syn.poses[2, :3, 3]
+    rows = json.loads(run("retrieve", "by-pose", syn.path, x + 0.5, y, z, "--json"))
+    assert len(rows) == 1 and rows[0]["stamp_ns"] == syn.stamps[2].ns
+    assert rows[0]["distance_m"] == pytest.approx(0.5)
+    human = run("retrieve", "by-pose", syn.path, x, y, z, "-k", "2")
+    assert len(human.strip().splitlines()) == 2 and str(syn.stamps[2]) in human
+    result = CliRunner().invoke(cli, ["retrieve", "by-gnss", str(syn.path), "51.7", "-1.3"])
+    assert result.exit_code != 0 and "NotGeoreferencedError" in result.output
+
+
+def test_payloads_build(tmp_path: Path) -> None:
+    syn = make_mission(tmp_path / "in", n_nodes=8, spacing=2.0, cloud_folder="individual_clouds")
+    out = tmp_path / "out"
+    data = json.loads(run("payloads", "build", syn.path, "-o", out, "--distance", "5", "--json"))
+    assert data["payloads"] >= 2 and data["points"] == 8 * 200
+    assert (out / "payload_clouds").is_dir()
+    result = CliRunner().invoke(cli, ["payloads", "build", str(syn.path), "-o", str(out)])
+    assert result.exit_code != 0 and "OutputExistsError" in result.output
+    human = run("payloads", "build", syn.path, "-o", out, "--area", "100", "--overwrite")
+    assert human.startswith("1 payloads, 1,600 points")

@@ -1,0 +1,111 @@
+"""Seed retrieval API: by type, by map pose (cKDTree / footprint), by GNSS."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+from mission_factory import make_mission
+
+from standgrid.errors import NotGeoreferencedError, PayloadNotFoundError
+from standgrid.geometry import pose_matrix, transform_points
+from standgrid.mission.model import open_mission
+from standgrid.mission.retrieval import (
+    footprint,
+    retrieve_payload_by_gnss,
+    retrieve_payload_by_pose,
+    retrieve_payload_by_type,
+)
+from standgrid.mission.sensors import GnssFixes, write_gnss
+
+
+@pytest.fixture
+def mission(tmp_path: Path):  # type: ignore[no-untyped-def]
+    return make_mission(
+        tmp_path, n_nodes=6, spacing=10.0, gnss=True, imu=True, cameras=("front", "rear")
+    )
+
+
+def test_by_type(mission) -> None:  # type: ignore[no-untyped-def]
+    clouds = retrieve_payload_by_type(mission.path, "point_cloud")
+    assert [p.stamp for p in clouds] == mission.stamps
+    assert all(p.kind == "point_cloud" and p.node_id is not None for p in clouds)
+    images = retrieve_payload_by_type(mission.path, "camera")
+    assert len(images) == 4 and {p.sensor for p in images} == {"front", "rear"}
+    assert all(p.kind == "image" and p.path.suffix == ".png" for p in images)
+    assert images[0].node_id == 0  # images share the node stamps
+    imu = retrieve_payload_by_type(mission.path, "imu")
+    assert len(imu) == 2 and all(p.path.parent.name == "imu" for p in imu)
+    gnss = retrieve_payload_by_type(mission.path, "GNSS")
+    assert [p.path.name for p in gnss] == ["fixes.txt"]
+    assert retrieve_payload_by_type(mission.path, "scan") == []
+    with pytest.raises(PayloadNotFoundError, match="unknown data type"):
+        retrieve_payload_by_type(mission.path, "radar")
+
+
+def test_by_pose_nearest_and_radius(mission) -> None:  # type: ignore[no-untyped-def]
+    positions = mission.poses[:, :3, 3]
+    query = positions[3] + np.array([1.0, -0.5, 0.2])
+    (hit,) = retrieve_payload_by_pose(mission.path, query)
+    assert hit.stamp == mission.stamps[3]
+    two = retrieve_payload_by_pose(mission.path, query, k=2)
+    expected = np.argsort(np.linalg.norm(positions - query, axis=1))[:2]
+    assert [p.stamp for p in two] == [mission.stamps[i] for i in expected]
+    pose = np.eye(4)
+    pose[:3, 3] = positions[0]
+    assert retrieve_payload_by_pose(mission.path, pose)[0].stamp == mission.stamps[0]
+    within = retrieve_payload_by_pose(mission.path, positions[2], radius=10.5)
+    assert within[0].stamp == mission.stamps[2]
+    assert {p.stamp for p in within} == {mission.stamps[i] for i in (1, 2, 3)}
+    with pytest.raises(PayloadNotFoundError):
+        retrieve_payload_by_pose(mission.path, positions[0] + 1000.0, radius=5.0)
+
+
+def test_by_pose_covering_uses_map_footprint(mission) -> None:  # type: ignore[no-untyped-def]
+    m = open_mission(mission.path)
+    box = footprint(m, m.payloads[0])
+    cloud = m.load_payload(m.payloads[0], "map").xyz
+    assert np.all(box[0] <= cloud.min(axis=0) + 1e-9) and np.all(cloud.max(axis=0) <= box[1] + 1e-9)
+    # a point inside payload 0's cloud but nearer to no other node than it is covered by 0
+    inside = cloud[np.argmin(np.linalg.norm(cloud - cloud.mean(axis=0), axis=1))]
+    hits = retrieve_payload_by_pose(m, inside, covering=True)
+    assert mission.stamps[0] in {p.stamp for p in hits}
+    far = mission.poses[-1, :3, 3] + np.array([500.0, 0, 0])
+    with pytest.raises(PayloadNotFoundError):
+        retrieve_payload_by_pose(m, far, covering=True)
+    with pytest.raises(ValueError):
+        retrieve_payload_by_pose(m, [1.0, 2.0, 3.0, 4.0])
+
+
+def test_by_gnss_without_gnss_is_not_georeferenced(tmp_path: Path) -> None:
+    syn = make_mission(tmp_path, n_nodes=4)
+    with pytest.raises(NotGeoreferencedError, match="GNSS"):
+        retrieve_payload_by_gnss(syn.path, (51.77, -1.33))
+
+
+def test_by_gnss_with_consistent_fixes(tmp_path: Path) -> None:
+    from standgrid.georeference import enu_to_lla
+
+    syn = make_mission(tmp_path, n_nodes=14, spacing=8.0)
+    lla_ref = (51.77, -1.33, 120.0)
+    yaw = 0.7
+    T_enu_map = pose_matrix([30.0, -12.0, 4.0], [0.0, 0.0, np.sin(yaw / 2), np.cos(yaw / 2)])
+    enu = transform_points(T_enu_map, syn.poses[:, :3, 3])
+    lat, lon, alt = enu_to_lla(enu[:, 0], enu[:, 1], enu[:, 2], lla_ref)
+    k = len(syn.stamps)
+    fixes = GnssFixes(
+        np.array([s.ns for s in syn.stamps], dtype=np.int64),
+        lat,
+        lon,
+        alt,
+        np.full(k, 4, np.int8),
+        np.full(k, 0.02),
+        np.full(k, 0.05),
+    )
+    (syn.path / "gnss").mkdir()
+    write_gnss(fixes, syn.path / "gnss" / "fixes.txt")
+    (hit,) = retrieve_payload_by_gnss(syn.path, (float(lat[5]), float(lon[5]), float(alt[5])))
+    assert hit.stamp == syn.stamps[5]
+    two = retrieve_payload_by_gnss(syn.path, (float(lat[9]), float(lon[9])), k=2)
+    assert two[0].stamp == syn.stamps[9] and two[1].stamp in {syn.stamps[8], syn.stamps[10]}

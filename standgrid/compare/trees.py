@@ -1,0 +1,368 @@
+"""Match the trees of two epochs one to one: grown, new and removed trees.
+
+Definitions
+-----------
+Annualisation
+    Every ``*_per_year`` value is a change divided by the interval between the two epochs'
+    dates, in years = days / 365.25 (:func:`interval_years`; fractional days count when the
+    dates carry a time).
+
+Tree-matching rule
+    A tree of the *from* epoch and a tree of the *to* epoch are candidates when
+
+    * their horizontal distance is ``<= max_distance`` (default 2.0 m), and
+    * the tree did not shrink by more than ``max_height_loss`` (default 0.30, i.e. 30 %) of
+      its *from* height: a live tree does not lose a third of its height, so such a pair is
+      a fallen or broken tree beside a different tree, not one tree re-observed.
+
+    The cost of matching a candidate pair is::
+
+        (d / max_distance)^2 + (loss / max_height_loss)^2 + (gain / max_height_gain)^2
+
+    with ``d`` the horizontal distance, ``loss = max(0, (h_from - h_to) / h_from)`` and
+    ``gain = max(0, (h_to - h_from) / h_from)`` (relative height changes; ``max_height_gain``,
+    default 1.0 = a doubling, weighs growth but forbids nothing). Leaving a tree unmatched
+    costs 1.0, so a pair is matched only if its cost is below 2.0 (both trees unmatched) and
+    no competing assignment is cheaper; a pair within ``max_distance`` that shrank less than
+    ``max_height_loss`` and at most doubled is matched when it has no competitor. The
+    assignment minimising the total cost is solved exactly
+    (``scipy.optimize.linear_sum_assignment``) per connected group of candidates, so dense
+    neighbours with ambiguous candidates are resolved optimally, not greedily.
+
+    A matched pair whose height dropped by more than ``height_tolerance_m`` (default 0.5 m,
+    the height noise of a lidar tree top) is kept as ``grown`` but flagged ``suspicious``
+    (broken top, or a doubtful match).
+
+Statuses
+    ``grown``: matched (re-observed). ``new``: only in *to* (ingrowth, or a tree hidden
+    before). ``removed``: only in *from*, i.e. not re-observed within ``max_distance``:
+    harvested or fallen. A stand's harvest count is the number of removed trees whose
+    position lies inside the stand (see :mod:`standgrid.compare.stands`).
+"""
+
+from __future__ import annotations
+
+import datetime as dt
+from dataclasses import dataclass
+from typing import Any, TypeAlias
+
+import numpy as np
+import pandas as pd
+
+from standgrid.errors import FormatError, StandgridError
+
+DAYS_PER_YEAR = 365.25
+REQUIRED_TREE_COLUMNS = ("tree_id", "x", "y", "height_m")
+#: Numeric tree attributes compared between epochs (absent columns give null changes).
+TREE_ATTRIBUTES = ("height_m", "dbh_m", "crown_area_m2")
+STATUSES = ("grown", "new", "removed")
+UNMATCHED_COST = 1.0
+#: Components with more trees than this are solved sparse (dense needs (n+m)^2 floats).
+DENSE_LIMIT = 400
+
+DateLike: TypeAlias = dt.date | dt.datetime | str | np.datetime64 | pd.Timestamp
+
+
+class ChangeInputError(StandgridError, ValueError):
+    """Inputs of a comparison that cannot be compared (bad dates, missing columns, ...)."""
+
+
+def _timestamp(value: DateLike, name: str) -> pd.Timestamp:
+    try:
+        stamp = pd.Timestamp(value)
+    except (ValueError, TypeError) as exc:
+        raise ChangeInputError(f"{name}: not a date: {value!r}") from exc
+    if pd.isna(stamp):
+        raise ChangeInputError(f"{name}: not a date: {value!r}")
+    return stamp.tz_localize(None) if stamp.tzinfo is not None else stamp
+
+
+def interval_years(date_from: DateLike, date_to: DateLike) -> float:
+    """Years between two epoch dates: days / 365.25. ``date_to`` must be later."""
+    start = _timestamp(date_from, "date_from")
+    end = _timestamp(date_to, "date_to")
+    days = (end - start) / pd.Timedelta(days=1)
+    if days <= 0:
+        raise ChangeInputError(
+            f"date_to ({end.isoformat()}) must be after date_from ({start.isoformat()})"
+        )
+    return float(days / DAYS_PER_YEAR)
+
+
+@dataclass(frozen=True)
+class TreeMatches:
+    """The result of :func:`match_trees`.
+
+    ``table`` has one row per tree (a matched pair is one row): ``status``, ``tree_id_from``,
+    ``tree_id_to``, ``x``, ``y`` (the *to* position, or the *from* position of a removed
+    tree), ``x_from``, ``y_from``, ``x_to``, ``y_to``, ``distance_m``, and for each of
+    :data:`TREE_ATTRIBUTES` ``<a>_from``, ``<a>_to``, ``<a>_delta``, ``<a>_per_year``, then
+    ``suspicious``. Deltas are null unless the tree is ``grown``.
+    """
+
+    table: pd.DataFrame
+    years: float
+    date_from: pd.Timestamp
+    date_to: pd.Timestamp
+
+    def _of(self, status: str) -> pd.DataFrame:
+        return self.table[self.table["status"] == status]
+
+    @property
+    def grown(self) -> pd.DataFrame:
+        return self._of("grown")
+
+    @property
+    def new(self) -> pd.DataFrame:
+        return self._of("new")
+
+    @property
+    def removed(self) -> pd.DataFrame:
+        return self._of("removed")
+
+    def counts(self) -> dict[str, int]:
+        """Number of trees per status (every status present, zero when none)."""
+        counts = self.table["status"].value_counts()
+        return {status: int(counts.get(status, 0)) for status in STATUSES}
+
+
+def _check_trees(trees: pd.DataFrame, name: str) -> pd.DataFrame:
+    missing = [c for c in REQUIRED_TREE_COLUMNS if c not in trees.columns]
+    if missing:
+        raise FormatError(f"{name}: tree table lacks column(s) {', '.join(missing)}")
+    trees = trees.reset_index(drop=True)
+    xyh = trees[["x", "y", "height_m"]].to_numpy(dtype=np.float64)
+    bad = ~np.isfinite(xyh).all(axis=1)
+    if bad.any():
+        first = int(np.flatnonzero(bad)[0])
+        raise FormatError(
+            f"{name}: {int(bad.sum())} tree(s) with non-finite x, y or height_m "
+            f"(first: row {first}, tree_id {trees['tree_id'].iloc[first]!r})"
+        )
+    if trees["tree_id"].duplicated().any():
+        dup = trees["tree_id"][trees["tree_id"].duplicated()].iloc[0]
+        raise FormatError(f"{name}: duplicate tree_id {dup!r}")
+    return trees
+
+
+def _pair_costs(
+    h_from: np.ndarray,
+    h_to: np.ndarray,
+    distance: np.ndarray,
+    *,
+    max_distance: float,
+    max_height_loss: float,
+    max_height_gain: float,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Cost of each candidate pair and whether the pair is allowed (see module docstring)."""
+    base = np.where(h_from > 0, h_from, np.nan)
+    relative = (h_to - h_from) / base
+    relative = np.nan_to_num(relative, nan=0.0)
+    loss = np.maximum(0.0, -relative)
+    gain = np.maximum(0.0, relative)
+    allowed = loss <= max_height_loss
+    cost = (
+        (distance / max_distance) ** 2
+        + (loss / max_height_loss) ** 2
+        + (gain / max_height_gain) ** 2
+    )
+    return cost, allowed
+
+
+def _solve_dense(
+    nr: int, nc: int, r: np.ndarray, c: np.ndarray, w: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """One component, dense square augmentation solved by ``linear_sum_assignment``."""
+    from scipy.optimize import linear_sum_assignment
+
+    forbidden = 1e6  # larger than any total of allowed costs in one component
+    matrix = np.full((nr + nc, nc + nr), forbidden)
+    matrix[r, c] = w
+    matrix[np.arange(nr), nc + np.arange(nr)] = UNMATCHED_COST  # from tree unmatched
+    matrix[nr + np.arange(nc), np.arange(nc)] = UNMATCHED_COST  # to tree unmatched
+    matrix[nr:, nc:] = 0.0
+    row_ind, col_ind = linear_sum_assignment(matrix)
+    real = (row_ind < nr) & (col_ind < nc) & (matrix[row_ind, col_ind] < forbidden)
+    return row_ind[real], col_ind[real]
+
+
+def _solve_sparse(
+    nr: int, nc: int, r: np.ndarray, c: np.ndarray, w: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """One large component: the same augmentation kept sparse (memory ~ candidate pairs).
+
+    Rows: from trees, then one dummy per to tree; columns: to trees, then one dummy per
+    from tree. Edges: candidate pairs (cost w), tree -> own dummy (unmatched cost), and
+    dummy -> dummy along each candidate pair reversed (cost 0). Every edge gets the same
+    +1 offset (a full matching has nr + nc edges, so the optimum is unchanged) because
+    the sparse solver cannot store zero weights.
+    """
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import min_weight_full_bipartite_matching
+
+    size = nr + nc
+    rows = np.concatenate([r, np.arange(nr), nr + np.arange(nc), nr + c])
+    cols = np.concatenate([c, nc + np.arange(nr), np.arange(nc), nc + r])
+    weights = 1.0 + np.concatenate(
+        [w, np.full(nr, UNMATCHED_COST), np.full(nc, UNMATCHED_COST), np.zeros(len(r))]
+    )
+    graph = coo_matrix((weights, (rows, cols)), shape=(size, size)).tocsr()
+    row_ind, col_ind = min_weight_full_bipartite_matching(graph)
+    real = (row_ind < nr) & (col_ind < nc)
+    return row_ind[real], col_ind[real]
+
+
+def _assign(
+    n_from: int, n_to: int, rows: np.ndarray, cols: np.ndarray, cost: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """Optimal partial one-to-one assignment over sparse candidate pairs.
+
+    Solved per connected component of the candidate graph, each with the square
+    "unmatched" augmentation (dummy rows/columns at :data:`UNMATCHED_COST`): dense for
+    components up to :data:`DENSE_LIMIT` trees, sparse above (a very dense stand can link
+    thousands of trees into one component).
+    """
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components
+
+    if len(rows) == 0:
+        return np.empty(0, np.int64), np.empty(0, np.int64)
+    size = n_from + n_to
+    graph = coo_matrix(
+        (np.ones(len(rows)), (rows, cols + n_from)), shape=(size, size)
+    ).tocsr()
+    _, labels = connected_components(graph, directed=False)
+    pair_component = labels[rows]
+    order = np.argsort(pair_component, kind="stable")
+    splits = np.flatnonzero(np.diff(pair_component[order])) + 1
+    matched_from: list[np.ndarray] = []
+    matched_to: list[np.ndarray] = []
+    for group in np.split(order, splits):
+        r, c, w = rows[group], cols[group], cost[group]
+        if len(group) == 1:  # lone pair: match it when cheaper than two unmatched trees
+            keep = w < 2 * UNMATCHED_COST
+            matched_from.append(r[keep])
+            matched_to.append(c[keep])
+            continue
+        ur, r_local = np.unique(r, return_inverse=True)
+        uc, c_local = np.unique(c, return_inverse=True)
+        solve = _solve_dense if len(ur) + len(uc) <= DENSE_LIMIT else _solve_sparse
+        i, j = solve(len(ur), len(uc), r_local, c_local, w)
+        matched_from.append(ur[i])
+        matched_to.append(uc[j])
+    return np.concatenate(matched_from), np.concatenate(matched_to)
+
+
+def _nullable_ids(values: pd.Series, index: np.ndarray, present: np.ndarray) -> pd.Series:
+    """Ids taken at ``index`` where ``present``, null elsewhere, keeping integer ids integer."""
+    picked = values.to_numpy()[np.where(present, index, 0)] if len(values) else None
+    if picked is None:
+        return pd.Series([pd.NA] * len(index), dtype="object")
+    series = pd.Series(picked)
+    if pd.api.types.is_integer_dtype(values.dtype):
+        series = series.astype("Int64")
+    else:
+        series = series.astype("object")
+    series[~present] = pd.NA
+    return series
+
+
+def match_trees(
+    trees_from: pd.DataFrame,
+    trees_to: pd.DataFrame,
+    *,
+    date_from: DateLike,
+    date_to: DateLike,
+    max_distance: float = 2.0,
+    max_height_loss: float = 0.30,
+    max_height_gain: float = 1.0,
+    height_tolerance_m: float = 0.5,
+) -> TreeMatches:
+    """Match trees of two epochs one to one (rule and thresholds: module docstring).
+
+    Tree tables need ``tree_id``, ``x``, ``y`` (float64, projected metres) and ``height_m``;
+    ``dbh_m`` and ``crown_area_m2`` are compared when present. Other columns are ignored.
+    """
+    from scipy.spatial import cKDTree
+
+    if not max_distance > 0 or not 0 < max_height_loss < 1 or not max_height_gain > 0:
+        raise ChangeInputError(
+            "need max_distance > 0, 0 < max_height_loss < 1 and max_height_gain > 0"
+        )
+    years = interval_years(date_from, date_to)
+    a = _check_trees(trees_from, "trees_from")
+    b = _check_trees(trees_to, "trees_to")
+    xy_a = a[["x", "y"]].to_numpy(dtype=np.float64)
+    xy_b = b[["x", "y"]].to_numpy(dtype=np.float64)
+    h_a = a["height_m"].to_numpy(dtype=np.float64)
+    h_b = b["height_m"].to_numpy(dtype=np.float64)
+
+    if len(a) and len(b):
+        neighbours = cKDTree(xy_b).query_ball_point(xy_a, r=max_distance)
+        counts = np.fromiter((len(n) for n in neighbours), np.int64, len(neighbours))
+        rows = np.repeat(np.arange(len(a), dtype=np.int64), counts)
+        cols = np.fromiter(
+            (j for n in neighbours for j in n), np.int64, int(counts.sum())
+        )
+    else:
+        rows = cols = np.empty(0, np.int64)
+    distance = np.hypot(*(xy_b[cols] - xy_a[rows]).T) if len(rows) else np.empty(0)
+    cost, allowed = _pair_costs(
+        h_a[rows],
+        h_b[cols],
+        distance,
+        max_distance=max_distance,
+        max_height_loss=max_height_loss,
+        max_height_gain=max_height_gain,
+    )
+    match_a, match_b = _assign(
+        len(a), len(b), rows[allowed], cols[allowed], cost[allowed]
+    )
+
+    unmatched_a = np.setdiff1d(np.arange(len(a)), match_a)
+    unmatched_b = np.setdiff1d(np.arange(len(b)), match_b)
+    idx_a = np.concatenate([match_a, np.full(len(unmatched_b), -1), unmatched_a])
+    idx_b = np.concatenate([match_b, unmatched_b, np.full(len(unmatched_a), -1)])
+    status = np.array(
+        ["grown"] * len(match_a) + ["new"] * len(unmatched_b) + ["removed"] * len(unmatched_a),
+        dtype=object,
+    )
+    has_a = idx_a >= 0
+    has_b = idx_b >= 0
+
+    def take(frame: pd.DataFrame, column: str, index: np.ndarray, present: np.ndarray) -> Any:
+        out = np.full(len(index), np.nan)
+        if column in frame.columns and len(frame):
+            values = pd.to_numeric(frame[column], errors="coerce").to_numpy(np.float64)
+            out[present] = values[index[present]]
+        return out
+
+    table = pd.DataFrame(
+        {
+            "status": pd.Series(status, dtype="object"),
+            "tree_id_from": _nullable_ids(a["tree_id"], idx_a, has_a),
+            "tree_id_to": _nullable_ids(b["tree_id"], idx_b, has_b),
+        }
+    )
+    x_from, y_from = take(a, "x", idx_a, has_a), take(a, "y", idx_a, has_a)
+    x_to, y_to = take(b, "x", idx_b, has_b), take(b, "y", idx_b, has_b)
+    table["x"] = np.where(has_b, x_to, x_from)
+    table["y"] = np.where(has_b, y_to, y_from)
+    table["x_from"], table["y_from"], table["x_to"], table["y_to"] = x_from, y_from, x_to, y_to
+    table["distance_m"] = np.hypot(x_to - x_from, y_to - y_from)
+    for attribute in TREE_ATTRIBUTES:
+        before = take(a, attribute, idx_a, has_a)
+        after = take(b, attribute, idx_b, has_b)
+        table[f"{attribute}_from"] = before
+        table[f"{attribute}_to"] = after
+        table[f"{attribute}_delta"] = after - before
+        table[f"{attribute}_per_year"] = (after - before) / years
+    table["suspicious"] = (table["status"] == "grown") & (
+        table["height_m_delta"] < -height_tolerance_m
+    )
+    return TreeMatches(
+        table=table,
+        years=years,
+        date_from=_timestamp(date_from, "date_from"),
+        date_to=_timestamp(date_to, "date_to"),
+    )

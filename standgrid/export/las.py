@@ -1,0 +1,423 @@
+"""LAS 1.4 / LAZ tile writer and reader (laspy + lazrs).
+
+A tile holds the *core* points of one cell followed by its *buffer* points (neighbours'
+points within the buffer distance) with the LAS ``withheld`` flag set, so a reader drops
+them exactly. Point data record format 6, or 7 when the cloud has ``red``/``green``/``blue``.
+
+Field mapping (``PointCloud.fields`` -> LAS):
+
+- ``gps_time`` (adjusted standard GPS time; the global-encoding GPS-time-type bit is set),
+  ``point_source_id`` (uint16, the mission number), ``classification``, ``return_number``,
+  ``number_of_returns`` (both default to 1), ``user_data``, ``scan_angle``,
+  ``scan_direction_flag``, ``edge_of_flight_line``, ``synthetic``, ``key_point``,
+  ``overlap``, ``scanner_channel``, ``red``/``green``/``blue`` -> the LAS dimension of the
+  same name (values must fit its type, otherwise ``PointCloudFormatError``).
+- ``intensity``: unsigned integers of at most 16 bits are stored as they are. Any other
+  dtype (float reflectivity, signed or wide integers) is stored as
+  ``clip(round(value * intensity_scale), 0, 65535)`` in the LAS intensity, *and* the exact
+  values are kept in the extra dimension ``intensity_raw`` so nothing is lost;
+  :func:`read_tile` gives the exact values back as ``intensity``.
+- ``payload_id`` and every other field -> an extra-bytes dimension of the same dtype
+  (bool is stored as uint8 and restored as bool; (N, k<=3) arrays as k-vectors).
+- ``withheld`` is not taken from the fields: core points are never withheld, buffer points
+  always are.
+
+A private VLR (user id ``standgrid``) records the written field names and dtypes, so
+:func:`read_tile` returns exactly the fields that were written.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+
+from standgrid._atomic import atomic_output
+from standgrid.errors import CRSError, PointCloudFormatError
+from standgrid.pointcloud import PointCloud
+
+#: Coordinate resolution of every tile (1 mm).
+SCALE = 0.001
+#: Private VLR holding the field manifest.
+VLR_USER_ID = "standgrid"
+VLR_RECORD_ID = 1
+GENERATING_SOFTWARE = "standgrid"
+INT32_MAX = 2**31 - 1
+
+#: Fields copied into the LAS dimension of the same name.
+_STANDARD_FIELDS = (
+    "gps_time",
+    "point_source_id",
+    "classification",
+    "return_number",
+    "number_of_returns",
+    "user_data",
+    "scan_angle",
+    "scan_direction_flag",
+    "edge_of_flight_line",
+    "synthetic",
+    "key_point",
+    "overlap",
+    "scanner_channel",
+)
+_COLOUR_FIELDS = ("red", "green", "blue")
+_LAS_DIMENSION_NAMES = frozenset(
+    {"x", "y", "z", "intensity", "withheld", *_STANDARD_FIELDS, *_COLOUR_FIELDS}
+)
+#: Integer range each standard field must fit.
+_RANGES: dict[str, tuple[float, float]] = {
+    "point_source_id": (0, 65535),
+    "classification": (0, 255),
+    "return_number": (0, 15),
+    "number_of_returns": (0, 15),
+    "user_data": (0, 255),
+    "scan_angle": (-32768, 32767),
+    "scan_direction_flag": (0, 1),
+    "edge_of_flight_line": (0, 1),
+    "synthetic": (0, 1),
+    "key_point": (0, 1),
+    "overlap": (0, 1),
+    "scanner_channel": (0, 3),
+    "red": (0, 65535),
+    "green": (0, 65535),
+    "blue": (0, 65535),
+}
+
+
+@dataclass(frozen=True)
+class TileInfo:
+    """What :func:`write_tile` wrote: counts, core bounds and z statistics."""
+
+    path: Path
+    core_count: int
+    buffer_count: int
+    #: (xmin, ymin, zmin, xmax, ymax, zmax) of the core points (NaN when there are none).
+    bounds: tuple[float, ...]
+    #: The same over every point in the file, buffer included (what the LAS header says).
+    file_bounds: tuple[float, ...]
+    z_min: float
+    z_max: float
+    z_mean: float
+    z_p95: float
+    point_format: int
+    compressed: bool
+    crs: str
+    #: The cell polygon passed in (shapely geometry) or None.
+    core_bounds: Any = None
+    #: Core point count per ``point_source_id`` (mission number).
+    points_per_source: dict[int, int] = field(default_factory=dict)
+
+    @property
+    def point_count(self) -> int:
+        return self.core_count + self.buffer_count
+
+    def vpc_entry(
+        self, datetime: str | None = None
+    ) -> tuple[Path, tuple[float, ...], str, int, str | None]:
+        """``(path, file_bounds, crs, point_count, datetime)``: one tile for ``write_vpc``."""
+        return (self.path, self.file_bounds, self.crs, self.point_count, datetime)
+
+
+def _crs_wkt(crs: str) -> tuple[Any, str]:
+    import pyproj
+
+    try:
+        parsed = pyproj.CRS.from_user_input(crs)
+    except pyproj.exceptions.CRSError as exc:
+        raise CRSError(f"unusable CRS {crs!r}: {exc}") from exc
+    # LAS 1.4 asks for OGC WKT; WKT1 (GDAL flavour) is what most LAS readers parse, WKT2
+    # is the fall-back for CRSs that WKT1 cannot express.
+    wkt = parsed.to_wkt(pyproj.enums.WktVersion.WKT1_GDAL) or parsed.to_wkt()
+    return parsed, wkt
+
+
+def _column_bounds(xyz: NDArray[np.float64]) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    """Per-axis (min, max) of an (N, 3) array; reduces contiguous columns (fast)."""
+    if not len(xyz):
+        return np.full(3, np.nan), np.full(3, np.nan)
+    columns = np.ascontiguousarray(xyz.T)
+    return columns.min(axis=1), columns.max(axis=1)
+
+
+def _check_range(name: str, values: NDArray[Any], path: Path) -> None:
+    lo, hi = _RANGES[name]
+    if values.size and (np.nanmin(values) < lo or np.nanmax(values) > hi):
+        raise PointCloudFormatError(
+            f"field {name!r} has values in [{np.nanmin(values)}, {np.nanmax(values)}], "
+            f"outside the LAS range [{lo:g}, {hi:g}]",
+            path=path,
+        )
+
+
+def _intensity_is_native(values: NDArray[Any]) -> bool:
+    return values.dtype.kind in "ub" and values.dtype.itemsize <= 2
+
+
+def _extra_type(name: str, values: NDArray[Any], path: Path) -> str:
+    """The laspy extra-bytes type string for a field (``"u4"``, ``"3f8"``)."""
+    dtype = np.dtype(bool) if values.dtype == np.bool_ else values.dtype
+    base = "u1" if dtype == np.bool_ else dtype.str.lstrip("<>|=")
+    if dtype.kind not in "biuf" or dtype.itemsize > 8:
+        raise PointCloudFormatError(
+            f"field {name!r} of dtype {values.dtype} cannot be stored as LAS extra bytes", path=path
+        )
+    if values.ndim == 1:
+        return base
+    if values.ndim == 2 and 1 <= values.shape[1] <= 3:
+        return f"{values.shape[1]}{base}"
+    raise PointCloudFormatError(
+        f"field {name!r} has shape {values.shape[1:]} per point; LAS extra bytes hold at most 3",
+        path=path,
+    )
+
+
+def write_tile(
+    path: str | os.PathLike[str],
+    core: PointCloud,
+    *,
+    crs: str,
+    buffer: PointCloud | None = None,
+    laz: bool | None = None,
+    core_bounds: Any = None,
+    intensity_scale: float = 1.0,
+    overwrite: bool = True,
+) -> TileInfo:
+    """Write ``core`` (+ ``buffer`` points flagged withheld) as one LAS 1.4 tile.
+
+    ``laz`` defaults to the suffix (``.laz`` compressed). Coordinates are stored at 1 mm with
+    a per-tile offset (the tile minimum floored to the metre). ``core`` and ``buffer`` must
+    carry the same field names. A single cloud with a bool ``withheld`` field (and no
+    ``buffer``) is split by it. Written atomically; returns a :class:`TileInfo`.
+    """
+    import laspy
+
+    out = Path(path)
+    if laz is None:
+        laz = out.suffix.lower() == ".laz"
+    if buffer is None and "withheld" in core.fields:  # a combined cloud (CellPoints.combined())
+        flags = np.asarray(core.fields["withheld"], dtype=bool)
+        if flags.any():
+            core, buffer = core.select(~flags), core.select(flags)
+    buffer = (
+        buffer
+        if buffer is not None
+        else PointCloud.empty({k: v.dtype for k, v in core.fields.items()})
+    )
+    core_fields = {k: v for k, v in core.fields.items() if k != "withheld"}
+    buffer_fields = {k: v for k, v in buffer.fields.items() if k != "withheld"}
+    if "withheld" in core.fields and np.any(core.fields["withheld"]):
+        raise PointCloudFormatError("core points must not be withheld", path=out)
+    if len(buffer) and set(core_fields) != set(buffer_fields):
+        raise PointCloudFormatError(
+            f"core fields {sorted(core_fields)} differ from buffer fields {sorted(buffer_fields)}",
+            path=out,
+        )
+    n_core, n_buffer = len(core), len(buffer)
+    xyz = np.concatenate([core.xyz, buffer.xyz]) if n_buffer else core.xyz
+    if not np.all(np.isfinite(xyz)):
+        raise PointCloudFormatError("non-finite coordinates", path=out)
+    fields: dict[str, NDArray[Any]] = {
+        name: (np.concatenate([values, buffer_fields[name]]) if n_buffer else values)
+        for name, values in core_fields.items()
+    }
+    has_colour = all(c in fields for c in _COLOUR_FIELDS)
+    point_format = 7 if has_colour else 6
+
+    parsed_crs, wkt = _crs_wkt(crs)
+    header = laspy.LasHeader(point_format=point_format, version="1.4")
+    header.generating_software = GENERATING_SOFTWARE
+    header.system_identifier = "standgrid tile"
+    header.global_encoding.gps_time_type = laspy.header.GpsTimeType.STANDARD
+    header.add_crs(parsed_crs)
+    for vlr in header.vlrs:
+        if isinstance(vlr, laspy.vlrs.known.WktCoordinateSystemVlr):
+            vlr.string = wkt
+
+    core_lo, core_hi = _column_bounds(core.xyz)
+    all_lo, all_hi = core_lo, core_hi
+    if n_buffer:
+        buffer_lo, buffer_hi = _column_bounds(buffer.xyz)
+        all_lo, all_hi = np.fmin(core_lo, buffer_lo), np.fmax(core_hi, buffer_hi)
+    offsets = np.floor(all_lo) if len(xyz) else np.zeros(3)
+    if len(xyz):
+        span = np.round((all_hi - offsets) / SCALE)
+        if np.any(span > INT32_MAX):
+            raise PointCloudFormatError(
+                f"tile spans {(all_hi - offsets).max():.0f} m: too large for 1 mm "
+                "coordinates in LAS int32",
+                path=out,
+            )
+    header.offsets = offsets
+    header.scales = np.full(3, SCALE)
+
+    # Decide where every field goes before allocating the record.
+    manifest: dict[str, str] = {}
+    extra: dict[str, NDArray[Any]] = {}
+    for name, values in fields.items():
+        manifest[name] = (
+            values.dtype.str if values.ndim == 1 else f"{values.shape[1]}{values.dtype.str}"
+        )
+        if name == "intensity":
+            if not _intensity_is_native(values):
+                extra["intensity_raw"] = values
+        elif name in _COLOUR_FIELDS:
+            if not has_colour:
+                extra[name] = values
+        elif name not in _LAS_DIMENSION_NAMES:
+            extra[name] = values
+    for name, values in extra.items():
+        if len(name.encode()) > 32:
+            raise PointCloudFormatError(
+                f"field name {name!r} is longer than the 32 bytes LAS extra bytes allow", path=out
+            )
+        header.add_extra_dim(
+            laspy.ExtraBytesParams(
+                name=name,
+                type=_extra_type(name, values, out),
+                description="bool" if values.dtype == np.bool_ else "",
+            )
+        )
+    header.vlrs.append(
+        laspy.VLR(
+            VLR_USER_ID,
+            VLR_RECORD_ID,
+            "standgrid field manifest",
+            json.dumps({"fields": manifest, "intensity_scale": intensity_scale}).encode(),
+        )
+    )
+
+    n = len(xyz)
+    las = laspy.LasData(header, laspy.ScaleAwarePointRecord.zeros(n, header=header))
+    las.X = np.round((xyz[:, 0] - offsets[0]) / SCALE).astype(np.int32)
+    las.Y = np.round((xyz[:, 1] - offsets[1]) / SCALE).astype(np.int32)
+    las.Z = np.round((xyz[:, 2] - offsets[2]) / SCALE).astype(np.int32)
+    las.return_number = np.ones(n, np.uint8)
+    las.number_of_returns = np.ones(n, np.uint8)
+    for name in (*_STANDARD_FIELDS, *(_COLOUR_FIELDS if has_colour else ())):
+        if name in fields:
+            values = fields[name]
+            if name in _RANGES:
+                _check_range(name, values, out)
+            las[name] = values
+    if "intensity" in fields:
+        values = fields["intensity"]
+        if _intensity_is_native(values):
+            las.intensity = values.astype(np.uint16)
+        else:
+            scaled = np.round(values.astype(np.float64) * intensity_scale)
+            las.intensity = np.clip(np.nan_to_num(scaled), 0, 65535).astype(np.uint16)
+    for name, values in extra.items():
+        las[name] = values.astype(np.uint8) if values.dtype == np.bool_ else values
+    if n_buffer:
+        withheld = np.zeros(n, dtype=np.uint8)
+        withheld[n_core:] = 1
+        las.withheld = withheld
+
+    backend = laspy.LazBackend.LazrsParallel if laz else None
+    # A file object: given a path, laspy picks compression from the (temporary) suffix.
+    with atomic_output(out, overwrite=overwrite) as tmp, open(tmp, "wb") as stream:
+        las.write(stream, do_compress=bool(laz), laz_backend=backend)
+
+    z = core.xyz[:, 2]
+    if n_core:
+        bounds = (*map(float, core_lo), *map(float, core_hi))
+        z_stats = (
+            float(core_lo[2]),
+            float(core_hi[2]),
+            float(z.mean()),
+            float(np.percentile(z, 95)),
+        )
+    else:
+        bounds = (float("nan"),) * 6
+        z_stats = (float("nan"),) * 4
+    if n:
+        # rounding is monotonic: the stored extremes are the rounded true extremes
+        file_lo = offsets + np.round((all_lo - offsets) / SCALE) * SCALE
+        file_hi = offsets + np.round((all_hi - offsets) / SCALE) * SCALE
+        file_bounds = (*map(float, file_lo), *map(float, file_hi))
+    else:
+        file_bounds = (float("nan"),) * 6
+    per_source: dict[int, int] = {}
+    if "point_source_id" in core.fields and n_core:
+        counts = np.bincount(core.fields["point_source_id"].astype(np.int64), minlength=1)
+        per_source = {int(i): int(counts[i]) for i in np.flatnonzero(counts)}
+    return TileInfo(
+        path=out,
+        core_count=n_core,
+        buffer_count=n_buffer,
+        bounds=bounds,
+        file_bounds=file_bounds,
+        z_min=z_stats[0],
+        z_max=z_stats[1],
+        z_mean=z_stats[2],
+        z_p95=z_stats[3],
+        point_format=point_format,
+        compressed=bool(laz),
+        crs=crs,
+        core_bounds=core_bounds,
+        points_per_source=per_source,
+    )
+
+
+def _manifest(las: Any) -> dict[str, str] | None:
+    for vlr in las.header.vlrs:
+        if getattr(vlr, "user_id", None) == VLR_USER_ID and vlr.record_id == VLR_RECORD_ID:
+            data = json.loads(bytes(vlr.record_data).decode())
+            return dict(data["fields"])
+    return None
+
+
+def read_tile(path: str | os.PathLike[str], *, include_withheld: bool = False) -> PointCloud:
+    """Read a tile (or any LAS/LAZ) into a :class:`PointCloud`.
+
+    Withheld points are dropped unless ``include_withheld`` (then a bool ``withheld`` field
+    tells them apart). Tiles from :func:`write_tile` give back exactly the fields written,
+    with their dtypes; other files give the common LAS dimensions plus extra bytes.
+    """
+    import laspy
+
+    src = Path(path)
+    try:
+        las = laspy.read(src)
+    except (laspy.errors.LaspyException, OSError, ValueError) as exc:
+        raise PointCloudFormatError(f"cannot read LAS/LAZ: {exc}", path=src) from exc
+    withheld = np.asarray(las.withheld, dtype=bool)
+    keep = slice(None) if include_withheld else ~withheld
+    xyz = np.column_stack([np.asarray(las.x), np.asarray(las.y), np.asarray(las.z)])[keep]
+    dims = set(las.point_format.dimension_names)
+    extra_names = list(las.point_format.extra_dimension_names)
+    manifest = _manifest(las)
+    fields: dict[str, NDArray[Any]] = {}
+    if manifest is None:
+        names = [
+            n
+            for n in (
+                "intensity",
+                "gps_time",
+                "point_source_id",
+                "classification",
+                "return_number",
+                "number_of_returns",
+                *_COLOUR_FIELDS,
+            )
+            if n in dims
+        ] + extra_names
+        for name in names:
+            fields[name] = np.asarray(las[name])[keep]
+    else:
+        for name, dtype_text in manifest.items():
+            if name == "intensity" and "intensity_raw" in extra_names:
+                source = "intensity_raw"
+            else:
+                source = name
+            values = np.asarray(las[source])[keep]
+            dtype = np.dtype(dtype_text.lstrip("0123456789"))
+            fields[name] = values.astype(dtype, copy=False)
+    if include_withheld:
+        fields["withheld"] = withheld
+    return PointCloud(xyz, fields)

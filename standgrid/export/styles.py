@@ -1,0 +1,393 @@
+"""QGIS default styles inside a GeoPackage (the ``layer_styles`` table) and QML builders.
+
+QGIS loads the row of ``layer_styles`` with ``useAsDefault`` for a layer when the layer is
+opened, so every layer of the index opens styled. :func:`add_layer_style` is the one helper
+every stage uses to add a style; the builders return QGIS 3 QML text:
+
+- :func:`load_qml` — the fixed styles shipped in ``standgrid/export/styles/*.qml``
+  (``cells``, ``payloads``, ``gnss_fixes``);
+- :func:`categorized_style` — one colour per value (trajectories by mission);
+- :func:`graduated_style` — equal-interval classes over a sequential ramp (density,
+  canopy height; see :func:`stand_metric_style`);
+- :func:`diverging_style` — classes symmetric around a centre on the RdBu ramp (change).
+"""
+
+from __future__ import annotations
+
+import os
+import sqlite3
+import xml.etree.ElementTree as ET
+from collections.abc import Sequence
+from importlib import resources
+from pathlib import Path
+
+from standgrid.errors import CatalogError
+
+QGIS_VERSION = "3.28.0-Firenze"
+STYLE_TABLE = "layer_styles"
+
+#: ColorBrewer RdBu (11 classes), red = negative (loss), blue = positive (gain).
+RDBU = (
+    "#67001f", "#b2182b", "#d6604d", "#f4a582", "#fddbc7", "#f7f7f7",
+    "#d1e5f0", "#92c5de", "#4393c3", "#2166ac", "#053061",
+)  # fmt: skip
+#: viridis, 5 stops (canopy height and other stand metrics).
+VIRIDIS = ("#440154", "#3b528b", "#21918c", "#5ec962", "#fde725")
+#: ColorBrewer YlOrRd (5 classes), for point density.
+YLORRD = ("#ffffb2", "#fecc5c", "#fd8d3c", "#f03b20", "#bd0026")
+#: ColorBrewer Set1 + Dark2: distinct colours for categories (cycled).
+CATEGORY_COLOURS = (
+    "#e41a1c", "#377eb8", "#4daf4a", "#984ea3", "#ff7f00", "#a65628", "#f781bf",
+    "#1b9e77", "#d95f02", "#7570b3", "#e7298a", "#66a61e", "#e6ab02",
+)  # fmt: skip
+
+_GEOMETRY_TYPE = {"point": "0", "line": "1", "polygon": "2"}
+_SYMBOL_TYPE = {"point": "marker", "line": "line", "polygon": "fill"}
+
+_CREATE_TABLE = f"""
+CREATE TABLE IF NOT EXISTS "{STYLE_TABLE}" (
+  "id" INTEGER PRIMARY KEY AUTOINCREMENT NOT NULL,
+  "f_table_catalog" TEXT(256),
+  "f_table_schema" TEXT(256),
+  "f_table_name" TEXT(256),
+  "f_geometry_column" TEXT(256),
+  "styleName" TEXT(30),
+  "styleQML" TEXT,
+  "styleSLD" TEXT,
+  "useAsDefault" BOOLEAN,
+  "description" TEXT,
+  "owner" TEXT(30),
+  "ui" TEXT(30),
+  "update_time" DATETIME DEFAULT (strftime('%Y-%m-%dT%H:%M:%fZ','now'))
+)"""
+
+STYLE_COLUMNS = (
+    "id", "f_table_catalog", "f_table_schema", "f_table_name", "f_geometry_column",
+    "styleName", "styleQML", "styleSLD", "useAsDefault", "description", "owner", "ui",
+    "update_time",
+)  # fmt: skip
+
+
+# --- the layer_styles table --------------------------------------------------------------
+
+
+def add_layer_style(
+    gpkg_path: str | os.PathLike[str],
+    layer_name: str,
+    qml: str,
+    *,
+    style_name: str | None = None,
+    sld: str = "",
+    default: bool = True,
+    description: str = "",
+) -> None:
+    """Create or update the style ``style_name`` (default: the layer name) of a GeoPackage layer.
+
+    Creates ``layer_styles`` as QGIS does (registered in ``gpkg_contents`` as an attributes
+    table). With ``default`` the style becomes the layer's only default style. Raises
+    :class:`CatalogError` when the file or the layer is missing.
+    """
+    path = Path(gpkg_path)
+    if not path.is_file():
+        raise CatalogError("GeoPackage not found", path=path)
+    name = style_name or layer_name
+    try:
+        with sqlite3.connect(path) as db:
+            row = db.execute(
+                "SELECT data_type FROM gpkg_contents WHERE table_name = ?", (layer_name,)
+            ).fetchone()
+            if row is None or layer_name == STYLE_TABLE:
+                raise CatalogError(f"no layer {layer_name!r} to style", path=path)
+            geom = db.execute(
+                "SELECT column_name FROM gpkg_geometry_columns WHERE table_name = ?", (layer_name,)
+            ).fetchone()
+            geometry_column = geom[0] if geom else ""
+            db.execute(_CREATE_TABLE)
+            db.execute(
+                "INSERT INTO gpkg_contents (table_name, data_type, identifier, description, "
+                "last_change) SELECT ?, 'attributes', ?, '', "
+                "strftime('%Y-%m-%dT%H:%M:%fZ','now') WHERE NOT EXISTS "
+                "(SELECT 1 FROM gpkg_contents WHERE table_name = ?)",
+                (STYLE_TABLE, STYLE_TABLE, STYLE_TABLE),
+            )
+            if default:
+                db.execute(
+                    f'UPDATE "{STYLE_TABLE}" SET useAsDefault = 0 WHERE f_table_name = ?',
+                    (layer_name,),
+                )
+            existing = db.execute(
+                f'SELECT id FROM "{STYLE_TABLE}" WHERE f_table_name = ? AND styleName = ?',
+                (layer_name, name),
+            ).fetchone()
+            values = (qml, sld, int(default), description, geometry_column)
+            if existing:
+                db.execute(
+                    f'UPDATE "{STYLE_TABLE}" SET styleQML = ?, styleSLD = ?, useAsDefault = ?, '
+                    "description = ?, f_geometry_column = ?, "
+                    "update_time = strftime('%Y-%m-%dT%H:%M:%fZ','now') WHERE id = ?",
+                    (*values, existing[0]),
+                )
+            else:
+                db.execute(
+                    f'INSERT INTO "{STYLE_TABLE}" (f_table_catalog, f_table_schema, f_table_name, '
+                    "f_geometry_column, styleName, styleQML, styleSLD, useAsDefault, description, "
+                    "owner, ui) VALUES ('', '', ?, ?, ?, ?, ?, ?, ?, '', '')",
+                    (layer_name, geometry_column, name, qml, sld, int(default), description),
+                )
+    except sqlite3.DatabaseError as exc:
+        raise CatalogError(f"cannot write layer style: {exc}", path=path) from exc
+
+
+# --- QML builders ------------------------------------------------------------------------
+
+
+def load_qml(name: str) -> str:
+    """A fixed style shipped with standgrid (``cells``, ``payloads``, ``gnss_fixes``)."""
+    return (resources.files("standgrid.export") / "styles" / f"{name}.qml").read_text("utf-8")
+
+
+def _rgba(colour: str, alpha: int = 255) -> str:
+    c = colour.lstrip("#")
+    return f"{int(c[0:2], 16)},{int(c[2:4], 16)},{int(c[4:6], 16)},{alpha}"
+
+
+def _options(parent: ET.Element, **values: str) -> None:
+    opts = ET.SubElement(parent, "Option", type="Map")
+    for key, value in values.items():
+        ET.SubElement(opts, "Option", name=key, type="QString", value=value)
+
+
+def _symbol(
+    geometry: str, colour: str, *, name: str, alpha: int = 255, outline: str = "#232323",
+    no_fill: bool = False, width: float = 0.26, size: float = 2.0,
+) -> ET.Element:  # fmt: skip
+    symbol = ET.Element(
+        "symbol", type=_SYMBOL_TYPE[geometry], name=name, alpha="1", clip_to_extent="1",
+        force_rhr="0", frame_rate="10", is_animated="0",
+    )  # fmt: skip
+    if geometry == "polygon":
+        layer = ET.SubElement(symbol, "layer", {"class": "SimpleFill"}, enabled="1", pass_="0")
+        _options(
+            layer, color=_rgba(colour, alpha), outline_color=_rgba(outline),
+            outline_style="solid", outline_width=f"{width:g}", outline_width_unit="MM",
+            style="no" if no_fill else "solid", joinstyle="bevel",
+        )  # fmt: skip
+    elif geometry == "line":
+        layer = ET.SubElement(symbol, "layer", {"class": "SimpleLine"}, enabled="1", pass_="0")
+        _options(
+            layer, line_color=_rgba(colour, alpha), line_style="solid",
+            line_width=f"{width:g}", line_width_unit="MM", capstyle="round", joinstyle="round",
+        )  # fmt: skip
+    else:
+        layer = ET.SubElement(symbol, "layer", {"class": "SimpleMarker"}, enabled="1", pass_="0")
+        _options(
+            layer, color=_rgba(colour, alpha), name="circle", outline_color=_rgba(outline),
+            outline_style="solid", outline_width="0.1", outline_width_unit="MM",
+            size=f"{size:g}", size_unit="MM",
+        )  # fmt: skip
+    for el in symbol.iter("layer"):  # "pass" is a Python keyword
+        el.set("pass", el.attrib.pop("pass_"))
+        el.set("locked", "0")
+    return symbol
+
+
+def _document(renderer: ET.Element, geometry: str, label: ET.Element | None = None) -> str:
+    root = ET.Element(
+        "qgis", version=QGIS_VERSION, styleCategories="AllStyleCategories",
+        labelsEnabled="1" if label is not None else "0",
+    )  # fmt: skip
+    root.append(renderer)
+    if label is not None:
+        root.append(label)
+    ET.SubElement(root, "blendMode").text = "0"
+    ET.SubElement(root, "featureBlendMode").text = "0"
+    ET.SubElement(root, "layerOpacity").text = "1"
+    ET.SubElement(root, "layerGeometryType").text = _GEOMETRY_TYPE[geometry]
+    ET.indent(root)
+    body = ET.tostring(root, encoding="unicode")
+    return "<!DOCTYPE qgis PUBLIC 'http://mrcc.com/qgis.dtd' 'SYSTEM'>\n" + body + "\n"
+
+
+def _renderer(kind: str, **attrs: str) -> ET.Element:
+    base = {"type": kind, "symbollevels": "0", "enableorderby": "0", "forceraster": "0",
+            "referencescale": "-1"}  # fmt: skip
+    return ET.Element("renderer-v2", {**base, **attrs})
+
+
+def _labeling(field: str, geometry: str, size: float = 8.0) -> ET.Element:
+    labeling = ET.Element("labeling", type="simple")
+    settings = ET.SubElement(labeling, "settings", calloutType="simple")
+    ET.SubElement(
+        settings, "text-style", fieldName=field, isExpression="0", fontFamily="Sans Serif",
+        fontSize=f"{size:g}", fontSizeUnit="Point", textColor="0,0,0,255", textOpacity="1",
+        fontWeight="50", fontItalic="0", namedStyle="Regular",
+    )  # fmt: skip
+    ET.SubElement(
+        settings, "text-buffer", bufferDraw="1", bufferSize="0.8", bufferSizeUnits="MM",
+        bufferColor="255,255,255,255", bufferOpacity="0.8", bufferJoinStyle="128",
+    )  # fmt: skip
+    placement = {"polygon": "1", "line": "2", "point": "0"}[geometry]
+    ET.SubElement(settings, "placement", placement=placement, dist="0", priority="5")
+    ET.SubElement(
+        settings, "rendering", obstacle="1", scaleVisibility="0", fontLimitPixelSize="0",
+        displayAll="0", labelPerPart="0",
+    )  # fmt: skip
+    return labeling
+
+
+def single_style(
+    geometry: str, colour: str, *, alpha: int = 255, no_fill: bool = False,
+    outline: str = "#232323", width: float = 0.26, label_field: str | None = None,
+) -> str:  # fmt: skip
+    """One symbol for every feature, optionally labelled with ``label_field``."""
+    renderer = _renderer("singleSymbol")
+    symbols = ET.SubElement(renderer, "symbols")
+    symbols.append(
+        _symbol(
+            geometry, colour, name="0", alpha=alpha, no_fill=no_fill, outline=outline, width=width
+        )
+    )
+    label = _labeling(label_field, geometry) if label_field else None
+    return _document(renderer, geometry, label)
+
+
+def categorized_style(
+    field: str,
+    values: Sequence[object],
+    *,
+    geometry: str,
+    labels: Sequence[str] | None = None,
+    colours: Sequence[str] | None = None,
+    width: float = 0.6,
+) -> str:
+    """One colour per value of ``field`` (e.g. trajectories by ``mission``)."""
+    palette = list(colours) if colours else list(CATEGORY_COLOURS)
+    names = list(labels) if labels else [str(v) for v in values]
+    renderer = _renderer("categorizedSymbol", attr=field)
+    categories = ET.SubElement(renderer, "categories")
+    symbols = ET.SubElement(renderer, "symbols")
+    for i, (value, label) in enumerate(zip(values, names, strict=True)):
+        ET.SubElement(
+            categories, "category", value=str(value), symbol=str(i), label=label, render="true"
+        )
+        symbols.append(_symbol(geometry, palette[i % len(palette)], name=str(i), width=width))
+    source = ET.SubElement(renderer, "source-symbol")
+    source.append(_symbol(geometry, "#808080", name="0", width=width))
+    return _document(renderer, geometry)
+
+
+def _interpolate(ramp: Sequence[str], t: float) -> str:
+    """Linear interpolation along a list of ``#rrggbb`` stops, ``t`` in [0, 1]."""
+    t = min(max(t, 0.0), 1.0) * (len(ramp) - 1)
+    i = min(int(t), len(ramp) - 2)
+    f = t - i
+    a = [int(ramp[i].lstrip("#")[k : k + 2], 16) for k in (0, 2, 4)]
+    b = [int(ramp[i + 1].lstrip("#")[k : k + 2], 16) for k in (0, 2, 4)]
+    return "#" + "".join(f"{round(x + (y - x) * f):02x}" for x, y in zip(a, b, strict=True))
+
+
+def _colour_ramp(ramp: Sequence[str]) -> ET.Element:
+    element = ET.Element("colorramp", type="gradient", name="[source]")
+    stops = ":".join(
+        f"{i / (len(ramp) - 1):.4f};{_rgba(c)}" for i, c in enumerate(ramp[1:-1], start=1)
+    )
+    _options(
+        element, color1=_rgba(ramp[0]), color2=_rgba(ramp[-1]), discrete="0",
+        rampType="gradient", stops=stops,
+    )  # fmt: skip
+    return element
+
+
+def graduated_style(
+    field: str,
+    vmin: float,
+    vmax: float,
+    *,
+    classes: int = 5,
+    geometry: str = "polygon",
+    ramp: Sequence[str] = VIRIDIS,
+    alpha: int = 255,
+    precision: int = 2,
+) -> str:
+    """Equal-interval classes of ``field`` between ``vmin`` and ``vmax`` on ``ramp``.
+
+    The lowest class starts at -inf and the highest ends at +inf, so no feature goes unstyled.
+    """
+    if not vmax > vmin:
+        vmax = vmin + 1.0
+    edges = [vmin + (vmax - vmin) * i / classes for i in range(classes + 1)]
+    renderer = _renderer("graduatedSymbol", attr=field, graduatedMethod="GraduatedColor")
+    ranges = ET.SubElement(renderer, "ranges")
+    symbols = ET.SubElement(renderer, "symbols")
+    for i in range(classes):
+        lower = -1e300 if i == 0 else edges[i]
+        upper = 1e300 if i == classes - 1 else edges[i + 1]
+        label = f"{edges[i]:.{precision}f} - {edges[i + 1]:.{precision}f}"
+        ET.SubElement(
+            ranges, "range", lower=f"{lower:.15g}", upper=f"{upper:.15g}", symbol=str(i),
+            label=label, render="true", uuid=f"range-{i}",
+        )  # fmt: skip
+        colour = _interpolate(ramp, (i + 0.5) / classes)
+        symbols.append(_symbol(geometry, colour, name=str(i), alpha=alpha, outline="#606060"))
+    source = ET.SubElement(renderer, "source-symbol")
+    source.append(_symbol(geometry, ramp[0], name="0", alpha=alpha))
+    renderer.append(_colour_ramp(ramp))
+    ET.SubElement(renderer, "classificationMethod", id="EqualInterval")
+    return _document(renderer, geometry)
+
+
+def diverging_style(
+    field: str,
+    vmin: float,
+    vmax: float,
+    *,
+    centre: float = 0.0,
+    classes: int = 7,
+    geometry: str = "polygon",
+    ramp: Sequence[str] = RDBU,
+    alpha: int = 255,
+    precision: int = 2,
+) -> str:
+    """Classes symmetric around ``centre`` on the RdBu ramp (loss red, gain blue).
+
+    The half-width is ``max(|vmin - centre|, |vmax - centre|)`` so equal changes get equal
+    colour strength on either side; ``classes`` is made odd so one class holds ``centre``.
+    """
+    half = max(abs(vmin - centre), abs(vmax - centre)) or 1.0
+    classes = classes if classes % 2 else classes + 1
+    return graduated_style(
+        field, centre - half, centre + half, classes=classes, geometry=geometry, ramp=ramp,
+        alpha=alpha, precision=precision,
+    )  # fmt: skip
+
+
+def stand_metric_style(field: str, vmin: float, vmax: float, *, classes: int = 5) -> str:
+    """Stand metric polygons (e.g. canopy height) on viridis."""
+    return graduated_style(field, vmin, vmax, classes=classes, geometry="polygon", ramp=VIRIDIS)
+
+
+def density_style(vmin: float, vmax: float, *, field: str = "density") -> str:
+    """Cells by point density (points per m²), YlOrRd, semi-transparent."""
+    return graduated_style(field, vmin, vmax, classes=5, ramp=YLORRD, alpha=180, precision=0)
+
+
+def _builtin_styles() -> dict[str, str]:
+    """The fixed styles as shipped in ``styles/*.qml`` (see :func:`write_builtin_styles`)."""
+    return {
+        "cells": single_style("polygon", "#ffffff", no_fill=True, outline="#303030", width=0.4,
+                              label_field="cell_id"),
+        "payloads": single_style("polygon", "#4393c3", alpha=60, outline="#2166ac", width=0.2),
+        # an expression, so the style works whether OGR reads ``inlier`` as bool or integer
+        "gnss_fixes": categorized_style(
+            "if(\"inlier\", 'inlier', 'rejected')", ["inlier", "rejected"], geometry="point",
+            colours=["#1a9641", "#d7191c"],
+        ),
+    }  # fmt: skip
+
+
+def write_builtin_styles(folder: Path | None = None) -> None:
+    """Regenerate the shipped ``styles/*.qml`` from :func:`_builtin_styles`."""
+    target = folder or Path(__file__).with_name("styles")
+    target.mkdir(exist_ok=True)
+    for style_name, text in _builtin_styles().items():
+        (target / f"{style_name}.qml").write_text(text, encoding="utf-8")

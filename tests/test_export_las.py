@@ -1,0 +1,205 @@
+"""LAS/LAZ tile writer: written with write_tile, checked with laspy directly and read_tile."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import laspy
+import numpy as np
+import pyproj
+import pytest
+from shapely.geometry import box
+
+from standgrid.errors import CRSError, PointCloudFormatError
+from standgrid.export.las import read_tile, write_tile
+from standgrid.pointcloud import PointCloud
+from standgrid.stamps import unix_ns_to_adjusted_gps_time
+from tests.conftest import real_file
+
+CRS = "EPSG:32632"
+
+
+def make_cloud(n: int, seed: int = 0, *, colour: bool = False, source: int = 3) -> PointCloud:
+    rng = np.random.default_rng(seed)
+    xyz = rng.uniform([500_000.0, 6_000_000.0, 100.0], [500_025.0, 6_000_025.0, 130.0], (n, 3))
+    fields: dict[str, np.ndarray] = {
+        "intensity": rng.uniform(0.0, 1.0, n).astype(np.float32),
+        "gps_time": unix_ns_to_adjusted_gps_time(
+            1_700_000_000_000_000_000 + rng.integers(0, 10**10, n)
+        ),
+        "point_source_id": np.full(n, source, np.uint16),
+        "payload_id": rng.integers(0, 2**32 - 1, n, dtype=np.uint32),
+        "normal_x": rng.normal(size=n).astype(np.float32),
+        "ring": rng.integers(0, 128, n).astype(np.uint16),
+        "valid": rng.random(n) > 0.5,
+    }
+    if colour:
+        for c in ("red", "green", "blue"):
+            fields[c] = rng.integers(0, 65535, n).astype(np.uint16)
+    return PointCloud(xyz, fields)
+
+
+@pytest.mark.parametrize("suffix", [".las", ".laz"])
+def test_header_and_points_read_back_with_laspy(tmp_path: Path, suffix: str) -> None:
+    core = make_cloud(2000)
+    buffer = make_cloud(300, seed=1, source=4)
+    path = tmp_path / f"tile{suffix}"
+    cell = box(500_000, 6_000_000, 500_025, 6_000_025)
+    info = write_tile(path, core, crs=CRS, buffer=buffer, core_bounds=cell)
+
+    las = laspy.read(path)
+    h = las.header
+    assert (h.version.major, h.version.minor) == (1, 4)
+    assert h.point_format.id == 6
+    with laspy.open(path) as reader:
+        assert reader.header.are_points_compressed == (suffix == ".laz")
+    assert h.point_count == 2300
+    assert h.global_encoding.wkt
+    assert h.global_encoding.gps_time_type == laspy.header.GpsTimeType.STANDARD
+    assert h.parse_crs().to_epsg() == 32632
+    assert pyproj.CRS(h.parse_crs()) == pyproj.CRS(CRS)
+    np.testing.assert_allclose(h.scales, [0.001] * 3)
+    np.testing.assert_array_equal(h.offsets, [500_000.0, 6_000_000.0, 100.0])
+    all_xyz = np.concatenate([core.xyz, buffer.xyz])
+    np.testing.assert_allclose(h.mins, all_xyz.min(axis=0), atol=5e-4)
+    np.testing.assert_allclose(h.maxs, all_xyz.max(axis=0), atol=5e-4)
+    assert h.number_of_points_by_return[0] == 2300
+
+    xyz = np.column_stack([las.x, las.y, las.z])
+    assert np.abs(xyz - all_xyz).max() <= 0.0005 + 1e-9
+    withheld = np.asarray(las.withheld, dtype=bool)
+    assert not withheld[:2000].any() and withheld[2000:].all()
+    np.testing.assert_array_equal(las.point_source_id, np.r_[np.full(2000, 3), np.full(300, 4)])
+    np.testing.assert_array_equal(las.gps_time[:2000], core.fields["gps_time"])
+    np.testing.assert_array_equal(las.payload_id[:2000], core.fields["payload_id"])
+    assert las.payload_id.dtype == np.uint32
+    np.testing.assert_array_equal(las.ring[:2000], core.fields["ring"])
+    # float intensity: scaled by intensity_scale (1.0) and clipped into uint16; exact copy kept
+    np.testing.assert_array_equal(
+        las.intensity[:2000], np.round(core.fields["intensity"]).astype(np.uint16)
+    )
+    np.testing.assert_array_equal(las.intensity_raw[:2000], core.fields["intensity"])
+
+    assert info.core_count == 2000 and info.buffer_count == 300
+    assert info.bounds == pytest.approx((*core.xyz.min(axis=0), *core.xyz.max(axis=0)), abs=1e-12)
+    assert info.z_p95 == pytest.approx(np.percentile(core.xyz[:, 2], 95))
+    assert info.z_mean == pytest.approx(core.xyz[:, 2].mean())
+    assert info.core_bounds is cell
+    assert info.points_per_source == {3: 2000}
+
+
+@pytest.mark.parametrize("suffix", [".las", ".laz"])
+def test_read_tile_round_trip_drops_withheld_exactly(tmp_path: Path, suffix: str) -> None:
+    core = make_cloud(1500, colour=True)
+    buffer = make_cloud(200, seed=5, colour=True, source=9)
+    path = tmp_path / f"tile{suffix}"
+    info = write_tile(path, core, crs=CRS, buffer=buffer)
+    assert info.point_format == 7
+
+    back = read_tile(path)
+    assert len(back) == 1500
+    assert np.abs(back.xyz - core.xyz).max() <= 0.0005 + 1e-9
+    assert set(back.fields) == set(core.fields)
+    for name, values in core.fields.items():
+        assert back.fields[name].dtype == values.dtype, name
+        np.testing.assert_array_equal(back.fields[name], values, err_msg=name)
+
+    everything = read_tile(path, include_withheld=True)
+    assert len(everything) == 1700
+    np.testing.assert_array_equal(
+        everything.fields["withheld"], np.r_[np.zeros(1500), np.ones(200)]
+    )
+    np.testing.assert_array_equal(everything.fields["point_source_id"][1500:], 9)
+
+
+def test_integer_intensity_and_classification_stored_natively(tmp_path: Path) -> None:
+    rng = np.random.default_rng(2)
+    n = 500
+    cloud = PointCloud(
+        rng.uniform(0, 50, (n, 3)) + np.array([300_000, 5_000_000, 0]),
+        {
+            "intensity": rng.integers(0, 65535, n).astype(np.uint16),
+            "classification": rng.choice([1, 2], n).astype(np.uint8),
+        },
+    )
+    write_tile(tmp_path / "t.las", cloud, crs="EPSG:25833")
+    las = laspy.read(tmp_path / "t.las")
+    assert "intensity_raw" not in set(las.point_format.extra_dimension_names)
+    np.testing.assert_array_equal(las.intensity, cloud.fields["intensity"])
+    np.testing.assert_array_equal(las.classification, cloud.fields["classification"])
+    assert not np.asarray(las.withheld).any()
+
+
+def test_laz_flag_overrides_suffix_and_multi_component_fields(tmp_path: Path) -> None:
+    rng = np.random.default_rng(3)
+    n = 100
+    normals = rng.normal(size=(n, 3))
+    cloud = PointCloud(rng.uniform(0, 10, (n, 3)), {"normal": normals})
+    path = tmp_path / "tile.bin"
+    write_tile(path, cloud, crs="EPSG:32632", laz=True)
+    with laspy.open(path) as reader:
+        assert reader.header.are_points_compressed
+    back = read_tile(path)
+    np.testing.assert_array_equal(back.fields["normal"], normals)
+
+
+def test_bad_inputs_raise_typed_errors(tmp_path: Path) -> None:
+    cloud = make_cloud(10)
+    with pytest.raises(CRSError):
+        write_tile(tmp_path / "a.las", cloud, crs="EPSG:999999")
+    too_big = cloud.with_fields(point_source_id=np.full(10, 70_000, np.uint32))
+    with pytest.raises(PointCloudFormatError, match="point_source_id"):
+        write_tile(tmp_path / "b.las", too_big, crs=CRS)
+    wide = PointCloud(np.array([[0.0, 0.0, 0.0], [3.0e6, 0.0, 0.0]]))
+    with pytest.raises(PointCloudFormatError, match="int32"):
+        write_tile(tmp_path / "c.las", wide, crs=CRS)
+    with pytest.raises(PointCloudFormatError, match="withheld"):
+        flagged = cloud.with_fields(withheld=np.ones(10, bool))
+        write_tile(tmp_path / "d.las", flagged, crs=CRS, buffer=cloud)
+    with pytest.raises(PointCloudFormatError, match="buffer fields"):
+        write_tile(tmp_path / "e.las", cloud, crs=CRS, buffer=PointCloud(cloud.xyz))
+    long_name = cloud.with_fields(**{"x" * 33: np.zeros(10)})
+    with pytest.raises(PointCloudFormatError, match="32 bytes"):
+        write_tile(tmp_path / "f.las", long_name, crs=CRS)
+    assert not any(tmp_path.iterdir())  # nothing half-written left behind
+
+
+def test_combined_cloud_is_split_by_withheld(tmp_path: Path) -> None:
+    core, buffer = make_cloud(50), make_cloud(20, seed=8)
+    flags = np.r_[np.zeros(50, bool), np.ones(20, bool)]
+    combined = PointCloud.concat([core, buffer]).with_fields(withheld=flags)
+    info = write_tile(tmp_path / "c.laz", combined, crs=CRS)
+    assert (info.core_count, info.buffer_count) == (50, 20)
+    las = laspy.read(tmp_path / "c.laz")
+    np.testing.assert_array_equal(np.asarray(las.withheld, dtype=bool), flags)
+    assert len(read_tile(tmp_path / "c.laz")) == 50
+
+
+def test_empty_tile(tmp_path: Path) -> None:
+    info = write_tile(tmp_path / "e.laz", PointCloud.empty(), crs=CRS)
+    assert info.core_count == 0 and np.isnan(info.z_mean)
+    assert laspy.read(tmp_path / "e.laz").header.point_count == 0
+
+
+def test_read_tile_unreadable_file(tmp_path: Path) -> None:
+    bad = tmp_path / "bad.las"
+    bad.write_bytes(b"not a las file at all")
+    with pytest.raises(PointCloudFormatError, match=r"bad\.las"):
+        read_tile(bad)
+
+
+@pytest.mark.realdata
+def test_real_als_plot_round_trip(tmp_path: Path) -> None:
+    source = real_file("als/lidR/MixedConifer.laz")
+    original = read_tile(source)  # foreign LAS 1.2 file: common dimensions + extra bytes
+    assert len(original) == 37_657
+    crs = "EPSG:26912"
+    info = write_tile(tmp_path / "mc.laz", original, crs=crs)
+    las = laspy.read(tmp_path / "mc.laz")
+    assert las.header.parse_crs().to_epsg() == 26912
+    assert las.header.point_count == 37_657
+    np.testing.assert_array_equal(las.classification, original.fields["classification"])
+    back = read_tile(tmp_path / "mc.laz")
+    assert np.abs(back.xyz - original.xyz).max() <= 0.0005 + 1e-9
+    np.testing.assert_array_equal(back.fields["treeID"], original.fields["treeID"])
+    assert info.z_max == pytest.approx(original.xyz[:, 2].max())

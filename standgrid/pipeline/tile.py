@@ -1,0 +1,742 @@
+"""Tile missions into a catalog: georeference -> partition -> LAS/LAZ tiles + GeoPackage index.
+
+One call ingests any number of missions. Missions are grouped into epochs (campaigns; by
+default the year of the mission date). For every epoch touched, the epoch's existing tiles
+(minus the points of missions being re-ingested) and the new missions' payloads are streamed
+through one :class:`~standgrid.partition.engine.PartitionEngine`, so re-ingesting is
+idempotent, several robots of one campaign merge into the same tiles, and buffers are right
+across mission boundaries. Everything is written inside one catalog transaction: an
+interrupted run leaves the previous catalog intact and a re-run completes it.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable, Iterable, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import TYPE_CHECKING, Any, Literal, TypeVar
+
+import numpy as np
+from numpy.typing import NDArray
+
+from standgrid.errors import (
+    CatalogError,
+    CRSError,
+    GeoreferenceError,
+    GridMismatchError,
+)
+from standgrid.pointcloud import PointCloud
+from standgrid.stamps import unix_ns_to_adjusted_gps_time
+
+if TYPE_CHECKING:
+    from standgrid.export.catalog import Catalog, Transaction
+    from standgrid.georeference import GeoreferenceFit, MapProjector
+    from standgrid.mission.model import Mission, Payload
+    from standgrid.partition import StandGrid
+
+T = TypeVar("T")
+Wrap = Callable[[Iterable[Any], int, str], Iterable[Any]]
+
+DEFAULT_MEMORY_BUDGET = 1 << 30
+#: Payload ids are ``mission_number << 16 | payload index``: stable on re-ingest, no registry.
+PAYLOAD_INDEX_BITS = 16
+#: Fields the tiler sets on every point.
+TILER_FIELDS = {
+    "gps_time": np.dtype(np.float64),
+    "point_source_id": np.dtype(np.uint16),
+    "payload_id": np.dtype(np.uint32),
+}
+
+
+def _no_wrap(items: Iterable[T], total: int, desc: str) -> Iterable[T]:
+    return items
+
+
+@dataclass(frozen=True)
+class TileOptions:
+    """How to tile. ``cell_size``/``crs`` of ``None``/``"auto"`` take the catalog's own."""
+
+    scheme: Literal["grid", "voronoi"] = "grid"
+    cell_size: float | None = None
+    levels: tuple[float, ...] = ()
+    origin: tuple[float, float] = (0.0, 0.0)
+    crs: str = "auto"
+    buffer: float = 0.0
+    laz: bool = True
+    method: str = "yaw2d"
+    epoch: str | None = None
+    memory_budget: int = DEFAULT_MEMORY_BUDGET
+    overwrite: bool = False
+
+
+@dataclass
+class TileReport:
+    """What a tiling run did; ``to_dict`` is the CLI's ``--json``."""
+
+    catalog: Path
+    crs: str
+    scheme: str
+    grid_fingerprint: str
+    missions: dict[str, dict[str, Any]] = field(default_factory=dict)
+    epochs: dict[str, dict[str, Any]] = field(default_factory=dict)
+
+    @property
+    def points_in(self) -> int:
+        return sum(e["points_in"] for e in self.epochs.values())
+
+    @property
+    def points_out(self) -> int:
+        return sum(e["points_out"] for e in self.epochs.values())
+
+    def to_dict(self) -> dict[str, Any]:
+        return {
+            "catalog": str(self.catalog),
+            "crs": self.crs,
+            "scheme": self.scheme,
+            "grid_fingerprint": self.grid_fingerprint,
+            "points_in": self.points_in,
+            "points_out": self.points_out,
+            "conserved": self.points_in == self.points_out,
+            "epochs": self.epochs,
+            "missions": self.missions,
+        }
+
+
+@dataclass
+class _Ingest:
+    """One mission on its way in."""
+
+    mission: Mission
+    fit: GeoreferenceFit
+    epoch: str
+    date: str
+    projector: MapProjector | None = None
+    number: int = 0
+
+
+# --- entry point -------------------------------------------------------------------------
+
+
+def tile_missions(
+    mission_paths: Sequence[str | Path],
+    catalog_path: str | Path,
+    options: TileOptions = TileOptions(),
+    *,
+    wrap: Wrap = _no_wrap,
+    status: Callable[[str], None] = lambda message: None,
+) -> TileReport:
+    """Georeference and tile missions into the catalog at ``catalog_path`` (made if absent).
+
+    ``wrap(iterable, total, description)`` may add a progress bar; ``status`` gets progress
+    lines. Raises a :class:`~standgrid.errors.StandgridError` subclass on any bad input,
+    leaving the catalog as it was.
+    """
+    from standgrid.mission.model import open_mission
+
+    if not mission_paths:
+        raise CatalogError("no missions given")
+    ingests: list[_Ingest] = []
+    for path in mission_paths:
+        mission = open_mission(path)
+        status(f"georeferencing {mission.name}")
+        ingests.append(_prepare(mission, options))
+    names = [i.mission.name for i in ingests]
+    if len(set(names)) != len(names):
+        raise CatalogError(
+            f"a mission is given twice: {sorted(n for n in names if names.count(n) > 1)}"
+        )
+
+    catalog = _open_catalog(Path(catalog_path), ingests, options)
+    grid = _catalog_grid(catalog)
+    report = TileReport(catalog.root, catalog.crs, catalog.scheme, catalog.fingerprint)
+    layers = _IndexLayers.read(catalog)
+    with catalog.transaction() as txn:
+        for ingest in ingests:
+            ingest.number = txn.mission_number(ingest.mission.name)
+            ingest.projector = _projector(ingest.fit, catalog.crs)
+        for epoch in sorted({i.epoch for i in ingests}):
+            group = [i for i in ingests if i.epoch == epoch]
+            status(f"tiling epoch {epoch}: {', '.join(i.mission.name for i in group)}")
+            _tile_epoch(catalog, txn, grid, epoch, group, options, layers, report, wrap)
+        layers.write(txn, catalog)
+        _write_vpcs(txn, catalog, layers)
+    status(f"catalog {catalog.root}: {report.points_out} points in {len(layers.cells)} cells")
+    return report
+
+
+# --- preparing missions and the catalog --------------------------------------------------
+
+
+def _prepare(mission: Mission, options: TileOptions) -> _Ingest:
+    from standgrid.georeference import georeference_mission
+
+    try:
+        fit = georeference_mission(mission, method=options.method)
+    except GeoreferenceError as exc:
+        raise type(exc)(
+            f"{exc.message} (tiling needs a georeference: GNSS fixes or GNSS_LLA_REF/"
+            "GNSS_LLA_TO_MAP in the pose graph)",
+            path=exc.path or mission.path,
+            line=exc.line,
+        ) from exc
+    meta = mission.metadata
+    if options.epoch is not None:
+        epoch = options.epoch
+    elif meta is not None:
+        epoch = str(meta.date.year)
+    else:
+        raise CatalogError(
+            "no metadata.yaml and no conventional folder name: cannot tell the epoch "
+            "(give one with --epoch)",
+            path=mission.path,
+        )
+    date = meta.date.isoformat() if meta is not None else ""
+    return _Ingest(mission, fit, epoch, date)
+
+
+def _requested_grid(crs: str, options: TileOptions) -> dict[str, Any]:
+    from standgrid.partition import StandGrid
+
+    if options.scheme == "voronoi":
+        return {"scheme": "voronoi", "crs": crs}
+    grid = StandGrid(
+        crs, options.cell_size or 20.0, origin=options.origin, levels=tuple(options.levels)
+    )
+    return grid.to_dict()
+
+
+def _open_catalog(path: Path, ingests: list[_Ingest], options: TileOptions) -> Catalog:
+    from standgrid.export.catalog import CATALOG_FILE, Catalog
+    from standgrid.georeference import crs_to_text, resolve_crs
+
+    if (path / CATALOG_FILE).is_file() and not options.overwrite:
+        catalog = Catalog.open(path)
+        if options.crs not in ("auto", "", None):
+            wanted = crs_to_text(resolve_crs(options.crs))
+            if wanted != catalog.crs:
+                raise CRSError(
+                    f"the catalog is in {catalog.crs}; cannot add missions in {wanted}",
+                    path=path / CATALOG_FILE,
+                )
+        if options.scheme != catalog.scheme:
+            raise GridMismatchError(
+                f"the catalog uses the {catalog.scheme} scheme, not {options.scheme}",
+                path=path / CATALOG_FILE,
+            )
+        if options.scheme == "grid" and options.cell_size is not None:
+            catalog.check_grid(_requested_grid(catalog.crs, options))
+        return catalog
+    lat, lon, _ = ingests[0].fit.lla_ref
+    crs = crs_to_text(resolve_crs(options.crs, lon=lon, lat=lat))
+    return Catalog.create(
+        path, _requested_grid(crs, options), crs, options.scheme, overwrite=options.overwrite
+    )
+
+
+def _catalog_grid(catalog: Catalog) -> StandGrid | None:
+    from standgrid.partition import StandGrid
+
+    return StandGrid.from_dict(catalog.grid_definition) if catalog.scheme == "grid" else None
+
+
+def _projector(fit: GeoreferenceFit, crs: str) -> MapProjector:
+    from standgrid.georeference import MapProjector
+
+    return MapProjector(fit, crs)
+
+
+# --- one epoch ---------------------------------------------------------------------------
+
+
+def _cloud_payloads(mission: Mission) -> list[Payload]:
+    """The point-cloud payloads that can be tiled (attached to a node, not pre-projected)."""
+    return [
+        p
+        for p in mission.payloads
+        if p.kind == "point_cloud" and p.node_id is not None and p.frame != "utm"
+    ]
+
+
+def _payload_id(number: int, index: int, mission: Mission) -> int:
+    if index >= 1 << PAYLOAD_INDEX_BITS:
+        raise CatalogError(
+            f"more than {1 << PAYLOAD_INDEX_BITS} payloads in one mission", path=mission.path
+        )
+    return (number << PAYLOAD_INDEX_BITS) | index
+
+
+def _tile_epoch(
+    catalog: Catalog,
+    txn: Transaction,
+    grid: StandGrid | None,
+    epoch: str,
+    group: list[_Ingest],
+    options: TileOptions,
+    layers: _IndexLayers,
+    report: TileReport,
+    wrap: Wrap,
+) -> None:
+    from standgrid.errors import ConservationError
+    from standgrid.export.las import read_tile
+    from standgrid.partition import GridBuffer, PartitionEngine
+
+    group_names = {i.mission.name for i in group}
+    renewed = [i.number for i in group]
+    previous_tiles = sorted(catalog.tiles(epoch)) if epoch in catalog.epochs else []
+    layers.drop_missions(group_names)
+    layers.cells = [row for row in layers.cells if row["epoch"] != epoch]
+
+    work = [
+        (ingest, index, payload)
+        for ingest in group
+        for index, payload in enumerate(_cloud_payloads(ingest.mission))
+    ]
+    rows = {}
+    for ingest, index, payload in work:
+        row = _payload_row(ingest, index, payload, epoch)
+        rows[row["payload_id"]] = row
+    layers.payloads.extend(rows.values())
+    schema = _schema(catalog, previous_tiles, group)
+
+    voronoi = None
+    buffer = None
+    if grid is not None:
+        assign: Callable[[Any, Any], NDArray[np.int64]] = grid.cell_keys
+        if options.buffer > 0:
+            buffer = GridBuffer(grid, options.buffer)
+    else:
+        if options.buffer > 0:
+            raise CatalogError("buffers are available for the grid scheme only", path=catalog.root)
+        voronoi = _voronoi(layers.payloads_of_epoch(epoch), coverage=None)
+        assign = voronoi.assign
+
+    kept_in = 0
+    new_in: dict[str, int] = dict.fromkeys(group_names, 0)
+    number_to_name = {int(r["number"]): n for n, r in txn.state["missions"].items()}
+    tiles_of: dict[str, set[str]] = {}
+    written: set[str] = set()
+    with PartitionEngine(
+        assign, txn.folder / "spill", memory_budget_bytes=options.memory_budget, buffer=buffer
+    ) as engine:
+        for rel in wrap(previous_tiles, len(previous_tiles), f"{epoch}: existing tiles"):
+            cloud = read_tile(catalog.path(rel))
+            keep = ~np.isin(cloud.fields["point_source_id"], renewed)
+            if keep.any():
+                engine.add(_conform(cloud.select(keep), schema, catalog.path(rel)))
+                kept_in += int(keep.sum())
+        for ingest, index, payload in wrap(work, len(work), f"{epoch}: payloads"):
+            chunk = _payload_chunk(ingest, index, payload, schema)
+            row = rows[_payload_id(ingest.number, index, ingest.mission)]
+            row["point_count"] = len(chunk)
+            row["geometry"] = _footprint(chunk.xyz, row["geometry"])
+            engine.add(chunk)
+            new_in[ingest.mission.name] += len(chunk)
+        polygons: dict[str, Any] = {}
+        if voronoi is not None:
+            final = _voronoi(layers.payloads_of_epoch(epoch), coverage="footprints")
+            polygons = final.polygons()
+        for cell in wrap(engine.finalise(), 0, f"{epoch}: tiles"):
+            cell_id, polygon, size = _cell_geometry(cell.key, grid, voronoi, polygons)
+            rel = f"tiles/{epoch}/{cell_id}.{'laz' if options.laz else 'las'}"
+            info = _write_cell(txn, rel, cell, catalog.crs, polygon)
+            names = sorted(number_to_name[n] for n in info.points_per_source)
+            for name in names:
+                tiles_of.setdefault(name, set()).add(rel)
+            layers.cells.append(_cell_row(cell_id, info, size, epoch, names, rel))
+            written.add(rel)
+        stats = engine.stats
+
+    fed = kept_in + sum(new_in.values())
+    if stats.points_in != fed or stats.points_out != fed:
+        raise ConservationError(
+            f"epoch {epoch}: {fed} points fed, {stats.points_in} partitioned, "
+            f"{stats.points_out} written",
+            path=catalog.root,
+        )
+    for rel in set(previous_tiles) - written:
+        txn.delete(rel)
+    for name in txn.state["epochs"].get(epoch, {}).get("missions", []):
+        if name not in group_names:
+            txn.state["missions"][name]["tiles"] = sorted(tiles_of.get(name, ()))
+    for ingest in group:
+        mission = ingest.mission
+        record = txn.record_mission(
+            mission.name,
+            epoch=epoch,
+            date=ingest.date,
+            path=str(mission.path.resolve()),
+            georeference=ingest.fit.to_dict(),
+            payload_count=len(_cloud_payloads(mission)),
+            point_count=new_in[mission.name],
+            tiles=sorted(tiles_of.get(mission.name, ())),
+            **_metadata_extra(mission),
+        )
+        report.missions[mission.name] = {
+            "number": record["number"],
+            "epoch": epoch,
+            "payloads": record["payload_count"],
+            "points": record["point_count"],
+            "tiles": len(record["tiles"]),
+            "georeference": fit_summary(ingest.fit),
+        }
+        layers.add_mission(ingest, epoch, catalog)
+    entry = txn.state["epochs"][epoch]
+    dates = [txn.state["missions"][n]["date"] for n in entry["missions"]]
+    entry["date"] = min(d for d in dates if d) if any(dates) else ""
+    entry["enriched"] = False
+    report.epochs[epoch] = {
+        "date": entry["date"],
+        "points_in": fed,
+        "points_kept_from_catalog": kept_in,
+        "points_new": sum(new_in.values()),
+        "points_out": stats.points_out,
+        "buffer_points": stats.buffer_points,
+        "cells": len(written),
+        "cells_removed": len(set(previous_tiles) - written),
+        "bytes_spilled": stats.bytes_spilled,
+    }
+
+
+# --- points ------------------------------------------------------------------------------
+
+
+def _schema(
+    catalog: Catalog, previous_tiles: list[str], group: list[_Ingest]
+) -> dict[str, np.dtype]:
+    """The field set and dtypes every chunk of an epoch is brought to (union, promoted)."""
+    from standgrid.export.las import read_tile
+
+    samples: list[PointCloud] = []
+    if previous_tiles:
+        samples.append(read_tile(catalog.path(previous_tiles[0])))
+    for ingest in group:
+        payloads = _cloud_payloads(ingest.mission)
+        if payloads:
+            samples.append(ingest.mission.load_base(payloads[0]))
+    schema: dict[str, np.dtype] = {}
+    for cloud in samples:
+        for name, values in cloud.fields.items():
+            if name == "withheld" or values.ndim != 1:
+                continue
+            dtype = values.dtype
+            schema[name] = np.result_type(schema[name], dtype) if name in schema else dtype
+    schema.update(TILER_FIELDS)
+    return schema
+
+
+def _conform(cloud: PointCloud, schema: dict[str, np.dtype], source: Path) -> PointCloud:
+    """Bring a chunk to the epoch's schema: cast, fill absent fields (NaN or 0)."""
+    unknown = sorted(set(cloud.fields) - set(schema) - {"withheld"})
+    if unknown:
+        raise CatalogError(
+            f"fields {unknown} appear here but not in the epoch's first payload; "
+            "every payload of a mission must carry the same fields",
+            path=source,
+        )
+    n = len(cloud)
+    fields = {}
+    for name, dtype in schema.items():
+        values = cloud.fields.get(name)
+        if values is None:
+            fill = np.nan if np.issubdtype(dtype, np.floating) else 0
+            fields[name] = np.full(n, fill, dtype=dtype)
+        else:
+            fields[name] = values.astype(dtype, copy=False)
+    return PointCloud(cloud.xyz, fields)
+
+
+def _payload_chunk(
+    ingest: _Ingest, index: int, payload: Payload, schema: dict[str, np.dtype]
+) -> PointCloud:
+    """One payload in the output CRS with the tiler's fields."""
+    assert ingest.projector is not None
+    cloud = ingest.mission.load_payload(payload, frame="map")
+    xyz = ingest.projector.fast(cloud.xyz)
+    n = len(xyz)
+    fields = dict(cloud.fields)
+    if "gps_time" not in fields:  # per-point times of the source win over the payload stamp
+        fields["gps_time"] = np.full(n, unix_ns_to_adjusted_gps_time(payload.stamp.ns))
+    fields["point_source_id"] = np.full(n, ingest.number, dtype=np.uint16)
+    fields["payload_id"] = np.full(
+        n, _payload_id(ingest.number, index, ingest.mission), dtype=np.uint32
+    )
+    return _conform(PointCloud(xyz, fields), schema, payload.path)
+
+
+def _footprint(xyz: NDArray[np.float64], fallback: Any) -> Any:
+    """The convex hull of a payload's projected points (a polygon; the pose point if < 3)."""
+    import shapely
+    from scipy.spatial import ConvexHull, QhullError
+
+    xy = xyz[:, :2]
+    if len(xy) < 3:
+        return fallback
+    try:
+        hull = ConvexHull(xy)
+    except QhullError:  # collinear points
+        return shapely.MultiPoint(xy[:: max(1, len(xy) // 1000)]).convex_hull
+    return shapely.Polygon(xy[hull.vertices])
+
+
+# --- cells -------------------------------------------------------------------------------
+
+
+def _voronoi(payload_rows: list[dict[str, Any]], coverage: str | None) -> Any:
+    """Voronoi cells around an epoch's projected payload poses (ids from mission + stamp)."""
+    import shapely
+
+    from standgrid.partition import VoronoiPartition
+    from standgrid.partition.voronoi import site_id
+    from standgrid.stamps import Stamp
+
+    if not payload_rows:
+        raise CatalogError("no payloads to build Voronoi cells around")
+    xy = np.array([[r["x"], r["y"]] for r in payload_rows], dtype=np.float64)
+    ids = [
+        site_id(r["mission"], Stamp(int(r["stamp_sec"]), int(r["stamp_nsec"])))
+        for r in payload_rows
+    ]
+    if coverage == "footprints":
+        area = shapely.union_all([r["geometry"] for r in payload_rows])
+    else:  # assignment covers the whole plane; polygons need the real coverage later
+        area = shapely.MultiPoint(xy).convex_hull.buffer(1.0)
+    return VoronoiPartition(xy, ids, area)
+
+
+def _cell_geometry(
+    key: int, grid: StandGrid | None, voronoi: Any, polygons: dict[str, Any]
+) -> tuple[str, Any, float]:
+    if grid is not None:
+        cell = grid.key_to_cell(key)
+        return str(cell), grid.polygon(cell), grid.cell_size
+    site = voronoi.ids[int(key)]
+    return site, polygons.get(site), math.nan
+
+
+def _write_cell(txn: Transaction, rel: str, cell: Any, crs: str, polygon: Any) -> Any:
+    import shapely
+
+    from standgrid.export.las import write_tile
+
+    info = write_tile(txn.stage(rel), cell.core, crs=crs, buffer=cell.buffer, core_bounds=polygon)
+    if polygon is None or shapely.is_empty(polygon):
+        xmin, ymin, _, xmax, ymax, _ = info.bounds
+        info = type(info)(**{**info.__dict__, "core_bounds": shapely.box(xmin, ymin, xmax, ymax)})
+    return info
+
+
+def _cell_row(
+    cell_id: str, info: Any, size: float, epoch: str, missions: list[str], rel: str
+) -> dict[str, Any]:
+    from standgrid.export.gpkg import cell_row
+
+    return cell_row(
+        cell_id, info, level=0, cell_size=size, epoch=epoch, missions=missions, tile_path=rel
+    )
+
+
+# --- index layers ------------------------------------------------------------------------
+
+
+def _payload_row(ingest: _Ingest, index: int, payload: Payload, epoch: str) -> dict[str, Any]:
+    import shapely
+
+    from standgrid.export.gpkg import iso_time
+
+    assert ingest.projector is not None
+    pose = ingest.mission.pose_of(payload)
+    ends = ingest.projector.exact(np.array([pose[:3, 3], pose[:3, 3] + pose[:3, 0]]))
+    x, y, z = ends[0]
+    heading = math.degrees(math.atan2(ends[1, 1] - y, ends[1, 0] - x))
+    return {
+        "payload_id": _payload_id(ingest.number, index, ingest.mission),
+        "mission": ingest.mission.name,
+        "stamp_sec": payload.stamp.sec,
+        "stamp_nsec": payload.stamp.nsec,
+        "time": iso_time(payload.stamp.sec, payload.stamp.nsec),
+        "node_id": payload.node_id,
+        "point_count": 0,
+        "x": float(x),
+        "y": float(y),
+        "z": float(z),
+        "yaw": heading,
+        "epoch": epoch,
+        "geometry": shapely.Point(x, y),
+    }
+
+
+def fit_summary(fit: GeoreferenceFit) -> dict[str, Any]:
+    """The headline figures of a georeference fit."""
+    return {
+        "method": fit.method,
+        "fixes_used": int(fit.n_used),
+        "fixes_rejected": int(fit.n_rejected),
+        "rejected_by_reason": fit.rejected_by_reason,
+        "rmse_horizontal_m": _finite(fit.rmse_m),
+        "rmse_vertical_m": _finite(fit.rmse_vertical_m),
+        "yaw_deg": fit.yaw_deg,
+        "lla_ref": list(fit.lla_ref),
+    }
+
+
+def _finite(value: float) -> float | None:
+    return float(value) if math.isfinite(value) else None
+
+
+def _metadata_extra(mission: Mission) -> dict[str, Any]:
+    meta = mission.metadata
+    if meta is None:
+        return {"robot": "", "place": "", "unit": "", "sensors": []}
+    return {
+        "robot": meta.robot,
+        "place": meta.place,
+        "unit": meta.unit or "",
+        "sensors": list(meta.sensors),
+    }
+
+
+@dataclass
+class _IndexLayers:
+    """The catalog's standard index layers as row lists, edited then written in one go."""
+
+    cells: list[dict[str, Any]] = field(default_factory=list)
+    payloads: list[dict[str, Any]] = field(default_factory=list)
+    trajectories: list[dict[str, Any]] = field(default_factory=list)
+    gnss_fixes: list[dict[str, Any]] = field(default_factory=list)
+    missions: list[dict[str, Any]] = field(default_factory=list)
+
+    NAMES = ("cells", "payloads", "trajectories", "gnss_fixes", "missions")
+
+    @classmethod
+    def read(cls, catalog: Catalog) -> _IndexLayers:
+        import pyogrio
+
+        layers = cls()
+        path = catalog.path("index.gpkg")
+        if not path.exists():
+            return layers
+        present = {name for name, _ in pyogrio.list_layers(path)}
+        for name in cls.NAMES:
+            if name in present:
+                frame = pyogrio.read_dataframe(path, layer=name)
+                setattr(layers, name, frame.to_dict("records"))
+        return layers
+
+    def drop_missions(self, names: set[str]) -> None:
+        for name in ("payloads", "trajectories", "gnss_fixes", "missions"):
+            setattr(self, name, [r for r in getattr(self, name) if r["mission"] not in names])
+
+    def payloads_of_epoch(self, epoch: str) -> list[dict[str, Any]]:
+        return [r for r in self.payloads if str(r.get("epoch")) == epoch]
+
+    def add_mission(self, ingest: _Ingest, epoch: str, catalog: Catalog) -> None:
+        import shapely
+
+        assert ingest.projector is not None
+        mission, fit = ingest.mission, ingest.fit
+        if mission.graph is not None and len(mission.graph) >= 2:
+            xyz = ingest.projector.exact(mission.graph.positions)
+            self.trajectories.append(
+                {
+                    "mission": mission.name,
+                    "epoch": epoch,
+                    "geometry": shapely.LineString(xyz[:, :2]),
+                }
+            )
+        self.gnss_fixes.extend(_gnss_rows(ingest, catalog.crs))
+        meta = _metadata_extra(mission)
+        self.missions.append(
+            {
+                "mission": mission.name,
+                "number": ingest.number,
+                "epoch": epoch,
+                "date": ingest.date,
+                "robot": meta["robot"],
+                "place": meta["place"],
+                "unit": meta["unit"],
+                "sensors": ",".join(meta["sensors"]),
+                "fit_method": fit.method,
+                "rmse_m": _finite(fit.rmse_m),
+                "n_used": int(fit.n_used),
+                "n_rejected": int(fit.n_rejected),
+                "grid_fingerprint": catalog.fingerprint,
+                "crs": catalog.crs,
+            }
+        )
+
+    def write(self, txn: Transaction, catalog: Catalog) -> None:
+        from standgrid.export.gpkg import write_index
+
+        write_index(
+            txn.stage("index.gpkg"),
+            crs=catalog.crs,
+            base=txn.current("index.gpkg") if (catalog.root / "index.gpkg").exists() else None,
+            cells=self.cells,
+            payloads=self.payloads,
+            trajectories=self.trajectories,
+            gnss_fixes=self.gnss_fixes,
+            missions=self.missions,
+        )
+
+
+def _gnss_rows(ingest: _Ingest, crs: str) -> list[dict[str, Any]]:
+    """One row per GNSS fix: projected position, residuals of the fit, inlier flag."""
+    import pyproj
+    import shapely
+
+    gnss, fit = ingest.mission.gnss, ingest.fit
+    if gnss is None or len(gnss) == 0 or len(fit.fix_stamps_ns) == 0:
+        return []
+    index = {int(s): i for i, s in enumerate(gnss.stamps_ns)}
+    to_crs = pyproj.Transformer.from_crs("EPSG:4979", crs, always_xy=True)
+    rows = []
+    valid = np.isfinite(gnss.lat) & np.isfinite(gnss.lon)
+    x, y = np.full(len(gnss), np.nan), np.full(len(gnss), np.nan)
+    x[valid], y[valid] = to_crs.transform(gnss.lon[valid], gnss.lat[valid])
+    for k, stamp in enumerate(fit.fix_stamps_ns):
+        i = index.get(int(stamp))
+        if i is None or not valid[i]:
+            continue
+        e, n, u = (float(v) for v in fit.residuals_m[k])
+        rows.append(
+            {
+                "mission": ingest.mission.name,
+                "stamp_sec": int(stamp) // 1_000_000_000,
+                "stamp_nsec": int(stamp) % 1_000_000_000,
+                "quality": int(gnss.quality[i]),
+                "residual_e": e,
+                "residual_n": n,
+                "residual_u": u,
+                "residual_h": math.hypot(e, n),
+                "inlier": bool(fit.inliers[k]),
+                "status": fit.status_names[k],
+                "geometry": shapely.Point(float(x[i]), float(y[i])),
+            }
+        )
+    return rows
+
+
+def _write_vpcs(txn: Transaction, catalog: Catalog, layers: _IndexLayers) -> None:
+    """One virtual point cloud per epoch (``tiles_<epoch>.vpc``): one QGIS layer each."""
+    from standgrid.export.gpkg import VpcTile, write_vpc
+
+    by_epoch: dict[str, list[VpcTile]] = {}
+    for row in layers.cells:
+        xmin, ymin, xmax, ymax = row["geometry"].bounds
+        epoch = str(row["epoch"])
+        date = txn.state["epochs"].get(epoch, {}).get("date") or None
+        by_epoch.setdefault(epoch, []).append(
+            VpcTile(
+                row["tile_path"],
+                (xmin, ymin, row["z_min"], xmax, ymax, row["z_max"]),
+                catalog.crs,
+                int(row["point_count"]),
+                f"{date}T00:00:00Z" if date else None,
+            )
+        )
+    for epoch, tiles in by_epoch.items():
+        write_vpc(txn.stage(f"tiles_{epoch}.vpc"), sorted(tiles, key=lambda t: str(t.path)))
+    for epoch in catalog.epochs:
+        if epoch not in by_epoch and (catalog.root / f"tiles_{epoch}.vpc").exists():
+            txn.delete(f"tiles_{epoch}.vpc")

@@ -1,0 +1,156 @@
+"""Simulated GNSS fixes under canopy and IMU samples along a true trajectory."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import NDArray
+from scipy.spatial.transform import Rotation
+
+from standgrid.geometry import Matrix4
+from standgrid.mission.sensors import FixQuality, GnssFixes, ImuSamples
+from standgrid.simulate.chain import FrameChain
+
+GRAVITY = 9.80665
+
+
+@dataclass(frozen=True)
+class GnssModel:
+    """Fix rate, canopy noise, RTK windows, dropouts and multipath outliers."""
+
+    rate_hz: float = 2.0
+    canopy_h_std: tuple[float, float] = (0.5, 3.0)
+    rtk_h_std: tuple[float, float] = (0.02, 0.03)
+    rtk_windows: int = 3
+    rtk_window_s: tuple[float, float] = (15.0, 40.0)
+    dropouts: int = 3
+    dropout_s: tuple[float, float] = (8.0, 25.0)
+    outlier_fraction: float = 0.02
+    outlier_m: tuple[float, float] = (10.0, 40.0)
+    #: Open sky: every fix RTK fixed with ``rtk_h_std`` noise (outliers included).
+    open_sky: bool = False
+
+
+@dataclass(frozen=True, eq=False)
+class SimulatedGnss:
+    """Fixes as written, plus the truth: true antenna positions (CRS) and outlier flags."""
+
+    fixes: GnssFixes
+    true_xyz: NDArray[np.float64]
+    outlier: NDArray[np.bool_]
+
+
+def _windows(
+    rng: np.random.Generator, t0: float, t1: float, count: int, length: tuple[float, float]
+) -> NDArray[np.float64]:
+    starts = rng.uniform(t0, max(t0, t1 - length[1]), count)
+    return np.column_stack([starts, starts + rng.uniform(*length, count)])
+
+
+def _in_windows(t: NDArray[np.float64], windows: NDArray[np.float64]) -> NDArray[np.bool_]:
+    out = np.zeros(len(t), dtype=bool)
+    for a, b in windows:
+        out |= (t >= a) & (t < b)
+    return out
+
+
+def interpolate_positions(
+    node_ns: NDArray[np.int64], node_xyz: NDArray[np.float64], t_ns: NDArray[np.int64]
+) -> NDArray[np.float64]:
+    """Linear interpolation of node positions at times ``t_ns`` (relative time in float64)."""
+    t = (t_ns - node_ns[0]).astype(np.float64)
+    tn = (node_ns - node_ns[0]).astype(np.float64)
+    return np.column_stack([np.interp(t, tn, node_xyz[:, k]) for k in range(3)])
+
+
+def simulate_gnss(
+    rng: np.random.Generator,
+    chain: FrameChain,
+    node_ns: NDArray[np.int64],
+    node_xyz_crs: NDArray[np.float64],
+    model: GnssModel = GnssModel(),
+) -> SimulatedGnss:
+    """Fixes of an antenna at the base origin: canopy noise, RTK windows, dropouts, outliers.
+
+    ``h_std`` is the horizontal RMS error (per axis ``h_std / sqrt(2)``); errors are drawn in
+    a local east/north/up frame and mapped through the exact chain.
+    """
+    period_ns = round(1e9 / model.rate_hz)
+    first = int(node_ns[0]) + period_ns - int(node_ns[0]) % period_ns
+    t_ns = np.arange(first, int(node_ns[-1]), period_ns, dtype=np.int64)
+    t_s = (t_ns - node_ns[0]) * 1e-9
+    total_s = float(t_s[-1]) if len(t_s) else 0.0
+    keep = ~_in_windows(t_s, _windows(rng, 0.0, total_s, model.dropouts, model.dropout_s))
+    t_ns, t_s = t_ns[keep], t_s[keep]
+    n = len(t_ns)
+    true_xyz = interpolate_positions(node_ns, node_xyz_crs, t_ns)
+    rtk = _in_windows(t_s, _windows(rng, 0.0, total_s, model.rtk_windows, model.rtk_window_s))
+    rtk |= model.open_sky
+    dgps = rng.random(n) < 0.4
+    h_std = np.where(rtk, rng.uniform(*model.rtk_h_std, n), rng.uniform(*model.canopy_h_std, n))
+    v_std = h_std * np.where(rtk, 1.5, 1.8)
+    quality = np.where(rtk, FixQuality.RTK_FIXED, np.where(dgps, FixQuality.DGPS, FixQuality.GPS))
+    err = np.column_stack(
+        [
+            rng.normal(0, 1, n) * h_std / np.sqrt(2),
+            rng.normal(0, 1, n) * h_std / np.sqrt(2),
+            rng.normal(0, 1, n) * v_std,
+        ]
+    )
+    outlier = (~rtk | model.open_sky) & (rng.random(n) < model.outlier_fraction)
+    k = int(outlier.sum())
+    bearing = rng.uniform(0, 2 * np.pi, k)
+    dist = rng.uniform(*model.outlier_m, k)
+    err[outlier] += np.column_stack(
+        [dist * np.cos(bearing), dist * np.sin(bearing), rng.normal(0, 5.0, k)]
+    )
+    true_enu = chain.lla_to_enu(chain.crs_to_lla(true_xyz))
+    lla = chain.enu_to_lla(true_enu + err)
+    fixes = GnssFixes(
+        stamps_ns=t_ns,
+        lat=lla[:, 0],
+        lon=lla[:, 1],
+        alt=lla[:, 2],
+        quality=quality.astype(np.int8),
+        h_std=np.round(h_std, 3).astype(np.float64),
+        v_std=np.round(v_std, 3).astype(np.float64),
+    )
+    return SimulatedGnss(fixes, true_xyz, outlier)
+
+
+def gnss_subset(fixes: GnssFixes, t0_ns: int, t1_ns: int) -> GnssFixes:
+    """The fixes with ``t0_ns <= stamp <= t1_ns``."""
+    m = (fixes.stamps_ns >= t0_ns) & (fixes.stamps_ns <= t1_ns)
+    return GnssFixes(
+        fixes.stamps_ns[m],
+        fixes.lat[m],
+        fixes.lon[m],
+        fixes.alt[m],
+        fixes.quality[m],
+        fixes.h_std[m],
+        fixes.v_std[m],
+    )
+
+
+def simulate_imu(
+    rng: np.random.Generator,
+    node_ns: NDArray[np.int64],
+    poses: Matrix4,
+    t0_ns: int,
+    t1_ns: int,
+    rate_hz: float = 10.0,
+) -> ImuSamples:
+    """Specific force (gravity seen in the base frame) and yaw rate, plus white noise."""
+    period_ns = round(1e9 / rate_hz)
+    t_ns = np.arange(t0_ns, t1_ns + 1, period_ns, dtype=np.int64)
+    idx = np.clip(np.searchsorted(node_ns, t_ns), 0, len(node_ns) - 1)
+    rot = poses[idx, :3, :3]
+    accel = np.einsum("nji,j->ni", rot, np.array([0.0, 0.0, GRAVITY]))
+    yaw = Rotation.from_matrix(poses[:, :3, :3]).as_euler("ZYX")[:, 0]
+    dt = np.diff(node_ns).astype(np.float64) * 1e-9
+    rate = np.concatenate([np.angle(np.exp(1j * np.diff(yaw))) / dt, [0.0]])
+    gyro = np.column_stack([np.zeros(len(t_ns)), np.zeros(len(t_ns)), rate[idx]])
+    accel = accel + rng.normal(0.0, 0.02, accel.shape)
+    gyro = gyro + rng.normal(0.0, 0.002, gyro.shape)
+    return ImuSamples(t_ns, np.round(accel, 5), np.round(gyro, 6))

@@ -62,8 +62,10 @@ class TileOptions:
     levels: tuple[float, ...] = ()
     origin: tuple[float, float] = (0.0, 0.0)
     crs: str = "auto"
-    buffer: float = 0.0
-    laz: bool = True
+    #: ``None``: the catalog's setting (0 for a new catalog).
+    buffer: float | None = None
+    #: ``None``: the catalog's setting (LAZ for a new catalog).
+    laz: bool | None = None
     method: str = "yaw2d"
     epoch: str | None = None
     memory_budget: int = DEFAULT_MEMORY_BUDGET
@@ -152,6 +154,7 @@ def tile_missions(
     report = TileReport(catalog.root, catalog.crs, catalog.scheme, catalog.fingerprint)
     layers = _IndexLayers.read(catalog)
     with catalog.transaction() as txn:
+        options = _settle_settings(txn, options)
         for ingest in ingests:
             ingest.number = txn.mission_number(ingest.mission.name)
             ingest.projector = _projector(ingest.fit, catalog.crs)
@@ -234,6 +237,17 @@ def _open_catalog(path: Path, ingests: list[_Ingest], options: TileOptions) -> C
     )
 
 
+def _settle_settings(txn: Transaction, options: TileOptions) -> TileOptions:
+    """Buffer and compression are catalog settings: unset options take the stored ones."""
+    from dataclasses import replace
+
+    stored = txn.state.setdefault("tiling", {"buffer": 0.0, "laz": True})
+    buffer = stored["buffer"] if options.buffer is None else float(options.buffer)
+    laz = stored["laz"] if options.laz is None else bool(options.laz)
+    stored.update(buffer=buffer, laz=laz)
+    return replace(options, buffer=buffer, laz=laz)
+
+
 def _catalog_grid(catalog: Catalog) -> StandGrid | None:
     from standgrid.partition import StandGrid
 
@@ -303,10 +317,10 @@ def _tile_epoch(
     buffer = None
     if grid is not None:
         assign: Callable[[Any, Any], NDArray[np.int64]] = grid.cell_keys
-        if options.buffer > 0:
+        if options.buffer:
             buffer = GridBuffer(grid, options.buffer)
     else:
-        if options.buffer > 0:
+        if options.buffer:
             raise CatalogError("buffers are available for the grid scheme only", path=catalog.root)
         voronoi = _voronoi(layers.payloads_of_epoch(epoch), coverage=None)
         assign = voronoi.assign

@@ -1,0 +1,235 @@
+"""Compare two enriched epochs of a catalog (or of two catalogs on the same grid).
+
+Reads the enrichment outputs (``tables/stand_metrics.parquet``, ``tables/tree_list_<epoch>
+.parquet``, ``rasters/<epoch>/chm.tif``), matches trees, computes per-stand change and a CHM
+difference, and writes ``compare/<from>__<to>/`` plus the ``stand_changes`` and
+``tree_changes`` layers of ``index.gpkg`` — all in one catalog transaction.
+"""
+
+from __future__ import annotations
+
+import shutil
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
+
+from standgrid.errors import EnrichError, EpochNotFoundError
+
+if TYPE_CHECKING:
+    import geopandas as gpd
+    import pandas as pd
+
+    from standgrid.export.catalog import Catalog
+
+
+@dataclass
+class CompareReport:
+    """What a comparison found; ``to_dict`` is the CLI's ``--json``."""
+
+    catalog: Path
+    epoch_from: str
+    epoch_to: str
+    years: float
+    trees: dict[str, int]
+    stands: dict[str, int]
+    outputs: dict[str, str] = field(default_factory=dict)
+    headline: dict[str, float | None] = field(default_factory=dict)
+
+    def to_dict(self) -> dict[str, Any]:
+        return {
+            "catalog": str(self.catalog),
+            "epoch_from": self.epoch_from,
+            "epoch_to": self.epoch_to,
+            "years": self.years,
+            "trees": self.trees,
+            "stands": self.stands,
+            "headline": self.headline,
+            "outputs": self.outputs,
+        }
+
+
+def pair_folder(epoch_from: str, epoch_to: str) -> str:
+    """Catalog-relative folder of one comparison."""
+    return f"compare/{epoch_from}__{epoch_to}"
+
+
+def compare_epochs(
+    catalog_path: str | Path,
+    epoch_from: str | None = None,
+    epoch_to: str | None = None,
+    *,
+    other_catalog: str | Path | None = None,
+    max_distance: float = 2.0,
+) -> CompareReport:
+    """Change from ``epoch_from`` to ``epoch_to`` (default: the first and last epochs).
+
+    With ``other_catalog``, ``epoch_to`` is read from that catalog, which must be on the same
+    grid (``GridMismatchError`` otherwise). Outputs go into ``catalog_path``.
+    """
+    import pandas as pd
+
+    from standgrid.compare import chm_difference, compare_stands, match_trees
+    from standgrid.compare.stands import check_same_grid
+    from standgrid.export.catalog import Catalog
+
+    source = Catalog.open(catalog_path)
+    target = Catalog.open(other_catalog) if other_catalog is not None else source
+    check_same_grid(source.fingerprint, target.fingerprint, label_a="from", label_b="to")
+    epoch_from = epoch_from or _default_epoch(source, first=True)
+    epoch_to = epoch_to or _default_epoch(target, first=False)
+    date_from = _enriched_epoch(source, epoch_from)
+    date_to = _enriched_epoch(target, epoch_to)
+
+    metrics_from = _epoch_metrics(source, epoch_from)
+    metrics_to = _epoch_metrics(target, epoch_to)
+    trees_from = pd.read_parquet(source.path(f"tables/tree_list_{epoch_from}.parquet"))
+    trees_to = pd.read_parquet(target.path(f"tables/tree_list_{epoch_to}.parquet"))
+    matches = match_trees(
+        trees_from, trees_to, date_from=date_from, date_to=date_to, max_distance=max_distance
+    )
+    cells = _cell_polygons(source, target, epoch_from, epoch_to)
+    changes = compare_stands(
+        metrics_from,
+        metrics_to,
+        date_from=date_from,
+        date_to=date_to,
+        epoch_from=epoch_from,
+        epoch_to=epoch_to,
+        tree_matches=matches,
+        cells=cells,
+    )
+
+    folder = pair_folder(epoch_from, epoch_to)
+    outputs: dict[str, str] = {}
+    with source.transaction() as txn:
+        index = txn.stage("index.gpkg")
+        shutil.copyfile(source.path("index.gpkg"), index)
+        chm_rel = f"{folder}/chm_diff.tif"
+        chm_difference(
+            source.path(f"rasters/{epoch_from}/chm.tif"),
+            target.path(f"rasters/{epoch_to}/chm.tif"),
+            txn.stage(chm_rel),
+            extent="union",
+        )
+        written = _write_outputs(
+            txn, folder, index, changes, matches, epoch_from, epoch_to, cells, source.crs
+        )
+        outputs = {"chm_difference": chm_rel, **written, "gpkg": "index.gpkg"}
+        comparisons = txn.state.setdefault("comparisons", {})
+        comparisons[f"{epoch_from}__{epoch_to}"] = {
+            "from": epoch_from,
+            "to": epoch_to,
+            "other_catalog": str(Path(other_catalog).resolve()) if other_catalog else None,
+            "outputs": outputs,
+        }
+    return CompareReport(
+        catalog=source.root,
+        epoch_from=epoch_from,
+        epoch_to=epoch_to,
+        years=matches.years,
+        trees=matches.counts(),
+        stands={
+            "in_both": int((changes["presence"] == "both").sum()),
+            "from_only": int((changes["presence"] == "from_only").sum()),
+            "to_only": int((changes["presence"] == "to_only").sum()),
+        },
+        outputs=outputs,
+        headline=_headline(changes, matches),
+    )
+
+
+def _write_outputs(
+    txn: Any,
+    folder: str,
+    index: Path,
+    changes: pd.DataFrame,
+    matches: Any,
+    epoch_from: str,
+    epoch_to: str,
+    cells: gpd.GeoDataFrame,
+    crs: str,
+) -> dict[str, str]:
+    """Write the change tables into the staging folder and register every file."""
+    from standgrid.compare import write_change_outputs
+
+    out_dir = txn.stage(f"{folder}/stand_changes.csv").parent
+    result = write_change_outputs(
+        out_dir,
+        index,
+        changes,
+        matches,
+        epoch_from=epoch_from,
+        epoch_to=epoch_to,
+        cells=cells,
+        crs=crs,
+    )
+    written = {}
+    for key in ("stand_csv", "stand_parquet", "tree_csv", "tree_parquet"):
+        path = getattr(result, key)
+        if path is not None:
+            rel = f"{folder}/{Path(path).name}"
+            txn.stage(rel)
+            written[key] = rel
+    return written
+
+
+def _default_epoch(catalog: Catalog, *, first: bool) -> str:
+    epochs = sorted(catalog.epochs, key=lambda e: (catalog.epochs[e].get("date") or "", e))
+    if len(epochs) < (2 if first else 1):
+        raise EpochNotFoundError(
+            f"comparing needs two epochs; the catalog has {epochs or 'none'}",
+            path=catalog.root,
+        )
+    return epochs[0] if first else epochs[-1]
+
+
+def _enriched_epoch(catalog: Catalog, epoch: str) -> str:
+    """The epoch's date; raises unless the epoch exists and is enriched."""
+    entry = catalog.epochs.get(epoch)
+    if entry is None:
+        raise EpochNotFoundError(
+            f"no epoch {epoch!r} (epochs: {sorted(catalog.epochs)})", path=catalog.root
+        )
+    if not entry.get("enriched"):
+        raise EnrichError(
+            f"epoch {epoch!r} is not enriched (run `standgrid enrich {catalog.root}` first)",
+            path=catalog.root,
+        )
+    if not entry.get("date"):
+        raise EnrichError(f"epoch {epoch!r} has no date to annualise with", path=catalog.root)
+    return str(entry["date"])
+
+
+def _epoch_metrics(catalog: Catalog, epoch: str) -> pd.DataFrame:
+    import pandas as pd
+
+    table = pd.read_parquet(catalog.path("tables/stand_metrics.parquet"))
+    return table[table["epoch"].astype(str) == epoch].drop(columns=["epoch"]).reset_index(drop=True)
+
+
+def _cell_polygons(
+    source: Catalog, target: Catalog, epoch_from: str, epoch_to: str
+) -> gpd.GeoDataFrame:
+    """``cell_id`` + polygon of every stand cell of either epoch (one row per cell id)."""
+    import pandas as pd
+    import pyogrio
+
+    frames = []
+    for catalog, epoch in ((source, epoch_from), (target, epoch_to)):
+        cells = pyogrio.read_dataframe(catalog.path("index.gpkg"), layer="cells")
+        frames.append(cells[cells["epoch"].astype(str) == epoch][["cell_id", "geometry"]])
+    both = pd.concat(frames, ignore_index=True).drop_duplicates("cell_id")
+    return both.sort_values("cell_id").reset_index(drop=True)
+
+
+def _headline(changes: pd.DataFrame, matches: Any) -> dict[str, float | None]:
+    """A few stand-level averages for the human report."""
+    import math
+
+    out: dict[str, float | None] = {}
+    for column in ("tree_height_growth_m_per_year", "zq95_per_year", "zmean_per_year"):
+        if column in changes.columns:
+            value = float(changes[column].mean(skipna=True))
+            out[column] = value if math.isfinite(value) else None
+    out["trees_removed"] = float(matches.counts().get("removed", 0))
+    return out

@@ -1,0 +1,433 @@
+"""The streaming partition engine: points in (chunk by chunk), points out grouped by cell.
+
+Per chunk: the keys are computed, argsorted once (stable, so arrival order survives within
+a cell) and the chunk is packed into one key-sorted structured block (``xyz`` + every field).
+No per-cell work happens while adding. When the held blocks pass the memory budget they are
+merged (a stable sort by key) into one run appended to a single spill file per store, with a
+per-cell index ``(key, byte offset, count)``. So the cells' spilled data are contiguous
+extents of one file: one file is open at a time whatever the number of cells (creating
+thousands of per-cell files is what costs most on real file systems, ~2 ms each here).
+:meth:`PartitionEngine.finalise` yields the cells in key order, each read back with
+``os.preadv`` straight into its output array (runs in spill order, then held blocks: arrival
+order), and checks that every point came out exactly once.
+"""
+
+from __future__ import annotations
+
+import os
+import shutil
+import tempfile
+from collections.abc import Callable, Iterator
+from dataclasses import dataclass
+from os import PathLike
+from pathlib import Path
+from typing import Any, Protocol
+
+import numpy as np
+from numpy.typing import NDArray
+
+from standgrid.errors import ConservationError, GridError, StandgridError
+from standgrid.partition.grid import StandGrid, key_to_index
+from standgrid.pointcloud import PointCloud
+
+DEFAULT_MEMORY_BUDGET = 512 * 2**20
+#: Held points are spilled beyond this fraction of the budget: the rest of the budget is
+#: for the temporaries of a spill (keys, their sort order: ~0.6 x the held bytes).
+_SPILL_AT = 0.6
+#: Bytes gathered per write when a run is spilled, as a fraction of the budget.
+_SPILL_SLICE = 1 / 32
+_XYZ = "xyz"
+WITHHELD = "withheld"
+
+KeyFunction = Callable[[NDArray[np.float64], NDArray[np.float64]], NDArray[np.integer]]
+
+
+class ChunkSchemaError(StandgridError, ValueError):
+    """A chunk whose field names or dtypes differ from the first chunk's."""
+
+
+class BufferFunction(Protocol):
+    """Which points are copied into which neighbouring cells' buffers."""
+
+    def __call__(
+        self, x: NDArray[np.float64], y: NDArray[np.float64], keys: NDArray[np.int64]
+    ) -> tuple[NDArray[np.intp], NDArray[np.int64]]:
+        """``(point_index, target_key)`` pairs; a target key never equals the point's own key."""
+        ...
+
+
+@dataclass(frozen=True)
+class GridBuffer:
+    """Buffer rule for a :class:`StandGrid` level: a point within ``distance`` metres
+    (Euclidean, to the closed bounds) of one of the 8 neighbouring cells is copied into it."""
+
+    grid: StandGrid
+    distance: float
+    level: int = 0
+
+    def __post_init__(self) -> None:
+        size = self.grid.level_size(self.level)
+        if not 0 < self.distance < size:
+            raise GridError(f"buffer distance must be in (0, {size}) m, got {self.distance!r}")
+
+    def __call__(
+        self, x: NDArray[np.float64], y: NDArray[np.float64], keys: NDArray[np.int64]
+    ) -> tuple[NDArray[np.intp], NDArray[np.int64]]:
+        s = self.grid.level_size(self.level)
+        x0, y0 = self.grid.origin
+        ix, iy = key_to_index(keys)
+        xmin = x0 + ix.astype(np.float64) * s
+        ymin = y0 + iy.astype(np.float64) * s
+        gaps_x = {-1: x - xmin, 0: np.zeros_like(x), 1: (xmin + s) - x}
+        gaps_y = {-1: y - ymin, 0: np.zeros_like(y), 1: (ymin + s) - y}
+        d2 = self.distance * self.distance
+        index_parts: list[NDArray[np.intp]] = []
+        key_parts: list[NDArray[np.int64]] = []
+        for di in (-1, 0, 1):
+            near_x = gaps_x[di] <= self.distance
+            for dj in (-1, 0, 1):
+                if di == 0 and dj == 0:
+                    continue
+                near = near_x & (gaps_y[dj] <= self.distance)
+                if di and dj:
+                    near &= gaps_x[di] ** 2 + gaps_y[dj] ** 2 <= d2
+                idx = np.flatnonzero(near)
+                index_parts.append(idx)
+                key_parts.append(keys[idx] + ((di << 32) + dj))
+        return np.concatenate(index_parts), np.concatenate(key_parts)
+
+
+@dataclass(frozen=True)
+class CellPoints:
+    """One cell's output: its ``core`` points and, when buffering, the ``buffer`` copies of
+    neighbours' points (same fields plus ``withheld`` = True; empty when there are none)."""
+
+    key: int
+    core: PointCloud
+    buffer: PointCloud | None = None
+
+    def combined(self) -> PointCloud:
+        """Core then buffer points, with a bool ``withheld`` field (True = buffer copy)."""
+        core = self.core.with_fields(**{WITHHELD: np.zeros(len(self.core), dtype=bool)})
+        return core if self.buffer is None else PointCloud.concat([core, self.buffer])
+
+
+@dataclass
+class PartitionStats:
+    """Counters of one engine run (``peak_buffered_bytes``: held blocks, before a spill)."""
+
+    points_in: int = 0
+    points_out: int = 0
+    buffer_points: int = 0
+    cells: int = 0
+    bytes_spilled: int = 0
+    spill_flushes: int = 0
+    peak_buffered_bytes: int = 0
+
+
+class _Store:
+    """Key-sorted blocks in memory; spilled as key-sorted runs appended to one spill file.
+
+    Each :meth:`add` keeps one block (records sorted by key, stable). A :meth:`spill` merges
+    every held block into one run — a stable sort by key over the blocks in arrival order,
+    written slice by slice so it needs little memory beyond the blocks themselves — appended
+    to the store's single spill file with a per-key index ``(key, byte offset, count)``.
+    Only one file is ever open, whatever the number of cells.
+    """
+
+    def __init__(self, path: Path, dtype: np.dtype, slice_bytes: int) -> None:
+        self.path = path
+        self.dtype = dtype
+        self.slice_records = max(1024, slice_bytes // dtype.itemsize)
+        self.blocks: list[tuple[NDArray[np.void], NDArray[np.int64]]] = []
+        self.bytes = 0
+        self.runs: list[tuple[NDArray[np.int64], NDArray[np.int64], NDArray[np.int64]]] = []
+        self.file_bytes = 0
+
+    def add(self, records: NDArray[np.void], sorted_keys: NDArray[np.int64]) -> None:
+        """Keep a block of records already sorted (stably) by key."""
+        if len(records):
+            self.blocks.append((records, sorted_keys))
+            self.bytes += records.nbytes + sorted_keys.nbytes
+
+    def spill(self) -> int:
+        """Write every held block as one key-sorted run; returns the bytes written."""
+        if not self.blocks:
+            return 0
+        keys = np.concatenate([k for _, k in self.blocks])
+        order = np.argsort(keys, kind="stable")
+        keys = keys[order]
+        starts = np.cumsum([0] + [len(r) for r, _ in self.blocks])
+        start_offset = self.file_bytes
+        with open(self.path, "ab") as f:
+            for a in range(0, len(order), self.slice_records):
+                take = order[a : a + self.slice_records]
+                which = np.searchsorted(starts, take, side="right") - 1
+                by_block = np.argsort(which, kind="stable")
+                blocks, first, counts = _runs_of(which[by_block])
+                piece = np.empty(len(take), dtype=self.dtype)
+                for j, b, m in zip(blocks.tolist(), first.tolist(), counts.tolist(), strict=True):
+                    at = by_block[b : b + m]
+                    np.put(piece, at, np.take(self.blocks[j][0], take[at] - starts[j]))
+                piece.tofile(f)
+        written = len(order) * self.dtype.itemsize
+        self.file_bytes += written
+        ukeys, first, counts = _runs_of(keys)
+        self.runs.append((ukeys, start_offset + first * self.dtype.itemsize, counts))
+        self.blocks.clear()
+        self.bytes = 0
+        return written
+
+    def extents(self) -> Iterator[tuple[int, list[tuple[int, int, int]]]]:
+        """Per key (sorted): its extents ``(source, start, count)`` in arrival order.
+
+        ``source`` -1 is the spill file (``start`` a byte offset); ``j >= 0`` is held block
+        ``j`` (``start`` a record index).
+        """
+        tables = []
+        for ukeys, offsets, counts in self.runs:
+            tables.append((ukeys, np.full(len(ukeys), -1), offsets, counts))
+        for j, (_, keys) in enumerate(self.blocks):
+            ukeys, first, counts = _runs_of(keys)
+            tables.append((ukeys, np.full(len(ukeys), j), first, counts))
+        if not tables:
+            return
+        seq = np.concatenate([np.full(len(t[0]), i) for i, t in enumerate(tables)])
+        all_keys, source, start, count = (np.concatenate(c) for c in zip(*tables, strict=True))
+        order = np.lexsort((seq, all_keys))  # by key, then arrival order
+        all_keys, source, start, count = (a[order] for a in (all_keys, source, start, count))
+        ukeys, first, n = _runs_of(all_keys)
+        src, st, ct = source.tolist(), start.tolist(), count.tolist()
+        for key, a, m in zip(ukeys.tolist(), first.tolist(), n.tolist(), strict=True):
+            yield key, [(src[i], st[i], ct[i]) for i in range(a, a + m)]
+
+    def read(self, extents: list[tuple[int, int, int]], fd: int | None) -> NDArray[np.void]:
+        """One key's records, in arrival order, from its extents."""
+        out = np.empty(sum(c for _, _, c in extents), dtype=self.dtype)
+        view = out.view(np.uint8).data
+        itemsize = self.dtype.itemsize
+        at = 0
+        for source, start, count in extents:
+            if source < 0:
+                assert fd is not None
+                lo, hi = at * itemsize, (at + count) * itemsize
+                while lo < hi:  # a single read may return less (e.g. > 2 GiB on Linux)
+                    got = os.preadv(fd, [view[lo:hi]], start + lo - at * itemsize)
+                    if got <= 0:
+                        raise ConservationError(
+                            f"spill file ended early: {hi - lo} bytes missing at {start}",
+                            path=self.path,
+                        )
+                    lo += got
+            else:
+                out[at : at + count] = self.blocks[source][0][start : start + count]
+            at += count
+        return out
+
+
+def _runs_of(sorted_keys: NDArray[np.int64]) -> tuple[NDArray[np.int64], ...]:
+    """Distinct keys of a sorted array, the index of each one's first record, and counts."""
+    if len(sorted_keys) == 0:
+        empty = np.empty(0, dtype=np.int64)
+        return empty, empty, empty
+    first = np.flatnonzero(np.r_[True, sorted_keys[1:] != sorted_keys[:-1]])
+    counts = np.diff(np.r_[first, len(sorted_keys)])
+    return sorted_keys[first], first.astype(np.int64), counts.astype(np.int64)
+
+
+class PartitionEngine:
+    """Group streamed points by ``assign(x, y) -> int64 keys`` within a memory budget.
+
+    Use as a context manager (or call :meth:`close`) so the spill folder is removed even when
+    :meth:`finalise` is not run to the end.
+    """
+
+    def __init__(
+        self,
+        assign: KeyFunction,
+        workdir: str | PathLike[str],
+        *,
+        memory_budget_bytes: int = DEFAULT_MEMORY_BUDGET,
+        buffer: BufferFunction | None = None,
+    ) -> None:
+        if memory_budget_bytes <= 0:
+            raise ValueError(f"memory budget must be positive, got {memory_budget_bytes}")
+        self.assign = assign
+        self.buffer = buffer
+        self.memory_budget_bytes = int(memory_budget_bytes)
+        Path(workdir).mkdir(parents=True, exist_ok=True)
+        self._dir = Path(tempfile.mkdtemp(prefix="partition-", dir=workdir))
+        self._names: tuple[str, ...] | None = None
+        self._dtype: np.dtype | None = None
+        self._core: _Store | None = None
+        self._buf: _Store | None = None
+        self._state = "open"
+        self.stats = PartitionStats()
+
+    # -- input ----------------------------------------------------------------------------
+
+    def _schema(self, chunk: PointCloud) -> np.dtype:
+        """The record dtype (fixed by the first chunk); field order may differ between chunks."""
+        names = tuple(self._names or chunk.fields)
+        descr: list[tuple[str, np.dtype, tuple[int, ...]]] = [(_XYZ, np.dtype(np.float64), (3,))]
+        for name in names:
+            if name in (_XYZ, WITHHELD):
+                raise ChunkSchemaError(f"field name {name!r} is reserved by the partition engine")
+            values = chunk.fields.get(name)
+            if values is None:
+                break
+            descr.append((name, values.dtype, values.shape[1:]))
+        dtype = np.dtype(descr)
+        if self._dtype is None:
+            self._names, self._dtype = names, dtype
+            slice_bytes = int(self.memory_budget_bytes * _SPILL_SLICE)
+            self._core = _Store(self._dir / "core.bin", dtype, slice_bytes)
+            if self.buffer is not None:
+                self._buf = _Store(self._dir / "buffer.bin", dtype, slice_bytes)
+        elif dtype != self._dtype or set(chunk.fields) != set(names):
+            raise ChunkSchemaError(
+                f"chunk fields {_describe_fields(chunk)} differ from the first chunk's "
+                f"{_describe(self._dtype)}"
+            )
+        return self._dtype
+
+    def add(self, chunk: PointCloud) -> None:
+        """Partition one chunk (in the output CRS; any fields, the same for every chunk)."""
+        if self._state != "open":
+            raise RuntimeError(f"cannot add points: the engine is {self._state}")
+        dtype = self._schema(chunk)
+        n = len(chunk)
+        if n == 0:
+            return
+        x, y = chunk.xyz[:, 0], chunk.xyz[:, 1]
+        raw = np.asarray(self.assign(x, y))
+        if raw.shape != (n,) or not np.issubdtype(raw.dtype, np.integer):
+            raise GridError(
+                f"assign returned {raw.dtype} {raw.shape}, expected ({n},) integer keys"
+            )
+        keys: NDArray[np.int64] = raw.astype(np.int64, copy=False)
+        records = np.empty(n, dtype=dtype)
+        records[_XYZ] = chunk.xyz
+        for name in chunk.fields:
+            records[name] = chunk.fields[name]
+        assert self._core is not None
+        if keys.min() == keys.max():  # the whole chunk in one cell: already in order
+            self._core.add(records, keys)
+        else:
+            order = np.argsort(keys, kind="stable")
+            self._core.add(np.take(records, order), keys[order])
+        self.stats.points_in += n
+        if self.buffer is not None:
+            assert self._buf is not None
+            index, targets = self.buffer(x, y, keys)
+            border = np.argsort(targets, kind="stable")
+            self._buf.add(np.take(records, np.asarray(index)[border]), targets[border])
+        self._balance()
+
+    def _stores(self) -> list[_Store]:
+        return [s for s in (self._core, self._buf) if s is not None]
+
+    def _balance(self) -> None:
+        held = sum(s.bytes for s in self._stores())
+        self.stats.peak_buffered_bytes = max(self.stats.peak_buffered_bytes, held)
+        if held > self.memory_budget_bytes * _SPILL_AT:
+            self._spill()
+
+    def _spill(self) -> None:
+        for store in self._stores():
+            self.stats.bytes_spilled += store.spill()
+        self.stats.spill_flushes += 1
+
+    # -- output ---------------------------------------------------------------------------
+
+    def finalise(self) -> Iterator[CellPoints]:
+        """Yield every cell with core points, in sorted key order; then check conservation.
+
+        A cell's points come in arrival order. Once anything was spilled, what is still held
+        is spilled too, so every cell is read back as a few contiguous extents.
+        """
+        if self._state != "open":
+            raise RuntimeError(f"cannot finalise: the engine is {self._state}")
+        self._state = "finalising"
+        fds: dict[str, int] = {}
+        try:
+            if self._core is not None:
+                if self._core.runs or (self._buf is not None and self._buf.runs):
+                    self._spill()
+                for name, store in (("core", self._core), ("buffer", self._buf)):
+                    if store is not None and store.runs:
+                        fds[name] = _open_spill(store)
+                yield from self._cells(fds)
+            if self.stats.points_out != self.stats.points_in:
+                raise ConservationError(
+                    f"{self.stats.points_in} points went in, {self.stats.points_out} came out"
+                )
+        finally:
+            for fd in fds.values():
+                os.close(fd)
+            self.close()
+        self._state = "finalised"
+
+    def _cells(self, fds: dict[str, int]) -> Iterator[CellPoints]:
+        assert self._core is not None
+        buffer_extents = self._buf.extents() if self._buf is not None else iter(())
+        pending = next(buffer_extents, None)
+        for key, extents in self._core.extents():
+            core = self._cloud(self._core.read(extents, fds.get("core")))
+            buffer = None
+            if self._buf is not None:
+                while pending is not None and pending[0] < key:
+                    pending = next(buffer_extents, None)  # buffer copies for an empty cell
+                if pending is not None and pending[0] == key:
+                    records = self._buf.read(pending[1], fds.get("buffer"))
+                else:
+                    records = np.empty(0, dtype=self._buf.dtype)
+                buffer = self._cloud(records)
+                buffer = buffer.with_fields(**{WITHHELD: np.ones(len(buffer), dtype=bool)})
+                self.stats.buffer_points += len(buffer)
+            self.stats.points_out += len(core)
+            self.stats.cells += 1
+            yield CellPoints(int(key), core, buffer)
+
+    def _cloud(self, records: NDArray[np.void]) -> PointCloud:
+        return PointCloud(
+            np.ascontiguousarray(records[_XYZ]),
+            {name: np.ascontiguousarray(records[name]) for name in self._names or ()},
+        )
+
+    def close(self) -> None:
+        """Drop all held points and remove the spill folder."""
+        self._core = self._buf = None
+        if self._state == "open":
+            self._state = "closed"
+        shutil.rmtree(self._dir, ignore_errors=True)
+
+    def __enter__(self) -> PartitionEngine:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+
+def _open_spill(store: _Store) -> int:
+    fd = os.open(store.path, os.O_RDONLY)
+    size = os.fstat(fd).st_size
+    if size != store.file_bytes:
+        os.close(fd)
+        raise ConservationError(
+            f"spill file holds {size} bytes, {store.file_bytes} were written", path=store.path
+        )
+    return fd
+
+
+def _describe_fields(chunk: PointCloud) -> str:
+    return (
+        "{" + ", ".join(f"{n}: {v.dtype}{v.shape[1:] or ''}" for n, v in chunk.fields.items()) + "}"
+    )
+
+
+def _describe(dtype: np.dtype | None) -> str:
+    if dtype is None or dtype.names is None:
+        return "{}"
+    fields: dict[str, Any] = dict(dtype.fields or {})
+    return "{" + ", ".join(f"{n}: {fields[n][0]}" for n in dtype.names if n != _XYZ) + "}"

@@ -1,0 +1,174 @@
+"""Rasters aligned to the stand grid: DTM, CHM, density, height above ground, COG output."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import rasterio
+
+from standgrid.enrich.ground import classify_ground
+from standgrid.enrich.rasters import (
+    RasterGrid,
+    chm,
+    density,
+    dtm_from_ground,
+    height_above_ground,
+    read_raster,
+    write_cog,
+)
+from standgrid.errors import EnrichError, GridError, OutputExistsError
+from tests.conftest import real_file
+
+ORIGIN = (600_000.5, 5_100_000.25)
+
+
+def test_grid_is_aligned_to_the_stand_grid() -> None:
+    a = RasterGrid.covering(
+        (600_013.0, 5_100_007.0, 600_051.0, 5_100_033.0),
+        origin=ORIGIN,
+        cell_size=20.0,
+        pixel_size=1.0,
+    )
+    # extent = whole stand cells containing the bounds
+    assert (a.x0 - ORIGIN[0]) % 20.0 == 0 and (a.y0 - ORIGIN[1]) % 20.0 == 0
+    assert a.x0 <= 600_013.0 < 600_051.0 < a.bounds[2] and a.bounds[2] - a.x0 == 60.0
+    assert a.shape == (40, 60)
+    # another epoch with other bounds: pixel edges coincide exactly
+    b = RasterGrid.covering(
+        (600_071.3, 5_100_102.0, 600_090.0, 5_100_110.0),
+        origin=ORIGIN,
+        cell_size=20.0,
+        pixel_size=0.5,
+    )
+    assert ((b.x0 - a.x0) / 0.5) % 1 == 0 and ((b.y0 - a.y0) / 0.5) % 1 == 0
+    # without snapping: pixel multiples of the origin only
+    c = RasterGrid.covering(
+        (600_013.2, 5_100_007.9, 600_014.0, 5_100_008.1),
+        origin=ORIGIN,
+        cell_size=20.0,
+        pixel_size=1.0,
+        snap_to_cells=False,
+    )
+    assert c.x0 == 600_012.5 and c.y0 == 5_100_007.25 and c.shape == (1, 2)
+    with pytest.raises(GridError):
+        RasterGrid.covering((0, 0, 1, 1), origin=(0.0, 0.0), cell_size=20.0, pixel_size=3.0)
+    # pixel_of / centres agree; row 0 is the north row
+    cx, cy = a.centers()
+    row, col = a.pixel_of(cx.ravel(), cy.ravel())
+    assert (row.reshape(a.shape) == np.arange(a.nrows)[:, None]).all()
+    assert (col.reshape(a.shape) == np.arange(a.ncols)[None, :]).all()
+    assert cy[0, 0] > cy[-1, 0]
+
+
+def plane(x: np.ndarray, y: np.ndarray) -> np.ndarray:
+    return 412.0 + 0.3 * (x - ORIGIN[0]) - 0.2 * (y - ORIGIN[1])
+
+
+def test_dtm_and_heights_are_exact_on_a_plane() -> None:
+    rng = np.random.default_rng(0)
+    gx = rng.uniform(ORIGIN[0], ORIGIN[0] + 40, 3000)
+    gy = rng.uniform(ORIGIN[1], ORIGIN[1] + 40, 3000)
+    grid = RasterGrid.covering(
+        (gx.min(), gy.min(), gx.max(), gy.max()), origin=ORIGIN, cell_size=20.0
+    )
+    dtm = dtm_from_ground(np.column_stack([gx, gy, plane(gx, gy)]), grid)
+    cx, cy = grid.centers()
+    assert dtm.dtype == np.float32 and dtm.shape == grid.shape
+    inside = (cx > gx.min() + 2) & (cx < gx.max() - 2) & (cy > gy.min() + 2) & (cy < gy.max() - 2)
+    assert np.abs(dtm - plane(cx, cy))[inside].max() < 1e-3  # TIN of a plane is the plane
+    assert np.isfinite(dtm).all()  # outside the hull: nearest ground point
+    px = rng.uniform(ORIGIN[0] + 1, ORIGIN[0] + 39, 500)
+    py = rng.uniform(ORIGIN[1] + 1, ORIGIN[1] + 39, 500)
+    true_h = rng.uniform(0, 30, 500)
+    h = height_above_ground(np.column_stack([px, py, plane(px, py) + true_h]), dtm, grid)
+    assert h.dtype == np.float32 and np.abs(h - true_h).max() < 2e-3
+    with pytest.raises(EnrichError):
+        height_above_ground(np.array([[ORIGIN[0] - 100, ORIGIN[1], 0.0]]), dtm, grid)
+    with pytest.raises(EnrichError):
+        dtm_from_ground(np.empty((0, 3)), grid)
+
+
+def test_chm_and_density_by_hand() -> None:
+    grid = RasterGrid(x0=0.0, y0=0.0, pixel_size=1.0, ncols=3, nrows=2)
+    xyz = np.array(
+        [[0.5, 1.5, 0], [0.2, 1.1, 0], [2.5, 0.5, 0], [2.7, 0.1, 0], [2.1, 0.9, 0]], float
+    )
+    heights = np.array([3.0, 7.0, -0.2, 1.0, 0.5])
+    raw = chm(xyz, heights, grid, fill_empty=False)
+    expected = np.array([[7.0, np.nan, np.nan], [np.nan, np.nan, 1.0]])
+    assert np.array_equal(raw, expected.astype(np.float32), equal_nan=True)
+    filled = chm(xyz, heights, grid)  # empty pixels: median of non-empty 3x3 neighbours
+    assert filled[0, 1] == 4.0 and filled[1, 0] == 7.0
+    inflated = chm(xyz, heights, grid, subcircle=0.6, fill_empty=False)
+    # each point also lands 0.6 m away in 8 directions: (0.5, 1.5) reaches the middle
+    # pixel east, (0.2, 1.1) reaches the south-west pixel diagonally
+    assert inflated[0, 1] == 3.0 and inflated[1, 0] == 7.0 and inflated[1, 1] == 0.5
+    dens = density(xyz, grid)
+    assert dens[0, 0] == 2 and dens[1, 2] == 3 and dens.sum() == 5
+    quarter = RasterGrid(x0=0.0, y0=0.0, pixel_size=0.5, ncols=6, nrows=4)
+    assert density(xyz, quarter).sum() * 0.25 == pytest.approx(5)
+    with pytest.raises(EnrichError):
+        density(np.array([[5.0, 5.0, 0.0]]), grid)
+
+
+def test_write_cog_and_read_back(tmp_path) -> None:
+    grid = RasterGrid.covering(
+        (ORIGIN[0], ORIGIN[1], ORIGIN[0] + 599, ORIGIN[1] + 599), origin=ORIGIN, cell_size=20.0
+    )
+    rng = np.random.default_rng(2)
+    data = rng.uniform(0, 40, grid.shape).astype(np.float32)
+    data[5, 7] = np.nan
+    path = tmp_path / "rasters" / "chm.tif"
+    write_cog(path, data, grid, crs="EPSG:32632", description="canopy height (m)")
+    assert [p.name for p in path.parent.iterdir()] == ["chm.tif"]  # no temporary left
+    with rasterio.open(path) as ds:
+        assert ds.driver == "GTiff" and ds.crs.to_epsg() == 32632
+        assert ds.tags(ns="IMAGE_STRUCTURE")["LAYOUT"] == "COG"
+        assert ds.profile["compress"] == "deflate" and ds.profile["tiled"]
+        assert ds.block_shapes[0] == (256, 256)
+        assert ds.overviews(1)  # 600 x 600: internal overviews
+        assert ds.transform.c == grid.x0 and ds.transform.f == grid.bounds[3]
+        assert ds.descriptions[0] == "canopy height (m)"
+        back = ds.read(1)
+    assert np.array_equal(back, data, equal_nan=True)
+    raster = read_raster(path)
+    assert raster.grid == grid and raster.crs == "EPSG:32632"
+    assert np.isnan(raster.array[5, 7]) and np.nansum(raster.array) == pytest.approx(
+        np.nansum(data), rel=1e-6
+    )
+    with pytest.raises(OutputExistsError):
+        write_cog(path, data, grid, crs="EPSG:32632", overwrite=False)
+    counts = np.arange(grid.nrows * grid.ncols, dtype=np.uint16).reshape(grid.shape)
+    write_cog(tmp_path / "n.tif", counts, grid, crs=None, nodata=0)
+    local = read_raster(tmp_path / "n.tif")
+    assert local.crs is None and np.isnan(local.array[0, 0]) and local.array[0, 1] == 1
+    with pytest.raises(EnrichError):
+        write_cog(tmp_path / "bad.tif", data[:-1], grid, crs=None)
+
+
+@pytest.mark.realdata
+def test_real_chablais_dtm_from_own_csf_matches_the_file_ground(tmp_path) -> None:
+    import laspy
+
+    las = laspy.read(real_file("als/las_chablais3.laz"))
+    xyz = np.column_stack([las.x, las.y, las.z])
+    file_ground = np.asarray(las.classification) == 2
+    ours = classify_ground(xyz)
+    grid = RasterGrid.covering(
+        (xyz[:, 0].min(), xyz[:, 1].min(), xyz[:, 0].max(), xyz[:, 1].max()),
+        origin=(0.0, 0.0),
+        cell_size=20.0,
+        pixel_size=1.0,
+    )
+    dtm = dtm_from_ground(xyz[ours], grid)
+    # the file's ground points against our DTM (the classification never saw the labels)
+    residual = height_above_ground(xyz[file_ground], dtm, grid)
+    assert np.median(np.abs(residual)) < 0.3
+    assert np.percentile(np.abs(residual), 95) < 0.6
+    heights = height_above_ground(xyz, dtm, grid)
+    canopy = chm(xyz, heights, grid)
+    assert 25 < np.nanmax(canopy) < 45  # a mountain conifer stand
+    write_cog(tmp_path / "dtm.tif", dtm, grid, crs="EPSG:2154", description="DTM")
+    back = read_raster(tmp_path / "dtm.tif")
+    assert back.crs == "EPSG:2154" and np.allclose(back.array, dtm)
+    assert np.nanmin(back.array) > 1340 and np.nanmax(back.array) < 1410

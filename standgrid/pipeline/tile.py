@@ -292,9 +292,10 @@ def _tile_epoch(
     wrap: Wrap,
 ) -> None:
     from standgrid.errors import ConservationError
-    from standgrid.export.las import read_tile
+    from standgrid.export.las import read_tile, snap_to_storage
     from standgrid.partition import GridBuffer, PartitionEngine
 
+    origin = grid.origin if grid is not None else (0.0, 0.0)
     group_names = {i.mission.name for i in group}
     renewed = [i.number for i in group]
     previous_tiles = sorted(catalog.tiles(epoch)) if epoch in catalog.epochs else []
@@ -337,10 +338,12 @@ def _tile_epoch(
             cloud = read_tile(catalog.path(rel))
             keep = ~np.isin(cloud.fields["point_source_id"], renewed)
             if keep.any():
-                engine.add(_conform(cloud.select(keep), schema, catalog.path(rel)))
+                kept = cloud.select(keep)
+                kept = PointCloud(snap_to_storage(kept.xyz, origin), kept.fields)
+                engine.add(_conform(kept, schema, catalog.path(rel)))
                 kept_in += int(keep.sum())
         for ingest, index, payload in wrap(work, len(work), f"{epoch}: payloads"):
-            chunk = _payload_chunk(ingest, index, payload, schema)
+            chunk = _payload_chunk(ingest, index, payload, schema, origin)
             row = rows[_payload_id(ingest.number, index, ingest.mission)]
             row["point_count"] = len(chunk)
             row["geometry"] = _footprint(chunk.xyz, row["geometry"])
@@ -461,12 +464,18 @@ def _conform(cloud: PointCloud, schema: dict[str, np.dtype], source: Path) -> Po
 
 
 def _payload_chunk(
-    ingest: _Ingest, index: int, payload: Payload, schema: dict[str, np.dtype]
+    ingest: _Ingest,
+    index: int,
+    payload: Payload,
+    schema: dict[str, np.dtype],
+    origin: tuple[float, float],
 ) -> PointCloud:
-    """One payload in the output CRS with the tiler's fields."""
+    """One payload in the output CRS (snapped to the tiles' 1 mm lattice) with tiler fields."""
+    from standgrid.export.las import snap_to_storage
+
     assert ingest.projector is not None
     cloud = ingest.mission.load_payload(payload, frame="map")
-    xyz = ingest.projector.fast(cloud.xyz)
+    xyz = snap_to_storage(ingest.projector.fast(cloud.xyz), origin)
     n = len(xyz)
     fields = dict(cloud.fields)
     if "gps_time" not in fields:  # per-point times of the source win over the payload stamp

@@ -1,0 +1,85 @@
+"""``standgrid enrich``: terrain, trees and stand metrics for a catalog."""
+
+from __future__ import annotations
+
+from collections.abc import Iterable
+from pathlib import Path
+from typing import Any
+
+import click
+
+from standgrid.cli.options import emit, json_option, progress, quiet_option, status
+
+
+def _human(r: dict[str, Any]) -> str:
+    lines = [f"enriched {r['catalog']}"]
+    for epoch, e in r["epochs"].items():
+        lines.append(
+            f"epoch {epoch}: {e['cells']} stands ({e['cells_without_ground']} without ground),"
+            f" {e['trees']} trees ({e['trees_with_dbh']} with DBH)"
+        )
+    lines.append(
+        "outputs: rasters/<epoch>/{dtm,chm,density}.tif, tables/stand_metrics.{csv,parquet},"
+        " tables/tree_list_<epoch>.{csv,parquet}; index.gpkg layers stand_metrics and trees"
+    )
+    return "\n".join(lines)
+
+
+@click.command("enrich")
+@click.argument("catalog", type=click.Path(exists=True, file_okay=False, path_type=Path))
+@click.option("--epoch", "epochs", multiple=True, help="Epoch(s) to enrich (default: all).")
+@click.option(
+    "--pixel", "pixel_size", type=float, default=1.0, show_default=True,
+    help="DTM/CHM/density pixel size in metres (must divide the cell size).",
+)  # fmt: skip
+@click.option(
+    "--halo", type=float, default=10.0, show_default=True,
+    help="Metres of neighbouring tiles each stand is processed with (> a crown radius).",
+)  # fmt: skip
+@click.option(
+    "--height-break", type=float, default=2.0, show_default=True,
+    help="Height above ground (m) separating canopy from ground and understory in metrics.",
+)  # fmt: skip
+@click.option(
+    "--rigidness", type=click.IntRange(1, 3), default=1, show_default=True,
+    help="CSF cloth rigidness: 1 steep terrain, 2 relief, 3 flat.",
+)  # fmt: skip
+@json_option
+@quiet_option
+def enrich(
+    catalog: Path,
+    epochs: tuple[str, ...],
+    pixel_size: float,
+    halo: float,
+    height_break: float,
+    rigidness: int,
+    as_json: bool,
+    quiet: bool,
+) -> None:
+    """Classify ground, build terrain rasters, find trees and compute stand metrics.
+
+    Tiles get LAS class 2 for ground, a height_above_ground and a tree_id dimension; each
+    epoch gets DTM, CHM and density Cloud-Optimized GeoTIFFs aligned to the stand grid; stand
+    metrics and tree lists go to tables/ (CSV, Parquet) and to index.gpkg. Column
+    definitions: docs/METRICS.md.
+
+    \b
+    Example:
+      standgrid enrich catalog
+      standgrid enrich catalog --epoch 2028 --pixel 0.5 --json
+    """
+    from standgrid.pipeline.enrich import EnrichOptions, enrich_catalog
+
+    options = EnrichOptions(
+        pixel_size=pixel_size,
+        halo=halo,
+        height_break=height_break,
+        rigidness=rigidness,
+        epochs=epochs,
+    )
+
+    def wrap(items: Iterable[Any], total: int, desc: str) -> Iterable[Any]:
+        return progress(items, total=total or None, desc=desc, quiet=quiet)
+
+    report = enrich_catalog(catalog, options, wrap=wrap, status=lambda m: status(m, quiet))
+    emit(report.to_dict(), as_json, _human)

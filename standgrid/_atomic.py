@@ -30,7 +30,9 @@ def atomic_output(final: str | os.PathLike[str], *, overwrite: bool = True) -> I
     try:
         final_path.parent.mkdir(parents=True, exist_ok=True)
     except OSError as exc:
-        raise OutputNotWritableError(f"cannot create folder: {exc.strerror}", path=final_path.parent) from exc
+        raise OutputNotWritableError(
+            f"cannot create folder: {exc.strerror}", path=final_path.parent
+        ) from exc
     if not os.access(final_path.parent, os.W_OK):
         raise OutputNotWritableError("folder is not writable", path=final_path.parent)
     tmp = temporary_sibling(final_path)

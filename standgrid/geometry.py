@@ -8,16 +8,17 @@ from __future__ import annotations
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
-from scipy.spatial.transform import Rotation
 
 Matrix4 = NDArray[np.float64]
 
 
 def pose_matrix(translation: ArrayLike, quat_xyzw: ArrayLike) -> Matrix4:
-    """Build ``(..., 4, 4)`` pose matrices from translations ``(..., 3)`` and quaternions ``(..., 4)``.
+    """Build ``(..., 4, 4)`` poses from translations ``(..., 3)`` and quaternions ``(..., 4)``.
 
     Quaternions are normalised; a zero quaternion raises ``ValueError``.
     """
+    from scipy.spatial.transform import Rotation
+
     t = np.asarray(translation, dtype=np.float64)
     q = np.asarray(quat_xyzw, dtype=np.float64)
     batch = t.shape[:-1]
@@ -30,7 +31,9 @@ def pose_matrix(translation: ArrayLike, quat_xyzw: ArrayLike) -> Matrix4:
 
 
 def translation_quat(pose: Matrix4) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
-    """Split ``(..., 4, 4)`` poses into translations ``(..., 3)`` and quaternions ``(..., 4)`` xyzw."""
+    """Split ``(..., 4, 4)`` poses into translations ``(..., 3)`` and xyzw quaternions."""
+    from scipy.spatial.transform import Rotation
+
     p = np.asarray(pose, dtype=np.float64)
     batch = p.shape[:-2]
     q = Rotation.from_matrix(p[..., :3, :3].reshape(-1, 3, 3)).as_quat().reshape(*batch, 4)

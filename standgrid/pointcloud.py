@@ -29,7 +29,9 @@ class PointCloud:
         fields = {name: np.asarray(values) for name, values in self.fields.items()}
         for name, values in fields.items():
             if values.shape[:1] != (len(xyz),):
-                raise ValueError(f"field {name!r} has {values.shape[:1]} values for {len(xyz)} points")
+                raise ValueError(
+                    f"field {name!r} has {values.shape[:1]} values for {len(xyz)} points"
+                )
         object.__setattr__(self, "xyz", xyz)
         object.__setattr__(self, "fields", fields)
 

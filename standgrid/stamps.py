@@ -14,7 +14,9 @@ GPS_EPOCH_UNIX = 315_964_800
 #: GPS - UTC leap seconds, constant since 2017-01-01.
 GPS_LEAP_SECONDS = 18
 
-_NAME_RE = re.compile(r"^(?P<prefix>[A-Za-z]+)_(?P<sec>\d+)_(?P<nsec>\d{1,9})\.(?P<ext>[A-Za-z0-9]+)$")
+_NAME_RE = re.compile(
+    r"^(?P<prefix>[A-Za-z]+)_(?P<sec>\d+)_(?P<nsec>\d{1,9})\.(?P<ext>[A-Za-z0-9]+)$"
+)
 
 
 class Stamp(NamedTuple):
@@ -55,7 +57,7 @@ class Stamp(NamedTuple):
 
 
 def stamp_from_filename(name: str) -> tuple[str, Stamp, str] | None:
-    """Split ``cloud_1583840261_039995392.pcd`` into ``("cloud", Stamp, "pcd")``; None if no match."""
+    """``cloud_1583840261_039995392.pcd`` -> ``("cloud", Stamp, "pcd")``; None if no match."""
     m = _NAME_RE.match(name)
     if m is None:
         return None

@@ -30,24 +30,52 @@ def _cells() -> gpd.GeoDataFrame:
 
 
 def _inputs():
-    metrics_from = pd.DataFrame({"cell_id": ["A", "B", "C"], "height_p95_m": [20.0, 18.0, np.nan],
-                                 "null_reason": ["", "", "no points"]})
-    metrics_to = pd.DataFrame({"cell_id": ["A", "B", "C"], "height_p95_m": [22.0, 10.0, 5.0],
-                               "null_reason": ["", "", ""]})
-    before = pd.DataFrame({"tree_id": [1, 2, 3], "x": [X0 + 10, X0 + 30, X0 + 60],
-                           "y": [Y0 + 10, Y0 + 10, Y0 + 20], "height_m": [20.0, 18.0, 15.0]})
-    after = pd.DataFrame({"tree_id": [7, 8, 9], "x": [X0 + 10.3, X0 + 60.2, X0 + 80],
-                          "y": [Y0 + 10, Y0 + 20, Y0 + 20], "height_m": [22.0, 17.0, 3.0]})
+    metrics_from = pd.DataFrame(
+        {
+            "cell_id": ["A", "B", "C"],
+            "height_p95_m": [20.0, 18.0, np.nan],
+            "null_reason": ["", "", "no points"],
+        }
+    )
+    metrics_to = pd.DataFrame(
+        {"cell_id": ["A", "B", "C"], "height_p95_m": [22.0, 10.0, 5.0], "null_reason": ["", "", ""]}
+    )
+    before = pd.DataFrame(
+        {
+            "tree_id": [1, 2, 3],
+            "x": [X0 + 10, X0 + 30, X0 + 60],
+            "y": [Y0 + 10, Y0 + 10, Y0 + 20],
+            "height_m": [20.0, 18.0, 15.0],
+        }
+    )
+    after = pd.DataFrame(
+        {
+            "tree_id": [7, 8, 9],
+            "x": [X0 + 10.3, X0 + 60.2, X0 + 80],
+            "y": [Y0 + 10, Y0 + 20, Y0 + 20],
+            "height_m": [22.0, 17.0, 3.0],
+        }
+    )
     matches = match_trees(before, after, date_from=DATE_FROM, date_to=DATE_TO)
-    changes = compare_stands(metrics_from, metrics_to, date_from=DATE_FROM, date_to=DATE_TO,
-                             epoch_from="2020", epoch_to="2024", tree_matches=matches,
-                             cells=_cells())
+    changes = compare_stands(
+        metrics_from,
+        metrics_to,
+        date_from=DATE_FROM,
+        date_to=DATE_TO,
+        epoch_from="2020",
+        epoch_to="2024",
+        tree_matches=matches,
+        cells=_cells(),
+    )
     return changes, matches
 
 
 def _existing_index(path):
-    frame = gpd.GeoDataFrame({"cell_id": ["A"], "point_count": [5]},
-                             geometry=[shapely.box(X0, Y0, X0 + SIZE, Y0 + SIZE)], crs=CRS)
+    frame = gpd.GeoDataFrame(
+        {"cell_id": ["A"], "point_count": [5]},
+        geometry=[shapely.box(X0, Y0, X0 + SIZE, Y0 + SIZE)],
+        crs=CRS,
+    )
     pyogrio.write_dataframe(frame, path, layer="cells", driver="GPKG")
 
 
@@ -56,8 +84,9 @@ def test_tables_and_layers_written_and_read_back(tmp_path):
     gpkg = tmp_path / "index.gpkg"
     _existing_index(gpkg)
     out_dir = tmp_path / "compare" / "2020__2024"
-    result = write_change_outputs(out_dir, gpkg, changes, matches, epoch_from="2020",
-                                  epoch_to="2024", cells=_cells())
+    result = write_change_outputs(
+        out_dir, gpkg, changes, matches, epoch_from="2020", epoch_to="2024", cells=_cells()
+    )
 
     # flat table: pandas and the csv module agree; keyed by cell_id + epochs
     table = pd.read_csv(result.stand_csv)
@@ -81,8 +110,11 @@ def test_tables_and_layers_written_and_read_back(tmp_path):
     assert len(pd.read_csv(result.tree_csv)) == 4
 
     # GeoPackage: layers with geometry, the old layer kept
-    assert {name for name, _ in pyogrio.list_layers(gpkg)} >= {"cells", "stand_changes",
-                                                                "tree_changes"}
+    assert {name for name, _ in pyogrio.list_layers(gpkg)} >= {
+        "cells",
+        "stand_changes",
+        "tree_changes",
+    }
     stands = gpd.read_file(gpkg, layer="stand_changes")
     assert stands.crs.to_epsg() == 32633
     a = stands.set_index("cell_id").loc["A"]
@@ -96,9 +128,11 @@ def test_tables_and_layers_written_and_read_back(tmp_path):
 
     # default QGIS styles, read with sqlite3 (a second reader of the GeoPackage)
     with sqlite3.connect(gpkg) as db:
-        styles = dict(db.execute(
-            "SELECT f_table_name, styleQML FROM layer_styles WHERE useAsDefault = 1"
-        ).fetchall())
+        styles = dict(
+            db.execute(
+                "SELECT f_table_name, styleQML FROM layer_styles WHERE useAsDefault = 1"
+            ).fetchall()
+        )
     assert result.style_field == "tree_height_growth_m_per_year"
     stand_qml = ET.fromstring(styles["stand_changes"].split("\n", 1)[1])
     renderer = stand_qml.find("renderer-v2")
@@ -116,24 +150,44 @@ def test_chosen_style_field_and_geodataframe_input(tmp_path):
     frame = changes.merge(_cells(), on="cell_id")
     geo = gpd.GeoDataFrame(frame, geometry="geometry", crs=CRS)
     gpkg = tmp_path / "out.gpkg"
-    result = write_change_outputs(tmp_path / "c", gpkg, geo, epoch_from="2020", epoch_to="2024",
-                                  style_field="height_p95_m_delta")
+    result = write_change_outputs(
+        tmp_path / "c",
+        gpkg,
+        geo,
+        epoch_from="2020",
+        epoch_to="2024",
+        style_field="height_p95_m_delta",
+    )
     assert result.tree_csv is None
     assert result.style_range == pytest.approx((-8.0 * 0.98 - 2.0 * 0.02, 8.0 * 0.98 + 0.04))
     assert [name for name, _ in pyogrio.list_layers(gpkg)].count("tree_changes") == 0
     with sqlite3.connect(gpkg) as db:
-        (qml,) = db.execute("SELECT styleQML FROM layer_styles WHERE f_table_name = "
-                            "'stand_changes'").fetchone()
+        (qml,) = db.execute(
+            "SELECT styleQML FROM layer_styles WHERE f_table_name = 'stand_changes'"
+        ).fetchone()
     assert 'attr="height_p95_m_delta"' in qml
 
 
 def test_missing_polygons_and_unknown_style_field_are_refused(tmp_path):
     changes, _ = _inputs()
     with pytest.raises(ChangeInputError, match="no cell polygon: C"):
-        write_change_outputs(tmp_path / "c", tmp_path / "x.gpkg", changes, epoch_from="2020",
-                             epoch_to="2024", cells=_cells().iloc[:2])
+        write_change_outputs(
+            tmp_path / "c",
+            tmp_path / "x.gpkg",
+            changes,
+            epoch_from="2020",
+            epoch_to="2024",
+            cells=_cells().iloc[:2],
+        )
     with pytest.raises(ChangeInputError, match="not_a_column"):
-        write_change_outputs(tmp_path / "c", tmp_path / "x.gpkg", changes, epoch_from="2020",
-                             epoch_to="2024", cells=_cells(), style_field="not_a_column")
+        write_change_outputs(
+            tmp_path / "c",
+            tmp_path / "x.gpkg",
+            changes,
+            epoch_from="2020",
+            epoch_to="2024",
+            cells=_cells(),
+            style_field="not_a_column",
+        )
     assert not (tmp_path / "x.gpkg").exists()
     assert not (tmp_path / "c").exists()  # refused before anything was written

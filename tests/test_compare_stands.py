@@ -255,11 +255,22 @@ def test_tree_change_needs_the_stand_of_each_tree():
 def test_metrics_indexed_by_cell_with_string_reasons():
     # the shape enrich writes: integer cell keys as the index "cell", reasons as pd.NA/str
     index = pd.Index([10, 11], name="cell")
-    before = pd.DataFrame({"n_points": [500, 0], "zmean": [12.0, np.nan],
-                           "null_reason": pd.array([pd.NA, "no points"], dtype="string")},
-                          index=index)
-    after = pd.DataFrame({"n_points": [650, 40], "zmean": [12.5, 3.0],
-                          "null_reason": pd.array([pd.NA, pd.NA], dtype="string")}, index=index)
+    before = pd.DataFrame(
+        {
+            "n_points": [500, 0],
+            "zmean": [12.0, np.nan],
+            "null_reason": pd.array([pd.NA, "no points"], dtype="string"),
+        },
+        index=index,
+    )
+    after = pd.DataFrame(
+        {
+            "n_points": [650, 40],
+            "zmean": [12.5, 3.0],
+            "null_reason": pd.array([pd.NA, pd.NA], dtype="string"),
+        },
+        index=index,
+    )
     out = compare_stands(before, after, date_from=DATE_FROM, date_to=DATE_TO)
     assert out["cell_id"].tolist() == [10, 11]
     assert out["zmean_per_year"].iloc[0] == pytest.approx(0.5 / YEARS)
@@ -272,8 +283,9 @@ def test_no_trees_at_all_gives_zero_tree_change_for_observed_stands():
     empty = _trees([], np.empty((0, 2)), [])
     matches = match_trees(empty, empty, date_from=DATE_FROM, date_to=DATE_TO)
     before, after = _metrics_pair()
-    out = compare_stands(before, after, date_from=DATE_FROM, date_to=DATE_TO,
-                         tree_matches=matches, cells=_cells()).set_index("cell_id")
+    out = compare_stands(
+        before, after, date_from=DATE_FROM, date_to=DATE_TO, tree_matches=matches, cells=_cells()
+    ).set_index("cell_id")
     assert out.loc["A", "trees_removed"] == 0 and out.loc["C", "trees_new_per_ha"] == 0.0
     assert pd.isna(out.loc["D", "trees_removed"])  # D only observed in "to": unknown
     assert np.isnan(out.loc["A", "tree_height_growth_m"])  # no grown tree: no mean growth

@@ -229,9 +229,14 @@ def _brute_force_cost(before: pd.DataFrame, after: pd.DataFrame) -> float:
     for i in range(n):
         for j in range(m):
             d = np.hypot(after.x.iloc[j] - before.x.iloc[i], after.y.iloc[j] - before.y.iloc[i])
-            c, ok = _pair_costs(np.array([before.height_m.iloc[i]]),
-                                np.array([after.height_m.iloc[j]]), np.array([d]),
-                                max_distance=2.0, max_height_loss=0.3, max_height_gain=1.0)
+            c, ok = _pair_costs(
+                np.array([before.height_m.iloc[i]]),
+                np.array([after.height_m.iloc[j]]),
+                np.array([d]),
+                max_distance=2.0,
+                max_height_loss=0.3,
+                max_height_gain=1.0,
+            )
             if d <= 2.0 and ok[0]:
                 cost[i, j] = c[0]
 
@@ -239,8 +244,11 @@ def _brute_force_cost(before: pd.DataFrame, after: pd.DataFrame) -> float:
         if i == n:
             return UNMATCHED_COST * (m - len(used))
         options = [UNMATCHED_COST + best(i + 1, used)]
-        options += [cost[i, j] + best(i + 1, used | {j}) for j in range(m)
-                    if j not in used and np.isfinite(cost[i, j])]
+        options += [
+            cost[i, j] + best(i + 1, used | {j})
+            for j in range(m)
+            if j not in used and np.isfinite(cost[i, j])
+        ]
         return min(options)
 
     return best(0, frozenset())
@@ -250,9 +258,14 @@ def _result_cost(result) -> float:
     from standgrid.compare.trees import UNMATCHED_COST, _pair_costs
 
     grown = result.grown
-    costs, _ = _pair_costs(grown["height_m_from"].to_numpy(), grown["height_m_to"].to_numpy(),
-                           grown["distance_m"].to_numpy(), max_distance=2.0,
-                           max_height_loss=0.3, max_height_gain=1.0)
+    costs, _ = _pair_costs(
+        grown["height_m_from"].to_numpy(),
+        grown["height_m_to"].to_numpy(),
+        grown["distance_m"].to_numpy(),
+        max_distance=2.0,
+        max_height_loss=0.3,
+        max_height_gain=1.0,
+    )
     unmatched = len(result.table) - len(grown)
     return float(costs.sum()) + UNMATCHED_COST * unmatched
 
@@ -285,13 +298,22 @@ def test_real_tree_positions_with_simulated_second_epoch():
     from scipy.spatial import cKDTree
 
     las = laspy.read(real_file("als/lidR/MixedConifer.laz"))
-    points = pd.DataFrame({"tree": np.asarray(las["treeID"]), "x": np.asarray(las.x),
-                           "y": np.asarray(las.y), "z": np.asarray(las.z)})
+    points = pd.DataFrame(
+        {
+            "tree": np.asarray(las["treeID"]),
+            "x": np.asarray(las.x),
+            "y": np.asarray(las.y),
+            "z": np.asarray(las.z),
+        }
+    )
     points = points[(points["tree"] > 0) & (points["tree"] < 1e9)]  # NA is stored as DBL_MAX
     tops = points.loc[points.groupby("tree")["z"].idxmax()].reset_index(drop=True)
     assert len(tops) > 150
-    before = _trees(np.arange(1, len(tops) + 1), tops[["x", "y"]].to_numpy() - [500_000.0,
-                    6_700_000.0], tops["z"].to_numpy())
+    before = _trees(
+        np.arange(1, len(tops) + 1),
+        tops[["x", "y"]].to_numpy() - [500_000.0, 6_700_000.0],
+        tops["z"].to_numpy(),
+    )
     rng = np.random.default_rng(11)
     harvested = rng.choice(len(tops), size=int(0.15 * len(tops)), replace=False)
     kept = np.setdiff1d(np.arange(len(tops)), harvested)
@@ -308,14 +330,20 @@ def test_real_tree_positions_with_simulated_second_epoch():
     after = _trees(
         np.arange(5000, 5000 + len(kept) + len(gaps)),
         np.vstack([moved, gaps]) - [500_000.0, 6_700_000.0],
-        np.concatenate([before["height_m"].to_numpy()[kept] + 0.4 * 5.0,
-                        rng.uniform(1.5, 3.0, len(gaps))]),
+        np.concatenate(
+            [before["height_m"].to_numpy()[kept] + 0.4 * 5.0, rng.uniform(1.5, 3.0, len(gaps))]
+        ),
     )
     result = match_trees(before, after, date_from="2019-07-01", date_to="2024-07-01")
     assert result.years == pytest.approx(1827 / 365.25)
     assert result.counts() == {"grown": len(kept), "new": len(gaps), "removed": len(harvested)}
-    pairs = dict(zip(result.grown["tree_id_from"].astype(int),
-                     result.grown["tree_id_to"].astype(int), strict=True))
+    pairs = dict(
+        zip(
+            result.grown["tree_id_from"].astype(int),
+            result.grown["tree_id_to"].astype(int),
+            strict=True,
+        )
+    )
     assert pairs == {int(before["tree_id"].iloc[k]): 5000 + i for i, k in enumerate(kept)}
     assert result.grown["height_m_per_year"].to_numpy() == pytest.approx(
         2.0 / result.years, abs=1e-5
@@ -332,9 +360,11 @@ def test_sparse_solver_of_large_components_equals_dense(monkeypatch):
     height = rng.uniform(2.0, 8.0, n)
     before = _trees(np.arange(n), xy, height)
     keep = rng.random(n) > 0.2
-    after = _trees(np.arange(1000, 1000 + keep.sum()),
-                   xy[keep] + rng.normal(0, 0.3, (keep.sum(), 2)),
-                   height[keep] * rng.uniform(0.8, 1.4, keep.sum()))
+    after = _trees(
+        np.arange(1000, 1000 + keep.sum()),
+        xy[keep] + rng.normal(0, 0.3, (keep.sum(), 2)),
+        height[keep] * rng.uniform(0.8, 1.4, keep.sum()),
+    )
     dense = match_trees(before, after, date_from=DATE_FROM, date_to=DATE_TO)
     monkeypatch.setattr(trees_module, "DENSE_LIMIT", 0)
     sparse = match_trees(before, after, date_from=DATE_FROM, date_to=DATE_TO)

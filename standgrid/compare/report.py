@@ -99,8 +99,10 @@ def _stand_geometries(stand_changes: Any, cells: Any | None, crs: Any | None) ->
     if cells is None:
         raise ChangeInputError("stand changes without geometry need cells (cell_id + polygon)")
     polygons = pd.DataFrame({"cell_id": cells["cell_id"].to_numpy(), "geometry": cells.geometry})
-    merged = pd.DataFrame(stand_changes).drop(columns="geometry", errors="ignore").merge(
-        polygons, on="cell_id", how="left", validate="many_to_one"
+    merged = (
+        pd.DataFrame(stand_changes)
+        .drop(columns="geometry", errors="ignore")
+        .merge(polygons, on="cell_id", how="left", validate="many_to_one")
     )
     missing = merged.loc[merged["geometry"].isna(), "cell_id"]
     if len(missing):

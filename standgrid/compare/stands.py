@@ -158,7 +158,8 @@ def _tree_change(
         )
     if stand_area_m2 is not None:
         area_ha = (
-            stand_area_m2.reindex(result.index) if isinstance(stand_area_m2, pd.Series)
+            stand_area_m2.reindex(result.index)
+            if isinstance(stand_area_m2, pd.Series)
             else pd.Series(float(stand_area_m2), index=result.index)
         ) / 10_000.0
         for column in ("trees_removed", "trees_new", "trees_grown"):

@@ -228,9 +228,7 @@ def _assign(
     if len(rows) == 0:
         return np.empty(0, np.int64), np.empty(0, np.int64)
     size = n_from + n_to
-    graph = coo_matrix(
-        (np.ones(len(rows)), (rows, cols + n_from)), shape=(size, size)
-    ).tocsr()
+    graph = coo_matrix((np.ones(len(rows)), (rows, cols + n_from)), shape=(size, size)).tocsr()
     _, labels = connected_components(graph, directed=False)
     pair_component = labels[rows]
     order = np.argsort(pair_component, kind="stable")
@@ -301,9 +299,7 @@ def match_trees(
         neighbours = cKDTree(xy_b).query_ball_point(xy_a, r=max_distance)
         counts = np.fromiter((len(n) for n in neighbours), np.int64, len(neighbours))
         rows = np.repeat(np.arange(len(a), dtype=np.int64), counts)
-        cols = np.fromiter(
-            (j for n in neighbours for j in n), np.int64, int(counts.sum())
-        )
+        cols = np.fromiter((j for n in neighbours for j in n), np.int64, int(counts.sum()))
     else:
         rows = cols = np.empty(0, np.int64)
     distance = np.hypot(*(xy_b[cols] - xy_a[rows]).T) if len(rows) else np.empty(0)
@@ -315,9 +311,7 @@ def match_trees(
         max_height_loss=max_height_loss,
         max_height_gain=max_height_gain,
     )
-    match_a, match_b = _assign(
-        len(a), len(b), rows[allowed], cols[allowed], cost[allowed]
-    )
+    match_a, match_b = _assign(len(a), len(b), rows[allowed], cols[allowed], cost[allowed])
 
     unmatched_a = np.setdiff1d(np.arange(len(a)), match_a)
     unmatched_b = np.setdiff1d(np.arange(len(b)), match_b)

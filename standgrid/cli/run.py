@@ -1,0 +1,98 @@
+"""``standgrid run``: missions -> catalog -> enriched -> compared, in one command."""
+
+from __future__ import annotations
+
+from collections.abc import Iterable
+from pathlib import Path
+from typing import Any
+
+import click
+
+from standgrid.cli.options import (
+    emit,
+    json_option,
+    output_option,
+    overwrite_option,
+    progress,
+    quiet_option,
+    status,
+)
+
+QGIS_GUIDE = """\
+Open it in QGIS:
+  1. Layer > Add Layer > Add Vector Layer..., pick {gpkg}, select all layers:
+     cells (stand grid), stand_metrics (canopy height zq95), trees (crowns by height),
+     stand_changes (growth per year, red-blue ramp), tree_changes (grown/new/removed),
+     payloads, trajectories, gnss_fixes. Each layer opens with its own default style.
+  2. Point clouds: drag {vpcs} into QGIS (3.32+), one layer per epoch.
+  3. Rasters: drag {rasters} (DTM, CHM, density) and {chm_diff} (CHM change)."""
+
+
+def _human(r: dict[str, Any]) -> str:
+    from standgrid.cli.compare import _human as compare_human
+    from standgrid.cli.enrich import _human as enrich_human
+    from standgrid.cli.tile import _human as tile_human
+
+    catalog = Path(r["tile"]["catalog"])
+    parts = [tile_human(r["tile"]), enrich_human(r["enrich"])]
+    if r["compare"] is not None:
+        parts.append(compare_human(r["compare"]))
+    epochs = sorted(r["enrich"]["epochs"])
+    chm_diff = (
+        catalog / r["compare"]["outputs"]["chm_difference"] if r["compare"] else "(one epoch)"
+    )
+    parts.append(
+        QGIS_GUIDE.format(
+            gpkg=catalog / "index.gpkg",
+            vpcs=", ".join(str(catalog / f"tiles_{e}.vpc") for e in epochs),
+            rasters=catalog / "rasters" / "<epoch>" / "*.tif",
+            chm_diff=chm_diff,
+        )
+    )
+    return "\n\n".join(parts)
+
+
+@click.command("run")
+@click.argument(
+    "paths", nargs=-1, required=True,
+    type=click.Path(exists=True, file_okay=False, path_type=Path),
+)  # fmt: skip
+@output_option(help="Catalog folder.")
+@click.option("--grid", "cell_size", type=float, default=None, help="Cell size (default 20 m).")
+@click.option("--crs", "crs_spec", default="auto", show_default=True, help="Output CRS.")
+@click.option("--buffer", type=float, default=None, help="Tile buffer in metres (default 0).")
+@overwrite_option
+@json_option
+@quiet_option
+def run(
+    paths: tuple[Path, ...],
+    output: Path,
+    cell_size: float | None,
+    crs_spec: str,
+    buffer: float | None,
+    overwrite: bool,
+    as_json: bool,
+    quiet: bool,
+) -> None:
+    """Run the whole path: tile PATHS (missions, or folders of missions) into -o CATALOG,
+    enrich every epoch, compare the first epoch with the last, and say what to open in QGIS.
+
+    \b
+    Example:
+      standgrid run data/missions -o standgrid-demo --overwrite
+      standgrid run survey-2024/ survey-2028/ -o catalog --grid 100 --crs EPSG:25832
+    """
+    from standgrid.pipeline.run import run_pipeline
+    from standgrid.pipeline.tile import TileOptions
+
+    def wrap(items: Iterable[Any], total: int, desc: str) -> Iterable[Any]:
+        return progress(items, total=total or None, desc=desc, quiet=quiet)
+
+    report = run_pipeline(
+        list(paths),
+        output,
+        TileOptions(cell_size=cell_size, crs=crs_spec, buffer=buffer, overwrite=overwrite),
+        wrap=wrap,
+        status=lambda m: status(m, quiet),
+    )
+    emit(report.to_dict(), as_json, _human)

@@ -1,0 +1,66 @@
+"""The whole path in one call: missions -> catalog -> enriched -> compared."""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+from standgrid.errors import MissionNotFoundError
+from standgrid.pipeline.enrich import EnrichOptions, enrich_catalog
+from standgrid.pipeline.tile import TileOptions, Wrap, _no_wrap, tile_missions
+
+
+@dataclass
+class RunReport:
+    tile: dict[str, Any]
+    enrich: dict[str, Any]
+    compare: dict[str, Any] | None
+
+    def to_dict(self) -> dict[str, Any]:
+        return {"tile": self.tile, "enrich": self.enrich, "compare": self.compare}
+
+
+def expand_missions(paths: Sequence[str | Path]) -> list[Path]:
+    """Mission folders as given; a folder that is not a mission stands for the missions in it."""
+    from standgrid.mission.collection import MissionCollection
+    from standgrid.mission.layout import discover_layout
+
+    found: list[Path] = []
+    for raw in paths:
+        path = Path(raw)
+        if not path.is_dir():
+            raise MissionNotFoundError("no such folder", path=path)
+        if discover_layout(path).is_mission:
+            found.append(path)
+            continue
+        records = MissionCollection(path, strict=True).records
+        if not records:
+            raise MissionNotFoundError("neither a mission nor a folder of missions", path=path)
+        found.extend(sorted(r.path for r in records))
+    return found
+
+
+def run_pipeline(
+    paths: Sequence[str | Path],
+    catalog: str | Path,
+    tile_options: TileOptions | None = None,
+    enrich_options: EnrichOptions | None = None,
+    *,
+    wrap: Wrap = _no_wrap,
+    status: Callable[[str], None] = lambda message: None,
+) -> RunReport:
+    """Tile every mission, enrich every epoch, and compare the first epoch with the last."""
+    from standgrid.pipeline.compare import compare_epochs
+
+    missions = expand_missions(paths)
+    tiled = tile_missions(
+        missions, catalog, tile_options or TileOptions(), wrap=wrap, status=status
+    )
+    enriched = enrich_catalog(catalog, enrich_options or EnrichOptions(), wrap=wrap, status=status)
+    compared = None
+    if len(enriched.epochs) >= 2:
+        status("comparing the first and the last epoch")
+        compared = compare_epochs(catalog).to_dict()
+    return RunReport(tiled.to_dict(), enriched.to_dict(), compared)

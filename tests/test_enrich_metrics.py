@@ -177,3 +177,23 @@ def test_tree_metrics_by_hand() -> None:
     assert only_height.loc[1, "null_reason"] == REASON_NO_DBH
     assert math.isnan(only_height.loc[1, "basal_area_m2_ha"])
     assert only_height.loc[1, "dominant_height_m"] == pytest.approx(11.0)  # k = 4 > 2 trees
+
+
+@pytest.mark.realdata
+def test_stand_grid_cell_keys_work_as_metric_keys() -> None:
+    """The partition stage's int64 cell keys group points exactly like plain indices."""
+    import laspy
+
+    from standgrid.partition.grid import StandGrid, key_to_index
+
+    las = laspy.read(real_file("als/lidR/MixedConifer.laz"))
+    x, y, z = np.asarray(las.x), np.asarray(las.y), np.asarray(las.z)
+    grid = StandGrid(crs="EPSG:26912", cell_size=20.0, origin=(481_000.0, 3_812_000.0))
+    by_key = area_metrics(grid.cell_keys(x, y), z, cell_area_m2=400.0)
+    col, row = cell_index(x, y, origin=grid.origin, cell_size=grid.cell_size)
+    by_index = area_metrics(col * 1000 + row, z, cell_area_m2=400.0)
+    ix, iy = key_to_index(by_key.index.to_numpy())
+    assert np.array_equal(np.sort(ix * 1000 + iy), by_index.index.to_numpy())
+    reordered = by_index.loc[ix * 1000 + iy]
+    assert np.array_equal(reordered["n_points"].to_numpy(), by_key["n_points"].to_numpy())
+    assert np.allclose(reordered["zq95"].to_numpy(), by_key["zq95"].to_numpy())

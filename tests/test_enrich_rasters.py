@@ -172,3 +172,29 @@ def test_real_chablais_dtm_from_own_csf_matches_the_file_ground(tmp_path) -> Non
     back = read_raster(tmp_path / "dtm.tif")
     assert back.crs == "EPSG:2154" and np.allclose(back.array, dtm)
     assert np.nanmin(back.array) > 1340 and np.nanmax(back.array) < 1410
+
+
+def test_raster_pixels_tile_the_stand_grid_cells() -> None:
+    from standgrid.partition.grid import StandGrid
+
+    stand = StandGrid(crs="EPSG:32632", cell_size=20.0, origin=ORIGIN)
+    cell = stand.cell(600_033.0, 5_100_047.0)
+    xmin, ymin, xmax, ymax = stand.bounds(cell)
+    raster = RasterGrid.covering(
+        (600_013.0, 5_100_007.0, 600_051.0, 5_100_053.0),
+        origin=stand.origin,
+        cell_size=stand.cell_size,
+        pixel_size=0.5,
+    )
+    # the cell's corners fall on pixel edges: a whole number of pixels from the raster corner
+    for value, corner in (
+        (xmin, raster.x0),
+        (xmax, raster.x0),
+        (ymin, raster.y0),
+        (ymax, raster.y0),
+    ):
+        steps = (value - corner) / raster.pixel_size
+        assert steps == round(steps)
+    cx, cy = raster.centers()
+    in_cell = (cx >= xmin) & (cx < xmax) & (cy >= ymin) & (cy < ymax)
+    assert in_cell.sum() == (20 / 0.5) ** 2  # exactly 1600 pixels per 20 m cell

@@ -256,3 +256,73 @@ def test_real_mixed_conifer_trees_agree_with_lidr_segmentation() -> None:
     assert (dist < 1.5).mean() >= 0.7
     assert seg.table["tree_id"].is_unique
     assert seg.table["height_m"].max() == pytest.approx(xyz[:, 2].max())
+
+
+def test_full_chain_on_a_simulated_robot_mission() -> None:
+    """CSF -> DTM -> heights -> trees on the simulator's points, against its ground truth."""
+    simulate = pytest.importorskip("standgrid.simulate")
+    from standgrid.enrich.metrics import cell_index, tree_metrics
+
+    sim = simulate.run_simulation(7, 1, simulate.SimulationConfig(area=60.0))
+    xyz = np.concatenate([sim.payload(k)[1].xyz for k in range(len(sim.spans))])
+    world = sim.world
+    ground = classify_ground(xyz)
+    b = world.bounds
+    grid = RasterGrid.covering(
+        (xyz[:, 0].min(), xyz[:, 1].min(), xyz[:, 0].max(), xyz[:, 1].max()),
+        origin=(b[0], b[1]),
+        cell_size=20.0,
+    )
+    dtm = dtm_from_ground(xyz[ground], grid)
+    cx, cy = grid.centers()
+    inner_px = (cx > b[0] + 5) & (cx < b[2] - 5) & (cy > b[1] + 5) & (cy < b[3] - 5)
+    assert np.median(np.abs(dtm - world.terrain.height(cx, cy))[inner_px]) < 0.05
+    h = height_above_ground(xyz, dtm, grid)
+    table = segment_trees(xyz, h).table
+
+    trees = world.trees.select(world.trees.standing)
+    truth = pd.DataFrame({"x": trees.x, "y": trees.y, "height": trees.height, "dbh": trees.dbh})
+    ti, di = match(table, truth)
+
+    def inner(x: np.ndarray, y: np.ndarray) -> np.ndarray:  # edge trees are half-seen
+        return (x > b[0] + 3) & (x < b[2] - 3) & (y > b[1] + 3) & (y < b[3] - 3)
+
+    tall_truth = (truth["height"].to_numpy() > 10) & inner(
+        truth["x"].to_numpy(), truth["y"].to_numpy()
+    )
+    tall_found = (table["height_m"].to_numpy() > 10) & inner(
+        table["x"].to_numpy(), table["y"].to_numpy()
+    )
+    tp = int(tall_truth[ti].sum())
+    fn = int(tall_truth.sum()) - tp
+    matched = np.zeros(len(table), dtype=bool)
+    matched[di] = True
+    fp = int((tall_found & ~matched).sum())
+    assert tp > 50
+    assert 2 * tp / (2 * tp + fp + fn) >= 0.9, (tp, fp, fn)
+    pairs = tall_truth[ti]
+    height_err = table["height_m"].to_numpy()[di][pairs] - truth["height"].to_numpy()[ti][pairs]
+    assert np.sqrt(np.mean(height_err**2)) <= 0.5
+    dbh = table["dbh_m"].to_numpy()[di][pairs]
+    true_dbh = truth["dbh"].to_numpy()[ti][pairs]
+    assert np.isfinite(dbh).mean() >= 0.8
+    ok = np.isfinite(dbh)
+    assert np.sqrt(np.mean((dbh[ok] - true_dbh[ok]) ** 2)) <= 0.02
+    # tree-based stand metrics over the whole inner area against the truth list
+    area = (b[2] - b[0] - 6) * (b[3] - b[1] - 6)
+    found = table[inner(table["x"].to_numpy(), table["y"].to_numpy()) & (table["height_m"] > 10)]
+    real = truth[tall_truth]
+    est = tree_metrics(
+        np.zeros(len(found), np.int64), found["height_m"], found["dbh_m"], cell_area_m2=area
+    )
+    ref = tree_metrics(
+        np.zeros(len(real), np.int64), real["height"], real["dbh"], cell_area_m2=area
+    )
+    assert est.loc[0, "stems_ha"] == pytest.approx(ref.loc[0, "stems_ha"], rel=0.1)
+    assert est.loc[0, "basal_area_m2_ha"] == pytest.approx(ref.loc[0, "basal_area_m2_ha"], rel=0.15)
+    assert est.loc[0, "dominant_height_m"] == pytest.approx(
+        ref.loc[0, "dominant_height_m"], abs=1.0
+    )
+    col, row = cell_index(found["x"], found["y"], origin=(b[0], b[1]), cell_size=20.0)
+    per_cell = tree_metrics(row * 10 + col, found["height_m"], found["dbh_m"], cell_area_m2=400.0)
+    assert per_cell["n_trees"].sum() == len(found)

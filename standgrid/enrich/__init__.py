@@ -1,1 +1,79 @@
-"""Enrichment: terrain, trees and stand metrics."""
+"""Enrichment: terrain, trees and stand metrics.
+
+- :mod:`.ground`: ``classify_ground`` (Cloth Simulation Filter).
+- :mod:`.rasters`: ``RasterGrid`` aligned to the stand grid, ``dtm_from_ground``,
+  ``height_above_ground``, ``chm``, ``density``, ``write_cog`` / ``read_raster``.
+- :mod:`.trees`: ``segment_trees`` (CHM tops + watershed crowns, DBH from stems), ``fit_stems``,
+  ``fit_circle``, stable ``tree_id_from_xy``.
+- :mod:`.metrics`: ``area_metrics`` (lidR ``stdmetrics_z`` set per cell), ``tree_metrics``
+  (stems/ha, basal area, QMD, mean and dominant height). Definitions: docs/METRICS.md.
+"""
+
+from standgrid.enrich.ground import as_xyz, classify_ground
+from standgrid.enrich.metrics import (
+    DEFAULT_STRATA,
+    QUANTILE_PERCENTS,
+    REASON_NO_DBH,
+    REASON_NO_HEIGHT,
+    REASON_NO_POINTS,
+    REASON_NO_TREES,
+    area_metrics,
+    cell_index,
+    strata_columns,
+    tree_metrics,
+)
+from standgrid.enrich.rasters import (
+    RasterData,
+    RasterGrid,
+    chm,
+    density,
+    dtm_from_ground,
+    height_above_ground,
+    read_raster,
+    write_cog,
+)
+from standgrid.enrich.trees import (
+    TREE_COLUMNS,
+    CircleFit,
+    TreeSegmentation,
+    default_window,
+    fit_circle,
+    fit_stems,
+    kasa_circle,
+    segment_trees,
+    tree_id_from_xy,
+    xy_from_tree_id,
+)
+
+__all__ = [
+    "DEFAULT_STRATA",
+    "QUANTILE_PERCENTS",
+    "REASON_NO_DBH",
+    "REASON_NO_HEIGHT",
+    "REASON_NO_POINTS",
+    "REASON_NO_TREES",
+    "TREE_COLUMNS",
+    "CircleFit",
+    "RasterData",
+    "RasterGrid",
+    "TreeSegmentation",
+    "area_metrics",
+    "as_xyz",
+    "cell_index",
+    "chm",
+    "classify_ground",
+    "default_window",
+    "density",
+    "dtm_from_ground",
+    "fit_circle",
+    "fit_stems",
+    "height_above_ground",
+    "kasa_circle",
+    "read_raster",
+    "segment_trees",
+    "strata_columns",
+    "tree_id_from_xy",
+    "tree_metrics",
+    "write_cog",
+    "xy_from_tree_id",
+]

@@ -1,0 +1,349 @@
+"""Stand metrics per grid cell: the area-based set of lidR ``stdmetrics_z`` and the tree-based
+set growth models use. Definitions and cutoffs: docs/METRICS.md.
+
+Area-based metrics are vectorised over all cells at once: the points are sorted once by
+(cell, height) and every metric is a gather or a ``np.add.reduceat`` over the sorted order,
+so there is no per-cell Python loop. Cells that cannot be measured keep their row with NaN
+metrics and a ``null_reason`` (never a silent zero).
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable, Sequence
+from itertools import pairwise
+from typing import Literal
+
+import numpy as np
+import pandas as pd
+from numpy.typing import ArrayLike, NDArray
+
+from standgrid.errors import EnrichError
+
+QUANTILE_PERCENTS: tuple[int, ...] = tuple(range(5, 100, 5))
+DEFAULT_STRATA: tuple[float, ...] = (0.5, 2.0, 5.0, 10.0, 20.0, 30.0)
+REASON_NO_POINTS = "no points"
+REASON_NO_HEIGHT = "no height above ground (no ground/DTM)"
+REASON_NO_TREES = "no trees detected"
+REASON_NO_DBH = "no tree with a DBH"
+
+
+def _fmt(value: float) -> str:
+    """2 -> '2', 0.5 -> '0p5' (column-name safe)."""
+    text = f"{value:g}"
+    return text.replace(".", "p").replace("-", "m")
+
+
+def strata_columns(strata: Sequence[float] = DEFAULT_STRATA) -> list[str]:
+    """Names of the strata proportions: ``pz_below0p5``, ``pz0p5to2``, ..., ``pz30plus``."""
+    edges = list(strata)
+    names = [f"pz_below{_fmt(edges[0])}"]
+    names += [f"pz{_fmt(lo)}to{_fmt(hi)}" for lo, hi in pairwise(edges)]
+    names.append(f"pz{_fmt(edges[-1])}plus")
+    return names
+
+
+def cell_index(
+    x: ArrayLike, y: ArrayLike, *, origin: tuple[float, float], cell_size: float
+) -> tuple[NDArray[np.int64], NDArray[np.int64]]:
+    """Column and row (counted from the origin, half-open cells) of each point's stand cell."""
+    col = np.floor((np.asarray(x, dtype=np.float64) - origin[0]) / cell_size).astype(np.int64)
+    row = np.floor((np.asarray(y, dtype=np.float64) - origin[1]) / cell_size).astype(np.int64)
+    return col, row
+
+
+def area_metrics(
+    cell: ArrayLike,
+    heights: ArrayLike,
+    *,
+    cell_area_m2: float | None = None,
+    cells: ArrayLike | None = None,
+    height_break: float = 2.0,
+    strata: Sequence[float] = DEFAULT_STRATA,
+    zmin: float = 0.0,
+    entropy_bin: float = 1.0,
+    first_return: ArrayLike | None = None,
+) -> pd.DataFrame:
+    """Area-based metrics of heights above ground, one row per cell key.
+
+    ``cell`` holds an integer key per point (e.g. a ``CellId.key``); ``heights`` the height
+    above ground (NaN = unknown, e.g. no DTM there: excluded and counted in
+    ``n_no_height``). ``cells`` lists cells that must appear even without points.
+    ``cell_area_m2`` gives ``density_pts_m2``; ``first_return`` (bool per point) gives
+    ``cover_first`` (percent of first returns above ``height_break``).
+    """
+    keys = np.asarray(cell)
+    h_all = np.asarray(heights, dtype=np.float64)
+    if keys.shape != h_all.shape or keys.ndim != 1:
+        raise EnrichError(
+            f"cell keys {keys.shape} and heights {h_all.shape} must be equal 1-D arrays"
+        )
+    if not np.issubdtype(keys.dtype, np.integer):
+        raise EnrichError(f"cell keys must be integers, got {keys.dtype}")
+    edges = [float(s) for s in strata]
+    if any(b <= a for a, b in pairwise(edges)) or not edges:
+        raise EnrichError(f"strata breaks must increase, got {strata}")
+    keys = keys.astype(np.int64, copy=False)
+    finite = np.isfinite(h_all)
+    first = None if first_return is None else np.asarray(first_return, dtype=bool)
+    if first is not None and first.shape != h_all.shape:
+        raise EnrichError(f"first_return {first.shape} does not match heights {h_all.shape}")
+
+    present, dense_all = _dense_groups(keys)
+    n_points = np.bincount(dense_all, minlength=len(present))
+    all_cells = present
+    if cells is not None:
+        all_cells = np.union1d(present, np.asarray(cells, dtype=np.int64))
+    n_total = np.zeros(len(all_cells), dtype=np.int64)
+    n_total[np.searchsorted(all_cells, present)] = n_points
+
+    all_finite = bool(finite.all())
+    h = h_all if all_finite else h_all[finite]
+    if all_finite:
+        measured, dense = present, dense_all
+    else:
+        measured, dense = _dense_groups(keys[finite])
+    table = _sorted_metrics(dense, h, len(measured), height_break, edges, zmin, entropy_bin)
+    if first is not None:
+        f = first if all_finite else first[finite]
+        n_first = np.bincount(dense[f], minlength=len(measured))
+        above = np.bincount(dense[f & (h > height_break)], minlength=len(measured))
+        with np.errstate(invalid="ignore", divide="ignore"):
+            table[f"cover_first_above{_fmt(height_break)}"] = np.where(
+                n_first > 0, 100.0 * above / np.maximum(n_first, 1), np.nan
+            )
+
+    out = pd.DataFrame(table, index=pd.Index(measured, name="cell")).reindex(
+        pd.Index(all_cells, name="cell")
+    )
+    n_valid = out.pop("n_height").fillna(0).astype(np.int64).to_numpy()
+    out.insert(0, "n_points", n_total)
+    out.insert(1, "n_no_height", n_total - n_valid)
+    density_value = n_total / cell_area_m2 if cell_area_m2 else np.full(len(all_cells), np.nan)
+    out.insert(2, "density_pts_m2", density_value)
+    reason = np.full(len(all_cells), None, dtype=object)
+    reason[n_valid == 0] = REASON_NO_HEIGHT
+    reason[n_total == 0] = REASON_NO_POINTS
+    out["null_reason"] = pd.array(reason, dtype="string")
+    return out
+
+
+def _dense_groups(keys: NDArray[np.int64]) -> tuple[NDArray[np.int64], NDArray[np.int64]]:
+    """(sorted unique keys, dense index of each key into them), by hashing (O(N))."""
+    if len(keys) == 0:
+        return np.zeros(0, dtype=np.int64), np.zeros(0, dtype=np.int64)
+    codes, unique = pd.factorize(keys, sort=True)
+    return np.asarray(unique, dtype=np.int64), np.asarray(codes, dtype=np.int64)
+
+
+def _sorted_metrics(
+    group: NDArray[np.int64],
+    h: NDArray[np.float64],
+    n_groups: int,
+    height_break: float,
+    strata: list[float],
+    zmin: float,
+    entropy_bin: float,
+) -> dict[str, NDArray[np.float64]]:
+    """All height metrics per dense group index, from one sort by (group, height).
+
+    The sort key is the complex number ``group + 1j * height``: numpy orders complex values
+    lexicographically (real part, then imaginary part), so one ``np.sort`` orders points by
+    cell then height with the heights kept exact, and counting the heights below a
+    threshold in every cell is one exact ``np.searchsorted`` of ``cell + 1j * threshold``.
+    """
+    if n_groups == 0:
+        names = ["n_height", *_metric_names(height_break, strata)]
+        return {name: np.zeros(0) for name in names}
+    keyed = np.empty(len(h), dtype=np.complex128)
+    keyed.real = group
+    keyed.imag = h
+    keyed.sort()
+    z = np.ascontiguousarray(keyed.imag)
+    counts = np.bincount(group, minlength=n_groups)
+    starts = np.concatenate([[0], np.cumsum(counts)[:-1]])
+    ends = starts + counts
+    n = counts.astype(np.float64)
+    group_ids = np.arange(n_groups, dtype=np.float64)
+
+    def per_group(values: NDArray[np.generic]) -> NDArray[np.float64]:
+        return np.add.reduceat(values, starts, dtype=np.float64)
+
+    def count_below(
+        threshold: NDArray[np.float64] | float,
+        groups: NDArray[np.int64] | None = None,
+        *,
+        inclusive: bool = False,
+    ) -> NDArray[np.float64]:
+        """Points of each group (or of ``groups[i]``) with z < threshold (<= if ``inclusive``)."""
+        side: Literal["left", "right"] = "right" if inclusive else "left"
+        g = group_ids if groups is None else group_ids[groups]
+        first = starts if groups is None else starts[groups]
+        last = ends if groups is None else ends[groups]
+        target = np.empty(len(g), dtype=np.complex128)
+        target.real = g
+        target.imag = threshold
+        at = np.clip(np.searchsorted(keyed, target, side=side), first, last)
+        return (at - first).astype(np.float64)
+
+    out: dict[str, NDArray[np.float64]] = {}
+    zmax = z[ends - 1]
+    zlow = z[starts]
+    zmean = per_group(z) / n
+    d = h - zmean[group]  # central moments in the input order (no gather of the sort needed)
+    power = d * d
+    m2 = np.bincount(group, weights=power, minlength=n_groups)
+    m4 = np.bincount(group, weights=power * power, minlength=n_groups)
+    power *= d
+    m3 = np.bincount(group, weights=power, minlength=n_groups)
+    del d, power
+    with np.errstate(invalid="ignore", divide="ignore"):
+        out["zmax"] = zmax
+        out["zmean"] = zmean
+        out["zsd"] = np.where(counts > 1, np.sqrt(m2 / np.maximum(n - 1, 1)), np.nan)
+        out["zskew"] = np.where(m2 > 0, (m3 / n) / np.power(m2 / n, 1.5), np.nan)
+        out["zkurt"] = np.where(m2 > 0, n * m4 / (m2 * m2), np.nan)
+        out["zentropy"] = _entropy(count_below, zlow, zmax, entropy_bin)
+        out["pzabovezmean"] = 100.0 * (n - count_below(zmean, inclusive=True)) / n
+        out[f"pzabove{_fmt(height_break)}"] = (
+            100.0 * (n - count_below(height_break, inclusive=True)) / n
+        )
+        for p in QUANTILE_PERCENTS:  # R quantile type 7 (numpy 'linear')
+            pos = (n - 1) * (p / 100.0)
+            below = np.floor(pos).astype(np.int64)
+            frac = pos - below
+            i0 = starts + below
+            i1 = np.minimum(i0 + 1, ends - 1)
+            out[f"zq{p}"] = z[i0] + frac * (z[i1] - z[i0])
+        # zpcum1..9 as lidR: breaks zmin + k*(zmax-zmin)/10 over points zmin < z; points on
+        # or above the last break (z == zmax) are not counted (lidR's findInterval/fast_table)
+        width = (zmax - zmin) / 10.0
+        not_above_min = count_below(zmin, inclusive=True)
+        denominator = count_below(zmin + 10 * width) - not_above_min
+        for k in range(1, 10):
+            below_k = count_below(zmin + k * width) - not_above_min
+            out[f"zpcum{k}"] = np.where(zmax > zmin, 100.0 * below_k / denominator, 0.0)
+        bounds = [-np.inf, *strata, np.inf]
+        for name, a, b in zip(strata_columns(strata), bounds[:-1], bounds[1:], strict=True):
+            upper = n if np.isinf(b) else count_below(b)
+            lower = 0.0 if np.isinf(a) else count_below(a)
+            out[name] = 100.0 * (upper - lower) / n
+    out["n_height"] = n
+    return out
+
+
+def _entropy(
+    count_below: Callable[..., NDArray[np.float64]],
+    zlow: NDArray[np.float64],
+    zmax: NDArray[np.float64],
+    by: float,
+) -> NDArray[np.float64]:
+    """lidR ``entropy(z, by)``: normalised Shannon index of ``by``-m height bins
+    [k*by, (k+1)*by) from 0 to ceiling(zmax/by)*by; NaN when zmax < 2*by or a height < 0.
+
+    Bin counts are differences of ``count_below`` (group-wise z < edge) at the bin edges.
+    """
+    ok = (zmax >= 2 * by) & (zlow >= 0)
+    nb = np.where(ok, np.maximum(np.ceil(zmax / by).astype(np.int64), 1), 1)
+    group_of_edge = np.repeat(np.arange(len(nb)), nb + 1)
+    first_edge = np.concatenate([[0], np.cumsum(nb + 1)[:-1]])
+    k = np.arange(len(group_of_edge)) - np.repeat(first_edge, nb + 1)
+    below = count_below(k * by, group_of_edge)
+    hist = np.diff(below)
+    hist = np.delete(hist, first_edge[1:] - 1)  # drop differences across two groups
+    offsets = np.concatenate([[0], np.cumsum(nb)[:-1]])
+    totals = np.add.reduceat(hist, offsets)
+    p = hist / np.repeat(np.where(totals > 0, totals, 1.0), nb)
+    plogp = np.where(p > 0, p * np.log(np.where(p > 0, p, 1.0)), 0.0)
+    s = -np.add.reduceat(plogp, offsets)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        return np.where(ok & (nb > 1) & (totals > 0), s / np.log(nb), np.nan)
+
+
+def _metric_names(height_break: float, strata: list[float]) -> list[str]:
+    return [
+        "zmax",
+        "zmean",
+        "zsd",
+        "zskew",
+        "zkurt",
+        "zentropy",
+        "pzabovezmean",
+        f"pzabove{_fmt(height_break)}",
+        *(f"zq{p}" for p in QUANTILE_PERCENTS),
+        *(f"zpcum{k}" for k in range(1, 10)),
+        *strata_columns(strata),
+    ]
+
+
+def tree_metrics(
+    cell: ArrayLike,
+    height_m: ArrayLike,
+    dbh_m: ArrayLike,
+    *,
+    cell_area_m2: float,
+    cells: ArrayLike | None = None,
+    dominant_per_ha: float = 100.0,
+) -> pd.DataFrame:
+    """Tree-based stand metrics per cell from a tree list (one entry per tree).
+
+    ``stems_ha`` (trees per ha), ``basal_area_m2_ha`` and ``qmd_cm`` (from the trees with a
+    DBH; ``n_dbh`` tells how many), ``mean_height_m`` and ``dominant_height_m``: the mean
+    height of the k = max(1, round(dominant_per_ha * area_ha)) largest-DBH trees of the cell,
+    or of the k tallest when any tree of the cell lacks a DBH. ``cells`` lists cells that were
+    measured (they get a row with 0 stems and a ``null_reason`` when they hold no tree).
+    """
+    keys = np.asarray(cell, dtype=np.int64)
+    height = np.asarray(height_m, dtype=np.float64)
+    dbh = np.asarray(dbh_m, dtype=np.float64)
+    if not (keys.shape == height.shape == dbh.shape) or keys.ndim != 1:
+        raise EnrichError("cell, height_m and dbh_m must be 1-D arrays of one length")
+    if cell_area_m2 <= 0:
+        raise EnrichError(f"cell area must be > 0, got {cell_area_m2}")
+    area_ha = cell_area_m2 / 10_000.0
+    k_dominant = max(1, round(dominant_per_ha * area_ha))
+    trees = pd.DataFrame({"cell": keys, "h": height, "dbh": dbh})
+    trees["has_dbh"] = np.isfinite(dbh)
+    trees["ba"] = np.where(trees["has_dbh"], math.pi * (trees["dbh"] / 2.0) ** 2, 0.0)
+    trees["dbh2"] = np.where(trees["has_dbh"], trees["dbh"] ** 2, 0.0)
+    grouped = trees.groupby("cell", sort=True)
+    out = pd.DataFrame(
+        {
+            "n_trees": grouped.size(),
+            "n_dbh": grouped["has_dbh"].sum(),
+            "ba_sum": grouped["ba"].sum(),
+            "dbh2_sum": grouped["dbh2"].sum(),
+            "mean_height_m": grouped["h"].mean(),
+        }
+    )
+    all_dbh = grouped["has_dbh"].all()
+    rank_key = np.where(all_dbh.reindex(trees["cell"]).to_numpy(), trees["dbh"], trees["h"])
+    trees["rank_key"] = rank_key
+    top = (
+        trees.sort_values(["cell", "rank_key"], ascending=[True, False])
+        .groupby("cell")
+        .head(k_dominant)
+    )
+    out["dominant_height_m"] = top.groupby("cell")["h"].mean()
+    out["dominant_by"] = np.where(all_dbh.reindex(out.index), "dbh", "height")
+    index = out.index.to_numpy(dtype=np.int64)
+    if cells is not None:
+        index = np.union1d(index, np.asarray(cells, dtype=np.int64))
+    out = out.reindex(pd.Index(index, name="cell"))
+    n_trees = out["n_trees"].fillna(0).astype(np.int64)
+    n_dbh = out["n_dbh"].fillna(0).astype(np.int64)
+    result = pd.DataFrame(index=out.index)
+    result["n_trees"] = n_trees
+    result["n_dbh"] = n_dbh
+    result["stems_ha"] = n_trees / area_ha
+    with np.errstate(invalid="ignore", divide="ignore"):
+        result["basal_area_m2_ha"] = np.where(n_dbh > 0, out["ba_sum"] / area_ha, np.nan)
+        result["qmd_cm"] = np.where(n_dbh > 0, 100.0 * np.sqrt(out["dbh2_sum"] / n_dbh), np.nan)
+    result["mean_height_m"] = out["mean_height_m"]
+    result["dominant_height_m"] = out["dominant_height_m"]
+    result["dominant_by"] = pd.array(out["dominant_by"].where(n_trees > 0, None), dtype="string")
+    reason = np.full(len(result), None, dtype=object)
+    reason[(n_dbh == 0).to_numpy()] = REASON_NO_DBH
+    reason[(n_trees == 0).to_numpy()] = REASON_NO_TREES
+    result["null_reason"] = pd.array(reason, dtype="string")
+    return result

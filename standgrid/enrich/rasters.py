@@ -1,0 +1,360 @@
+"""Terrain and canopy rasters pixel-aligned to the stand grid, written as Cloud-Optimized GeoTIFFs.
+
+A :class:`RasterGrid` is a pixel lattice whose pixel size divides the stand cell size and whose
+corner lies on the stand grid origin plus an integer number of pixels, so rasters of every epoch
+(and every stand cell) overlay pixel for pixel. Row 0 is the northern row (GeoTIFF order).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import math
+import os
+import warnings
+from dataclasses import dataclass
+from typing import Any, NamedTuple
+
+import numpy as np
+from numpy.typing import NDArray
+
+from standgrid._atomic import atomic_output
+from standgrid.enrich.ground import PointsLike, as_xyz
+from standgrid.errors import EnrichError, FormatError, GridError
+
+_TOL = 1e-9
+
+
+@dataclass(frozen=True)
+class RasterGrid:
+    """``ncols`` x ``nrows`` pixels of ``pixel_size`` m; lower-left corner ``(x0, y0)``."""
+
+    x0: float
+    y0: float
+    pixel_size: float
+    ncols: int
+    nrows: int
+
+    @classmethod
+    def covering(
+        cls,
+        bounds: tuple[float, float, float, float],
+        *,
+        origin: tuple[float, float],
+        cell_size: float,
+        pixel_size: float = 1.0,
+        snap_to_cells: bool = True,
+    ) -> RasterGrid:
+        """The aligned raster covering ``bounds`` = (xmin, ymin, xmax, ymax).
+
+        ``origin`` and ``cell_size`` are the stand grid's; ``pixel_size`` must divide
+        ``cell_size``. With ``snap_to_cells`` the extent grows to whole stand cells.
+        """
+        if pixel_size <= 0 or cell_size <= 0:
+            raise GridError(f"pixel size {pixel_size} and cell size {cell_size} must be > 0")
+        ratio = cell_size / pixel_size
+        if abs(ratio - round(ratio)) > 1e-6:
+            raise GridError(
+                f"pixel size {pixel_size} m does not divide the cell size {cell_size} m"
+            )
+        xmin, ymin, xmax, ymax = (float(v) for v in bounds)
+        if not (np.isfinite([xmin, ymin, xmax, ymax]).all() and xmax >= xmin and ymax >= ymin):
+            raise GridError(f"invalid bounds {bounds}")
+        step = cell_size if snap_to_cells else pixel_size
+        ox, oy = float(origin[0]), float(origin[1])
+        i0 = math.floor((xmin - ox) / step + _TOL)
+        j0 = math.floor((ymin - oy) / step + _TOL)
+        i1 = max(math.floor((xmax - ox) / step + _TOL) + 1, i0 + 1)  # half-open: xmax inside
+        j1 = max(math.floor((ymax - oy) / step + _TOL) + 1, j0 + 1)
+        per = round(step / pixel_size)
+        return cls(
+            x0=ox + i0 * step,
+            y0=oy + j0 * step,
+            pixel_size=float(pixel_size),
+            ncols=(i1 - i0) * per,
+            nrows=(j1 - j0) * per,
+        )
+
+    @property
+    def shape(self) -> tuple[int, int]:
+        return (self.nrows, self.ncols)
+
+    @property
+    def bounds(self) -> tuple[float, float, float, float]:
+        return (
+            self.x0,
+            self.y0,
+            self.x0 + self.ncols * self.pixel_size,
+            self.y0 + self.nrows * self.pixel_size,
+        )
+
+    @property
+    def transform(self) -> Any:
+        """The rasterio ``Affine`` (north-up)."""
+        from affine import Affine
+
+        return Affine(self.pixel_size, 0.0, self.x0, 0.0, -self.pixel_size, self.bounds[3])
+
+    def pixel_of(
+        self, x: NDArray[np.float64], y: NDArray[np.float64]
+    ) -> tuple[NDArray[np.int64], NDArray[np.int64]]:
+        """(row, col) of the pixel containing each point (may be outside ``shape``)."""
+        col = np.floor((np.asarray(x) - self.x0) / self.pixel_size).astype(np.int64)
+        row_from_south = np.floor((np.asarray(y) - self.y0) / self.pixel_size).astype(np.int64)
+        return self.nrows - 1 - row_from_south, col
+
+    def centers(self) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+        """Pixel-centre coordinates, each of ``shape``."""
+        xs = self.x0 + (np.arange(self.ncols) + 0.5) * self.pixel_size
+        ys = self.bounds[3] - (np.arange(self.nrows) + 0.5) * self.pixel_size
+        return np.meshgrid(xs, ys)
+
+    def _flat_index(self, xyz: NDArray[np.float64]) -> NDArray[np.int64]:
+        row, col = self.pixel_of(xyz[:, 0], xyz[:, 1])
+        outside = (row < 0) | (row >= self.nrows) | (col < 0) | (col >= self.ncols)
+        if outside.any():
+            raise EnrichError(
+                f"{int(outside.sum())} of {len(xyz)} points fall outside the raster {self.bounds}"
+            )
+        return row * self.ncols + col
+
+
+def dtm_from_ground(ground: PointsLike, grid: RasterGrid) -> NDArray[np.float32]:
+    """Digital terrain model: Delaunay (TIN) linear interpolation of the ground points at pixel
+    centres, nearest ground point outside their convex hull."""
+    from scipy.interpolate import LinearNDInterpolator
+    from scipy.spatial import QhullError, cKDTree
+
+    xyz = as_xyz(ground)
+    if len(xyz) == 0:
+        raise EnrichError("no ground points: cannot build a terrain model")
+    local = xyz[:, :2] - (grid.x0, grid.y0)  # local origin: precise triangulation
+    cx, cy = grid.centers()
+    query = np.column_stack([cx.ravel() - grid.x0, cy.ravel() - grid.y0])
+    values = np.full(len(query), np.nan)
+    if len(xyz) >= 3:
+        with contextlib.suppress(QhullError):  # collinear/duplicate-only: nearest below
+            values = LinearNDInterpolator(local, xyz[:, 2])(query)
+    missing = ~np.isfinite(values)
+    if missing.any():
+        _, nearest = cKDTree(local).query(query[missing])
+        values[missing] = xyz[nearest, 2]
+    return values.reshape(grid.shape).astype(np.float32)
+
+
+def height_above_ground(
+    points: PointsLike, dtm: NDArray[np.floating], grid: RasterGrid
+) -> NDArray[np.float32]:
+    """Height of each point above the DTM, bilinear between pixel centres (clamped at the edge
+    half-pixel). Points outside the raster raise :class:`EnrichError`."""
+    from scipy.interpolate import RegularGridInterpolator
+
+    xyz = as_xyz(points)
+    if dtm.shape != grid.shape:
+        raise EnrichError(f"DTM shape {dtm.shape} does not match the raster grid {grid.shape}")
+    if len(xyz) == 0:
+        return np.zeros(0, dtype=np.float32)
+    grid._flat_index(xyz)  # raises when outside
+    ps = grid.pixel_size
+    # axis 0 = column index (x), axis 1 = row index counted from the south (y), in pixel units
+    u = np.clip((xyz[:, 0] - grid.x0) / ps - 0.5, 0, grid.ncols - 1)
+    v = np.clip((xyz[:, 1] - grid.y0) / ps - 0.5, 0, grid.nrows - 1)
+    table = np.asarray(dtm, dtype=np.float64)[::-1, :].T  # (ncols, nrows), south row first
+    if not np.isfinite(table).all():
+        raise EnrichError("the DTM has empty (non-finite) pixels")
+    if grid.ncols == 1 or grid.nrows == 1:  # degenerate axis: interpolate along the other only
+        table = np.pad(table, ((0, grid.ncols == 1), (0, grid.nrows == 1)), mode="edge")
+    interp = RegularGridInterpolator(
+        (np.arange(table.shape[0], dtype=float), np.arange(table.shape[1], dtype=float)), table
+    )
+    ground_z = interp(np.column_stack([u, v]))
+    return (xyz[:, 2] - ground_z).astype(np.float32)
+
+
+def chm(
+    points: PointsLike,
+    heights: NDArray[np.floating],
+    grid: RasterGrid,
+    *,
+    subcircle: float = 0.0,
+    fill_empty: bool = True,
+) -> NDArray[np.float32]:
+    """Canopy height model: the highest height above ground per pixel (NaN = no point).
+
+    ``heights`` are the points' heights above ground (e.g. :func:`height_above_ground`).
+    Pit-free options: ``subcircle`` > 0 replaces each point by 8 points on a circle of that
+    radius (lidR ``p2r(subcircle)``); ``fill_empty`` fills an empty pixel with the median of its
+    non-empty 3x3 neighbours (one pass; isolated gaps, not large holes). Negative heights are 0.
+    """
+    xyz = as_xyz(points)
+    h = np.asarray(heights, dtype=np.float64)
+    if h.shape != (len(xyz),):
+        raise EnrichError(f"{h.shape} heights for {len(xyz)} points")
+    xy = xyz[:, :2]
+    if subcircle > 0 and len(xy):
+        angles = np.arange(8) * (np.pi / 4)
+        ring = subcircle * np.column_stack([np.cos(angles), np.sin(angles)])
+        inflated = (xy[:, None, :] + ring[None, :, :]).reshape(-1, 2)
+        xy = np.concatenate([xy, inflated])
+        h = np.concatenate([h, np.repeat(h, 8)])
+        row, col = grid.pixel_of(xy[:, 0], xy[:, 1])
+        inside = (row >= 0) & (row < grid.nrows) & (col >= 0) & (col < grid.ncols)
+        inside[: len(xyz)] = True  # the real points must be inside (checked below)
+        xy, h = xy[inside], h[inside]
+    index = grid._flat_index(np.column_stack([xy, np.zeros(len(xy))]))
+    top = np.full(grid.nrows * grid.ncols, -np.inf)
+    np.maximum.at(top, index, h)
+    top[np.isneginf(top)] = np.nan
+    out = np.maximum(top.reshape(grid.shape), 0.0)
+    if fill_empty:
+        out = _fill_isolated(out)
+    return out.astype(np.float32)
+
+
+def _fill_isolated(raster: NDArray[np.float64]) -> NDArray[np.float64]:
+    """Fill NaN pixels with the median of their finite 3x3 neighbours (NaN stays if none)."""
+    empty = ~np.isfinite(raster)
+    if not empty.any():
+        return raster
+    padded = np.pad(raster, 1, constant_values=np.nan)
+    rows, cols = np.nonzero(empty)
+    stack = np.stack([padded[rows + dr, cols + dc] for dr in range(3) for dc in range(3)])
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)  # all-NaN neighbourhoods stay NaN
+        filled = np.nanmedian(stack, axis=0)
+    out = raster.copy()
+    out[rows, cols] = filled
+    return out
+
+
+def density(points: PointsLike, grid: RasterGrid) -> NDArray[np.float32]:
+    """Points per m2 in each pixel (0 where a pixel of the raster has no point)."""
+    xyz = as_xyz(points)
+    counts = np.bincount(grid._flat_index(xyz), minlength=grid.nrows * grid.ncols)
+    return (counts / grid.pixel_size**2).reshape(grid.shape).astype(np.float32)
+
+
+def write_cog(
+    path: str | os.PathLike[str],
+    array: NDArray[np.generic],
+    grid: RasterGrid,
+    *,
+    crs: str | None,
+    nodata: float | None = None,
+    description: str | None = None,
+    overwrite: bool = True,
+    blocksize: int = 256,
+) -> None:
+    """Write one band as a Cloud-Optimized GeoTIFF (deflate, tiled, overviews), atomically.
+
+    NaN pixels are written as ``nodata`` when given (NaN is the nodata of float rasters
+    by default). ``crs`` is ``EPSG:XXXX`` or WKT2 (``None`` for local coordinates).
+    """
+    import rasterio
+    from rasterio.io import MemoryFile
+    from rasterio.shutil import copy as rio_copy
+
+    data = np.asarray(array)
+    if data.shape != grid.shape:
+        raise EnrichError(f"array shape {data.shape} does not match the raster grid {grid.shape}")
+    if nodata is None and np.issubdtype(data.dtype, np.floating):
+        nodata = float("nan")
+    if nodata is not None and not math.isnan(nodata):
+        data = np.where(np.isnan(data), nodata, data).astype(data.dtype)
+    profile: dict[str, Any] = {
+        "driver": "GTiff",
+        "width": grid.ncols,
+        "height": grid.nrows,
+        "count": 1,
+        "dtype": data.dtype.name,
+        "transform": grid.transform,
+        "nodata": nodata,
+    }
+    if crs is not None:
+        profile["crs"] = rasterio.crs.CRS.from_user_input(crs)
+    with atomic_output(path, overwrite=overwrite) as tmp, MemoryFile() as mem:
+        with mem.open(**profile) as ds:
+            ds.write(data, 1)
+            if description:
+                ds.set_band_description(1, description)
+                ds.update_tags(DESCRIPTION=description)
+        with mem.open() as src:
+            with rasterio.Env() as env:
+                has_cog = "COG" in env.drivers()
+            if has_cog:
+                rio_copy(
+                    src,
+                    str(tmp),
+                    driver="COG",
+                    COMPRESS="DEFLATE",
+                    BLOCKSIZE=blocksize,
+                    OVERVIEWS="AUTO",
+                    RESAMPLING="AVERAGE",
+                )
+            else:  # pragma: no cover - GDAL < 3.1
+                _write_cog_fallback(src, str(tmp), blocksize)
+
+
+def _write_cog_fallback(src: Any, target: str, blocksize: int) -> None:  # pragma: no cover
+    """Tiled deflate GeoTIFF with internal overviews, for GDAL without the COG driver."""
+    from rasterio.enums import Resampling
+    from rasterio.io import MemoryFile
+    from rasterio.shutil import copy as rio_copy
+
+    profile = src.profile | {"tiled": True, "blockxsize": blocksize, "blockysize": blocksize}
+    with MemoryFile() as mem, mem.open(**profile) as staged:
+        staged.write(src.read())
+        factors = [f for f in (2, 4, 8, 16, 32) if min(src.width, src.height) // f >= 1]
+        if factors:
+            staged.build_overviews(factors, Resampling.average)
+        rio_copy(
+            staged,
+            target,
+            driver="GTiff",
+            tiled=True,
+            blockxsize=blocksize,
+            blockysize=blocksize,
+            compress="deflate",
+            COPY_SRC_OVERVIEWS="YES",
+        )
+
+
+class RasterData(NamedTuple):
+    """A single-band raster read back: values (NaN for nodata), its grid, CRS text, description."""
+
+    array: NDArray[np.float64]
+    grid: RasterGrid
+    crs: str | None
+    description: str | None
+
+
+def read_raster(path: str | os.PathLike[str]) -> RasterData:
+    """Read a north-up single-band raster written by :func:`write_cog` (nodata -> NaN)."""
+    import rasterio
+    from rasterio.errors import RasterioIOError
+
+    try:
+        with rasterio.open(path) as ds:
+            t = ds.transform
+            if t.b != 0 or t.d != 0 or t.e != -t.a:
+                raise FormatError("not a north-up raster with square pixels", path=path)
+            data = ds.read(1, masked=True).astype(np.float64).filled(np.nan)
+            grid = RasterGrid(
+                x0=t.c, y0=t.f + t.e * ds.height, pixel_size=t.a, ncols=ds.width, nrows=ds.height
+            )
+            crs = _crs_text(ds.crs)
+            description = ds.descriptions[0] if ds.descriptions else None
+    except RasterioIOError as exc:
+        raise FormatError(f"cannot read raster: {exc}", path=path) from exc
+    return RasterData(data, grid, crs, description)
+
+
+def _crs_text(crs: Any) -> str | None:
+    """``EPSG:XXXX`` when the CRS has an EPSG code, WKT2 otherwise (never a PROJ string)."""
+    if not crs:
+        return None
+    epsg = crs.to_epsg()
+    if epsg:
+        return f"EPSG:{epsg}"
+    import pyproj
+
+    return str(pyproj.CRS.from_wkt(crs.to_wkt()).to_wkt())

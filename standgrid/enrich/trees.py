@@ -351,8 +351,13 @@ def fit_circle(
         if len(local) <= max_ransac_points
         else local[rng.choice(len(local), max_ransac_points, replace=False)]
     )
-    samples = np.stack([rng.choice(len(local), 3, replace=False) for _ in range(iterations)])
-    centres, radii = _circles_through(local[samples])
+    samples = rng.integers(0, len(local), size=(iterations, 3))
+    distinct = (
+        (samples[:, 0] != samples[:, 1])
+        & (samples[:, 0] != samples[:, 2])
+        & (samples[:, 1] != samples[:, 2])
+    )
+    centres, radii = _circles_through(local[samples[distinct]])
     good = np.isfinite(radii) & (radii < 5.0)
     best = kasa_circle(local)
     if good.any():

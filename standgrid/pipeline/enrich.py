@@ -80,12 +80,16 @@ class _Cell:
 
 
 class _TileCache:
-    """Reads tiles (withheld points included) with a small LRU: each is a neighbour ~8 times."""
+    """Reads tiles (withheld points included) into an LRU bounded by a point count: each tile
+    is read for itself and as a neighbour of up to 8 others, in two passes."""
 
-    def __init__(self, catalog: Catalog, origin: tuple[float, float], size: int = 12) -> None:
+    def __init__(
+        self, catalog: Catalog, origin: tuple[float, float], max_points: int = 8_000_000
+    ) -> None:
         self.catalog = catalog
         self.origin = origin
-        self.size = size
+        self.max_points = max_points
+        self._points = 0
         self._items: OrderedDict[str, PointCloud] = OrderedDict()
 
     def get(self, rel: str) -> PointCloud:
@@ -96,8 +100,10 @@ class _TileCache:
             cloud = read_tile(self.catalog.path(rel), include_withheld=True)
             cloud = PointCloud(snap_to_storage(cloud.xyz, self.origin), cloud.fields)
             self._items[rel] = cloud
-            if len(self._items) > self.size:
-                self._items.popitem(last=False)
+            self._points += len(cloud)
+            while self._points > self.max_points and len(self._items) > 1:
+                _, dropped = self._items.popitem(last=False)
+                self._points -= len(dropped)
         else:
             self._items.move_to_end(rel)
         return cloud
@@ -277,10 +283,19 @@ def _classify(xyz: NDArray[np.float64], options: EnrichOptions, source: Path) ->
         raise EnrichError(f"ground classification failed: {exc}", path=source) from exc
 
 
+#: Ground points this far outside a DTM window still shape its triangulation.
+DTM_MARGIN_M = 3.0
+
+
 def _dtm(ground: NDArray[np.float64], window: RasterGrid) -> NDArray[np.float32]:
+    """The window's DTM from the block's ground points near it (all of them if none are)."""
     from standgrid.enrich.rasters import dtm_from_ground
 
-    return dtm_from_ground(ground, window)
+    xmin, ymin, xmax, ymax = window.bounds
+    m = DTM_MARGIN_M
+    x, y = ground[:, 0], ground[:, 1]
+    near = (x >= xmin - m) & (x <= xmax + m) & (y >= ymin - m) & (y <= ymax + m)
+    return dtm_from_ground(ground[near] if near.sum() >= 3 else ground, window)
 
 
 def _window(grid: RasterGrid, polygon: Any) -> tuple[RasterGrid, tuple[slice, slice]]:

@@ -7,7 +7,6 @@ Library errors become clean one-line messages here, in one place.
 from __future__ import annotations
 
 import importlib
-import sys
 
 import click
 
@@ -75,4 +74,4 @@ def main() -> None:
 
 
 if __name__ == "__main__":  # pragma: no cover
-    sys.exit(main())
+    main()

@@ -18,6 +18,7 @@ Outputs (one catalog transaction; the previous state stays intact on any error):
 
 from __future__ import annotations
 
+import functools
 import math
 from collections import OrderedDict
 from collections.abc import Callable, Iterable
@@ -166,7 +167,8 @@ def _grid_alignment(catalog: Catalog) -> tuple[tuple[float, float], float]:
     """Origin and cell size the rasters align to (the stand grid's; 10 m for Voronoi)."""
     definition = catalog.grid_definition
     if catalog.scheme == "grid":
-        return tuple(definition["origin"]), float(definition["cell_size"])  # type: ignore[return-value]
+        x0, y0 = definition["origin"]
+        return (float(x0), float(y0)), float(definition["cell_size"])
     return (0.0, 0.0), 10.0
 
 
@@ -213,7 +215,8 @@ def _enrich_epoch(
         if not mask[:n_core].any() and not mask.any():
             no_ground.add(cell.cell_id)
             continue
-        _paste(dtm, grid, cell.polygon, lambda g, xyz=xyz, mask=mask: _dtm(xyz[mask], g))
+        ground = xyz[mask]
+        _paste(dtm, grid, cell.polygon, functools.partial(_dtm, ground))
     if np.isnan(dtm).all():
         raise EnrichError(
             f"epoch {epoch}: no ground points anywhere, so no terrain model", path=catalog.root
@@ -224,7 +227,7 @@ def _enrich_epoch(
     chm_raster = np.full(grid.shape, np.nan, dtype=np.float32)
     density_raster = np.zeros(grid.shape, dtype=np.float32)
     metric_rows = []
-    tree_frames = []
+    tree_frames: list[pd.DataFrame] = []
     for cell in wrap(cells, len(cells), f"{epoch}: trees and metrics"):
         metric_rows.append(
             _enrich_cell(
@@ -265,7 +268,7 @@ def _enrich_epoch(
 
 
 def _core_xyz(cloud: PointCloud) -> NDArray[np.float64]:
-    return cloud.xyz[~cloud.fields["withheld"]]
+    return cloud.xyz[~cloud.fields["withheld"].astype(bool)]
 
 
 def _classify(xyz: NDArray[np.float64], options: EnrichOptions, source: Path) -> NDArray[np.bool_]:
@@ -367,7 +370,7 @@ def _enrich_cell(
     from standgrid.export.las import write_tile
 
     full = tiles.get(cell.rel)
-    withheld = full.fields["withheld"]
+    withheld = full.fields["withheld"].astype(bool)
     core = ~withheld
     n_core = int(core.sum())
     block_hag = height_above_ground(block_xyz, dtm, grid).astype(np.float64)
@@ -576,7 +579,9 @@ def _write_layers(
 def _range(values: Any) -> tuple[float, float]:
     import pandas as pd
 
-    finite = pd.to_numeric(values, errors="coerce").dropna() if values is not None else []
+    if values is None:
+        return 0.0, 1.0
+    finite = pd.to_numeric(values, errors="coerce").dropna()
     if len(finite) == 0:
         return 0.0, 1.0
     lo, hi = float(finite.min()), float(finite.max())

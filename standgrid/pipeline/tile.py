@@ -42,7 +42,7 @@ DEFAULT_MEMORY_BUDGET = 1 << 30
 #: Payload ids are ``mission_number << 16 | payload index``: stable on re-ingest, no registry.
 PAYLOAD_INDEX_BITS = 16
 #: Fields the tiler sets on every point.
-TILER_FIELDS = {
+TILER_FIELDS: dict[str, np.dtype] = {
     "gps_time": np.dtype(np.float64),
     "point_source_id": np.dtype(np.uint16),
     "payload_id": np.dtype(np.uint32),
@@ -438,7 +438,8 @@ def _schema(
                 continue
             dtype = values.dtype
             schema[name] = np.result_type(schema[name], dtype) if name in schema else dtype
-    schema.update(TILER_FIELDS)
+    for name, dtype in TILER_FIELDS.items():
+        schema[name] = dtype
     return schema
 
 
@@ -759,7 +760,8 @@ def _write_vpcs(txn: Transaction, catalog: Catalog, layers: _IndexLayers) -> Non
             )
         )
     for epoch, tiles in by_epoch.items():
-        write_vpc(txn.stage(f"tiles_{epoch}.vpc"), sorted(tiles, key=lambda t: str(t.path)))
+        tiles.sort(key=lambda tile: str(tile.path))
+        write_vpc(txn.stage(f"tiles_{epoch}.vpc"), tiles)
     for epoch in catalog.epochs:
         if epoch not in by_epoch and (catalog.root / f"tiles_{epoch}.vpc").exists():
             txn.delete(f"tiles_{epoch}.vpc")

@@ -13,13 +13,14 @@ from __future__ import annotations
 
 import math
 from collections.abc import Callable, Iterable, Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, Literal, TypeVar
 
 import numpy as np
 from numpy.typing import NDArray
 
+from standgrid._atomic import atomic_output
 from standgrid.errors import (
     CatalogError,
     CRSError,
@@ -149,7 +150,22 @@ def tile_missions(
             f"a mission is given twice: {sorted(n for n in names if names.count(n) > 1)}"
         )
 
-    catalog = _open_catalog(Path(catalog_path), ingests, options)
+    path = Path(catalog_path)
+    if _is_catalog(path) and not options.overwrite:
+        return _ingest(_open_existing(path, options), ingests, options, wrap, status)
+    _refuse_foreign_folder(path, options)
+    # A new catalog (or a replacement) is built beside its final place and renamed into
+    # place only when complete: a failure leaves nothing, or the old catalog, behind.
+    with atomic_output(path) as staging:
+        report = _ingest(_create(staging, ingests, options), ingests, options, wrap, status)
+    report.catalog = path
+    return report
+
+
+def _ingest(
+    catalog: Catalog, ingests: list[_Ingest], options: TileOptions, wrap: Wrap, status: Any
+) -> TileReport:
+    """Tile the prepared missions into an open catalog, in one transaction."""
     grid = _catalog_grid(catalog)
     report = TileReport(catalog.root, catalog.crs, catalog.scheme, catalog.fingerprint)
     layers = _IndexLayers.read(catalog)
@@ -164,7 +180,7 @@ def tile_missions(
             _tile_epoch(catalog, txn, grid, epoch, group, options, layers, report, wrap)
         layers.write(txn, catalog)
         _write_vpcs(txn, catalog, layers)
-    status(f"catalog {catalog.root}: {report.points_out} points in {len(layers.cells)} cells")
+    status(f"tiled {report.points_out} points into {len(layers.cells)} cells")
     return report
 
 
@@ -209,38 +225,63 @@ def _requested_grid(crs: str, options: TileOptions) -> dict[str, Any]:
     return grid.to_dict()
 
 
-def _open_catalog(path: Path, ingests: list[_Ingest], options: TileOptions) -> Catalog:
+def _is_catalog(path: Path) -> bool:
+    from standgrid.export.catalog import CATALOG_FILE
+
+    return (path / CATALOG_FILE).is_file()
+
+
+def _refuse_foreign_folder(path: Path, options: TileOptions) -> None:
+    """A folder with other files is not silently turned into (or replaced by) a catalog."""
+    from standgrid.errors import OutputExistsError
+
+    if path.exists() and not path.is_dir():
+        raise OutputExistsError("exists and is not a folder", path=path)
+    if path.is_dir() and any(path.iterdir()) and not options.overwrite:
+        raise OutputExistsError(
+            "is a folder with files but not a catalog (use overwrite to replace it)", path=path
+        )
+
+
+def _open_existing(path: Path, options: TileOptions) -> Catalog:
+    """Open a catalog to add missions to, refusing another CRS, scheme or grid."""
     from standgrid.export.catalog import CATALOG_FILE, Catalog
     from standgrid.georeference import crs_to_text, resolve_crs
 
-    if (path / CATALOG_FILE).is_file() and not options.overwrite:
-        catalog = Catalog.open(path)
-        if options.crs not in ("auto", "", None):
-            wanted = crs_to_text(resolve_crs(options.crs))
-            if wanted != catalog.crs:
-                raise CRSError(
-                    f"the catalog is in {catalog.crs}; cannot add missions in {wanted}",
-                    path=path / CATALOG_FILE,
-                )
-        if options.scheme != catalog.scheme:
-            raise GridMismatchError(
-                f"the catalog uses the {catalog.scheme} scheme, not {options.scheme}",
+    catalog = Catalog.open(path)
+    if options.crs not in ("auto", "", None):
+        wanted = crs_to_text(resolve_crs(options.crs))
+        if wanted != catalog.crs:
+            raise CRSError(
+                f"the catalog is in {catalog.crs}; cannot add missions in {wanted}",
                 path=path / CATALOG_FILE,
             )
-        if options.scheme == "grid" and options.cell_size is not None:
-            catalog.check_grid(_requested_grid(catalog.crs, options))
-        return catalog
+    if options.scheme != catalog.scheme:
+        raise GridMismatchError(
+            f"the catalog uses the {catalog.scheme} scheme, not {options.scheme}",
+            path=path / CATALOG_FILE,
+        )
+    if options.scheme == "grid" and options.cell_size is not None:
+        stored = catalog.grid_definition
+        if not options.levels and float(options.cell_size) == float(stored["cell_size"]):
+            # an unspecified --levels means "the catalog's", not the default levels
+            options = replace(options, levels=tuple(float(v) for v in stored["levels"]))
+        catalog.check_grid(_requested_grid(catalog.crs, options))
+    return catalog
+
+
+def _create(path: Path, ingests: list[_Ingest], options: TileOptions) -> Catalog:
+    """A new, empty catalog at ``path`` in the requested (or the missions' UTM) CRS."""
+    from standgrid.export.catalog import Catalog
+    from standgrid.georeference import crs_to_text, resolve_crs
+
     lat, lon, _ = ingests[0].fit.lla_ref
     crs = crs_to_text(resolve_crs(options.crs, lon=lon, lat=lat))
-    return Catalog.create(
-        path, _requested_grid(crs, options), crs, options.scheme, overwrite=options.overwrite
-    )
+    return Catalog.create(path, _requested_grid(crs, options), crs, options.scheme)
 
 
 def _settle_settings(txn: Transaction, options: TileOptions) -> TileOptions:
     """Buffer and compression are catalog settings: unset options take the stored ones."""
-    from dataclasses import replace
-
     stored = txn.state.setdefault("tiling", {"buffer": 0.0, "laz": True})
     buffer = stored["buffer"] if options.buffer is None else float(options.buffer)
     laz = stored["laz"] if options.laz is None else bool(options.laz)
@@ -742,22 +783,29 @@ def _gnss_rows(ingest: _Ingest, crs: str) -> list[dict[str, Any]]:
 
 
 def _write_vpcs(txn: Transaction, catalog: Catalog, layers: _IndexLayers) -> None:
-    """One virtual point cloud per epoch (``tiles_<epoch>.vpc``): one QGIS layer each."""
+    """One virtual point cloud per epoch (``tiles_<epoch>.vpc``): one QGIS layer each.
+
+    Counts and bounds come from each tile's own LAS header, buffer points included, so the
+    VPC describes the files as they are.
+    """
+    import laspy
+
     from standgrid.export.gpkg import VpcTile, write_vpc
 
     by_epoch: dict[str, list[VpcTile]] = {}
     for row in layers.cells:
-        xmin, ymin, xmax, ymax = row["geometry"].bounds
         epoch = str(row["epoch"])
+        rel = str(row["tile_path"])
+        current = txn.current(rel)
+        if current is None:
+            raise CatalogError(f"tile {rel} is indexed but missing", path=catalog.root)
+        with laspy.open(current) as reader:
+            header = reader.header
+            bounds = (*header.mins[:2], header.mins[2], *header.maxs[:2], header.maxs[2])
+            count = int(header.point_count)
         date = txn.state["epochs"].get(epoch, {}).get("date") or None
         by_epoch.setdefault(epoch, []).append(
-            VpcTile(
-                row["tile_path"],
-                (xmin, ymin, row["z_min"], xmax, ymax, row["z_max"]),
-                catalog.crs,
-                int(row["point_count"]),
-                f"{date}T00:00:00Z" if date else None,
-            )
+            VpcTile(rel, bounds, catalog.crs, count, f"{date}T00:00:00Z" if date else None)
         )
     for epoch, tiles in by_epoch.items():
         tiles.sort(key=lambda tile: str(tile.path))

@@ -76,7 +76,7 @@ def _human(report: dict[str, Any]) -> str:
 )  # fmt: skip
 @click.option("--epoch", default=None, help="Epoch label (default: the year of each mission).")
 @click.option(
-    "--memory", "memory_mb", type=click.IntRange(16), default=1024, show_default=True,
+    "--memory", "memory_mb", type=click.IntRange(16), default=2048, show_default=True,
     help="Memory budget of the partition engine in MB (spills to disk beyond it).",
 )  # fmt: skip
 @overwrite_option
@@ -113,7 +113,7 @@ def tile(
     from standgrid.pipeline.tile import TileOptions, tile_missions
 
     options = TileOptions(
-        scheme="voronoi" if voronoi else "grid",
+        scheme="voronoi" if voronoi else ("grid" if cell_size is not None else None),
         cell_size=cell_size,
         levels=tuple(float(v) for v in levels.split(",")) if levels else (),
         crs=crs_spec,

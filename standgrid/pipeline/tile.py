@@ -39,7 +39,7 @@ if TYPE_CHECKING:
 T = TypeVar("T")
 Wrap = Callable[[Iterable[Any], int, str], Iterable[Any]]
 
-DEFAULT_MEMORY_BUDGET = 1 << 30
+DEFAULT_MEMORY_BUDGET = 2 << 30
 #: Payload ids are ``mission_number << 16 | payload index``: stable on re-ingest, no registry.
 PAYLOAD_INDEX_BITS = 16
 #: Fields the tiler sets on every point.
@@ -58,7 +58,8 @@ def _no_wrap(items: Iterable[T], total: int, desc: str) -> Iterable[T]:
 class TileOptions:
     """How to tile. ``cell_size``/``crs`` of ``None``/``"auto"`` take the catalog's own."""
 
-    scheme: Literal["grid", "voronoi"] = "grid"
+    #: ``None``: the catalog's scheme ("grid" for a new catalog).
+    scheme: Literal["grid", "voronoi"] | None = None
     cell_size: float | None = None
     levels: tuple[float, ...] = ()
     origin: tuple[float, float] = (0.0, 0.0)
@@ -141,7 +142,7 @@ def tile_missions(
         raise CatalogError("no missions given")
     ingests: list[_Ingest] = []
     for path in mission_paths:
-        mission = open_mission(path)
+        mission = open_mission(path, cache_points=0)  # each payload is read once
         status(f"georeferencing {mission.name}")
         ingests.append(_prepare(mission, options))
     names = [i.mission.name for i in ingests]
@@ -218,7 +219,7 @@ def _requested_grid(crs: str, options: TileOptions) -> dict[str, Any]:
     from standgrid.partition import StandGrid
 
     if options.scheme == "voronoi":
-        return {"scheme": "voronoi", "crs": crs}
+        return {"scheme": "voronoi", "crs": crs}  # cells come from the payloads
     grid = StandGrid(
         crs, options.cell_size or 20.0, origin=options.origin, levels=tuple(options.levels)
     )
@@ -256,12 +257,12 @@ def _open_existing(path: Path, options: TileOptions) -> Catalog:
                 f"the catalog is in {catalog.crs}; cannot add missions in {wanted}",
                 path=path / CATALOG_FILE,
             )
-    if options.scheme != catalog.scheme:
+    if options.scheme is not None and options.scheme != catalog.scheme:
         raise GridMismatchError(
             f"the catalog uses the {catalog.scheme} scheme, not {options.scheme}",
             path=path / CATALOG_FILE,
         )
-    if options.scheme == "grid" and options.cell_size is not None:
+    if catalog.scheme == "grid" and options.cell_size is not None:
         stored = catalog.grid_definition
         if not options.levels and float(options.cell_size) == float(stored["cell_size"]):
             # an unspecified --levels means "the catalog's", not the default levels
@@ -277,7 +278,8 @@ def _create(path: Path, ingests: list[_Ingest], options: TileOptions) -> Catalog
 
     lat, lon, _ = ingests[0].fit.lla_ref
     crs = crs_to_text(resolve_crs(options.crs, lon=lon, lat=lat))
-    return Catalog.create(path, _requested_grid(crs, options), crs, options.scheme)
+    scheme = options.scheme or "grid"
+    return Catalog.create(path, _requested_grid(crs, options), crs, scheme)
 
 
 def _settle_settings(txn: Transaction, options: TileOptions) -> TileOptions:
@@ -516,8 +518,8 @@ def _payload_chunk(
     from standgrid.export.las import snap_to_storage
 
     assert ingest.projector is not None
-    cloud = ingest.mission.load_payload(payload, frame="map")
-    xyz = snap_to_storage(ingest.projector.fast(cloud.xyz), origin)
+    cloud = ingest.mission.load_base(payload)
+    xyz = snap_to_storage(_base_to_crs(ingest, payload, cloud.xyz), origin)
     n = len(xyz)
     fields = dict(cloud.fields)
     if "gps_time" not in fields:  # per-point times of the source win over the payload stamp
@@ -529,12 +531,51 @@ def _payload_chunk(
     return _conform(PointCloud(xyz, fields), schema, payload.path)
 
 
+def _base_to_crs(
+    ingest: _Ingest, payload: Payload, xyz: NDArray[np.float64]
+) -> NDArray[np.float64]:
+    """Base frame -> output CRS in one affine pass: the node pose composed with the projector's
+    verified per-payload linearisation (the exact pyproj chain where that is not within 0.5 mm).
+    """
+    from standgrid.geometry import transform_points
+
+    assert ingest.projector is not None
+    pose = ingest.mission.pose_of(payload)
+    if len(xyz) < 64:
+        return ingest.projector.exact(transform_points(pose, xyz))
+    lo = np.array([xyz[:, k].min() for k in range(3)])
+    hi = np.array([xyz[:, k].max() for k in range(3)])
+    corners = np.array(
+        [[a, b, c] for a in (lo[0], hi[0]) for b in (lo[1], hi[1]) for c in (lo[2], hi[2])]
+    )
+    affine = ingest.projector.linearise(transform_points(pose, corners))
+    if affine is None:
+        return ingest.projector.exact(transform_points(pose, xyz))
+    centre, a, b = affine
+    matrix = pose[:3, :3].T @ a
+    offset = (pose[:3, 3] - centre) @ a + b
+    out = np.empty_like(xyz)
+    x, y, z = xyz[:, 0], xyz[:, 1], xyz[:, 2]
+    for k in range(3):  # per column: faster than an (N, 3) @ (3, 3) matmul
+        column = out[:, k]
+        np.multiply(x, matrix[0, k], out=column)
+        column += y * matrix[1, k]
+        column += z * matrix[2, k]
+        column += offset[k]
+    return out
+
+
+#: Footprint hulls are taken over at most this many points of a payload (display geometry).
+FOOTPRINT_POINTS = 20_000
+
+
 def _footprint(xyz: NDArray[np.float64], fallback: Any) -> Any:
     """The convex hull of a payload's projected points (a polygon; the pose point if < 3)."""
     import shapely
     from scipy.spatial import ConvexHull, QhullError
 
-    xy = xyz[:, :2]
+    stride = max(1, len(xyz) // FOOTPRINT_POINTS)
+    xy = xyz[::stride, :2]
     if len(xy) < 3:
         return fallback
     try:
@@ -756,6 +797,7 @@ def _gnss_rows(ingest: _Ingest, crs: str) -> list[dict[str, Any]]:
     index = {int(s): i for i, s in enumerate(gnss.stamps_ns)}
     to_crs = pyproj.Transformer.from_crs("EPSG:4979", crs, always_xy=True)
     rows = []
+    status_names = fit.status_names
     valid = np.isfinite(gnss.lat) & np.isfinite(gnss.lon)
     x, y = np.full(len(gnss), np.nan), np.full(len(gnss), np.nan)
     x[valid], y[valid] = to_crs.transform(gnss.lon[valid], gnss.lat[valid])
@@ -775,7 +817,7 @@ def _gnss_rows(ingest: _Ingest, crs: str) -> list[dict[str, Any]]:
                 "residual_u": u,
                 "residual_h": math.hypot(e, n),
                 "inlier": bool(fit.inliers[k]),
-                "status": fit.status_names[k],
+                "status": status_names[k],
                 "geometry": shapely.Point(float(x[i]), float(y[i])),
             }
         )

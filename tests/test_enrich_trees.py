@@ -212,12 +212,19 @@ def test_fit_stems_rejects_implausible_clusters() -> None:
         [rng.normal(5, 0.3, 300), rng.normal(5, 0.3, 300), rng.uniform(1.2, 1.4, 300)]
     )
     stem = np.column_stack(
-        [*arc_points(rng, 9.0, 9.0, 0.15, 360, 200, 0.003).T, rng.uniform(1.2, 1.4, 200)]
+        [*arc_points(rng, 9.0, 9.0, 0.15, 360, 400, 0.003).T, rng.uniform(1.0, 2.6, 400)]
     )
-    xyz = np.concatenate([blob, stem])
+    # a shrub: a stem-like cross-section at 1.3 m, but nothing above 1.8 m
+    shrub = np.column_stack(
+        [*arc_points(rng, 2.0, 9.0, 0.2, 360, 200, 0.003).T, rng.uniform(1.0, 1.8, 200)]
+    )
+    xyz = np.concatenate([blob, stem, shrub])
     stems = fit_stems(xyz, xyz[:, 2], link_distance=0.15)
     ok = stems[stems["ok"]]
     assert len(ok) == 1 and abs(ok["dbh_m"].iloc[0] - 0.30) < 0.01
+    shrub_row = stems[np.hypot(stems["x"] - 2.0, stems["y"] - 9.0) < 0.1]
+    assert len(shrub_row) == 1 and not shrub_row["ok"].iloc[0]
+    assert "no stem at" in str(shrub_row["reason"].iloc[0])
     assert stems.loc[~stems["ok"], "reason"].notna().all() and (~stems["ok"]).any()
 
 

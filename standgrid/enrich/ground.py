@@ -98,7 +98,11 @@ def classify_ground(
     csf.params.time_step = float(time_step)
     csf.setPointCloud(local)
     ground, off_ground = CSF.VecInt(), CSF.VecInt()
-    with _quiet_stdout():
+    from threadpoolctl import threadpool_limits
+
+    # One OpenMP thread: CSF's parallel cloth update is not deterministic (the same points
+    # get different labels from run to run with two threads).
+    with _quiet_stdout(), threadpool_limits(1, user_api="openmp"):
         csf.do_filtering(ground, off_ground, False)  # False: do not write cloth_nodes.txt
     mask = np.zeros(len(xyz), dtype=bool)
     mask[np.asarray(ground, dtype=np.int64)] = True

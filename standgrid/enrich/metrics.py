@@ -188,7 +188,6 @@ def _sorted_metrics(
 
     out: dict[str, NDArray[np.float64]] = {}
     zmax = z[ends - 1]
-    zlow = z[starts]
     zmean = per_group(z) / n
     d = h - zmean[group]  # central moments in the input order (no gather of the sort needed)
     power = d * d
@@ -203,7 +202,7 @@ def _sorted_metrics(
         out["zsd"] = np.where(counts > 1, np.sqrt(m2 / np.maximum(n - 1, 1)), np.nan)
         out["zskew"] = np.where(m2 > 0, (m3 / n) / np.power(m2 / n, 1.5), np.nan)
         out["zkurt"] = np.where(m2 > 0, n * m4 / (m2 * m2), np.nan)
-        out["zentropy"] = _entropy(count_below, zlow, zmax, entropy_bin)
+        out["zentropy"] = _entropy(count_below, zmax, entropy_bin)
         out["pzabovezmean"] = 100.0 * (n - count_below(zmean, inclusive=True)) / n
         out[f"pzabove{_fmt(height_break)}"] = (
             100.0 * (n - count_below(height_break, inclusive=True)) / n
@@ -234,16 +233,17 @@ def _sorted_metrics(
 
 def _entropy(
     count_below: Callable[..., NDArray[np.float64]],
-    zlow: NDArray[np.float64],
     zmax: NDArray[np.float64],
     by: float,
 ) -> NDArray[np.float64]:
     """lidR ``entropy(z, by)``: normalised Shannon index of ``by``-m height bins
-    [k*by, (k+1)*by) from 0 to ceiling(zmax/by)*by; NaN when zmax < 2*by or a height < 0.
+    [k*by, (k+1)*by) from 0 to ceiling(zmax/by)*by; NaN when zmax < 2*by. Heights below 0
+    (ground noise) fall in no bin and are left out; lidR instead gives NA whenever any height
+    is below 0, which ground noise in height-normalised data almost always causes.
 
     Bin counts are differences of ``count_below`` (group-wise z < edge) at the bin edges.
     """
-    ok = (zmax >= 2 * by) & (zlow >= 0)
+    ok = zmax >= 2 * by
     nb = np.where(ok, np.maximum(np.ceil(zmax / by).astype(np.int64), 1), 1)
     group_of_edge = np.repeat(np.arange(len(nb)), nb + 1)
     first_edge = np.concatenate([[0], np.cumsum(nb + 1)[:-1]])

@@ -425,8 +425,15 @@ def fit_stems(
     min_arc_deg: float = 90.0,
     min_radius: float = 0.025,
     max_radius: float = 0.6,
+    check_height: float = 2.3,
+    min_check_points: int = 5,
 ) -> pd.DataFrame:
     """Stems at breast height: one row per point cluster of the slice, with the circle fit.
+
+    A fit is confirmed only when the stem continues: at least ``min_check_points`` points at
+    ``check_height`` +- ``slice_half_width`` lie on the same circle (within
+    max(3 cm, 30 % of the radius), allowing for taper). A shrub or a stump whose cross-section
+    at 1.3 m looks like a stem has nothing there.
 
     Columns: x, y, dbh_m, rmse_m, n_points, n_inliers, arc_deg, ok, reason (why a fit was
     rejected). Clusters are connected components of the slice points within
@@ -440,11 +447,13 @@ def fit_stems(
     h = np.asarray(heights, dtype=np.float64)
     in_slice = np.isfinite(h) & (np.abs(h - breast_height) <= slice_half_width)
     xy = xyz[in_slice, :2]
+    above = xyz[np.isfinite(h) & (np.abs(h - check_height) <= slice_half_width), :2]
     columns = ["x", "y", "dbh_m", "rmse_m", "n_points", "n_inliers", "arc_deg", "ok", "reason"]
     if len(xy) < min_points:
         return pd.DataFrame({c: [] for c in columns})
     origin = xy.min(axis=0)
     local = xy - origin
+    above_tree = cKDTree(above - origin) if len(above) else None
     pairs = cKDTree(local).query_pairs(link_distance, output_type="ndarray")
     graph = coo_matrix((np.ones(len(pairs)), (pairs[:, 0], pairs[:, 1])), shape=(len(local),) * 2)
     n_comp, comp = connected_components(graph, directed=False)
@@ -468,6 +477,15 @@ def fit_stems(
             reason = f"arc {fit.arc_deg:.0f} deg < {min_arc_deg:.0f}"
         elif fit.n_inliers < 0.5 * len(members):
             reason = f"only {fit.n_inliers} of {len(members)} points on the circle"
+        else:
+            ring = max(0.03, 0.3 * fit.radius)
+            on_stem = 0
+            if above_tree is not None:
+                near = above_tree.query_ball_point([fit.x, fit.y], fit.radius + ring)
+                d = np.hypot(*(above[near] - origin - (fit.x, fit.y)).T) if near else []
+                on_stem = int(np.sum(np.abs(np.asarray(d) - fit.radius) <= ring))
+            if on_stem < min_check_points:
+                reason = f"no stem at {check_height} m above the circle ({on_stem} points)"
         rows.append(
             {
                 "x": fit.x + origin[0],

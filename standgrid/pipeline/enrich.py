@@ -394,6 +394,8 @@ def _enrich_cell(
         keep_bounds=cell.polygon.bounds if catalog.scheme == "grid" else None,
     )
     point_ids = segmentation.point_tree_ids()
+    if no_ground:  # heights there come from a distant terrain: no tree is claimed
+        point_ids = np.zeros_like(point_ids)
     owned = segmentation.table
     top_inside = shapely.contains_xy(cell.polygon, owned["x"], owned["y"])
     if catalog.scheme == "grid":
@@ -447,6 +449,10 @@ def _enrich_cell(
     row: dict[str, Any] = {"cell_id": cell.cell_id, "area_m2": area}
     row.update({k: v for k, v in area_row.items() if k != "null_reason"})
     row.update({k: v for k, v in tree_row.items() if k != "null_reason"})
+    if no_ground:  # no tree could be looked for: unknown, not zero
+        for name in tree_row.index:
+            if name != "null_reason":
+                row[name] = None if name == "dominant_by" else math.nan
     row["null_reason"] = "; ".join(dict.fromkeys(str(r) for r in reasons)) or None
     return row
 

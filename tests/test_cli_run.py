@@ -1,0 +1,179 @@
+"""``standgrid run``, ``enrich`` and ``compare`` through click's CliRunner: one full run of the
+bundled pair, JSON sections, re-enriching an existing catalog (idempotent), and one-line
+typed errors."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+import pytest
+from click.testing import CliRunner, Result
+
+from standgrid.cli import cli
+from tests.conftest import BUNDLED_MISSIONS
+from tests.pipeline_fixtures import (
+    MISSIONS,
+    EnrichedPair,
+    copy_catalog,
+    enriched_pair,
+    tiled_grid25,
+)
+
+
+@pytest.fixture(scope="session")
+def pair(tmp_path_factory: pytest.TempPathFactory) -> EnrichedPair:
+    return enriched_pair(tmp_path_factory)
+
+
+@pytest.fixture(scope="module")
+def reenriched(pair: EnrichedPair, tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, Result]:
+    """A copy of the shared catalog enriched again with ``standgrid enrich --json``."""
+    catalog = copy_catalog(pair.path, tmp_path_factory.mktemp("reenrich") / "catalog")
+    result = CliRunner().invoke(cli, ["enrich", str(catalog), "--json", "-q"])
+    return catalog, result
+
+
+def _error_lines(output: str) -> list[str]:
+    return [line for line in output.splitlines() if line.startswith("Error:")]
+
+
+def test_run_the_bundled_pair_and_print_the_qgis_guide(tmp_path: Path) -> None:
+    out = tmp_path / "demo"
+    out.mkdir()
+    (out / "stale.txt").write_text("replaced by --overwrite")
+    result = CliRunner().invoke(
+        cli, ["run", str(BUNDLED_MISSIONS), "-o", str(out), "--overwrite", "-q"]
+    )
+    assert result.exit_code == 0, result.output
+    text = result.output
+    assert "Open it in QGIS" in text
+    assert str(out / "index.gpkg") in text
+    for epoch in MISSIONS:
+        assert str(out / f"tiles_{epoch}.vpc") in text
+        assert (out / f"tiles_{epoch}.vpc").is_file()
+    assert "2024 -> 2028 (4.02 years)" in text
+    assert str(out / "compare/2024__2028/chm_diff.tif") in text
+    assert not (out / "stale.txt").exists()
+    metrics = pd.read_parquet(out / "tables/stand_metrics.parquet")
+    assert sorted(metrics["epoch"].unique()) == ["2024", "2028"]
+    assert (out / "compare/2024__2028/stand_changes.parquet").is_file()
+
+
+def test_run_json_has_tile_enrich_and_compare_sections(tmp_path: Path) -> None:
+    """One mission (one epoch, a few seconds): compare is null, not missing."""
+    mission = BUNDLED_MISSIONS / MISSIONS["2028"]
+    result = CliRunner().invoke(
+        cli, ["run", str(mission), "-o", str(tmp_path / "one"), "--json", "-q"]
+    )
+    assert result.exit_code == 0, result.output
+    report = json.loads(result.output)
+    assert set(report) == {"tile", "enrich", "compare"}
+    assert report["tile"]["conserved"] is True
+    assert list(report["tile"]["epochs"]) == ["2028"]
+    assert report["enrich"]["epochs"]["2028"]["trees"] > 150
+    assert report["compare"] is None
+
+
+def test_run_refuses_a_folder_with_files_without_overwrite(tmp_path: Path) -> None:
+    out = tmp_path / "taken"
+    out.mkdir()
+    (out / "notes.txt").write_text("not a catalog")
+    result = CliRunner().invoke(cli, ["run", str(BUNDLED_MISSIONS), "-o", str(out)])
+    assert result.exit_code == 1
+    lines = _error_lines(result.output)
+    assert len(lines) == 1 and lines[0].startswith("Error: OutputExistsError: ")
+    assert sorted(p.name for p in out.iterdir()) == ["notes.txt"]
+
+
+def test_enrich_json_on_an_existing_catalog(
+    pair: EnrichedPair, reenriched: tuple[Path, Result]
+) -> None:
+    catalog, result = reenriched
+    assert result.exit_code == 0, result.output
+    report = json.loads(result.output)
+    assert report["catalog"] == str(catalog)
+    assert list(report["epochs"]) == ["2024", "2028"]
+    for epoch, summary in report["epochs"].items():
+        trees = pd.read_parquet(catalog / f"tables/tree_list_{epoch}.parquet")
+        assert summary["trees"] == len(trees) > 150
+        assert summary["trees_with_dbh"] == int(trees["dbh_m"].notna().sum())
+        assert summary["cells"] == pair.report["enrich"]["epochs"][epoch]["cells"]
+        assert summary["cells_without_ground"] == 0
+
+
+def test_enrich_again_is_idempotent(pair: EnrichedPair, reenriched: tuple[Path, Result]) -> None:
+    catalog, result = reenriched
+    assert result.exit_code == 0, result.output
+    first = pd.read_parquet(pair.path / "tables/stand_metrics.parquet")
+    again = pd.read_parquet(catalog / "tables/stand_metrics.parquet")
+    pd.testing.assert_frame_equal(first, again)
+    for epoch in MISSIONS:
+        a = pd.read_parquet(pair.path / f"tables/tree_list_{epoch}.parquet")
+        b = pd.read_parquet(catalog / f"tables/tree_list_{epoch}.parquet")
+        pd.testing.assert_frame_equal(a, b)
+    import pyogrio
+
+    layers = {name for name, _ in pyogrio.list_layers(catalog / "index.gpkg")}
+    assert {"stand_metrics", "trees"} <= layers
+    assert len(pyogrio.read_dataframe(catalog / "index.gpkg", layer="stand_metrics")) == len(first)
+
+
+def test_compare_json_on_an_existing_catalog(
+    pair: EnrichedPair, reenriched: tuple[Path, Result]
+) -> None:
+    catalog, _ = reenriched
+    result = CliRunner().invoke(
+        cli, ["compare", str(catalog), "--from", "2024", "--to", "2028", "--json", "-q"]
+    )
+    assert result.exit_code == 0, result.output
+    report = json.loads(result.output)
+    assert report["epoch_from"] == "2024" and report["epoch_to"] == "2028"
+    assert round(report["years"], 2) == 4.02
+    statuses = pd.read_parquet(catalog / report["outputs"]["tree_parquet"])["status"]
+    assert report["trees"] == statuses.value_counts().reindex(report["trees"]).to_dict()
+    assert report["trees"]["removed"] >= 27  # the simulated harvest
+    assert report["stands"] == {"in_both": 28, "from_only": 0, "to_only": 0}
+    changes = pd.read_parquet(catalog / report["outputs"]["stand_parquet"])
+    assert np.isfinite(changes["zq95_per_year"]).all()
+
+
+def test_compare_before_enrich_is_a_one_line_error(
+    tmp_path_factory: pytest.TempPathFactory,
+) -> None:
+    catalog = tiled_grid25(tmp_path_factory)
+    result = CliRunner().invoke(cli, ["compare", str(catalog)])
+    assert result.exit_code == 1
+    lines = _error_lines(result.output)
+    assert len(lines) == 1 and lines[0].startswith("Error: EnrichError: ")
+    assert "standgrid enrich" in lines[0]
+
+
+def test_unknown_epoch_is_a_one_line_error(pair: EnrichedPair) -> None:
+    for args in (
+        ["enrich", str(pair.path), "--epoch", "1999"],
+        ["compare", str(pair.path), "--from", "1999"],
+    ):
+        result = CliRunner().invoke(cli, args)
+        assert result.exit_code == 1
+        lines = _error_lines(result.output)
+        assert len(lines) == 1 and lines[0].startswith("Error: EpochNotFoundError: "), args
+
+
+def test_compare_other_grid_is_a_one_line_error(
+    pair: EnrichedPair, tmp_path_factory: pytest.TempPathFactory
+) -> None:
+    other = tiled_grid25(tmp_path_factory)
+    result = CliRunner().invoke(cli, ["compare", str(pair.path), "--other", str(other)])
+    assert result.exit_code == 1
+    lines = _error_lines(result.output)
+    assert len(lines) == 1 and lines[0].startswith("Error: GridMismatchError: ")
+
+
+@pytest.mark.parametrize("command", ["run", "enrich", "compare"])
+def test_help_has_an_example(command: str) -> None:
+    result = CliRunner().invoke(cli, [command, "--help"])
+    assert result.exit_code == 0
+    assert "Example:" in result.output

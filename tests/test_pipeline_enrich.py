@@ -18,6 +18,7 @@ import rasterio
 import shapely
 
 from standgrid.errors import EpochNotFoundError
+from standgrid.partition import CellId
 from standgrid.pipeline.enrich import enrich_catalog
 from standgrid.simulate import load_truth
 from tests.pipeline_fixtures import (
@@ -38,7 +39,8 @@ TALL_M = 10.0
 
 #: Columns of ``stand_metrics`` documented in docs/METRICS.md (area + tree metrics) and keys.
 DOCUMENTED_METRICS = [
-    "cell_id", "epoch", "area_m2", "n_points", "n_no_height", "density_pts_m2", "zmax",
+    "cell_id", "epoch", "level", "cell_size", "area_m2", "n_points", "n_no_height",
+    "density_pts_m2", "zmax",
     "zmean", "zsd", "zskew", "zkurt", "zentropy", "pzabovezmean", "pzabove2",
     *[f"zq{q}" for q in range(5, 100, 5)], *[f"zpcum{k}" for k in range(1, 10)],
     "pz_below0p5", "pz0p5to2", "pz2to5", "pz5to10", "pz10to20", "pz20to30", "pz30plus",
@@ -46,7 +48,7 @@ DOCUMENTED_METRICS = [
     "dominant_height_m", "dominant_by", "null_reason",
 ]  # fmt: skip
 DOCUMENTED_TREE_COLUMNS = [
-    "cell_id", "epoch", "tree_id", "x", "y", "z_ground", "height_m", "crown_area_m2",
+    "cell_id", "stand_id", "epoch", "tree_id", "x", "y", "z_ground", "height_m", "crown_area_m2",
     "n_points", "dbh_m", "dbh_reason", "stem_x", "stem_y", "dbh_rmse_m", "owned",
 ]  # fmt: skip
 
@@ -231,9 +233,12 @@ def test_stand_metrics_tables_keyed_documented_and_identical(pair: EnrichedPair)
     assert list(csv.columns) == DOCUMENTED_METRICS
     assert not parquet.duplicated(["cell_id", "epoch"]).any()
     for epoch in EPOCHS:
-        assert sorted(parquet.loc[parquet["epoch"] == epoch, "cell_id"]) == sorted(
-            _cells(pair, epoch)["cell_id"]
-        )
+        rows = parquet[parquet["epoch"] == epoch]
+        cell_ids = sorted(_cells(pair, epoch)["cell_id"])
+        assert sorted(rows.loc[rows["level"] == 0, "cell_id"]) == cell_ids
+        # level 1: the 1 ha stands holding those cells
+        stands = {str(CellId.parse(c).parent(100.0)) for c in cell_ids}
+        assert sorted(rows.loc[rows["level"] == 1, "cell_id"]) == sorted(stands)
     assert len(csv) == len(parquet)
     for column in DOCUMENTED_METRICS:
         a, b = parquet[column], csv[column]
@@ -281,9 +286,11 @@ def test_tree_lists(pair: EnrichedPair, epoch: str) -> None:
     polygons = cells.loc[parquet["cell_id"], "geometry"].to_numpy()
     assert shapely.contains_xy(polygons, parquet["x"], parquet["y"]).all()
     metrics = _metrics(pair)
-    counts = metrics[metrics["epoch"] == epoch].set_index("cell_id")["n_trees"]
-    per_cell = parquet.groupby("cell_id").size().reindex(counts.index, fill_value=0)
-    np.testing.assert_array_equal(per_cell.to_numpy(), counts.to_numpy())
+    rows = metrics[metrics["epoch"] == epoch]
+    for level, key in ((0, "cell_id"), (1, "stand_id")):  # cells, and their 1 ha stands
+        counts = rows[rows["level"] == level].set_index("cell_id")["n_trees"]
+        per_stand = parquet.groupby(key).size().reindex(counts.index, fill_value=0)
+        np.testing.assert_array_equal(per_stand.to_numpy(), counts.to_numpy())
 
 
 def test_geopackage_layers_with_crs_and_default_styles(pair: EnrichedPair) -> None:
@@ -324,7 +331,7 @@ def test_catalog_marks_epochs_enriched(pair: EnrichedPair) -> None:
 @pytest.mark.parametrize("epoch", EPOCHS)
 def test_metrics_of_a_cell_recomputed_from_its_tile(pair: EnrichedPair, epoch: str) -> None:
     metrics = _metrics(pair)
-    rows = metrics[(metrics["epoch"] == epoch) & (metrics["n_trees"] > 5)]
+    rows = metrics[(metrics["epoch"] == epoch) & (metrics["level"] == 0) & (metrics["n_trees"] > 5)]
     cells = _cells(pair, epoch).set_index("cell_id")
     for cell_id in rows["cell_id"].iloc[:3]:
         row = rows.set_index("cell_id").loc[cell_id]

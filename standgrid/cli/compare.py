@@ -17,9 +17,15 @@ def _human(r: dict[str, Any]) -> str:
         f"{r['epoch_from']} -> {r['epoch_to']} ({r['years']:.2f} years) in {r['catalog']}",
         f"trees: {trees.get('grown', 0)} grown, {trees.get('new', 0)} new,"
         f" {trees.get('removed', 0)} removed (harvested or fallen)",
-        f"stands: {stands['in_both']} in both epochs, {stands['from_only']} only in"
+        f"stand cells: {stands['in_both']} in both epochs, {stands['from_only']} only in"
         f" {r['epoch_from']}, {stands['to_only']} only in {r['epoch_to']}",
     ]
+    if r.get("stands_1ha"):
+        s = r["stands_1ha"]
+        lines.append(
+            f"1 ha stands: {s['in_both']} in both epochs, {s['from_only']} only in"
+            f" {r['epoch_from']}, {s['to_only']} only in {r['epoch_to']}"
+        )
     for name, value in r["headline"].items():
         if value is not None and name != "trees_removed":
             lines.append(f"mean {name}: {value:+.3f}")

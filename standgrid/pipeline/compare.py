@@ -32,6 +32,7 @@ class CompareReport:
     years: float
     trees: dict[str, int]
     stands: dict[str, int]
+    stands_1ha: dict[str, int] = field(default_factory=dict)
     outputs: dict[str, str] = field(default_factory=dict)
     headline: dict[str, float | None] = field(default_factory=dict)
 
@@ -43,6 +44,7 @@ class CompareReport:
             "years": self.years,
             "trees": self.trees,
             "stands": self.stands,
+            "stands_1ha": self.stands_1ha,
             "headline": self.headline,
             "outputs": self.outputs,
         }
@@ -87,17 +89,27 @@ def compare_epochs(
     matches = match_trees(
         trees_from, trees_to, date_from=date_from, date_to=date_to, max_distance=max_distance
     )
-    cells = _cell_polygons(source, target, epoch_from, epoch_to)
-    changes = compare_stands(
-        metrics_from,
-        metrics_to,
-        date_from=date_from,
-        date_to=date_to,
-        epoch_from=epoch_from,
-        epoch_to=epoch_to,
-        tree_matches=matches,
-        cells=cells,
-    )
+    cells = _cell_polygons(source, target, metrics_from, metrics_to)
+    per_level = []
+    for level in sorted(set(metrics_from["level"]) | set(metrics_to["level"])):
+        a = metrics_from[metrics_from["level"] == level]
+        b = metrics_to[metrics_to["level"] == level]
+        polygons = cells[cells["cell_id"].isin(set(a["cell_id"]) | set(b["cell_id"]))]
+        area = pd.concat([b, a]).drop_duplicates("cell_id", keep="last").set_index("cell_id")
+        changes = compare_stands(
+            a.drop(columns=["level", "cell_size"]),
+            b.drop(columns=["level", "cell_size"]),
+            date_from=date_from,
+            date_to=date_to,
+            epoch_from=epoch_from,
+            epoch_to=epoch_to,
+            tree_matches=matches,
+            cells=polygons.reset_index(drop=True),
+            stand_area_m2=area["area_m2"],
+        )
+        changes.insert(1, "level", int(level))
+        per_level.append(changes)
+    changes = pd.concat(per_level, ignore_index=True)
 
     folder = pair_folder(epoch_from, epoch_to)
     outputs: dict[str, str] = {}
@@ -128,11 +140,8 @@ def compare_epochs(
         epoch_to=epoch_to,
         years=matches.years,
         trees=matches.counts(),
-        stands={
-            "in_both": int((changes["presence"] == "both").sum()),
-            "from_only": int((changes["presence"] == "from_only").sum()),
-            "to_only": int((changes["presence"] == "to_only").sum()),
-        },
+        stands=_presence(changes[changes["level"] == 0]),
+        stands_1ha=_presence(changes[changes["level"] == 1]),
         outputs=outputs,
         headline=_headline(changes, matches),
     )
@@ -208,18 +217,34 @@ def _epoch_metrics(catalog: Catalog, epoch: str) -> pd.DataFrame:
 
 
 def _cell_polygons(
-    source: Catalog, target: Catalog, epoch_from: str, epoch_to: str
+    source: Catalog, target: Catalog, metrics_from: pd.DataFrame, metrics_to: pd.DataFrame
 ) -> gpd.GeoDataFrame:
-    """``cell_id`` + polygon of every stand cell of either epoch (one row per cell id)."""
+    """``cell_id`` + polygon of every stand (tile cells and coarser stands) of either epoch."""
+    import geopandas as gpd
     import pandas as pd
     import pyogrio
 
-    frames = []
-    for catalog, epoch in ((source, epoch_from), (target, epoch_to)):
-        cells = pyogrio.read_dataframe(catalog.path("index.gpkg"), layer="cells")
-        frames.append(cells[cells["epoch"].astype(str) == epoch][["cell_id", "geometry"]])
-    both = pd.concat(frames, ignore_index=True).drop_duplicates("cell_id")
-    return both.sort_values("cell_id").reset_index(drop=True)
+    from standgrid.pipeline.enrich import stand_polygons
+
+    cells = pd.concat(
+        [
+            pyogrio.read_dataframe(c.path("index.gpkg"), layer="cells")[["cell_id", "geometry"]]
+            for c in {id(source): source, id(target): target}.values()
+        ],
+        ignore_index=True,
+    ).drop_duplicates("cell_id")
+    ids = sorted(set(metrics_from["cell_id"]) | set(metrics_to["cell_id"]))
+    return gpd.GeoDataFrame(
+        {"cell_id": ids}, geometry=stand_polygons(source, ids, cells), crs=source.crs
+    )
+
+
+def _presence(changes: pd.DataFrame) -> dict[str, int]:
+    """How many stands are in both epochs, or in one only."""
+    return {
+        name: int((changes["presence"] == value).sum())
+        for name, value in (("in_both", "both"), ("from_only", "from_only"), ("to_only", "to_only"))
+    }
 
 
 def _headline(changes: pd.DataFrame, matches: Any) -> dict[str, float | None]:
@@ -227,9 +252,10 @@ def _headline(changes: pd.DataFrame, matches: Any) -> dict[str, float | None]:
     import math
 
     out: dict[str, float | None] = {}
+    cells = changes[changes["level"] == 0]
     for column in ("tree_height_growth_m_per_year", "zq95_per_year", "zmean_per_year"):
-        if column in changes.columns:
-            value = float(changes[column].mean(skipna=True))
+        if column in cells.columns:
+            value = float(cells[column].mean(skipna=True))
             out[column] = value if math.isfinite(value) else None
     out["trees_removed"] = float(matches.counts().get("removed", 0))
     return out

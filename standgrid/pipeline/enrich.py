@@ -78,6 +78,8 @@ class _Cell:
     rel: str
     polygon: Any
     key: int
+    #: The id of the 1 ha (next level) stand holding the cell (grid scheme), else None.
+    stand_id: str | None = None
 
 
 class _TileCache:
@@ -155,12 +157,29 @@ def enrich_catalog(
 def _epoch_cells(catalog: Catalog, epoch: str) -> list[_Cell]:
     import pyogrio
 
+    grid = _stand_grid(catalog)
     cells = pyogrio.read_dataframe(catalog.path("index.gpkg"), layer="cells")
     cells = cells[cells["epoch"].astype(str) == epoch].sort_values("cell_id")
     return [
-        _Cell(str(r.cell_id), str(r.tile_path), r.geometry, i)
+        _Cell(str(r.cell_id), str(r.tile_path), r.geometry, i, _stand_of(grid, str(r.cell_id)))
         for i, r in enumerate(cells.itertuples())
     ]
+
+
+def _stand_grid(catalog: Catalog) -> Any:
+    """The catalog's StandGrid when it has a coarser (stand) level, else None."""
+    from standgrid.partition import StandGrid
+
+    if catalog.scheme != "grid":
+        return None
+    grid = StandGrid.from_dict(catalog.grid_definition)
+    return grid if len(grid.levels) > 1 else None
+
+
+def _stand_of(grid: Any, cell_id: str) -> str | None:
+    from standgrid.partition import CellId
+
+    return None if grid is None else str(CellId.parse(cell_id).parent(grid))
 
 
 def _grid_alignment(catalog: Catalog) -> tuple[tuple[float, float], float]:
@@ -228,6 +247,7 @@ def _enrich_epoch(
     density_raster = np.zeros(grid.shape, dtype=np.float32)
     metric_rows = []
     tree_frames: list[pd.DataFrame] = []
+    heights: dict[str, NDArray[np.float32]] = {}
     for cell in wrap(cells, len(cells), f"{epoch}: trees and metrics"):
         metric_rows.append(
             _enrich_cell(
@@ -242,10 +262,12 @@ def _enrich_epoch(
                 chm_raster,
                 density_raster,
                 tree_frames,
+                heights,
                 options,
                 cell.cell_id in no_ground,
             )
         )
+    metric_rows.extend(_stand_rows(catalog, cells, heights, tree_frames, no_ground, options))
     for name, array, description in (
         ("dtm", dtm, "digital terrain model: ellipsoidal height of the ground (m)"),
         ("chm", chm_raster, "canopy height model: height above ground (m)"),
@@ -358,13 +380,13 @@ def _enrich_cell(
     chm_raster: NDArray[np.float32],
     density_raster: NDArray[np.float32],
     tree_frames: list[pd.DataFrame],
+    heights: dict[str, NDArray[np.float32]],
     options: EnrichOptions,
     no_ground: bool,
 ) -> dict[str, Any]:
     import shapely
     from scipy.spatial import cKDTree
 
-    from standgrid.enrich.metrics import area_metrics, tree_metrics
     from standgrid.enrich.rasters import chm, density, height_above_ground
     from standgrid.enrich.trees import segment_trees
     from standgrid.export.las import write_tile
@@ -404,6 +426,8 @@ def _enrich_cell(
     if no_ground:
         owned = owned.iloc[0:0]
     owned.insert(0, "cell_id", cell.cell_id)
+    if cell.stand_id is not None:
+        owned.insert(1, "stand_id", cell.stand_id)
     tree_frames.append(owned)
 
     core_xyz = full.xyz[core]
@@ -431,22 +455,51 @@ def _enrich_cell(
         core_bounds=cell.polygon,
     )
 
-    area = float(cell.polygon.area)
-    keys = np.zeros(n_core, dtype=np.int64)
+    heights[cell.cell_id] = core_hag
+    size = _cell_size(catalog)
+    return _metrics_row(
+        cell.cell_id, 0, size, float(cell.polygon.area), core_hag, owned, options, no_ground
+    )
+
+
+def _cell_size(catalog: Catalog) -> float:
+    return float(catalog.grid_definition["cell_size"]) if catalog.scheme == "grid" else math.nan
+
+
+NO_TERRAIN = "no ground points in or near the stand: no terrain model"
+
+
+def _metrics_row(
+    stand_id: str,
+    level: int,
+    size: float,
+    area: float,
+    heights: NDArray[np.floating],
+    trees: pd.DataFrame,
+    options: EnrichOptions,
+    no_ground: bool,
+) -> dict[str, Any]:
+    """One stand_metrics row: the area-based and the tree-based set, nulls with reasons."""
+    from standgrid.enrich.metrics import area_metrics, tree_metrics
+
     area_row = area_metrics(
-        keys, core_hag, cell_area_m2=area, cells=[0], height_break=options.height_break
+        np.zeros(len(heights), dtype=np.int64),
+        heights,
+        cell_area_m2=area,
+        cells=[0],
+        height_break=options.height_break,
     ).iloc[0]
     tree_row = tree_metrics(
-        np.zeros(len(owned), dtype=np.int64),
-        owned["height_m"].to_numpy(dtype=np.float64),
-        owned["dbh_m"].to_numpy(dtype=np.float64),
-        cell_area_m2=area,
+        np.zeros(len(trees), dtype=np.int64),
+        trees["height_m"].to_numpy(dtype=np.float64),
+        trees["dbh_m"].to_numpy(dtype=np.float64),
+        cell_area_m2=max(area, 1e-9),
         cells=[0],
     ).iloc[0]
     reasons = [r for r in (area_row.get("null_reason"), tree_row.get("null_reason")) if _text(r)]
     if no_ground:
-        reasons.insert(0, "no ground points in or near the stand: no terrain model")
-    row: dict[str, Any] = {"cell_id": cell.cell_id, "area_m2": area}
+        reasons.insert(0, NO_TERRAIN)
+    row: dict[str, Any] = {"cell_id": stand_id, "level": level, "cell_size": size, "area_m2": area}
     row.update({k: v for k, v in area_row.items() if k != "null_reason"})
     row.update({k: v for k, v in tree_row.items() if k != "null_reason"})
     if no_ground:  # no tree could be looked for: unknown, not zero
@@ -455,6 +508,48 @@ def _enrich_cell(
                 row[name] = None if name == "dominant_by" else math.nan
     row["null_reason"] = "; ".join(dict.fromkeys(str(r) for r in reasons)) or None
     return row
+
+
+def _stand_rows(
+    catalog: Catalog,
+    cells: list[_Cell],
+    heights: dict[str, NDArray[np.float32]],
+    tree_frames: list[pd.DataFrame],
+    no_ground: set[str],
+    options: EnrichOptions,
+) -> list[dict[str, Any]]:
+    """Metrics of each 1 ha stand (the grid's next level) over its measured cells.
+
+    The stand's area is that of its cells that have points and ground (a stand at the edge
+    of the survey is measured over what was surveyed); its trees are the trees of those cells.
+    """
+    import pandas as pd
+
+    grid = _stand_grid(catalog)
+    if grid is None:
+        return []
+    trees = (
+        pd.concat([t for t in tree_frames if len(t)], ignore_index=True) if tree_frames else None
+    )
+    rows = []
+    for stand_id in sorted({c.stand_id for c in cells if c.stand_id is not None}):
+        members = [c for c in cells if c.stand_id == stand_id]
+        measured = [c for c in members if c.cell_id not in no_ground]
+        h = (
+            np.concatenate([heights[c.cell_id] for c in measured])
+            if measured
+            else np.zeros(0, dtype=np.float32)
+        )
+        stand_trees = (
+            trees[trees["stand_id"] == stand_id]
+            if trees is not None and "stand_id" in trees.columns
+            else pd.DataFrame({"height_m": [], "dbh_m": []})
+        )
+        area = float(sum(c.polygon.area for c in measured))
+        rows.append(
+            _metrics_row(stand_id, 1, grid.levels[1], area, h, stand_trees, options, not measured)
+        )
+    return rows
 
 
 def _text(value: Any) -> bool:
@@ -489,7 +584,7 @@ def _tree_table(frames: list[pd.DataFrame], epoch: str) -> pd.DataFrame:
     import pandas as pd
 
     table = pd.concat(frames, ignore_index=True) if frames else pd.DataFrame()
-    table.insert(1, "epoch", epoch)
+    table.insert(2 if "stand_id" in table.columns else 1, "epoch", epoch)
     return table
 
 
@@ -554,7 +649,9 @@ def _write_layers(
 
     new_metrics = pd.concat(metric_tables.values(), ignore_index=True)
     stands = gpd.GeoDataFrame(
-        cells.merge(new_metrics, on=["cell_id", "epoch"], how="inner"), geometry="geometry"
+        new_metrics,
+        geometry=stand_polygons(catalog, new_metrics["cell_id"], cells),
+        crs=catalog.crs,
     )
     if old_metrics is not None:
         keep = old_metrics[~old_metrics["epoch"].astype(str).isin(metric_tables)]
@@ -580,6 +677,21 @@ def _write_layers(
         if trees is not None and len(trees):
             lo, hi = _range(trees["height_m"])
             writer.write_layer("trees", trees, style=stand_metric_style("height_m", lo, hi))
+
+
+def stand_polygons(catalog: Catalog, ids: Iterable[str], cells: Any) -> list[Any]:
+    """Polygons of stand ids: a tile cell's own polygon, or a coarser stand's grid square."""
+    from standgrid.partition import CellId, StandGrid
+
+    known = dict(zip(cells["cell_id"].astype(str), cells.geometry, strict=True))
+    grid = StandGrid.from_dict(catalog.grid_definition) if catalog.scheme == "grid" else None
+    polygons = []
+    for stand in ids:
+        polygon = known.get(str(stand))
+        if polygon is None and grid is not None:
+            polygon = grid.polygon(CellId.parse(str(stand)))
+        polygons.append(polygon)
+    return polygons
 
 
 def _range(values: Any) -> tuple[float, float]:

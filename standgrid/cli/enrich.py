@@ -15,7 +15,7 @@ def _human(r: dict[str, Any]) -> str:
     lines = [f"enriched {r['catalog']}"]
     for epoch, e in r["epochs"].items():
         lines.append(
-            f"epoch {epoch}: {e['cells']} stands ({e['cells_without_ground']} without ground),"
+            f"epoch {epoch}: {e['cells']} cells ({e['cells_without_ground']} without ground),"
             f" {e['trees']} trees ({e['trees_with_dbh']} with DBH)"
         )
     lines.append(

@@ -19,6 +19,7 @@ from typing import Any, Literal
 
 import numpy as np
 
+from standgrid.enrich.rasters import raster_crs_text
 from standgrid.errors import FormatError, GridMismatchError
 
 NODATA = -9999.0
@@ -80,24 +81,12 @@ def _open_grid(path: Path) -> _Grid:
     return grid
 
 
-def _crs_text(crs: Any) -> str | None:
-    """``EPSG:XXXX`` when the CRS has an EPSG code, else WKT2; None for local coordinates."""
-    if not crs:
-        return None
-    epsg = crs.to_epsg()
-    if epsg:
-        return f"EPSG:{epsg}"
-    import pyproj
-
-    return str(pyproj.CRS.from_wkt(crs.to_wkt()).to_wkt())
-
-
 def _check_same_pixel_grid(a: _Grid, b: _Grid) -> None:
     """Raise :class:`GridMismatchError` unless ``a`` and ``b`` share CRS, pixel size, alignment."""
     where = f"{a.path} vs {b.path}"
     if bool(a.crs) != bool(b.crs) or (a.crs and a.crs != b.crs):
         raise GridMismatchError(
-            f"different CRS: {_crs_text(a.crs)} vs {_crs_text(b.crs)} ({where})"
+            f"different CRS: {raster_crs_text(a.crs)} vs {raster_crs_text(b.crs)} ({where})"
         )
     ta, tb = a.transform, b.transform
     same_size = np.isclose(ta.a, tb.a, rtol=1e-9, atol=0) and np.isclose(
@@ -157,7 +146,7 @@ def chm_difference(
     res = (float(a.transform.a), float(-a.transform.e))
     if not np.isclose(res[0], res[1], rtol=1e-9, atol=0):
         raise FormatError(f"non-square pixels {res[0]} x {res[1]} m", path=a.path)
-    crs_text = _crs_text(a.crs)
+    crs_text = raster_crs_text(a.crs)
     pick = (max, min) if extent == "intersection" else (min, max)
     left, right = pick[0](a.left, b.left), pick[1](a.right, b.right)
     bottom, top = pick[0](a.bottom, b.bottom), pick[1](a.top, b.top)

@@ -341,20 +341,19 @@ def read_raster(path: str | os.PathLike[str]) -> RasterData:
             grid = RasterGrid(
                 x0=t.c, y0=t.f + t.e * ds.height, pixel_size=t.a, ncols=ds.width, nrows=ds.height
             )
-            crs = _crs_text(ds.crs)
+            crs = raster_crs_text(ds.crs)
             description = ds.descriptions[0] if ds.descriptions else None
     except RasterioIOError as exc:
         raise FormatError(f"cannot read raster: {exc}", path=path) from exc
     return RasterData(data, grid, crs, description)
 
 
-def _crs_text(crs: Any) -> str | None:
-    """``EPSG:XXXX`` when the CRS has an EPSG code, WKT2 otherwise (never a PROJ string)."""
+def raster_crs_text(crs: Any) -> str | None:
+    """A rasterio CRS as standgrid stores CRSs (EPSG:XXXX or WKT2); None for no CRS."""
     if not crs:
         return None
-    epsg = crs.to_epsg()
-    if epsg:
-        return f"EPSG:{epsg}"
     import pyproj
 
-    return str(pyproj.CRS.from_wkt(crs.to_wkt()).to_wkt())
+    from standgrid.georeference.crs import crs_to_text
+
+    return crs_to_text(pyproj.CRS.from_wkt(crs.to_wkt()))

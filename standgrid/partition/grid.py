@@ -48,37 +48,17 @@ _CELL_RE = re.compile(rf"^([0-9]+(?:p[0-9]+)?)m_E({_INT})_N({_INT})$")
 
 
 @functools.lru_cache(maxsize=64)
-def normalise_crs(crs: str) -> str:
-    """``"EPSG:XXXX"`` when the CRS round-trips through its EPSG code, else WKT2 (2019).
+def normalise_crs(crs: Any) -> str:
+    """The canonical stored form of a grid CRS: ``"EPSG:XXXX"`` when it round-trips, else WKT2.
 
-    Rejects PROJ strings and non-projected (geographic, geocentric) CRSs with ``CRSError``.
+    The rules are georeferencing's (``resolve_crs``): PROJ strings and non-projected CRSs are
+    refused with ``CRSError``.
     """
-    import pyproj
+    from standgrid.georeference.crs import crs_to_text, resolve_crs
 
-    text = str(crs).strip()
-    if text.startswith("+") or "+proj=" in text or "+init=" in text:
-        raise CRSError(
-            f"PROJ strings are not accepted as a grid CRS: {text!r}; use EPSG:XXXX or WKT2"
-        )
-    try:
-        parsed = pyproj.CRS.from_user_input(text)
-    except pyproj.exceptions.CRSError as exc:
-        raise CRSError(f"unknown CRS {text!r}: {exc}") from exc
-    if not parsed.is_projected:
-        raise CRSError(f"the grid CRS must be projected (metres), got {parsed.name!r}")
-    code = parsed.to_epsg(min_confidence=100)
-    if code is not None and pyproj.CRS.from_epsg(code) == parsed:
-        return f"EPSG:{code}"
-    return str(parsed.to_wkt(version="WKT2_2019"))
-
-
-def _crs_text(crs: Any) -> str:
-    if hasattr(crs, "to_wkt"):  # a pyproj.CRS object
-        code = crs.to_epsg(min_confidence=100)
-        return f"EPSG:{code}" if code is not None else str(crs.to_wkt(version="WKT2_2019"))
-    if not isinstance(crs, str):
-        raise CRSError(f"CRS must be a string (EPSG:XXXX or WKT2), got {type(crs).__name__}")
-    return crs
+    if isinstance(crs, str) and crs.strip().lower() == "auto":
+        raise CRSError("a grid needs an explicit CRS, not 'auto'")
+    return crs_to_text(resolve_crs(crs))
 
 
 # --- cell ids ----------------------------------------------------------------------------
@@ -242,7 +222,7 @@ class StandGrid:
 
     def __post_init__(self) -> None:
         set_ = functools.partial(object.__setattr__, self)
-        set_("crs", normalise_crs(_crs_text(self.crs)))
+        set_("crs", normalise_crs(self.crs))
         size = _as_float(self.cell_size, "cell_size")
         if size <= 0:
             raise GridError(f"cell_size must be positive, got {self.cell_size!r}")

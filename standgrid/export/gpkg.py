@@ -60,6 +60,8 @@ LAYER_COLUMNS: dict[str, tuple[str, ...]] = {
         "rmse_m", "n_used", "n_rejected", "grid_fingerprint", "crs",
     ),
 }  # fmt: skip
+#: GeoPackage version of new index files (the widest-read one with everything we use).
+GPKG_VERSION = "1.2"
 #: Layers that must carry a geometry.
 GEOMETRY_LAYERS = frozenset({"cells", "payloads", "trajectories", "gnss_fixes"})
 
@@ -231,8 +233,13 @@ class IndexWriter:
                     f"layer {name!r} is in {data.crs.to_string()}, the index is in {self.crs}",
                     path=self.path,
                 )
+        # A new file is GeoPackage 1.2: GDAL < 3.8 (still in many QGIS installs) opens 1.4
+        # files with a "may only be partially supported" warning.
+        options = {} if self.working_path.exists() else {"VERSION": GPKG_VERSION}
         try:
-            pyogrio.write_dataframe(data, self.working_path, layer=name, driver="GPKG")
+            pyogrio.write_dataframe(
+                data, self.working_path, layer=name, driver="GPKG", dataset_options=options
+            )
         except (pyogrio.errors.DataSourceError, pyogrio.errors.DataLayerError, ValueError) as exc:
             raise CatalogError(f"cannot write layer {name!r}: {exc}", path=self.path) from exc
         if style is not None:

@@ -133,7 +133,8 @@ def test_compare_json_on_an_existing_catalog(
     assert report["epoch_from"] == "2024" and report["epoch_to"] == "2028"
     assert round(report["years"], 2) == 4.02
     statuses = pd.read_parquet(catalog / report["outputs"]["tree_parquet"])["status"]
-    assert report["trees"] == statuses.value_counts().reindex(report["trees"]).to_dict()
+    counts = statuses.value_counts().reindex(report["trees"], fill_value=0).to_dict()
+    assert report["trees"] == counts
     assert report["trees"]["removed"] >= 27  # the simulated harvest
     assert report["stands"] == {"in_both": 28, "from_only": 0, "to_only": 0}
     changes = pd.read_parquet(catalog / report["outputs"]["stand_parquet"])

@@ -174,7 +174,9 @@ def test_tables_written_and_identical_in_csv_and_parquet(pair: EnrichedPair, ste
 def test_report_counts_match_the_tables(pair: EnrichedPair) -> None:
     report = pair.report["compare"]
     trees = _tree_changes(pair)["status"].value_counts().to_dict()
-    assert report["trees"] == {s: trees.get(s, 0) for s in ("grown", "new", "removed")}
+    statuses = ("grown", "new", "removed", "unobserved")
+    assert report["trees"] == {s: trees.get(s, 0) for s in statuses}
+    assert report["trees"]["unobserved"] == 0  # both campaigns surveyed the same ground
     stands = _stand_changes(pair)
     cells = stands[stands["level"] == 0]
     assert report["stands"]["in_both"] == int((cells["presence"] == "both").sum()) == 28
@@ -296,6 +298,10 @@ def test_stands_of_one_epoch_only_are_listed_with_a_reason(tmp_path: Path) -> No
     enrich_catalog(catalog)
     report = compare_epochs(catalog)
     assert report.stands == {"in_both": 1, "from_only": 2, "to_only": 1}
+    # B was not surveyed in 2028 and D not in 2024: their trees are unobserved, not
+    # harvested or new (only A, seen twice, can tell)
+    assert report.trees["removed"] == 0 and report.trees["new"] == 0
+    assert report.trees["unobserved"] == 2
     changes = pd.read_parquet(catalog / FOLDER / "stand_changes.parquet")
     changes = changes[changes["level"] == 0].set_index("cell_id")
     assert len(changes) == 4

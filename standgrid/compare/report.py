@@ -31,7 +31,7 @@ from standgrid.compare.trees import ChangeInputError, TreeMatches
 STAND_LAYER = "stand_changes"
 TREE_LAYER = "tree_changes"
 KEY_COLUMNS = ("cell_id", "epoch_from", "epoch_to")
-DEFAULT_STYLE_FIELDS = ("tree_height_growth_m_per_year", "height_p95_m_per_year")
+DEFAULT_STYLE_FIELDS = ("tree_height_growth_m_per_year", "zq95_per_year")
 #: Colours of the tree statuses (grown green, new blue, removed red).
 STATUS_COLOURS = {"grown": "#1a9641", "new": "#2c7bb6", "removed": "#d7191c"}
 

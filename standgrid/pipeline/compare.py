@@ -9,7 +9,7 @@ difference, and writes ``compare/<from>__<to>/`` plus the ``stand_changes`` and
 from __future__ import annotations
 
 import shutil
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -84,11 +84,12 @@ def compare_epochs(
 
     metrics_from = _epoch_metrics(source, epoch_from)
     metrics_to = _epoch_metrics(target, epoch_to)
-    trees_from = pd.read_parquet(source.path(f"tables/tree_list_{epoch_from}.parquet"))
-    trees_to = pd.read_parquet(target.path(f"tables/tree_list_{epoch_to}.parquet"))
+    trees_from = _read_table(source, f"tables/tree_list_{epoch_from}.parquet")
+    trees_to = _read_table(target, f"tables/tree_list_{epoch_to}.parquet")
     matches = match_trees(
         trees_from, trees_to, date_from=date_from, date_to=date_to, max_distance=max_distance
     )
+    matches = _locate(matches, trees_from, trees_to, metrics_from, metrics_to)
     cells = _cell_polygons(source, target, metrics_from, metrics_to)
     per_level = []
     for level in sorted(set(metrics_from["level"]) | set(metrics_to["level"])):
@@ -96,6 +97,8 @@ def compare_epochs(
         b = metrics_to[metrics_to["level"] == level]
         polygons = cells[cells["cell_id"].isin(set(a["cell_id"]) | set(b["cell_id"]))]
         area = pd.concat([b, a]).drop_duplicates("cell_id", keep="last").set_index("cell_id")
+        key = "cell_id" if level == 0 else "stand_id"
+        located = replace(matches, table=matches.table.assign(cell_id=matches.table[key]))
         changes = compare_stands(
             a.drop(columns=["level", "cell_size"]),
             b.drop(columns=["level", "cell_size"]),
@@ -103,12 +106,12 @@ def compare_epochs(
             date_to=date_to,
             epoch_from=epoch_from,
             epoch_to=epoch_to,
-            tree_matches=matches,
+            tree_matches=located,
             cells=polygons.reset_index(drop=True),
             stand_area_m2=area["area_m2"],
         )
         changes.insert(1, "level", int(level))
-        per_level.append(changes)
+        per_level.append(_note_area_change(changes))
     changes = pd.concat(per_level, ignore_index=True)
 
     folder = pair_folder(epoch_from, epoch_to)
@@ -139,7 +142,10 @@ def compare_epochs(
         epoch_from=epoch_from,
         epoch_to=epoch_to,
         years=matches.years,
-        trees=matches.counts(),
+        trees={
+            status: int((matches.table["status"] == status).sum())
+            for status in ("grown", "new", "removed", UNOBSERVED)
+        },
         stands=_presence(changes[changes["level"] == 0]),
         stands_1ha=_presence(changes[changes["level"] == 1]),
         outputs=outputs,
@@ -182,6 +188,81 @@ def _write_outputs(
     return written
 
 
+UNOBSERVED = "unobserved"
+
+
+def _read_table(catalog: Catalog, rel: str) -> pd.DataFrame:
+    import pandas as pd
+
+    path = catalog.path(rel)
+    if not path.exists():
+        raise EnrichError(
+            f"{rel} is missing: run `standgrid enrich {catalog.root}` first", path=path
+        )
+    return pd.read_parquet(path)
+
+
+def _locate(
+    matches: Any,
+    trees_from: pd.DataFrame,
+    trees_to: pd.DataFrame,
+    metrics_from: pd.DataFrame,
+    metrics_to: pd.DataFrame,
+) -> Any:
+    """Give every matched tree its cell and 1 ha stand, and tell unobserved trees apart.
+
+    A tree's stand is where enrich put it (the cell holding its top, half-open), taken from
+    the tree lists: the later epoch's for grown and new trees, the earlier one's for removed
+    trees. A tree "removed" from a cell that the later epoch did not measure (not surveyed, or
+    no terrain there), or "new" in a cell the earlier epoch did not measure, was not observed
+    twice: its status becomes ``unobserved`` and it counts as neither harvest nor ingrowth.
+    """
+    table = matches.table.copy()
+    columns = [c for c in ("cell_id", "stand_id") if c in trees_from.columns]
+    by_id_from = trees_from.set_index("tree_id")[columns]
+    by_id_to = trees_to.set_index("tree_id")[columns]
+    removed = (table["status"] == "removed").to_numpy()
+    for column in columns:
+        later = table["tree_id_to"].map(by_id_to[column])
+        earlier = table["tree_id_from"].map(by_id_from[column])
+        table[column] = later.where(~removed, earlier)
+    if "stand_id" not in table.columns:
+        table["stand_id"] = None
+
+    def measured(metrics: pd.DataFrame) -> set[str]:
+        cells = metrics[(metrics["level"] == 0) & metrics["n_trees"].notna()]
+        return set(cells["cell_id"])
+
+    unseen_later = removed & ~table["cell_id"].isin(measured(metrics_to)).to_numpy()
+    new = (table["status"] == "new").to_numpy()
+    unseen_earlier = new & ~table["cell_id"].isin(measured(metrics_from)).to_numpy()
+    table.loc[unseen_later | unseen_earlier, "status"] = UNOBSERVED
+    return replace(matches, table=table)
+
+
+def _note_area_change(changes: pd.DataFrame) -> pd.DataFrame:
+    """Say so where a stand was measured over different areas in the two epochs."""
+    if "area_m2_from" not in changes.columns:
+        return changes
+    differs = (
+        changes["area_m2_from"].notna()
+        & changes["area_m2_to"].notna()
+        & (changes["area_m2_from"] != changes["area_m2_to"])
+    )
+    note = (
+        "measured over different areas ("
+        + changes["area_m2_from"].round(0).astype("Int64").astype(str)
+        + " vs "
+        + changes["area_m2_to"].round(0).astype("Int64").astype(str)
+        + " m2): area-based changes compare different ground"
+    )
+    reason = changes["null_reason"].astype("string")
+    changes["null_reason"] = reason.where(
+        ~differs, (reason.fillna("") + "; " + note).str.lstrip("; ")
+    )
+    return changes
+
+
 def _default_epoch(catalog: Catalog, *, first: bool) -> str:
     epochs = sorted(catalog.epochs, key=lambda e: (catalog.epochs[e].get("date") or "", e))
     if len(epochs) < (2 if first else 1):
@@ -210,9 +291,8 @@ def _enriched_epoch(catalog: Catalog, epoch: str) -> str:
 
 
 def _epoch_metrics(catalog: Catalog, epoch: str) -> pd.DataFrame:
-    import pandas as pd
 
-    table = pd.read_parquet(catalog.path("tables/stand_metrics.parquet"))
+    table = _read_table(catalog, "tables/stand_metrics.parquet")
     return table[table["epoch"].astype(str) == epoch].drop(columns=["epoch"]).reset_index(drop=True)
 
 

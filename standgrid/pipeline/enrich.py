@@ -77,7 +77,6 @@ class _Cell:
     cell_id: str
     rel: str
     polygon: Any
-    key: int
     #: The id of the 1 ha (next level) stand holding the cell (grid scheme), else None.
     stand_id: str | None = None
 
@@ -161,8 +160,8 @@ def _epoch_cells(catalog: Catalog, epoch: str) -> list[_Cell]:
     cells = pyogrio.read_dataframe(catalog.path("index.gpkg"), layer="cells")
     cells = cells[cells["epoch"].astype(str) == epoch].sort_values("cell_id")
     return [
-        _Cell(str(r.cell_id), str(r.tile_path), r.geometry, i, _stand_of(grid, str(r.cell_id)))
-        for i, r in enumerate(cells.itertuples())
+        _Cell(str(r.cell_id), str(r.tile_path), r.geometry, _stand_of(grid, str(r.cell_id)))
+        for r in cells.itertuples()
     ]
 
 
@@ -208,11 +207,13 @@ def _enrich_epoch(
     )
     tree = shapely.STRtree([c.polygon for c in cells])
     tiles = _TileCache(catalog, origin)
+    # the block must reach every buffer copy a tile holds, so those get heights and ids too
+    halo = max(options.halo, float(txn.state.get("tiling", {}).get("buffer", 0.0)))
 
     def block(cell: _Cell) -> NDArray[np.float64]:
         """The cell's core points first, then every neighbour core point within the halo."""
         xmin, ymin, xmax, ymax = cell.polygon.bounds
-        h = options.halo
+        h = halo
         parts = [_core_xyz(tiles.get(cell.rel))]
         for j in sorted(int(j) for j in tree.query(cell.polygon.buffer(h))):
             if cells[j].rel == cell.rel:
@@ -230,8 +231,7 @@ def _enrich_epoch(
         xyz = block(cell)
         mask = _classify(xyz, options, catalog.path(cell.rel))
         ground_of[cell.rel] = mask
-        n_core = len(_core_xyz(tiles.get(cell.rel)))
-        if not mask[:n_core].any() and not mask.any():
+        if not mask.any():
             no_ground.add(cell.cell_id)
             continue
         ground = xyz[mask]
@@ -419,9 +419,10 @@ def _enrich_cell(
     if no_ground:  # heights there come from a distant terrain: no tree is claimed
         point_ids = np.zeros_like(point_ids)
     owned = segmentation.table
-    top_inside = shapely.contains_xy(cell.polygon, owned["x"], owned["y"])
-    if catalog.scheme == "grid":
-        top_inside &= owned["owned"].to_numpy(dtype=bool)
+    if catalog.scheme == "grid":  # half-open cell bounds: a top on an edge has one owner
+        top_inside = owned["owned"].to_numpy(dtype=bool)
+    else:  # Voronoi polygons, edges included; a top on a shared edge is kept once later
+        top_inside = shapely.intersects_xy(cell.polygon, owned["x"], owned["y"])
     owned = owned[top_inside].reset_index(drop=True)
     if no_ground:
         owned = owned.iloc[0:0]
@@ -496,9 +497,12 @@ def _metrics_row(
         cell_area_m2=max(area, 1e-9),
         cells=[0],
     ).iloc[0]
-    reasons = [r for r in (area_row.get("null_reason"), tree_row.get("null_reason")) if _text(r)]
-    if no_ground:
+    reasons = [area_row.get("null_reason")]
+    if no_ground:  # the tree set was not looked for: its own reason does not apply
         reasons.insert(0, NO_TERRAIN)
+    else:
+        reasons.append(tree_row.get("null_reason"))
+    reasons = [r for r in reasons if _text(r)]
     row: dict[str, Any] = {"cell_id": stand_id, "level": level, "cell_size": size, "area_m2": area}
     row.update({k: v for k, v in area_row.items() if k != "null_reason"})
     row.update({k: v for k, v in tree_row.items() if k != "null_reason"})
@@ -528,27 +532,24 @@ def _stand_rows(
     grid = _stand_grid(catalog)
     if grid is None:
         return []
-    trees = (
-        pd.concat([t for t in tree_frames if len(t)], ignore_index=True) if tree_frames else None
-    )
+    frames = [t for t in tree_frames if len(t)]
+    trees = pd.concat(frames, ignore_index=True) if frames else None
     rows = []
     for stand_id in sorted({c.stand_id for c in cells if c.stand_id is not None}):
         members = [c for c in cells if c.stand_id == stand_id]
         measured = [c for c in members if c.cell_id not in no_ground]
-        h = (
-            np.concatenate([heights[c.cell_id] for c in measured])
-            if measured
-            else np.zeros(0, dtype=np.float32)
-        )
+        # every member's points count (heights are NaN where a cell has no terrain)
+        h = np.concatenate([heights[c.cell_id] for c in members])
         stand_trees = (
             trees[trees["stand_id"] == stand_id]
             if trees is not None and "stand_id" in trees.columns
             else pd.DataFrame({"height_m": [], "dbh_m": []})
         )
         area = float(sum(c.polygon.area for c in measured))
-        rows.append(
-            _metrics_row(stand_id, 1, grid.levels[1], area, h, stand_trees, options, not measured)
-        )
+        row = _metrics_row(stand_id, 1, grid.levels[1], area, h, stand_trees, options, not measured)
+        measured_points = row["n_points"] - row["n_no_height"]
+        row["density_pts_m2"] = measured_points / area if area > 0 else math.nan
+        rows.append(row)
     return rows
 
 
@@ -584,6 +585,8 @@ def _tree_table(frames: list[pd.DataFrame], epoch: str) -> pd.DataFrame:
     import pandas as pd
 
     table = pd.concat(frames, ignore_index=True) if frames else pd.DataFrame()
+    if "tree_id" in table.columns:  # a top on a shared Voronoi edge: the first cell keeps it
+        table = table.drop_duplicates("tree_id").reset_index(drop=True)
     table.insert(2 if "stand_id" in table.columns else 1, "epoch", epoch)
     return table
 

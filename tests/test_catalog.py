@@ -121,7 +121,8 @@ def test_crash_before_journal_is_discarded_on_open(tmp_path: Path) -> None:
     ingest(catalog, "m-a", "e1", {"tiles/e1/x.laz": b"old"})
     txn = catalog.transaction().__enter__()
     txn.stage("tiles/e1/x.laz").write_bytes(b"half")
-    # crash: the process stops here, no journal
+    # crash: the process stops here, no journal (its death releases the writer lock)
+    txn._lock.__exit__(None, None, None)
     reopened = Catalog.open(catalog.root)
     assert reopened.path("tiles/e1/x.laz").read_bytes() == b"old"
     assert not (catalog.root / ".staging").exists()
@@ -147,6 +148,7 @@ def test_crash_after_journal_rolls_forward_on_open(tmp_path: Path, renames_done:
         (catalog.root / target).parent.mkdir(parents=True, exist_ok=True)
         os.replace(catalog.root / source, catalog.root / target)
     assert "m-b" not in json.loads((catalog.root / "catalog.json").read_text())["missions"]
+    txn._lock.__exit__(None, None, None)  # the dead process's lock is gone
 
     reopened = Catalog.open(catalog.root)
     assert reopened.path("tiles/e1/x.laz").read_bytes() == b"new-x"
@@ -282,3 +284,16 @@ def test_fingerprint_matches_stand_grid(tmp_path: Path) -> None:
     assert catalog.fingerprint == grid.fingerprint
     assert catalog.grid_definition == grid.to_dict()
     catalog.check_grid(grid)
+
+
+def test_a_live_transaction_is_not_discarded_by_another_open(tmp_path: Path) -> None:
+    """A reader's open() while a writer stages must not touch the writer's staging."""
+    catalog = make(tmp_path)
+    with catalog.transaction() as txn:
+        txn.stage("tiles/e1/x.laz").write_bytes(b"staged")
+        Catalog.open(catalog.root)  # e.g. `standgrid compare` reading meanwhile
+        assert txn.stage("tiles/e1/x.laz").read_bytes() == b"staged"
+        txn.record_mission("m-a", epoch="e1", date="2025-01-01", tiles=["tiles/e1/x.laz"])
+        with pytest.raises(CatalogError, match="another process is writing"):
+            catalog.transaction().__enter__()
+    assert Catalog.open(catalog.root).path("tiles/e1/x.laz").read_bytes() == b"staged"

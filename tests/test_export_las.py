@@ -203,3 +203,23 @@ def test_real_als_plot_round_trip(tmp_path: Path) -> None:
     assert np.abs(back.xyz - original.xyz).max() <= 0.0005 + 1e-9
     np.testing.assert_array_equal(back.fields["treeID"], original.fields["treeID"])
     assert info.z_max == pytest.approx(original.xyz[:, 2].max())
+
+
+def test_stored_coordinates_stay_on_an_off_metre_grid_lattice(tmp_path: Path) -> None:
+    """With a grid origin off the metre (0.5 mm, 25 cm), a tile stores exactly the snapped
+    coordinates, so a point read back is in the cell it was assigned to."""
+    from standgrid.export.las import snap_to_storage
+    from standgrid.partition import StandGrid
+
+    grid = StandGrid("EPSG:32630", 20.0, origin=(0.0005, 0.25))
+    rng = np.random.default_rng(2)
+    edge = 614700.0005
+    x = np.concatenate([np.full(200, edge), edge + rng.uniform(-0.003, 0.003, 400)])
+    y = 5737140.25 + rng.uniform(0, 19, 600)
+    xyz = snap_to_storage(np.column_stack([x, y, rng.uniform(100, 110, 600)]), grid.origin)
+    write_tile(tmp_path / "t.las", PointCloud(xyz), crs="EPSG:32630", lattice_origin=grid.origin)
+    back = snap_to_storage(read_tile(tmp_path / "t.las").xyz, grid.origin)
+    np.testing.assert_array_equal(back, xyz)
+    np.testing.assert_array_equal(
+        grid.cell_keys(back[:, 0], back[:, 1]), grid.cell_keys(xyz[:, 0], xyz[:, 1])
+    )

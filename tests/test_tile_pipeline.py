@@ -589,3 +589,41 @@ def test_interrupted_run_leaves_the_catalog_intact(tmp_path: Path) -> None:
     report = tile([broken], catalog)
     assert report.points_out == sum(payload_counts(M2).values())
     assert sorted(catalog_json(catalog)["epochs"]) == ["2024", "2028"]
+
+
+def test_reingest_into_another_epoch_moves_the_points(tmp_path: Path) -> None:
+    mission = M1
+    catalog = tmp_path / "cat"
+    tile([mission], catalog, epoch="e1")
+    tile([mission], catalog, epoch="e2")
+    state = catalog_json(catalog)
+    assert sorted(state["epochs"]) == ["e2"]
+    assert tile_files(catalog, "e1") == []
+    on_disk = sum(int(core(laspy.read(f)).sum()) for f in tile_files(catalog))
+    assert on_disk == sum(payload_counts(mission).values())
+    cells = pyogrio.read_dataframe(catalog / "index.gpkg", layer="cells")
+    assert set(cells["epoch"]) == {"e2"}
+    assert not (catalog / "tiles_e1.vpc").exists() and (catalog / "tiles_e2.vpc").exists()
+
+
+def test_the_fused_base_frame_path_matches_the_exact_chain() -> None:
+    from standgrid.georeference import georeference_mission
+    from standgrid.mission.model import open_mission
+
+    opened = open_mission(M1)
+    projector = MapProjector(georeference_mission(opened), "auto")
+    payload = opened.payloads[3]
+    base = opened.load_base(payload)
+    pose = opened.pose_of(payload)
+    exact = projector.exact(transform_points(pose, base.xyz))
+    fused = projector.fast(base.xyz, pose=pose)
+    assert np.abs(fused - exact).max() < 1e-3
+    assert projector.fast_chunks == 1
+
+
+def test_a_half_built_catalog_of_a_killed_run_is_removed(tmp_path: Path) -> None:
+    stale = tmp_path / ".cat.999999-deadbeef.tmp"  # no process 999999
+    (stale / "tiles").mkdir(parents=True)
+    tile([M1], tmp_path / "cat")
+    assert not stale.exists()
+    assert (tmp_path / "cat" / "catalog.json").is_file()

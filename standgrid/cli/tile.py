@@ -20,6 +20,23 @@ from standgrid.cli.options import (
 )
 
 
+def _levels(ctx: click.Context, param: click.Parameter, value: str | None) -> tuple[float, ...]:
+    if not value:
+        return ()
+    try:
+        return tuple(float(v) for v in value.split(","))
+    except ValueError:
+        raise click.BadParameter(f"cell sizes in metres, comma separated: {value!r}") from None
+
+
+def _epoch(ctx: click.Context, param: click.Parameter, value: str | None) -> str | None:
+    import re
+
+    if value is not None and not re.fullmatch(r"[A-Za-z0-9][A-Za-z0-9._-]*", value):
+        raise click.BadParameter(f"letters, digits, '.', '_' and '-' only: {value!r}")
+    return value
+
+
 def _human(report: dict[str, Any]) -> str:
     lines = [
         f"catalog  {report['catalog']}  ({report['scheme']}, {report['crs']})",
@@ -53,7 +70,7 @@ def _human(report: dict[str, Any]) -> str:
     help="Stand-grid cell size in metres (default 20; an existing catalog keeps its own).",
 )  # fmt: skip
 @click.option(
-    "--levels", default=None,
+    "--levels", default=None, callback=_levels,
     help="Nested cell sizes, finest first, comma separated (default: SIZE,5*SIZE).",
 )  # fmt: skip
 @click.option("--voronoi", is_flag=True, help="Voronoi cells around payload poses, not a grid.")
@@ -74,7 +91,10 @@ def _human(report: dict[str, Any]) -> str:
     "--method", type=click.Choice(["yaw2d", "rigid3d"]), default="yaw2d", show_default=True,
     help="Georeference fit: rotation about z only, or full 3-D.",
 )  # fmt: skip
-@click.option("--epoch", default=None, help="Epoch label (default: the year of each mission).")
+@click.option(
+    "--epoch", default=None, callback=_epoch,
+    help="Epoch label (default: the year of each mission).",
+)  # fmt: skip
 @click.option(
     "--memory", "memory_mb", type=click.IntRange(16), default=2048, show_default=True,
     help="Memory budget of the partition engine in MB (spills to disk beyond it).",
@@ -86,7 +106,7 @@ def tile(
     missions: tuple[Path, ...],
     output: Path,
     cell_size: float | None,
-    levels: str | None,
+    levels: tuple[float, ...],
     voronoi: bool,
     crs_spec: str,
     buffer: float | None,
@@ -115,7 +135,7 @@ def tile(
     options = TileOptions(
         scheme="voronoi" if voronoi else ("grid" if cell_size is not None else None),
         cell_size=cell_size,
-        levels=tuple(float(v) for v in levels.split(",")) if levels else (),
+        levels=levels,
         crs=crs_spec,
         buffer=buffer,
         laz=None if las is None else not las,

@@ -4,7 +4,7 @@ Every change goes through :meth:`Catalog.transaction`::
 
     with catalog.transaction() as txn:
         number = txn.mission_number(name)              # stable across re-ingests
-        tile = txn.stage("tiles/2024-05-01/L3_10_4.laz")  # write the new file here
+        tile = txn.stage("tiles/2024/20m_E30734_N286855.laz")  # write the new file here
         write_tile(tile, ...)
         txn.record_mission(name, epoch="2024-05-01", tiles=[...], ...)
 
@@ -139,6 +139,13 @@ class Catalog:
         if not os.access(root, os.W_OK):
             raise OutputNotWritableError("catalog folder is not writable", path=root)
         definition = _definition_dict(grid_definition)
+        from standgrid.partition.grid import normalise_crs
+
+        crs = normalise_crs(crs)
+        if "crs" in definition and normalise_crs(definition["crs"]) != crs:
+            raise GridMismatchError(
+                f"the catalog CRS {crs} differs from the grid's {definition['crs']}", path=root
+            )
         now = _now()
         state: dict[str, Any] = {
             "format": FORMAT_NAME,
@@ -265,9 +272,18 @@ class Transaction:
         self._done = False
 
     def __enter__(self) -> Transaction:
+        self._lock = writer_lock(self.catalog.root)
+        if not self._lock.__enter__():
+            self._lock.__exit__(None, None, None)
+            raise CatalogError(
+                "another process is writing this catalog; try again when it has finished",
+                path=self.catalog.root,
+            )
         try:
+            _recover(self.catalog.root)  # under the lock: only dead transactions are left
             (self.folder / "files").mkdir(parents=True)
         except OSError as exc:
+            self._lock.__exit__(None, None, None)
             raise OutputNotWritableError(f"cannot stage: {exc}", path=self.folder) from exc
         return self
 
@@ -277,11 +293,14 @@ class Transaction:
         exc: BaseException | None,
         tb: TracebackType | None,
     ) -> None:
-        if exc_type is None:
-            self.commit()
-        elif not (self.folder / JOURNAL_FILE).exists():
-            self.discard()
-        # with a journal written, the next Catalog.open() completes the commit
+        try:
+            if exc_type is None:
+                self.commit()
+            elif not (self.folder / JOURNAL_FILE).exists():
+                self.discard()
+            # with a journal written, the next Catalog.open() completes the commit
+        finally:
+            self._lock.__exit__(None, None, None)
 
     # staging files
 
@@ -472,9 +491,41 @@ def _staging_folders(root: Path) -> Iterator[Path]:
         yield from sorted(p for p in staging.iterdir() if p.is_dir())
 
 
+LOCK_FILE = ".lock"
+
+
+@contextlib.contextmanager
+def writer_lock(root: Path, *, wait: bool = False) -> Iterator[bool]:
+    """An exclusive advisory lock (``flock``) on the catalog; yields whether it was taken.
+
+    Transactions hold it from staging to commit, so one writer at a time works on a catalog
+    and recovery never discards another process's live staging folder.
+    """
+    import fcntl
+
+    fd = os.open(root / LOCK_FILE, os.O_RDWR | os.O_CREAT, 0o644)
+    try:
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX if wait else fcntl.LOCK_EX | fcntl.LOCK_NB)
+            taken = True
+        except BlockingIOError:
+            taken = False
+        yield taken
+    finally:
+        os.close(fd)  # closing releases the lock
+
+
 def recover(root: str | os.PathLike[str]) -> list[str]:
-    """Complete journaled transactions, discard unjournaled ones; returns what was done."""
+    """Complete journaled transactions, discard unjournaled ones; returns what was done.
+
+    Does nothing while another process holds the writer lock (its staging is live).
+    """
     base = Path(root)
+    with writer_lock(base) as taken:
+        return _recover(base) if taken else []
+
+
+def _recover(base: Path) -> list[str]:
     done = []
     for folder in _staging_folders(base):
         journal = folder / JOURNAL_FILE

@@ -1,4 +1,4 @@
-"""The catalog's GeoPackage index (``index.gpkg``) and virtual point cloud (``index.vpc``).
+"""The catalog's GeoPackage index (``index.gpkg``) and virtual point cloud (``tiles_<epoch>.vpc``).
 
 :class:`IndexWriter` copies the current index to a temporary sibling, writes layers into the
 copy with pyogrio, adds QGIS default styles, and renames the copy onto the index only when

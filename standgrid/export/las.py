@@ -208,6 +208,7 @@ def write_tile(
     core_bounds: Any = None,
     intensity_scale: float = 1.0,
     overwrite: bool = True,
+    lattice_origin: tuple[float, float] = (0.0, 0.0),
 ) -> TileInfo:
     """Write ``core`` (+ ``buffer`` points flagged withheld) as one LAS 1.4 tile.
 
@@ -265,7 +266,10 @@ def write_tile(
     if n_buffer:
         buffer_lo, buffer_hi = _column_bounds(buffer.xyz)
         all_lo, all_hi = np.fmin(core_lo, buffer_lo), np.fmax(core_hi, buffer_hi)
-    offsets = np.floor(all_lo) if len(xyz) else np.zeros(3)
+    # Offsets are whole metres from the grid's origin: the stored 1 mm lattice is then the
+    # one snap_to_storage(origin) snaps to, whatever the origin.
+    lattice = np.array([float(lattice_origin[0]), float(lattice_origin[1]), 0.0])
+    offsets = lattice + np.floor(all_lo - lattice) if len(xyz) else np.zeros(3)
     if len(xyz):
         span = np.round((all_hi - offsets) / SCALE)
         if np.any(span > INT32_MAX):
@@ -386,11 +390,16 @@ def write_tile(
     )
 
 
-def _manifest(las: Any) -> dict[str, str] | None:
+def _manifest(las: Any, path: Path) -> dict[str, str] | None:
     for vlr in las.header.vlrs:
         if getattr(vlr, "user_id", None) == VLR_USER_ID and vlr.record_id == VLR_RECORD_ID:
-            data = json.loads(bytes(vlr.record_data).decode())
-            return dict(data["fields"])
+            try:
+                data = json.loads(bytes(vlr.record_data).decode())
+                return dict(data["fields"])
+            except (ValueError, KeyError, TypeError) as exc:
+                raise PointCloudFormatError(
+                    f"corrupt standgrid field manifest: {exc}", path=path
+                ) from exc
     return None
 
 
@@ -413,7 +422,7 @@ def read_tile(path: str | os.PathLike[str], *, include_withheld: bool = False) -
     xyz = np.column_stack([np.asarray(las.x), np.asarray(las.y), np.asarray(las.z)])[keep]
     dims = set(las.point_format.dimension_names)
     extra_names = list(las.point_format.extra_dimension_names)
-    manifest = _manifest(las)
+    manifest = _manifest(las, src)
     fields: dict[str, NDArray[Any]] = {}
     if manifest is None:
         names = [

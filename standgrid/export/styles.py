@@ -14,6 +14,7 @@ every stage uses to add a style; the builders return QGIS 3 QML text:
 
 from __future__ import annotations
 
+import contextlib
 import os
 import sqlite3
 import xml.etree.ElementTree as ET
@@ -92,7 +93,7 @@ def add_layer_style(
         raise CatalogError("GeoPackage not found", path=path)
     name = style_name or layer_name
     try:
-        with sqlite3.connect(path) as db:
+        with contextlib.closing(sqlite3.connect(path)) as db, db:
             row = db.execute(
                 "SELECT data_type FROM gpkg_contents WHERE table_name = ?", (layer_name,)
             ).fetchone()

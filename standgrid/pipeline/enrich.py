@@ -454,6 +454,7 @@ def _enrich_cell(
         crs=catalog.crs,
         buffer=PointCloud(full.xyz[withheld], {k: v[withheld] for k, v in rewritten.items()}),
         core_bounds=cell.polygon,
+        lattice_origin=tiles.origin,
     )
 
     heights[cell.cell_id] = core_hag

@@ -155,6 +155,7 @@ def tile_missions(
     if _is_catalog(path) and not options.overwrite:
         return _ingest(_open_existing(path, options), ingests, options, wrap, status)
     _refuse_foreign_folder(path, options)
+    _remove_stale_builds(path)
     # A new catalog (or a replacement) is built beside its final place and renamed into
     # place only when complete: a failure leaves nothing, or the old catalog, behind.
     with atomic_output(path) as staging:
@@ -175,10 +176,18 @@ def _ingest(
         for ingest in ingests:
             ingest.number = txn.mission_number(ingest.mission.name)
             ingest.projector = _projector(ingest.fit, catalog.crs)
-        for epoch in sorted({i.epoch for i in ingests}):
+        renewed = [i.number for i in ingests]
+        # an epoch a re-ingested mission leaves is re-tiled too (without that mission)
+        left = {
+            catalog.missions[i.mission.name]["epoch"]
+            for i in ingests
+            if i.mission.name in catalog.missions
+        }
+        for epoch in sorted({i.epoch for i in ingests} | left):
             group = [i for i in ingests if i.epoch == epoch]
-            status(f"tiling epoch {epoch}: {', '.join(i.mission.name for i in group)}")
-            _tile_epoch(catalog, txn, grid, epoch, group, options, layers, report, wrap)
+            names = ", ".join(i.mission.name for i in group) or "missions that moved out"
+            status(f"tiling epoch {epoch}: {names}")
+            _tile_epoch(catalog, txn, grid, epoch, group, renewed, options, layers, report, wrap)
         layers.write(txn, catalog)
         _write_vpcs(txn, catalog, layers)
     status(f"tiled {report.points_out} points into {len(layers.cells)} cells")
@@ -224,6 +233,28 @@ def _requested_grid(crs: str, options: TileOptions) -> dict[str, Any]:
         crs, options.cell_size or 20.0, origin=options.origin, levels=tuple(options.levels)
     )
     return grid.to_dict()
+
+
+def _remove_stale_builds(path: Path) -> None:
+    """Remove half-built catalogs (``.<name>.<pid>-<id>.tmp``) left by killed processes."""
+    import os
+    import re
+    import shutil
+
+    pattern = re.compile(rf"^\.{re.escape(path.name)}\.(\d+)-[0-9a-f]+\.tmp$")
+    if not path.parent.is_dir():
+        return
+    for sibling in path.parent.iterdir():
+        match = pattern.match(sibling.name)
+        if match is None or not sibling.is_dir():
+            continue
+        pid = int(match[1])
+        try:
+            os.kill(pid, 0)
+        except ProcessLookupError:
+            shutil.rmtree(sibling, ignore_errors=True)
+        except PermissionError:  # alive, another user's
+            continue
 
 
 def _is_catalog(path: Path) -> bool:
@@ -283,7 +314,8 @@ def _create(path: Path, ingests: list[_Ingest], options: TileOptions) -> Catalog
 
 
 def _settle_settings(txn: Transaction, options: TileOptions) -> TileOptions:
-    """Buffer and compression are catalog settings: unset options take the stored ones."""
+    """Unset buffer/compression options take the catalog's defaults (the last ones given);
+    each epoch records the settings it was tiled with (``epochs[e]["tiling"]``)."""
     stored = txn.state.setdefault("tiling", {"buffer": 0.0, "laz": True})
     buffer = stored["buffer"] if options.buffer is None else float(options.buffer)
     laz = stored["laz"] if options.laz is None else bool(options.laz)
@@ -329,18 +361,20 @@ def _tile_epoch(
     grid: StandGrid | None,
     epoch: str,
     group: list[_Ingest],
+    renewed: list[int],
     options: TileOptions,
     layers: _IndexLayers,
     report: TileReport,
     wrap: Wrap,
 ) -> None:
+    """(Re)tile one epoch: its kept points plus the payloads of ``group``; the points of every
+    mission in ``renewed`` (this run's missions) are taken out of the old tiles first."""
     from standgrid.errors import ConservationError
     from standgrid.export.las import read_tile, snap_to_storage
     from standgrid.partition import GridBuffer, PartitionEngine
 
     origin = grid.origin if grid is not None else (0.0, 0.0)
     group_names = {i.mission.name for i in group}
-    renewed = [i.number for i in group]
     previous_tiles = sorted(catalog.tiles(epoch)) if epoch in catalog.epochs else []
     layers.drop_missions(group_names)
     layers.cells = [row for row in layers.cells if row["epoch"] != epoch]
@@ -399,7 +433,7 @@ def _tile_epoch(
         for cell in wrap(engine.finalise(), 0, f"{epoch}: tiles"):
             cell_id, polygon, size = _cell_geometry(cell.key, grid, voronoi, polygons)
             rel = f"tiles/{epoch}/{cell_id}.{'laz' if options.laz else 'las'}"
-            info = _write_cell(txn, rel, cell, catalog.crs, polygon)
+            info = _write_cell(txn, rel, cell, catalog.crs, polygon, origin)
             names = sorted(number_to_name[n] for n in info.points_per_source)
             for name in names:
                 tiles_of.setdefault(name, set()).add(rel)
@@ -441,10 +475,14 @@ def _tile_epoch(
             "georeference": fit_summary(ingest.fit),
         }
         layers.add_mission(ingest, epoch, catalog)
-    entry = txn.state["epochs"][epoch]
-    dates = [txn.state["missions"][n]["date"] for n in entry["missions"]]
-    entry["date"] = min(d for d in dates if d) if any(dates) else ""
-    entry["enriched"] = False
+    entry = txn.state["epochs"].get(epoch)
+    if entry is None:  # every mission moved out: the epoch is gone
+        entry = {"date": "", "missions": []}
+    else:
+        dates = [txn.state["missions"][n]["date"] for n in entry["missions"]]
+        entry["date"] = min(d for d in dates if d) if any(dates) else ""
+        entry["enriched"] = False
+        entry["tiling"] = {"buffer": options.buffer, "laz": options.laz}
     report.epochs[epoch] = {
         "date": entry["date"],
         "points_in": fed,
@@ -477,10 +515,20 @@ def _schema(
     schema: dict[str, np.dtype] = {}
     for cloud in samples:
         for name, values in cloud.fields.items():
-            if name == "withheld" or values.ndim != 1:
+            if name == "withheld":
                 continue
-            dtype = values.dtype
-            schema[name] = np.result_type(schema[name], dtype) if name in schema else dtype
+            # (N, k) fields (PCD COUNT > 1) keep their k: a sub-array dtype
+            dtype = np.dtype((values.dtype, values.shape[1:])) if values.ndim > 1 else values.dtype
+            if name in schema and schema[name].shape != dtype.shape:
+                raise CatalogError(
+                    f"field {name!r} has shape {dtype.shape} here and {schema[name].shape} "
+                    "in another payload of the epoch",
+                    path=catalog.root,
+                )
+            if name in schema:
+                base = np.result_type(schema[name].base, dtype.base)
+                dtype = np.dtype((base, dtype.shape)) if dtype.shape else base
+            schema[name] = dtype
     for name, dtype in TILER_FIELDS.items():
         schema[name] = dtype
     return schema
@@ -499,11 +547,17 @@ def _conform(cloud: PointCloud, schema: dict[str, np.dtype], source: Path) -> Po
     fields = {}
     for name, dtype in schema.items():
         values = cloud.fields.get(name)
+        base, shape = dtype.base, dtype.shape
         if values is None:
-            fill = np.nan if np.issubdtype(dtype, np.floating) else 0
-            fields[name] = np.full(n, fill, dtype=dtype)
+            fill = np.nan if np.issubdtype(base, np.floating) else 0
+            fields[name] = np.full((n, *shape), fill, dtype=base)
+        elif values.shape[1:] != shape:
+            raise CatalogError(
+                f"field {name!r} has shape {values.shape[1:]}, the epoch's is {shape}",
+                path=source,
+            )
         else:
-            fields[name] = values.astype(dtype, copy=False)
+            fields[name] = values.astype(base, copy=False)
     return PointCloud(cloud.xyz, fields)
 
 
@@ -519,7 +573,8 @@ def _payload_chunk(
 
     assert ingest.projector is not None
     cloud = ingest.mission.load_base(payload)
-    xyz = snap_to_storage(_base_to_crs(ingest, payload, cloud.xyz), origin)
+    pose = ingest.mission.pose_of(payload)
+    xyz = snap_to_storage(ingest.projector.fast(cloud.xyz, pose=pose), origin)
     n = len(xyz)
     fields = dict(cloud.fields)
     if "gps_time" not in fields:  # per-point times of the source win over the payload stamp
@@ -529,40 +584,6 @@ def _payload_chunk(
         n, _payload_id(ingest.number, index, ingest.mission), dtype=np.uint32
     )
     return _conform(PointCloud(xyz, fields), schema, payload.path)
-
-
-def _base_to_crs(
-    ingest: _Ingest, payload: Payload, xyz: NDArray[np.float64]
-) -> NDArray[np.float64]:
-    """Base frame -> output CRS in one affine pass: the node pose composed with the projector's
-    verified per-payload linearisation (the exact pyproj chain where that is not within 0.5 mm).
-    """
-    from standgrid.geometry import transform_points
-
-    assert ingest.projector is not None
-    pose = ingest.mission.pose_of(payload)
-    if len(xyz) < 64:
-        return ingest.projector.exact(transform_points(pose, xyz))
-    lo = np.array([xyz[:, k].min() for k in range(3)])
-    hi = np.array([xyz[:, k].max() for k in range(3)])
-    corners = np.array(
-        [[a, b, c] for a in (lo[0], hi[0]) for b in (lo[1], hi[1]) for c in (lo[2], hi[2])]
-    )
-    affine = ingest.projector.linearise(transform_points(pose, corners))
-    if affine is None:
-        return ingest.projector.exact(transform_points(pose, xyz))
-    centre, a, b = affine
-    matrix = pose[:3, :3].T @ a
-    offset = (pose[:3, 3] - centre) @ a + b
-    out = np.empty_like(xyz)
-    x, y, z = xyz[:, 0], xyz[:, 1], xyz[:, 2]
-    for k in range(3):  # per column: faster than an (N, 3) @ (3, 3) matmul
-        column = out[:, k]
-        np.multiply(x, matrix[0, k], out=column)
-        column += y * matrix[1, k]
-        column += z * matrix[2, k]
-        column += offset[k]
-    return out
 
 
 #: Footprint hulls are taken over at most this many points of a payload (display geometry).
@@ -620,12 +641,21 @@ def _cell_geometry(
     return site, polygons.get(site), math.nan
 
 
-def _write_cell(txn: Transaction, rel: str, cell: Any, crs: str, polygon: Any) -> Any:
+def _write_cell(
+    txn: Transaction, rel: str, cell: Any, crs: str, polygon: Any, origin: tuple[float, float]
+) -> Any:
     import shapely
 
     from standgrid.export.las import write_tile
 
-    info = write_tile(txn.stage(rel), cell.core, crs=crs, buffer=cell.buffer, core_bounds=polygon)
+    info = write_tile(
+        txn.stage(rel),
+        cell.core,
+        crs=crs,
+        buffer=cell.buffer,
+        core_bounds=polygon,
+        lattice_origin=origin,
+    )
     if polygon is None or shapely.is_empty(polygon):
         xmin, ymin, _, xmax, ymax, _ = info.bounds
         info = type(info)(**{**info.__dict__, "core_bounds": shapely.box(xmin, ymin, xmax, ymax)})
@@ -794,7 +824,11 @@ def _gnss_rows(ingest: _Ingest, crs: str) -> list[dict[str, Any]]:
     gnss, fit = ingest.mission.gnss, ingest.fit
     if gnss is None or len(gnss) == 0 or len(fit.fix_stamps_ns) == 0:
         return []
-    index = {int(s): i for i, s in enumerate(gnss.stamps_ns)}
+    if len(fit.fix_stamps_ns) != len(gnss) or not np.array_equal(fit.fix_stamps_ns, gnss.stamps_ns):
+        raise GeoreferenceError(
+            "the georeference fit does not list the mission's GNSS fixes in order",
+            path=ingest.mission.path,
+        )
     to_crs = pyproj.Transformer.from_crs("EPSG:4979", crs, always_xy=True)
     rows = []
     status_names = fit.status_names
@@ -802,8 +836,8 @@ def _gnss_rows(ingest: _Ingest, crs: str) -> list[dict[str, Any]]:
     x, y = np.full(len(gnss), np.nan), np.full(len(gnss), np.nan)
     x[valid], y[valid] = to_crs.transform(gnss.lon[valid], gnss.lat[valid])
     for k, stamp in enumerate(fit.fix_stamps_ns):
-        i = index.get(int(stamp))
-        if i is None or not valid[i]:
+        i = k
+        if not valid[i]:
             continue
         e, n, u = (float(v) for v in fit.residuals_m[k])
         rows.append(

@@ -17,6 +17,27 @@ def temporary_sibling(final: Path) -> Path:
     return final.with_name(f".{final.name}.{os.getpid()}-{uuid.uuid4().hex[:8]}.tmp")
 
 
+def _swap_folder(new: Path, final: Path) -> None:
+    """Replace the folder ``final`` by ``new``: move the old one aside, move the new one in,
+    then delete the old one. If the new one cannot be moved in, the old one is put back and
+    :class:`OutputNotWritableError` is raised (``final`` is left as it was)."""
+    old = temporary_sibling(final)
+    try:
+        os.replace(final, old)
+    except OSError as exc:
+        raise OutputNotWritableError(
+            f"cannot move the old output aside: {exc.strerror}", path=final
+        ) from exc
+    try:
+        os.replace(new, final)
+    except OSError as exc:
+        os.replace(old, final)
+        raise OutputNotWritableError(
+            f"cannot move the new output into place: {exc.strerror}", path=final
+        ) from exc
+    shutil.rmtree(old, ignore_errors=True)
+
+
 @contextlib.contextmanager
 def atomic_output(final: str | os.PathLike[str], *, overwrite: bool = True) -> Iterator[Path]:
     """Yield a temporary path beside ``final``; on success rename it onto ``final``.
@@ -39,10 +60,7 @@ def atomic_output(final: str | os.PathLike[str], *, overwrite: bool = True) -> I
     try:
         yield tmp
         if tmp.is_dir() and final_path.is_dir():
-            old = temporary_sibling(final_path)
-            os.replace(final_path, old)
-            os.replace(tmp, final_path)
-            shutil.rmtree(old, ignore_errors=True)
+            _swap_folder(tmp, final_path)
         else:
             os.replace(tmp, final_path)
     except BaseException:

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from datetime import UTC
+
 import numpy as np
 import pytest
 
@@ -88,3 +90,57 @@ def test_atomic_output_leaves_nothing_half_written(tmp_path) -> None:
     with atomic_output(target) as tmp:
         tmp.write_text("new")
     assert target.read_text() == "new"
+
+
+def test_adjusted_gps_time_uses_the_leap_seconds_of_its_date() -> None:
+    from datetime import datetime
+
+    from standgrid.stamps import GPS_EPOCH_UNIX, GPS_LEAP_SECONDS
+
+    def unix(y: int, m: int, d: int) -> int:
+        return int(datetime(y, m, d, tzinfo=UTC).timestamp())
+
+    stamps = {unix(2010, 3, 10): 15, unix(2020, 3, 10): 18, unix(1980, 6, 1): 0}
+    stamps[unix(2017, 1, 1) - 1] = 17  # the last second before the 18th leap second
+    ns = np.array([s * 1_000_000_000 + 250_000_000 for s in stamps], dtype=np.int64)
+    gps = unix_ns_to_adjusted_gps_time(ns)
+    for got, (sec, leap) in zip(gps, stamps.items(), strict=True):
+        assert got == pytest.approx(sec - GPS_EPOCH_UNIX + leap - 1e9 + 0.25, abs=1e-6)
+    assert GPS_LEAP_SECONDS == 18
+    assert float(unix_ns_to_adjusted_gps_time(ns[1])) == pytest.approx(gps[1])
+
+
+def test_atomic_folder_replace_rolls_back_when_the_new_folder_cannot_move_in(
+    tmp_path, monkeypatch
+) -> None:
+    import os
+
+    target = tmp_path / "out"
+    target.mkdir()
+    (target / "a.txt").write_text("old")
+    real_replace = os.replace
+    calls: list[tuple[object, object]] = []
+
+    def fail_second(src, dst) -> None:  # type: ignore[no-untyped-def]
+        calls.append((src, dst))
+        if len(calls) == 2:
+            raise OSError(28, "No space left on device")
+        real_replace(src, dst)
+
+    monkeypatch.setattr(os, "replace", fail_second)
+    with (
+        pytest.raises(errors.OutputNotWritableError, match="into place") as info,
+        atomic_output(target) as tmp,
+    ):
+        tmp.mkdir()
+        (tmp / "a.txt").write_text("new")
+    assert info.value.path == target
+    assert isinstance(info.value.__cause__, OSError)
+    assert (target / "a.txt").read_text() == "old"  # the old output is back in place
+    assert [p.name for p in tmp_path.iterdir()] == ["out"]  # no stranded temporaries
+    monkeypatch.setattr(os, "replace", real_replace)
+    with atomic_output(target) as tmp:
+        tmp.mkdir()
+        (tmp / "a.txt").write_text("new")
+    assert (target / "a.txt").read_text() == "new"
+    assert [p.name for p in tmp_path.iterdir()] == ["out"]

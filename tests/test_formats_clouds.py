@@ -265,3 +265,31 @@ def test_ply_ascii_and_big_endian(tmp_path: Path, text: bool, byte_order: str) -
     assert cloud.fields["intensity"].dtype == np.uint16
     np.testing.assert_array_equal(cloud.fields["intensity"], [1, 2, 300, 65535])
     assert read_cloud_header(path).encoding == ("ascii" if text else "binary_big_endian")
+
+
+def test_pcd_float32_only_for_base_frame_magnitudes(tmp_path: Path) -> None:
+    """A map-frame cloud a few km from its origin keeps float64 (float32 steps ~0.5 mm there)."""
+    cloud = PointCloud(np.array([[4321.0012345, -1234.5678901, 12.3456789]]))
+    out = tmp_path / "map.pcd"
+    write_cloud(cloud, out)
+    assert PcdCloud.from_path(out).fields[0] == "x"
+    assert read_cloud_header(out).dtypes["x"] == np.float64
+    np.testing.assert_array_equal(read_cloud(out).xyz, cloud.xyz)
+    base = tmp_path / "base.pcd"
+    write_cloud(PointCloud(np.array([[999.5, -20.25, 3.0]])), base)
+    assert read_cloud_header(base).dtypes["x"] == np.float32
+
+
+def test_las_gps_time_is_flagged_adjusted_standard(tmp_path: Path) -> None:
+    xyz = np.array([[1.0, 2.0, 3.0], [4.0, 5.0, 6.0]])
+    timed = tmp_path / "timed.las"
+    write_cloud(PointCloud(xyz, {"gps_time": np.array([3.9e8, 3.9e8 + 0.1])}), timed)
+    las = laspy.read(timed)
+    assert las.header.global_encoding.gps_time_type == laspy.header.GpsTimeType.STANDARD
+    assert int(las.header.global_encoding.value) & 1 == 1  # bit 0 of the raw field
+    np.testing.assert_allclose(las.gps_time, [3.9e8, 3.9e8 + 0.1])
+    plain = tmp_path / "plain.las"
+    write_cloud(PointCloud(xyz), plain)
+    assert (
+        laspy.read(plain).header.global_encoding.gps_time_type == laspy.header.GpsTimeType.WEEK_TIME
+    )

@@ -119,3 +119,37 @@ def test_metadata_from_folder_name_infers_sensors(tmp_path: Path) -> None:
     assert (meta.place, meta.robot, meta.unit) == ("wytham", "anymal", "coyote")
     assert meta.sensors == ["lidar", "gnss", "imu", "cam_left"]
     assert metadata_from_folder_name(folder.name, sensors=["x"]).sensors == ["x"]
+
+
+BASE_YAML = "date: '2023-01-13'\nplace: wytham\nrobot: anymal\n"
+
+
+@pytest.mark.parametrize(
+    ("gnss", "message"),
+    [
+        ("{latitude: 51.7, longitude: -1.3}", "missing 'altitude'"),
+        ("{latitude: 51.7, longitude: -1.3, altitude: .nan}", "must be finite"),
+        ("{latitude: 51.7, longitude: -1.3, altitude: .inf}", "must be finite"),
+        ("[.nan, -1.3, 100.0]", "must be finite"),
+        ("[91.0, -1.3, 100.0]", "out of range"),
+    ],
+)
+def test_metadata_gnss_needs_finite_lat_lon_alt(tmp_path: Path, gnss: str, message: str) -> None:
+    from standgrid.errors import MetadataError
+    from standgrid.mission.metadata import read_metadata
+
+    path = tmp_path / "metadata.yaml"
+    path.write_text(BASE_YAML + f"gnss: {gnss}\n")
+    with pytest.raises(MetadataError, match=message) as info:
+        read_metadata(path)
+    assert info.value.path == path and info.value.line == 4
+
+
+def test_metadata_path_that_is_a_folder_is_a_typed_error(tmp_path: Path) -> None:
+    from standgrid.errors import MetadataError
+    from standgrid.mission.metadata import read_metadata
+
+    (tmp_path / "metadata.yaml").mkdir()
+    with pytest.raises(MetadataError, match="cannot read") as info:
+        read_metadata(tmp_path / "metadata.yaml")
+    assert isinstance(info.value.__cause__, OSError)

@@ -145,3 +145,54 @@ def test_load_image_missing_and_corrupt(tmp_path: Path) -> None:
     bad.write_bytes(b"not an image")
     with pytest.raises(FormatError, match=r"bad\.png"):
         load_image(ImageRef("cam", Stamp(1, 0), bad))
+
+
+def _one_fix(stamp_ns: int, lat: float) -> GnssFixes:
+    return GnssFixes(
+        np.array([stamp_ns], np.int64),
+        np.array([lat]),
+        np.array([-1.33]),
+        np.array([120.0]),
+        np.array([4], np.int8),
+        np.array([np.nan]),
+        np.array([0.05]),
+    )
+
+
+def test_concat_gnss_drops_duplicates_not_adjacent_after_stamp_sort() -> None:
+    """A, B, A' (same stamp, A == A'): the copy of A is dropped though B sits between them."""
+    t = 1_700_000_000 * 10**9
+    a, b = _one_fix(t, 51.5), _one_fix(t, 51.4)
+    joined = concat_gnss([a, b, a, _one_fix(t - 5, 51.6)])
+    assert len(joined) == 3
+    assert joined.stamps_ns.tolist() == [t - 5, t, t]
+    # stable by stamp: the rows keep the order they were first logged in (A before B)
+    assert joined.lat.tolist() == [51.6, 51.5, 51.4]
+    assert len(concat_gnss([a, b, a], drop_exact_duplicates=False)) == 3
+
+
+def test_concat_imu_sorts_by_stamp_and_keeps_every_row(tmp_path: Path) -> None:
+    from standgrid.mission.sensors import concat_imu
+
+    parts = [
+        ImuSamples(np.array([30, 10], np.int64), np.ones((2, 3)), np.zeros((2, 3)), tmp_path / "a"),
+        ImuSamples(np.array([20, 10], np.int64), np.full((2, 3), 2.0), np.zeros((2, 3))),
+    ]
+    joined = concat_imu(parts)
+    assert joined.stamps_ns.tolist() == [10, 10, 20, 30]
+    assert joined.accel[:, 0].tolist() == [1.0, 2.0, 2.0, 1.0]
+    assert joined.source == tmp_path
+    assert len(concat_imu([])) == 0
+
+
+def test_sensor_log_path_that_is_a_folder_is_a_typed_error(tmp_path: Path) -> None:
+    from standgrid.errors import MissionNotFoundError, SensorLogFormatError
+
+    folder = tmp_path / "fixes.txt"
+    folder.mkdir()
+    for reader in (read_gnss, read_imu):
+        with pytest.raises(SensorLogFormatError, match="cannot read") as info:
+            reader(folder)
+        assert info.value.path == folder and isinstance(info.value.__cause__, OSError)
+        with pytest.raises(MissionNotFoundError):
+            reader(tmp_path / "absent.txt")

@@ -266,3 +266,59 @@ def test_real_slam_graph_summary(tmp_path: Path, vilens: Path) -> None:
     assert len(stamps) == 178 and np.all(np.diff(stamps) > 0)
     graph = read_pose_graph(root / "slam_pose_graph.slam")
     assert isinstance(next(iter(graph.vertices.values())), Vertex)
+
+
+def test_unstamped_file_in_cloud_folder_is_an_error_when_strict(tmp_path: Path) -> None:
+    from standgrid.errors import MissionConsistencyError
+
+    syn = make_mission(tmp_path, n_nodes=3)
+    stray = syn.path / "payload_clouds" / "cloud_latest.pcd"
+    shutil.copy(next((syn.path / "payload_clouds").glob("*.pcd")), stray)
+    with pytest.raises(MissionConsistencyError, match="carries no stamp") as info:
+        open_mission(syn.path)
+    assert info.value.path == stray
+    m = open_mission(syn.path, strict=False)
+    assert len(m.payloads) == 3
+    assert any(str(stray) in p and "no stamp" in p for p in m.problems)
+
+
+def test_unused_second_graph_is_reported_but_never_an_error(tmp_path: Path) -> None:
+    syn = make_mission(tmp_path, n_nodes=3)
+    used = syn.path / "slam_pose_graph.g2o"
+    spare = syn.path / "mission.g2o"  # a less preferred graph name
+    shutil.copy(used, spare)
+    strict = open_mission(syn.path)
+    assert strict.graph is not None and strict.graph.source == used.absolute()
+    assert strict.problems == []
+    assert any(str(spare.name) in w and "not used" in w for w in strict.warnings)
+    loose = open_mission(syn.path, strict=False)
+    assert any(str(spare.name) in p and "not used" in p for p in loose.problems)
+    assert loose.summary()["warnings"] == loose.warnings
+
+
+def test_with_graph_reattaches_like_open(tmp_path: Path) -> None:
+    syn = make_mission(tmp_path, n_nodes=4)
+    m = open_mission(syn.path)
+    assert m.graph is not None
+    partial = PoseGraph(vertices={9: Vertex(9, syn.stamps[1], syn.poses[1])}, edges=[])
+    with pytest.raises(OrphanPayloadError):
+        m.with_graph(partial)
+    loose = open_mission(syn.path, strict=False).with_graph(partial)
+    assert [p.node_id for p in loose.payloads] == [None, 9, None, None]
+    assert sum("no pose-graph node" in p for p in loose.problems) == 3
+
+
+def test_graph_and_pose_csv_paths_that_are_folders_are_typed_errors(tmp_path: Path) -> None:
+    from standgrid.errors import PoseGraphFormatError
+    from standgrid.mission.poses_csv import read_poses_csv
+
+    folder = tmp_path / "slam_pose_graph.g2o"
+    folder.mkdir()
+    with pytest.raises(PoseGraphFormatError, match="cannot read") as info:
+        read_pose_graph(folder)
+    assert info.value.path == folder and isinstance(info.value.__cause__, OSError)
+    with pytest.raises(PoseGraphFormatError, match="cannot read") as csv_info:
+        read_poses_csv(folder)
+    assert csv_info.value.path == folder and isinstance(csv_info.value.__cause__, OSError)
+    with pytest.raises(MissionNotFoundError):
+        read_pose_graph(tmp_path / "absent.g2o")

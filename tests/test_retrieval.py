@@ -109,3 +109,36 @@ def test_by_gnss_with_consistent_fixes(tmp_path: Path) -> None:
     assert hit.stamp == syn.stamps[5]
     two = retrieve_payload_by_gnss(syn.path, (float(lat[9]), float(lon[9])), k=2)
     assert two[0].stamp == syn.stamps[9] and two[1].stamp in {syn.stamps[8], syn.stamps[10]}
+
+
+def test_by_pose_xy_query_is_horizontal(mission) -> None:  # type: ignore[no-untyped-def]
+    """An (x, y) query ignores height: nodes sit ~3 m up, a 1 m radius still finds them."""
+    positions = mission.poses[:, :3, 3]
+    assert np.all(positions[:, 2] > 2.0)  # the nodes are well above z = 0
+    xy = positions[2, :2] + np.array([0.3, -0.2])
+    within = retrieve_payload_by_pose(mission.path, xy, radius=1.0)
+    assert [p.stamp for p in within] == [mission.stamps[2]]
+    three = retrieve_payload_by_pose(mission.path, xy, k=3)
+    order = np.argsort(np.linalg.norm(positions[:, :2] - xy, axis=1), kind="stable")[:3]
+    assert [p.stamp for p in three] == [mission.stamps[i] for i in order]
+    # a 3-D query still measures height
+    with pytest.raises(PayloadNotFoundError):
+        retrieve_payload_by_pose(mission.path, np.append(xy, 0.0), radius=1.0)
+
+
+def test_cli_by_pose_without_z_reports_horizontal_distance(mission) -> None:  # type: ignore[no-untyped-def]
+    import json
+
+    from click.testing import CliRunner
+
+    from standgrid.cli import cli
+
+    x, y, z = mission.poses[4, :3, 3]
+    args = ["retrieve", "by-pose", str(mission.path), str(x + 0.6), str(y - 0.8)]
+    result = CliRunner().invoke(cli, [*args, "--radius", "2", "--json"])
+    assert result.exit_code == 0, result.output
+    (row,) = json.loads(result.output)
+    assert row["stamp"] == str(mission.stamps[4])
+    assert row["distance_m"] == pytest.approx(1.0, abs=1e-6)
+    full = CliRunner().invoke(cli, [*args, str(z), "--json"])
+    assert json.loads(full.output)[0]["distance_m"] == pytest.approx(1.0, abs=1e-6)

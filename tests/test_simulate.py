@@ -276,3 +276,35 @@ def test_bundled_pair_is_reproducible(tmp_path: Path) -> None:
         assert ours == theirs
         for rel in ours:
             assert (tmp_path / rel).read_bytes() == (bundled / rel).read_bytes(), rel
+
+
+def test_truth_errors_are_typed_and_name_the_file(pair: Path, tmp_path: Path) -> None:
+    import shutil
+
+    from standgrid.errors import FormatError, MissionNotFoundError, StandgridError
+    from standgrid.stamps import Stamp
+
+    truth_dir = tmp_path / E1
+    shutil.copytree(pair / "truth" / E1, truth_dir)
+    truth = load_truth(truth_dir)
+    with pytest.raises(StandgridError, match="no true poses") as lookup:
+        truth.true_pose(Stamp(1, 2))
+    assert isinstance(lookup.value, LookupError)
+    with pytest.raises(MissionNotFoundError) as missing_points:
+        truth.payload_points(Stamp(1, 2))
+    assert missing_points.value.path == truth_dir / "payload_points" / "points_1_000000002.npy"
+    meta = truth_dir / "truth.json"
+    info = json.loads(meta.read_text())
+    del info["seed"]
+    meta.write_text(json.dumps(info))
+    with pytest.raises(FormatError, match="missing key 'seed'") as bad:
+        load_truth(truth_dir)
+    assert bad.value.path == meta and isinstance(bad.value.__cause__, KeyError)
+    shutil.copy(pair / "truth" / E1 / "truth.json", meta)
+    (truth_dir / "gnss_truth.csv").unlink()
+    with pytest.raises(MissionNotFoundError) as no_gnss:
+        load_truth(truth_dir)
+    assert no_gnss.value.path == truth_dir / "gnss_truth.csv"
+    (truth_dir / "gnss_truth.csv").mkdir()
+    with pytest.raises(FormatError, match="cannot read GNSS truth"):
+        load_truth(truth_dir)

@@ -8,7 +8,7 @@ from pathlib import Path
 import laspy
 import numpy as np
 import pytest
-from pyproj import Transformer
+from pyproj import CRS, Transformer
 
 from standgrid.geometry import invert_pose, transform_points
 from standgrid.mission.clouds import read_cloud
@@ -105,3 +105,20 @@ def test_scan_without_crs_or_file_raises_typed_errors(tmp_path: Path) -> None:
     with pytest.raises(MissionNotFoundError):
         mission_from_scan([tmp_path / "missing.laz"], tmp_path, seed=0)
     assert not (tmp_path / "missions").exists()
+
+
+def test_given_crs_is_normalised_and_proj_strings_refused(tmp_path: Path) -> None:
+    from standgrid.errors import CRSError
+
+    local = real_file("als/TreeLS/pine_plot.laz")
+    proj = "+proj=utm +zone=30 +datum=WGS84 +units=m +no_defs"
+    with pytest.raises(CRSError, match="PROJ strings"):
+        mission_from_scan([local], tmp_path, seed=0, crs=proj)
+    with pytest.raises(CRSError, match="geographic"):
+        mission_from_scan([local], tmp_path, seed=0, crs="EPSG:4326")
+    assert not (tmp_path / "missions").exists()
+    from standgrid.simulate.from_scan import _normalise_crs
+
+    assert _normalise_crs(" epsg:32630 ") == "EPSG:32630"
+    wkt = CRS.from_epsg(3005).to_wkt()
+    assert _normalise_crs(wkt) == "EPSG:3005"

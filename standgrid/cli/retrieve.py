@@ -17,7 +17,7 @@ _MISSION = click.argument("mission", type=click.Path(exists=True, file_okay=Fals
 def _records(
     payloads: list[Any], query: tuple[float, ...] | None = None, mission: Any = None
 ) -> list[dict[str, Any]]:
-    import numpy as np
+    from standgrid.mission.retrieval import query_distances
 
     rows = []
     for p in payloads:
@@ -36,7 +36,7 @@ def _records(
         if query is not None and mission is not None:
             position = mission.pose_of(p)[:3, 3]
             row["position_map"] = position.tolist()
-            row["distance_m"] = float(np.linalg.norm(position - np.asarray(query, dtype=float)))
+            row["distance_m"] = float(query_distances(query, position.reshape(1, 3))[0])
         rows.append(row)
     return rows
 
@@ -85,7 +85,7 @@ def by_type(mission: Path, data_type: str, as_json: bool) -> None:
 @_MISSION
 @click.argument("x", type=float)
 @click.argument("y", type=float)
-@click.argument("z", type=float, required=False, default=0.0)
+@click.argument("z", type=float, required=False, default=None)
 @click.option("-k", "k", type=int, default=1, show_default=True, help="Number of nearest payloads.")
 @click.option("--radius", type=float, help="Every payload whose node is within this many metres.")
 @click.option("--covering", is_flag=True, help="Every payload whose footprint covers the point.")
@@ -94,13 +94,16 @@ def by_pose(
     mission: Path,
     x: float,
     y: float,
-    z: float,
+    z: float | None,
     k: int,
     radius: float | None,
     covering: bool,
     as_json: bool,
 ) -> None:
     """Payloads nearest a map-frame point X Y [Z], nearest first.
+
+    Without Z the query is horizontal: nodes are ranked, and --radius and distance_m
+    measured, by x/y distance alone.
 
     \b
     Example:
@@ -111,8 +114,9 @@ def by_pose(
     from standgrid.mission.retrieval import retrieve_payload_by_pose
 
     opened = open_mission(mission, strict=False)
-    found = retrieve_payload_by_pose(opened, (x, y, z), k=k, radius=radius, covering=covering)
-    emit(_records(found, (x, y, z), opened), as_json, _human)
+    query = (x, y) if z is None else (x, y, z)
+    found = retrieve_payload_by_pose(opened, query, k=k, radius=radius, covering=covering)
+    emit(_records(found, query, opened), as_json, _human)
 
 
 @retrieve.command(name="by-gnss", context_settings=_NEGATIVE_NUMBERS)

@@ -33,8 +33,9 @@ PCD_EXTENSIONS = (".pcd",)
 PLY_EXTENSIONS = (".ply",)
 LAS_EXTENSIONS = (".las", ".laz")
 CLOUD_EXTENSIONS = PCD_EXTENSIONS + PLY_EXTENSIONS + LAS_EXTENSIONS
-#: Coordinates beyond this magnitude are written to PCD as float64 (float32 keeps ~1 cm at 1e5).
-PCD_FLOAT32_LIMIT = 1e5
+#: PCD coordinates are written as float32 only up to this magnitude (base-frame payloads:
+#: steps of ~0.06 mm at 1e3 m); anything larger (map or projected frames) as float64.
+PCD_FLOAT32_LIMIT = 1e3
 _XYZ = ("x", "y", "z")
 _PCD_PAD_PREFIX = "#$%&~~"  # pypcd4's name for PCL "_" padding fields
 _PCD_HEADER_KEYS = (
@@ -152,15 +153,17 @@ def write_cloud(
     """Write ``cloud`` by extension, atomically.
 
     PCD (pypcd4): ``encoding`` ascii / binary / binary_compressed; ``x y z`` float32 (the
-    convention for base-frame payloads) unless a coordinate exceeds 1e5 in magnitude or
-    ``xyz_dtype=np.float64``; ``viewpoint`` T (default identity) is written as
-    ``tx ty tz qw qx qy qz``. Bool fields are stored as uint8. pypcd4 writes ASCII floats
-    with 10 decimals and falls back to ``binary`` when LZF cannot shrink the data.
+    convention for base-frame payloads) unless a coordinate exceeds 1e3 m in magnitude
+    (:data:`PCD_FLOAT32_LIMIT`: map-frame clouds keep float64) or ``xyz_dtype=np.float64``;
+    ``viewpoint`` T (default identity) is written as ``tx ty tz qw qx qy qz``. Bool fields
+    are stored as uint8. pypcd4 writes ASCII floats with 10 decimals and falls back to
+    ``binary`` when LZF cannot shrink the data.
     PLY (plyfile): binary, float64 ``x y z``.
     LAS/LAZ (laspy, 1.4, PDRF 6 or 7 with ``red green blue``): ``las_scale`` quantum,
     offset at the floor of the minimum, standard dimensions filled from same-named fields
     when the cast is lossless (else an error), other fields as extra bytes; ``crs``
-    ("EPSG:XXXX" or WKT) as a WKT VLR.
+    ("EPSG:XXXX" or WKT) as a WKT VLR. A ``gps_time`` field is taken as adjusted standard
+    GPS time and flagged so in the header's global encoding.
     """
     from standgrid._atomic import atomic_output
 
@@ -714,6 +717,8 @@ def _write_las(
     header = laspy.LasHeader(point_format=pf_id, version="1.4")
     header.scales = np.full(3, scale)
     header.offsets = np.floor(cloud.xyz.min(axis=0)) if len(cloud) else np.zeros(3)
+    if "gps_time" in cloud.fields:
+        header.global_encoding.gps_time_type = laspy.header.GpsTimeType.STANDARD
     if crs is not None:
         import pyproj
 

@@ -23,6 +23,7 @@ How the robot token is found:
 from __future__ import annotations
 
 import datetime as dt
+import math
 import re
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -227,6 +228,8 @@ def read_metadata(path: str | Path) -> MissionMetadata:
         raise MissionNotFoundError("metadata file not found", path=src) from exc
     except UnicodeDecodeError as exc:
         raise MetadataError(f"not a text file ({exc.reason})", path=src) from exc
+    except OSError as exc:  # a folder, no permission, ...
+        raise MetadataError(f"cannot read: {exc.strerror or exc}", path=src) from exc
     if not text.strip():
         raise MetadataError("empty metadata file", path=src, line=1)
     try:
@@ -317,7 +320,7 @@ def _parse_gnss(value: Any, fail: Any) -> tuple[float, float, float] | None:
         return None
     if isinstance(value, dict):
         try:
-            triple = [value["latitude"], value["longitude"], value.get("altitude", 0.0)]
+            triple = [value["latitude"], value["longitude"], value["altitude"]]
         except KeyError as exc:
             raise fail("gnss", f"missing {exc.args[0]!r}") from exc
     elif isinstance(value, list | tuple) and len(value) == 3:
@@ -328,7 +331,9 @@ def _parse_gnss(value: Any, fail: Any) -> tuple[float, float, float] | None:
         lat, lon, alt = (float(v) for v in triple)
     except (TypeError, ValueError) as exc:
         raise fail("gnss", f"non-numeric value in {triple!r}") from exc
-    if not (-90 <= lat <= 90 and -180 <= lon <= 180) or alt != alt:
+    if not all(math.isfinite(v) for v in (lat, lon, alt)):
+        raise fail("gnss", f"latitude, longitude and altitude must be finite: {lat}, {lon}, {alt}")
+    if not (-90 <= lat <= 90 and -180 <= lon <= 180):
         raise fail("gnss", f"latitude/longitude out of range: {lat}, {lon}")
     return (lat, lon, alt)
 

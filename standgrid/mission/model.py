@@ -35,6 +35,7 @@ from standgrid.mission.sensors import (
     ImageRef,
     ImuSamples,
     concat_gnss,
+    concat_imu,
     read_gnss,
     read_imu,
 )
@@ -92,17 +93,6 @@ class CloudCache:
         return len(self._items)
 
 
-def _concat_imu(parts: list[ImuSamples]) -> ImuSamples:
-    stamps = np.concatenate([p.stamps_ns for p in parts])
-    order = np.argsort(stamps, kind="stable")
-    return ImuSamples(
-        stamps_ns=stamps[order],
-        accel=np.concatenate([p.accel for p in parts])[order],
-        gyro=np.concatenate([p.gyro for p in parts])[order],
-        source=parts[0].source.parent if parts[0].source is not None else None,
-    )
-
-
 class Mission:
     """An opened mission. Build it with :func:`open_mission`."""
 
@@ -122,6 +112,7 @@ class Mission:
         source_poses: dict[Path, Matrix4],
         cache: CloudCache,
         read_cloud_fn: Callable[[Path], PointCloud] = read_cloud,
+        warnings: list[str] | None = None,
     ) -> None:
         self.layout = layout
         self.path: Path = layout.root
@@ -134,7 +125,10 @@ class Mission:
         self.gnss = gnss
         self.imu = imu
         self.images = images
+        #: Inconsistencies found by a non-strict open (a strict open raises on the first).
         self.problems = problems
+        #: Notes that are never an error, in both modes (a graph file present but not used).
+        self.warnings: list[str] = [] if warnings is None else warnings
         self.strict = strict
         #: The function every cloud file is read with (wrap it to count or trace reads).
         self.read_cloud: Callable[[Path], PointCloud] = read_cloud_fn
@@ -271,21 +265,12 @@ class Mission:
                 raise DuplicateStampError(msg, path=graph.source)
             problems.append(f"{graph.source}: {msg}")
 
-        def reattach(items: list[Payload]) -> list[Payload]:
-            out = []
-            for p in items:
-                vertex = by_stamp.get(p.stamp)
-                if vertex is None:
-                    _orphan(p, graph.source, self.strict, problems)
-                out.append(replace(p, node_id=None if vertex is None else vertex.id))
-            return out
-
         view = Mission(
             layout=self.layout,
             metadata=self.metadata,
             graph=graph,
-            payloads=reattach(self.payloads),
-            scans=reattach(self.scans),
+            payloads=_attach(self.payloads, by_stamp, graph, self.strict, problems),
+            scans=_attach(self.scans, by_stamp, graph, self.strict, problems),
             gnss=self.gnss,
             imu=self.imu,
             images=self.images,
@@ -294,6 +279,7 @@ class Mission:
             source_poses=self._source_poses,
             cache=self._cache,
             read_cloud_fn=self.read_cloud,
+            warnings=list(self.warnings),
         )
         # Keep only this mission's vertices when matching (merged graphs hold others too).
         view._by_stamp = {s: v for s, v in by_stamp.items() if s in own} if own else by_stamp
@@ -352,6 +338,7 @@ class Mission:
             "time_span": span,
             "extent_map": extent,
             "problems": list(self.problems),
+            "warnings": list(self.warnings),
         }
 
 
@@ -469,6 +456,17 @@ def _check_duplicates(items: list[Payload], strict: bool, problems: list[str]) -
     return items
 
 
+def _report_unrecognised(layout: MissionLayout, strict: bool, problems: list[str]) -> None:
+    """Files in cloud/sensor folders whose names carry no stamp are never read: a strict
+    open raises on the first, a non-strict open lists each in ``problems``."""
+    msg = "file name carries no stamp (<prefix>_<sec>_<nsec>.<ext>); not read"
+    if strict and layout.unrecognised:
+        raise MissionConsistencyError(
+            f"{msg} (open with strict=False to skip such files)", path=layout.unrecognised[0]
+        )
+    problems += [f"{extra}: {msg}" for extra in layout.unrecognised]
+
+
 def open_mission(
     path: str | Path,
     *,
@@ -478,8 +476,11 @@ def open_mission(
     """Open a mission folder of any known layout.
 
     ``strict`` raises on the first inconsistency (:class:`OrphanPayloadError`,
-    :class:`DuplicateStampError`, unreadable metadata); otherwise each is reported in
-    ``Mission.problems`` and the data is kept (orphan payloads with ``node_id=None``).
+    :class:`DuplicateStampError`, unreadable metadata, a file in a cloud or sensor folder
+    whose name carries no stamp: :class:`MissionConsistencyError`); otherwise each is
+    reported in ``Mission.problems`` and the data is kept (orphan payloads with
+    ``node_id=None``). Graph files present but not used (a less preferred name) are never an
+    error: they are listed in ``Mission.warnings`` (and, non-strict, in ``problems`` too).
     A missing folder, or one without any mission file, raises :class:`MissionNotFoundError`.
     """
     layout = discover_layout(path)
@@ -544,15 +545,17 @@ def open_mission(
         gnss = concat_gnss([read_gnss(f.path) for f in layout.gnss_payloads])
     imu: ImuSamples | None = None
     if layout.imu_payloads:
-        imu = _concat_imu([read_imu(f.path) for f in layout.imu_payloads])
+        imu = concat_imu([read_imu(f.path) for f in layout.imu_payloads])
     images = [
         ImageRef(cam, f.stamp, f.path) for cam, files in layout.cameras.items() for f in files
     ]
     images.sort(key=lambda i: (i.stamp, i.camera))
+    _report_unrecognised(layout, strict, problems)
+    warnings = [
+        f"{g}: graph file present but not used (read {layout.graph})" for g in layout.other_graphs
+    ]
     if not strict:
-        problems += [
-            f"{extra}: file name carries no stamp; not read" for extra in layout.unrecognised
-        ]
+        problems += warnings
 
     return Mission(
         layout=layout,
@@ -567,4 +570,5 @@ def open_mission(
         strict=strict,
         source_poses=source_poses,
         cache=CloudCache(cache_points),
+        warnings=warnings,
     )

@@ -183,10 +183,11 @@ def read_pose_graph(path: str | Path) -> PoseGraph:
     Raises :class:`~standgrid.errors.PoseGraphFormatError` (with file and line) for a known tag
     with the wrong token count, a non-numeric or non-finite number, a zero quaternion, a
     duplicate vertex id, an edge to a missing vertex or an untimed ``VERTEX_SE3:QUAT``; and
-    :class:`~standgrid.errors.MissionNotFoundError` when the file does not exist. Duplicate
+    :class:`~standgrid.errors.MissionNotFoundError` when the file does not exist (any other
+    OS error, e.g. a folder, is a ``PoseGraphFormatError``). Duplicate
     stamps are not an error here (see :meth:`PoseGraph.duplicate_stamps`).
     """
-    from standgrid.errors import MissionNotFoundError
+    from standgrid.errors import MissionNotFoundError, PoseGraphFormatError
 
     src = Path(path)
     try:
@@ -195,6 +196,9 @@ def read_pose_graph(path: str | Path) -> PoseGraph:
         raise MissionNotFoundError("pose graph not found", path=src) from exc
     except UnicodeDecodeError as exc:
         raise _pose_error(src, 1, f"not a text file ({exc.reason})") from exc
+    except OSError as exc:  # a folder, no permission, ...
+        msg = f"cannot read pose graph: {exc.strerror or exc}"
+        raise PoseGraphFormatError(msg, path=src) from exc
     if not text.strip():
         raise _pose_error(src, 1, "empty pose graph file")
 

@@ -108,7 +108,8 @@ def read_text_table(
     ``aliases`` maps lower-case header names to canonical column names; a ``#`` line (or a
     first non-numeric line) whose names all map is the header, other ``#`` lines are comments.
     Without a header the column count picks one of ``layouts``. A row with the wrong number
-    of values raises ``error`` with its line; so does a file with no content at all.
+    of values raises ``error`` with its line; so does a file with no content at all. A missing
+    file raises :class:`MissionNotFoundError`, any other OS error (a folder) ``error``.
     """
     src = Path(path)
     try:
@@ -117,6 +118,8 @@ def read_text_table(
         raise MissionNotFoundError(f"{what} not found", path=src) from exc
     except UnicodeDecodeError as exc:
         raise error(f"{what} is not a text file ({exc.reason})", path=src, line=1) from exc
+    except OSError as exc:  # a folder, no permission, ...
+        raise error(f"cannot read {what}: {exc.strerror or exc}", path=src) from exc
     if not text.strip():
         raise error(f"empty {what} file", path=src, line=1)
 

@@ -78,12 +78,21 @@ def retrieve_payload_by_type(
 
 
 def _query_point(slam_pose: ArrayLike) -> NDArray[np.float64]:
+    """``(x, y, z)`` or a 4x4 pose -> a 3-D point; ``(x, y)`` stays 2-D (a horizontal query)."""
     arr = np.asarray(slam_pose, dtype=np.float64)
     if arr.shape == (4, 4):
         return arr[:3, 3].copy()
     if arr.shape in ((3,), (2,)):
-        return np.append(arr, 0.0) if arr.shape == (2,) else arr
+        return arr.copy()
     raise ValueError(f"slam_pose must be (x, y, z), (x, y) or a 4x4 pose, got shape {arr.shape}")
+
+
+def query_distances(query: ArrayLike, positions: ArrayLike) -> NDArray[np.float64]:
+    """Distances from a retrieval query to map positions ``(n, 3)``: 3-D for ``(x, y, z)``,
+    horizontal (x/y only) for an ``(x, y)`` query."""
+    q = np.asarray(query, dtype=np.float64).ravel()
+    pos = np.asarray(positions, dtype=np.float64).reshape(-1, 3)
+    return np.asarray(np.linalg.norm(pos[:, : len(q)] - q, axis=1), dtype=np.float64)
 
 
 def footprint(mission: Mission, payload: Payload) -> NDArray[np.float64]:
@@ -123,6 +132,9 @@ def retrieve_payload_by_pose(
 ) -> list[Payload]:
     """Payload clouds near a map-frame pose ``(x, y, z)`` or 4x4 T_map_base, nearest first.
 
+    A 2-D point ``(x, y)`` is a horizontal query: nodes are ranked (and ``radius`` measured)
+    by their x/y distance alone, whatever their height.
+
     Default: the ``k`` payloads whose node is nearest. ``radius``: every payload whose node
     lies within ``radius`` metres. ``covering``: every payload whose map-frame footprint
     (x/y of :func:`footprint`) contains the pose. Raises :class:`PayloadNotFoundError` when
@@ -135,9 +147,10 @@ def retrieve_payload_by_pose(
     payloads, positions = _posed(mission)
     if not payloads:
         raise PayloadNotFoundError("mission has no payload with a pose", path=mission.path)
-    tree = cKDTree(positions)
+    planar = positions[:, : len(query)]  # x/y only for a 2-D (horizontal) query
+    tree = cKDTree(planar)
     if covering:
-        dist = np.linalg.norm(positions - query, axis=1)
+        dist = query_distances(query, positions)
         hits = []
         for idx in np.argsort(dist, kind="stable"):
             box = footprint(mission, payloads[idx])
@@ -145,7 +158,7 @@ def retrieve_payload_by_pose(
                 hits.append(int(idx))
     elif radius is not None:
         found = tree.query_ball_point(query, r=radius)
-        dist = np.linalg.norm(positions[found] - query, axis=1) if found else np.empty(0)
+        dist = query_distances(query, positions[found]) if found else np.empty(0)
         hits = [int(found[i]) for i in np.argsort(dist, kind="stable")]
     else:
         if k < 1:

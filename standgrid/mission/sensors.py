@@ -205,20 +205,39 @@ def concat_gnss(parts: list[GnssFixes], *, drop_exact_duplicates: bool = True) -
         name: np.concatenate([getattr(p, name) for p in parts])
         for name in ("stamps_ns", "lat", "lon", "alt", "quality", "h_std", "v_std")
     }
-    order = np.argsort(cols["stamps_ns"], kind="stable")
-    cols = {k: v[order] for k, v in cols.items()}
-    if drop_exact_duplicates and len(order) > 1:
-        same = np.ones(len(order) - 1, dtype=bool)
-        for v in cols.values():
-            a, b = v[1:], v[:-1]
+    n = len(cols["stamps_ns"])
+    keep_idx = np.arange(n)
+    if drop_exact_duplicates and n > 1:
+        # Sort on every column (stamp primary; lexsort is stable, so the first logged copy of
+        # a row leads its group) so identical rows are neighbours wherever they were logged.
+        values = list(cols.values())
+        full = np.lexsort(tuple(reversed(values)))
+        same = np.ones(n - 1, dtype=bool)
+        for v in values:
+            a, b = v[full][1:], v[full][:-1]
             eq = a == b
             if v.dtype.kind == "f":
                 eq |= np.isnan(a) & np.isnan(b)
             same &= eq
-        keep = np.concatenate([[True], ~same])
-        cols = {k: v[keep] for k, v in cols.items()}
+        keep_idx = np.sort(full[np.concatenate([[True], ~same])])
+    order = keep_idx[np.argsort(cols["stamps_ns"][keep_idx], kind="stable")]
+    cols = {k: v[order] for k, v in cols.items()}
     sources = {p.source for p in parts}
     return GnssFixes(**cols, source=sources.pop() if len(sources) == 1 else None)
+
+
+def concat_imu(parts: list[ImuSamples]) -> ImuSamples:
+    """Join per-payload IMU logs into one, sorted by stamp (stable); every row is kept."""
+    if not parts:
+        return ImuSamples(np.zeros(0, np.int64), np.zeros((0, 3)), np.zeros((0, 3)))
+    stamps = np.concatenate([p.stamps_ns for p in parts])
+    order = np.argsort(stamps, kind="stable")
+    return ImuSamples(
+        stamps_ns=stamps[order],
+        accel=np.concatenate([p.accel for p in parts])[order],
+        gyro=np.concatenate([p.gyro for p in parts])[order],
+        source=parts[0].source.parent if parts[0].source is not None else None,
+    )
 
 
 def load_image(ref: ImageRef) -> np.ndarray:

@@ -64,6 +64,16 @@ class ScanMission:
         }  # fmt: skip
 
 
+def _normalise_crs(crs: str) -> str:
+    """A user-given CRS as ``EPSG:XXXX`` or WKT2; PROJ strings and non-projected CRSs refused."""
+    from standgrid.georeference.crs import crs_to_text, resolve_crs
+
+    try:
+        return crs_to_text(resolve_crs(crs))
+    except CRSError as exc:
+        raise CRSError(f"unusable CRS {crs!r}: {exc.message}") from exc
+
+
 def _read_scans(
     paths: Sequence[Path], crs: str | None
 ) -> tuple[NDArray[np.float64], NDArray[np.float32], NDArray[np.uint8], str, list[dict[str, Any]]]:
@@ -71,6 +81,8 @@ def _read_scans(
 
     xyz_parts, inten_parts, cls_parts, sources = [], [], [], []
     found_crs: str | None = None
+    if crs is not None:
+        crs = _normalise_crs(crs)
     for path in paths:
         if not path.is_file():
             raise MissionNotFoundError("scan file not found", path=path)
@@ -154,7 +166,8 @@ def mission_from_scan(
     Writes ``<out_root>/missions/<name>/`` (canonical layout) and ``<out_root>/truth/<name>/``
     with ``payload_points/points_<stamp>.npy`` (original CRS coordinates, float64) and
     ``index_<stamp>.npy`` (indices into the concatenated input files, in order). The graph
-    holds the true poses (no drift).
+    holds the true poses (no drift). A given ``crs`` (overriding the files') is stored as
+    ``EPSG:XXXX`` or WKT2; a PROJ string or a geographic CRS raises :class:`CRSError`.
     """
     from standgrid.simulate.mission import SimulationConfig
     from standgrid.simulate.truth import write_gnss_truth, write_truth_json

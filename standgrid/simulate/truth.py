@@ -22,7 +22,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from standgrid.errors import FormatError, MissionNotFoundError
+from standgrid.errors import FormatError, MissionNotFoundError, StandgridError
 from standgrid.mission.poses_csv import PoseTable, read_poses_csv
 from standgrid.simulate.chain import FrameChain
 from standgrid.simulate.forest import Shrubs, Trees
@@ -35,6 +35,17 @@ TREE_COLUMNS = (
 )  # fmt: skip
 SHRUB_COLUMNS = ("x", "y", "z_ground", "radius_m", "height_m")
 GNSS_TRUTH_HEADER = "sec,nsec,x,y,z,outlier"
+
+
+class TruthLookupError(StandgridError, KeyError):
+    """The truth holds nothing for the asked stamp (a ``KeyError``, so a ``LookupError``)."""
+
+
+def _open_error(exc: OSError, path: Path, what: str) -> StandgridError:
+    """A missing file -> :class:`MissionNotFoundError`; any other OS error -> FormatError."""
+    if isinstance(exc, FileNotFoundError):
+        return MissionNotFoundError(f"{what} not found", path=path)
+    return FormatError(f"cannot read {what}: {exc.strerror or exc}", path=path)
 
 
 @dataclass(eq=False)
@@ -71,18 +82,30 @@ class Truth:
         return FrameChain(self.crs, self.lla_ref, self.T_map_enu)
 
     def true_pose(self, stamp: Stamp) -> NDArray[np.float64]:
-        """True T_map_base of the node with this stamp."""
+        """True T_map_base of the node with this stamp (:class:`TruthLookupError` if none)."""
         hit = np.flatnonzero(self.true_poses.stamps_ns == stamp.ns)
         if len(hit) != 1:
-            raise KeyError(f"no true pose for stamp {stamp}")
+            found = "no" if len(hit) == 0 else f"{len(hit)}"
+            raise TruthLookupError(
+                f"{found} true poses for stamp {stamp}", path=self.path / "true_poses.csv"
+            )
         return self.true_poses.poses[int(hit[0])]
 
     def payload_points(self, stamp: Stamp) -> tuple[NDArray[np.float64], NDArray[np.int64]]:
-        """Original CRS coordinates and source point indices of a scan-derived payload."""
+        """Original CRS coordinates and source point indices of a scan-derived payload.
+
+        A missing file raises :class:`MissionNotFoundError`, an unreadable one FormatError."""
         folder = self.path / "payload_points"
-        xyz = np.load(folder / stamp.filename("points", "npy"))
-        idx = np.load(folder / stamp.filename("index", "npy"))
-        return xyz, idx
+        arrays = []
+        for prefix in ("points", "index"):
+            path = folder / stamp.filename(prefix, "npy")
+            try:
+                arrays.append(np.load(path, allow_pickle=False))
+            except OSError as exc:
+                raise _open_error(exc, path, "payload truth file") from exc
+            except ValueError as exc:
+                raise FormatError(f"not a NumPy array file: {exc}", path=path) from exc
+        return arrays[0], arrays[1]
 
 
 def _fmt(v: float, digits: int) -> str:
@@ -176,6 +199,8 @@ def _gnss_truth_from_csv(
     try:
         data = np.loadtxt(path, delimiter=",", skiprows=1, ndmin=2, dtype=np.float64)
         ints = np.loadtxt(path, delimiter=",", skiprows=1, ndmin=2, usecols=(0, 1), dtype=np.int64)
+    except OSError as exc:
+        raise _open_error(exc, path, "GNSS truth") from exc
     except ValueError as exc:
         raise FormatError(f"bad GNSS truth: {exc}", path=path) from exc
     if len(data) == 0:
@@ -196,20 +221,26 @@ def load_truth(truth_dir: str | Path) -> Truth:
         lla_ref = tuple(float(v) for v in info["lla_ref"])
         T = np.asarray(info["T_map_enu"], dtype=np.float64).reshape(4, 4)
         bounds = tuple(float(v) for v in info["bounds"])
-    except (ValueError, KeyError, TypeError) as exc:
+        name, crs, seed = str(info["mission"]), str(info["crs"]), int(info["seed"])
+        epoch = int(info.get("epoch", 1))
+    except KeyError as exc:
+        raise FormatError(f"bad truth.json: missing key {exc.args[0]!r}", path=meta_path) from exc
+    except (ValueError, TypeError, AttributeError) as exc:
         raise FormatError(f"bad truth.json: {exc}", path=meta_path) from exc
+    except OSError as exc:
+        raise _open_error(exc, meta_path, "truth.json") from exc
     trees = _trees_from_csv(folder / "trees.csv") if (folder / "trees.csv").is_file() else None
     shrubs = _shrubs_from_csv(folder / "shrubs.csv") if (folder / "shrubs.csv").is_file() else None
     g_stamps, g_xyz, g_out = _gnss_truth_from_csv(folder / "gnss_truth.csv")
     return Truth(
         path=folder,
-        name=str(info["mission"]),
+        name=name,
         kind=str(info.get("kind", "simulated")),
-        crs=str(info["crs"]),
+        crs=crs,
         lla_ref=(lla_ref[0], lla_ref[1], lla_ref[2]),
         T_map_enu=T,
-        seed=int(info["seed"]),
-        epoch=int(info.get("epoch", 1)),
+        seed=seed,
+        epoch=epoch,
         date=str(info.get("date", "")),
         bounds=(bounds[0], bounds[1], bounds[2], bounds[3]),
         terrain=terrain,

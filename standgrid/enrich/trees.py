@@ -38,6 +38,9 @@ from standgrid.enrich.rasters import RasterGrid, chm
 from standgrid.errors import EnrichError
 
 ID_RESOLUTION_M = 0.1
+#: With ``keep_bounds``, stems are fitted this far around the block's own area only (a stem
+#: stands within its crown, and a tree is kept where its top is).
+STEM_SEARCH_MARGIN_M = 3.0
 _X_OFFSET = 1 << 30
 _Y_OFFSET = 1 << 31
 
@@ -213,7 +216,13 @@ def segment_trees(
     table["stem_y"] = np.nan
     table["dbh_rmse_m"] = np.nan
     if fit_dbh:
-        stems = fit_stems(xyz, h, **(stem_options or {}))
+        near = slice(None)
+        if keep_bounds is not None:  # only stems that can belong to the block's own trees
+            x0, y0, x1, y1 = keep_bounds
+            m = STEM_SEARCH_MARGIN_M
+            x, y = xyz[:, 0], xyz[:, 1]
+            near = (x >= x0 - m) & (x < x1 + m) & (y >= y0 - m) & (y < y1 + m)
+        stems = fit_stems(xyz[near], h[near], **(stem_options or {}))
         _attach_stems(table, stems, crowns, row_of_seed, grid, max_stem_offset)
     return TreeSegmentation(table[TREE_COLUMNS], labels)
 

@@ -320,7 +320,19 @@ def _dtm(ground: NDArray[np.float64], window: RasterGrid) -> NDArray[np.float32]
     m = DTM_MARGIN_M
     x, y = ground[:, 0], ground[:, 1]
     near = (x >= xmin - m) & (x <= xmax + m) & (y >= ymin - m) & (y <= ymax + m)
-    return dtm_from_ground(ground[near] if near.sum() >= 3 else ground, window)
+    points = ground[near] if near.sum() >= 3 else ground
+    return dtm_from_ground(_thin(points, window.pixel_size / 4), window)
+
+
+def _thin(points: NDArray[np.float64], spacing: float) -> NDArray[np.float64]:
+    """At most one point per ``spacing`` square (the first in file order, so unbiased in z):
+    a terrain model at pixel size p needs no more than ~16 ground points per p^2."""
+    if len(points) < 1000:
+        return points
+    bins = np.floor((points[:, :2] - points[:, :2].min(axis=0)) / spacing).astype(np.int64)
+    keys = bins[:, 0] * (int(bins[:, 1].max()) + 1) + bins[:, 1]
+    _, first = np.unique(keys, return_index=True)
+    return points[np.sort(first)]
 
 
 def _window(grid: RasterGrid, polygon: Any) -> tuple[RasterGrid, tuple[slice, slice]]:

@@ -104,6 +104,19 @@ def test_null_cells_have_a_reason_never_a_silent_zero() -> None:
     assert math.isnan(single["zsd"]) and math.isnan(single["zskew"]) and single["zq95"] == 7.0
 
 
+def test_constant_heights_have_zero_sd_and_no_skew_or_kurtosis() -> None:
+    keys = np.array([1, 1, 1, 2, 2, 2, 2, 3, 3], dtype=np.int64)
+    h = np.array([0.1, 0.1, 0.1, 7.3, 7.3, 7.3, 7.3, 0.1, 0.2])
+    table = area_metrics(keys, h)
+    for cell in (1, 2):  # 0.1 * 3 leaves round-off in m2 from the floating mean
+        assert table.loc[cell, "zsd"] == 0.0
+        assert math.isnan(table.loc[cell, "zskew"]) and math.isnan(table.loc[cell, "zkurt"])
+        assert table.loc[cell, "zq50"] == table.loc[cell, "zmax"]
+    assert table.loc[3, "zsd"] == pytest.approx(np.std([0.1, 0.2], ddof=1))
+    assert table.loc[3, "zskew"] == pytest.approx(0.0, abs=1e-9)
+    assert table.loc[3, "zkurt"] == pytest.approx(1.0)
+
+
 def pd_isna(value: object) -> bool:
     import pandas as pd
 

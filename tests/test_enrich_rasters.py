@@ -97,8 +97,8 @@ def test_chm_and_density_by_hand() -> None:
     raw = chm(xyz, heights, grid, fill_empty=False)
     expected = np.array([[7.0, np.nan, np.nan], [np.nan, np.nan, 1.0]])
     assert np.array_equal(raw, expected.astype(np.float32), equal_nan=True)
-    filled = chm(xyz, heights, grid)  # empty pixels: median of non-empty 3x3 neighbours
-    assert filled[0, 1] == 4.0 and filled[1, 0] == 7.0
+    filled = chm(xyz, heights, grid)  # no empty pixel has >= 6 of 8 non-empty neighbours
+    assert np.array_equal(filled, raw, equal_nan=True)
     inflated = chm(xyz, heights, grid, subcircle=0.6, fill_empty=False)
     # each point also lands 0.6 m away in 8 directions: (0.5, 1.5) reaches the middle
     # pixel east, (0.2, 1.1) reaches the south-west pixel diagonally
@@ -198,3 +198,26 @@ def test_raster_pixels_tile_the_stand_grid_cells() -> None:
     cx, cy = raster.centers()
     in_cell = (cx >= xmin) & (cx < xmax) & (cy >= ymin) & (cy < ymax)
     assert in_cell.sum() == (20 / 0.5) ** 2  # exactly 1600 pixels per 20 m cell
+
+
+def test_chm_fill_closes_single_pits_not_canopy_gaps_or_the_data_edge() -> None:
+    grid = RasterGrid(x0=0.0, y0=0.0, pixel_size=1.0, ncols=12, nrows=7)
+    cx, cy = np.meshgrid(np.arange(12) + 0.5, np.arange(7) + 0.5)
+    centres = np.column_stack([cx.ravel(), cy.ravel()])
+    row, col = grid.pixel_of(centres[:, 0], centres[:, 1])
+    in_data = (col >= 1) & (col <= 10) & (row >= 1) & (row <= 5)  # a 1 px empty frame around
+    gap_3x3 = (row >= 2) & (row <= 4) & (col >= 2) & (col <= 4)
+    pit = (row == 3) & (col == 8)
+    keep = in_data & ~gap_3x3 & ~pit
+    xyz = np.column_stack([centres[keep], np.zeros(keep.sum())])
+    heights = 10.0 + col[keep].astype(float)  # a height gradient west to east
+    filled = chm(xyz, heights, grid)
+    assert filled[3, 8] == pytest.approx(np.median([17, 17, 17, 19, 19, 19, 18, 18]))  # the pit
+    assert np.isnan(filled[2:5, 2:5]).all()  # all 9 pixels of the canopy gap stay empty
+    assert np.isnan(filled[0, :]).all() and np.isnan(filled[:, 0]).all()  # beyond the data edge
+    assert np.isnan(filled[-1, :]).all() and np.isnan(filled[:, -1]).all()
+    assert np.isfinite(filled).sum() == keep.sum() + 1  # only the pit was filled
+    loose = chm(xyz, heights, grid, fill_min_neighbours=3)  # the old one-neighbour-ish fill
+    assert np.isnan(loose[2:5, 2:5]).sum() == 1 and np.isnan(loose[3, 3])
+    with pytest.raises(EnrichError):
+        chm(xyz, heights, grid, fill_min_neighbours=9)

@@ -72,6 +72,11 @@ def test_synthetic_union_preserved(tmp_path: Path) -> None:
     assert total == 12 * 200  # every scan point exactly once
     assert built.gnss is not None and len(built.gnss) == len(syn.gnss)  # type: ignore[arg-type]
     assert built.imu is not None and len(built.imu) == len(syn.imu)  # type: ignore[arg-type]
+    np.testing.assert_array_equal(built.imu.stamps_ns, syn.imu.stamps_ns)  # type: ignore[union-attr]
+    # the per-payload logs are named after the built payloads (their centre nodes' stamps)
+    for sub in ("gnss", "imu"):
+        names = sorted(p.name for p in (out / "payloads" / sub).iterdir())
+        assert names == sorted(p.stamp.filename(sub, "txt") for p in built.payloads), sub
     assert len(built.images) == 2
     assert built.metadata is not None
 

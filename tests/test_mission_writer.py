@@ -107,3 +107,30 @@ def test_scans_written_only_on_request(tmp_path: Path) -> None:
         m.load_payload(m.scans[1], "map").xyz,
         atol=1e-9,
     )
+
+
+def test_per_payload_logs_named_by_payload_stamp_every_sample_once(tmp_path: Path) -> None:
+    from standgrid.mission.sensors import read_gnss, read_imu
+    from standgrid.simulate import simulate_mission
+    from standgrid.stamps import stamp_from_filename
+
+    sim = simulate_mission(tmp_path / "sim", seed=4, epoch=1, area=50.0, points_per_payload=500)
+    assert sim.mission_dir is not None
+    original = open_mission(sim.mission_dir)
+    assert original.gnss is not None and original.imu is not None
+    out = write_mission(original, tmp_path / "out")
+    payload_ns = np.array(sorted(p.stamp.ns for p in original.payloads), dtype=np.int64)
+    mids = payload_ns[:-1] + (payload_ns[1:] - payload_ns[:-1]) // 2
+    lower = np.concatenate([[np.iinfo(np.int64).min], mids])
+    upper = np.concatenate([mids, [np.iinfo(np.int64).max]])
+    for sub, reader, log in (("gnss", read_gnss, original.gnss), ("imu", read_imu, original.imu)):
+        files = sorted((out / "payloads" / sub).iterdir())
+        stamps = [stamp_from_filename(f.name)[1].ns for f in files]  # type: ignore[index]
+        assert stamps == payload_ns.tolist(), sub
+        parts = [reader(f) for f in files]
+        for k, part in enumerate(parts):  # each sample lies in its payload's window
+            assert ((part.stamps_ns >= lower[k]) & (part.stamps_ns < upper[k])).all(), sub
+        written = np.concatenate([p.stamps_ns for p in parts])
+        np.testing.assert_array_equal(written, log.stamps_ns)  # all kept, once, in order
+    back = open_mission(out)
+    assert_equal_missions(original, back)

@@ -308,3 +308,65 @@ def test_truth_errors_are_typed_and_name_the_file(pair: Path, tmp_path: Path) ->
     (truth_dir / "gnss_truth.csv").mkdir()
     with pytest.raises(FormatError, match="cannot read GNSS truth"):
         load_truth(truth_dir)
+
+
+def test_imu_yaw_rate_is_that_of_the_current_node_interval() -> None:
+    from scipy.spatial.transform import Rotation
+
+    from standgrid.simulate.gnss import simulate_imu
+
+    t0 = 1_700_000_000 * 10**9
+    node_ns = t0 + np.array([0, 1, 2, 3], dtype=np.int64) * 10**9
+    poses = np.tile(np.eye(4), (4, 1, 1))
+    poses[:, :3, :3] = Rotation.from_euler("z", [[0.0], [0.0], [1.0], [1.0]]).as_matrix()
+    imu = simulate_imu(np.random.default_rng(0), node_ns, poses, t0, int(node_ns[-1]), 10.0)
+    t_s = (imu.stamps_ns - t0) / 1e9
+    expected = np.where((t_s >= 1.0) & (t_s < 2.0), 1.0, 0.0)  # turning only in (1 s, 2 s)
+    assert np.abs(imu.gyro[:, 2] - expected).max() < 0.01
+
+
+def test_imu_windows_cover_the_mission_contiguously(pair: Path) -> None:
+    folder = pair / "missions" / E1
+    files = sorted((folder / "payloads" / "imu").iterdir())
+    stamps = np.concatenate([read_imu(f).stamps_ns for f in files])
+    nodes = read_pose_graph(folder / "slam_pose_graph.g2o")
+    node_ns = np.array(sorted(v.stamp.ns for v in nodes.vertices.values()))
+    period_ns = round(1e9 / 5.0)  # SimulationConfig.imu_rate_hz
+    assert (np.diff(stamps) == period_ns).all()  # no gap, no overlap between payload files
+    assert stamps[0] == node_ns[0] and stamps[-1] > node_ns[-1] - period_ns
+
+
+def test_failed_install_keeps_the_previous_mission_truth_pair(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    import os
+
+    from standgrid.errors import OutputNotWritableError
+
+    kw: dict[str, Any] = {"area": 50.0, "points_per_payload": 500}
+    simulate_mission(tmp_path, seed=5, epoch=1, **kw)
+
+    def snapshot() -> dict[Path, bytes]:
+        return {p.relative_to(tmp_path): p.read_bytes() for p in tmp_path.rglob("*") if p.is_file()}
+
+    before = snapshot()
+    truth_dir = tmp_path / "truth" / E1
+    real_replace = os.replace
+    failed: list[bool] = []
+
+    def replace_failing_once_onto_truth(src: Any, dst: Any) -> None:
+        if Path(dst) == truth_dir and Path(src).name.endswith(".tmp") and not failed:
+            failed.append(True)
+            raise OSError(28, "No space left on device")
+        real_replace(src, dst)
+
+    monkeypatch.setattr(os, "replace", replace_failing_once_onto_truth)
+    with pytest.raises(OutputNotWritableError):
+        simulate_mission(tmp_path, seed=6, epoch=1, overwrite=True, **kw)
+    assert failed
+    assert snapshot() == before  # old mission beside old truth, no temporaries left
+    monkeypatch.undo()
+    simulate_mission(tmp_path, seed=6, epoch=1, overwrite=True, **kw)
+    after = snapshot()
+    assert after.keys() != before.keys() or after != before
+    assert not [p for p in tmp_path.rglob(".*")]

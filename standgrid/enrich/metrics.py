@@ -70,7 +70,9 @@ def area_metrics(
     above ground (NaN = unknown, e.g. no DTM there: excluded and counted in
     ``n_no_height``). ``cells`` lists cells that must appear even without points.
     ``cell_area_m2`` gives ``density_pts_m2``; ``first_return`` (bool per point) gives
-    ``cover_first`` (percent of first returns above ``height_break``).
+    ``cover_first_above<height_break>`` (e.g. ``cover_first_above2``: percent of first returns
+    above ``height_break``). ``zsd`` is 0 and ``zskew``/``zkurt`` NaN where all heights of a
+    cell are equal; ``zsd`` is NaN for a single height.
     """
     keys = np.asarray(cell)
     h_all = np.asarray(heights, dtype=np.float64)
@@ -199,9 +201,14 @@ def _sorted_metrics(
     with np.errstate(invalid="ignore", divide="ignore"):
         out["zmax"] = zmax
         out["zmean"] = zmean
-        out["zsd"] = np.where(counts > 1, np.sqrt(m2 / np.maximum(n - 1, 1)), np.nan)
-        out["zskew"] = np.where(m2 > 0, (m3 / n) / np.power(m2 / n, 1.5), np.nan)
-        out["zkurt"] = np.where(m2 > 0, n * m4 / (m2 * m2), np.nan)
+        # A constant group (max == min in the sorted order: exact, unlike m2, which keeps
+        # round-off of the floating mean) has zsd 0 and no skewness or kurtosis.
+        varies = zmax > z[starts]
+        out["zsd"] = np.where(
+            counts > 1, np.where(varies, np.sqrt(m2 / np.maximum(n - 1, 1)), 0.0), np.nan
+        )
+        out["zskew"] = np.where(varies, (m3 / n) / np.power(m2 / n, 1.5), np.nan)
+        out["zkurt"] = np.where(varies, n * m4 / (m2 * m2), np.nan)
         out["zentropy"] = _entropy(count_below, zmax, entropy_bin)
         out["pzabovezmean"] = 100.0 * (n - count_below(zmean, inclusive=True)) / n
         out[f"pzabove{_fmt(height_break)}"] = (

@@ -10,7 +10,6 @@ from __future__ import annotations
 import contextlib
 import math
 import os
-import warnings
 from dataclasses import dataclass
 from typing import Any, NamedTuple
 
@@ -22,6 +21,8 @@ from standgrid.enrich.ground import PointsLike, as_xyz
 from standgrid.errors import EnrichError, FormatError, GridError
 
 _TOL = 1e-9
+#: An empty CHM pixel is filled when at least this many of its 8 neighbours hold a height.
+FILL_MIN_NEIGHBOURS = 6
 
 
 @dataclass(frozen=True)
@@ -177,13 +178,18 @@ def chm(
     *,
     subcircle: float = 0.0,
     fill_empty: bool = True,
+    fill_min_neighbours: int = FILL_MIN_NEIGHBOURS,
 ) -> NDArray[np.float32]:
     """Canopy height model: the highest height above ground per pixel (NaN = no point).
 
     ``heights`` are the points' heights above ground (e.g. :func:`height_above_ground`).
     Pit-free options: ``subcircle`` > 0 replaces each point by 8 points on a circle of that
-    radius (lidR ``p2r(subcircle)``); ``fill_empty`` fills an empty pixel with the median of its
-    non-empty 3x3 neighbours (one pass; isolated gaps, not large holes). Negative heights are 0.
+    radius (lidR ``p2r(subcircle)``); ``fill_empty`` fills an empty pixel that has at least
+    ``fill_min_neighbours`` (default :data:`FILL_MIN_NEIGHBOURS` = 6) of its 8 neighbours
+    non-empty with their median (one pass, neighbours outside the raster count as empty): by
+    default pits of one or two pixels are filled; larger canopy gaps (every pixel of a 2x2 or
+    3x3 gap) and pixels beyond the data edge stay NaN.
+    Negative heights are 0.
     """
     xyz = as_xyz(points)
     h = np.asarray(heights, dtype=np.float64)
@@ -205,24 +211,28 @@ def chm(
     np.maximum.at(top, index, h)
     top[np.isneginf(top)] = np.nan
     out = np.maximum(top.reshape(grid.shape), 0.0)
+    if not 1 <= fill_min_neighbours <= 8:
+        raise EnrichError(f"fill_min_neighbours must be 1..8, got {fill_min_neighbours}")
     if fill_empty:
-        out = _fill_isolated(out)
+        out = _fill_isolated(out, fill_min_neighbours)
     return out.astype(np.float32)
 
 
-def _fill_isolated(raster: NDArray[np.float64]) -> NDArray[np.float64]:
-    """Fill NaN pixels with the median of their finite 3x3 neighbours (NaN stays if none)."""
+def _fill_isolated(raster: NDArray[np.float64], min_neighbours: int) -> NDArray[np.float64]:
+    """Fill each NaN pixel having >= ``min_neighbours`` finite pixels among its 8
+    neighbours with their median; other NaN pixels stay NaN."""
     empty = ~np.isfinite(raster)
     if not empty.any():
         return raster
     padded = np.pad(raster, 1, constant_values=np.nan)
     rows, cols = np.nonzero(empty)
-    stack = np.stack([padded[rows + dr, cols + dc] for dr in range(3) for dc in range(3)])
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore", RuntimeWarning)  # all-NaN neighbourhoods stay NaN
-        filled = np.nanmedian(stack, axis=0)
+    stack = np.stack(
+        [padded[rows + dr, cols + dc] for dr in range(3) for dc in range(3) if (dr, dc) != (1, 1)]
+    )
+    enough = np.isfinite(stack).sum(axis=0) >= min_neighbours
     out = raster.copy()
-    out[rows, cols] = filled
+    if enough.any():
+        out[rows[enough], cols[enough]] = np.nanmedian(stack[:, enough], axis=0)
     return out
 
 

@@ -38,6 +38,9 @@ from standgrid.enrich.rasters import RasterGrid, chm
 from standgrid.errors import EnrichError
 
 ID_RESOLUTION_M = 0.1
+#: Each canopy point also marks a disc of this radius in the CHM (lidR's ``subcircle``): a
+#: pit-free surface, so sparse crowns do not split into several tops.
+CHM_SUBCIRCLE_M = 0.2
 #: With ``keep_bounds``, stems are fitted this far around the block's own area only (a stem
 #: stands within its crown, and a tree is kept where its top is).
 STEM_SEARCH_MARGIN_M = 3.0
@@ -143,7 +146,7 @@ def segment_trees(
         cell_size=pixel_size,
         pixel_size=pixel_size,
     )
-    raw = chm(xyz[canopy], h[canopy], grid, fill_empty=True)
+    raw = chm(xyz[canopy], h[canopy], grid, fill_empty=True, subcircle=CHM_SUBCIRCLE_M)
     raw = np.nan_to_num(raw, nan=0.0).astype(np.float64)
     smooth = ndimage.gaussian_filter(raw, sigma=0.5, truncate=2.0)
 
@@ -216,7 +219,7 @@ def segment_trees(
     table["stem_y"] = np.nan
     table["dbh_rmse_m"] = np.nan
     if fit_dbh:
-        near = slice(None)
+        near = np.ones(len(xyz), dtype=bool)
         if keep_bounds is not None:  # only stems that can belong to the block's own trees
             x0, y0, x1, y1 = keep_bounds
             m = STEM_SEARCH_MARGIN_M

@@ -8,20 +8,21 @@
   payload_clouds/cloud_<sec>_<nsec:09d>.pcd    # base frame, VIEWPOINT = the node pose
   <layer>_clouds/cloud_<sec>_<nsec:09d>.pcd    # layers (e.g. ground_clouds), base frame
   gnss/fixes.txt
-  payloads/imu/imu_<sec>_<nsec:09d>.txt
+  payloads/gnss/gnss_<sec>_<nsec:09d>.txt       # the GNSS log cut into one window per payload
+  payloads/imu/imu_<sec>_<nsec:09d>.txt         # the IMU log cut into one window per payload
   payloads/cameras/<cam>/image_<sec>_<nsec:09d>.<ext>
 ```
 """
 
 from __future__ import annotations
 
-import itertools
 import shutil
-from collections.abc import Iterable, Mapping
+from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
+from numpy.typing import NDArray
 
 from standgrid._atomic import atomic_output
 from standgrid.errors import OrphanPayloadError
@@ -77,15 +78,52 @@ def _mission_clouds(mission: Mission) -> Iterable[CloudToWrite]:
         yield CloudToWrite(payload.stamp, mission.load_base(payload), pose, layers)
 
 
-def _split_imu(imu: ImuSamples, stamps: list[Stamp]) -> list[ImuSamples]:
-    """Cut an IMU log at the payload stamps (one file per payload interval)."""
-    cuts = np.searchsorted(imu.stamps_ns, np.array(sorted(s.ns for s in stamps), dtype=np.int64))
-    bounds = sorted({0, len(imu), *(int(c) for c in cuts)})
-    return [
-        ImuSamples(imu.stamps_ns[a:b], imu.accel[a:b], imu.gyro[a:b])
-        for a, b in itertools.pairwise(bounds)
-        if b > a
-    ]
+def payload_windows(sample_ns: NDArray[np.int64], payload_ns: Sequence[int]) -> NDArray[np.intp]:
+    """Window index (into the sorted unique ``payload_ns``) of each sample stamp.
+
+    Window boundaries lie at the midpoints between consecutive payload stamps; the first and
+    last windows are open-ended, so every sample lands in exactly one window.
+    """
+    stamps = np.unique(np.asarray(payload_ns, dtype=np.int64))
+    mids = stamps[:-1] + (stamps[1:] - stamps[:-1]) // 2
+    return np.searchsorted(mids, np.asarray(sample_ns, dtype=np.int64), side="right")
+
+
+def _window_groups(sample_ns: NDArray[np.int64], payload_ns: list[int]) -> list[NDArray[np.intp]]:
+    which = payload_windows(sample_ns, payload_ns)
+    return [np.flatnonzero(which == k) for k in range(len(payload_ns))]
+
+
+def write_payload_logs(
+    folder: Path, payload_stamps: Iterable[Stamp], gnss: GnssFixes | None, imu: ImuSamples | None
+) -> None:
+    """Cut the GNSS and IMU logs into one window per payload (see :func:`payload_windows`)
+    and write ``payloads/gnss/gnss_<stamp>.txt`` and ``payloads/imu/imu_<stamp>.txt``, each
+    named with its payload's stamp (a window without samples is a header-only file).
+
+    Without payloads, a non-empty log is written as one file named after its first sample.
+    """
+    stamps = sorted({s.ns for s in payload_stamps})
+    if gnss is not None and len(gnss):
+        gnss_dir = folder / "payloads" / "gnss"
+        gnss_dir.mkdir(parents=True, exist_ok=True)
+        if not stamps:
+            first = Stamp.from_ns(int(gnss.stamps_ns[0]))
+            write_gnss(gnss, gnss_dir / first.filename("gnss", "txt"))
+        for ns, idx in zip(stamps, _window_groups(gnss.stamps_ns, stamps), strict=True):
+            part = GnssFixes(
+                gnss.stamps_ns[idx], gnss.lat[idx], gnss.lon[idx], gnss.alt[idx],
+                gnss.quality[idx], gnss.h_std[idx], gnss.v_std[idx],
+            )  # fmt: skip
+            write_gnss(part, gnss_dir / Stamp.from_ns(ns).filename("gnss", "txt"))
+    if imu is not None and len(imu):
+        imu_dir = folder / "payloads" / "imu"
+        imu_dir.mkdir(parents=True, exist_ok=True)
+        if not stamps:
+            write_imu(imu, imu_dir / Stamp.from_ns(int(imu.stamps_ns[0])).filename("imu", "txt"))
+        for ns, idx in zip(stamps, _window_groups(imu.stamps_ns, stamps), strict=True):
+            part_imu = ImuSamples(imu.stamps_ns[idx], imu.accel[idx], imu.gyro[idx])
+            write_imu(part_imu, imu_dir / Stamp.from_ns(ns).filename("imu", "txt"))
 
 
 def write_canonical(
@@ -117,11 +155,7 @@ def write_canonical(
     if gnss is not None and len(gnss):
         (folder / "gnss").mkdir()
         write_gnss(gnss, folder / "gnss" / "fixes.txt")
-    if imu is not None and len(imu):
-        imu_dir = folder / "payloads" / "imu"
-        imu_dir.mkdir(parents=True)
-        for part in _split_imu(imu, stamps):
-            write_imu(part, imu_dir / Stamp.from_ns(int(part.stamps_ns[0])).filename("imu", "txt"))
+    write_payload_logs(folder, stamps, gnss, imu)
     for ref in images:
         ext = ref.path.suffix.lstrip(".").lower()
         target = folder / "payloads" / "cameras" / ref.camera / ref.stamp.filename("image", ext)

@@ -119,20 +119,6 @@ def simulate_gnss(
     return SimulatedGnss(fixes, true_xyz, outlier)
 
 
-def gnss_subset(fixes: GnssFixes, t0_ns: int, t1_ns: int) -> GnssFixes:
-    """The fixes with ``t0_ns <= stamp <= t1_ns``."""
-    m = (fixes.stamps_ns >= t0_ns) & (fixes.stamps_ns <= t1_ns)
-    return GnssFixes(
-        fixes.stamps_ns[m],
-        fixes.lat[m],
-        fixes.lon[m],
-        fixes.alt[m],
-        fixes.quality[m],
-        fixes.h_std[m],
-        fixes.v_std[m],
-    )
-
-
 def simulate_imu(
     rng: np.random.Generator,
     node_ns: NDArray[np.int64],
@@ -141,16 +127,21 @@ def simulate_imu(
     t1_ns: int,
     rate_hz: float = 10.0,
 ) -> ImuSamples:
-    """Specific force (gravity seen in the base frame) and yaw rate, plus white noise."""
+    """Specific force (gravity seen in the base frame) and yaw rate, plus white noise.
+
+    A sample at ``t`` in the node interval ``[node_ns[k], node_ns[k + 1])`` sees the
+    orientation of node ``k`` and the yaw rate of that interval.
+    """
     period_ns = round(1e9 / rate_hz)
     t_ns = np.arange(t0_ns, t1_ns + 1, period_ns, dtype=np.int64)
-    idx = np.clip(np.searchsorted(node_ns, t_ns), 0, len(node_ns) - 1)
-    rot = poses[idx, :3, :3]
+    n = len(node_ns)
+    k = np.clip(np.searchsorted(node_ns, t_ns, side="right") - 1, 0, max(n - 2, 0))
+    rot = poses[k, :3, :3]
     accel = np.einsum("nji,j->ni", rot, np.array([0.0, 0.0, GRAVITY]))
     yaw = Rotation.from_matrix(poses[:, :3, :3]).as_euler("ZYX")[:, 0]
     dt = np.diff(node_ns).astype(np.float64) * 1e-9
     rate = np.concatenate([np.angle(np.exp(1j * np.diff(yaw))) / dt, [0.0]])
-    gyro = np.column_stack([np.zeros(len(t_ns)), np.zeros(len(t_ns)), rate[idx]])
+    gyro = np.column_stack([np.zeros(len(t_ns)), np.zeros(len(t_ns)), rate[k]])
     accel = accel + rng.normal(0.0, 0.02, accel.shape)
     gyro = gyro + rng.normal(0.0, 0.002, gyro.shape)
     return ImuSamples(t_ns, np.round(accel, 5), np.round(gyro, 6))

@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 import datetime as dt
+import os
+import shutil
 from collections.abc import Iterable, Iterator
 from dataclasses import dataclass, field, replace
 from pathlib import Path
@@ -13,8 +15,8 @@ from numpy.typing import NDArray
 from pyproj import Transformer
 from scipy.spatial.transform import Rotation
 
-from standgrid._atomic import atomic_output
-from standgrid.errors import OutputExistsError
+from standgrid._atomic import temporary_sibling
+from standgrid.errors import OutputExistsError, OutputNotWritableError
 from standgrid.geometry import Matrix4, invert_pose, transform_points
 from standgrid.mission.posegraph import Edge, PoseGraph, Vertex
 from standgrid.mission.sensors import GnssFixes
@@ -24,7 +26,6 @@ from standgrid.simulate.forest import Shrubs, Trees, generate_forest, grow_fores
 from standgrid.simulate.gnss import (
     GnssModel,
     SimulatedGnss,
-    gnss_subset,
     simulate_gnss,
     simulate_imu,
 )
@@ -329,12 +330,17 @@ def write_canonical_parts(
     imu_rate_hz: float,
 ) -> int:
     """Metadata, graph, pose CSV, payload clouds (VIEWPOINT = graph pose), GNSS log and
-    per-payload GNSS and IMU files, with the format writers of :mod:`standgrid.mission`."""
+    per-payload GNSS and IMU files, with the format writers of :mod:`standgrid.mission`.
+
+    The IMU is simulated once over the whole mission; the GNSS and IMU logs are cut into
+    contiguous per-payload windows by the canonical writer
+    (:func:`standgrid.mission.writer.write_payload_logs`)."""
     from standgrid.mission.clouds import write_cloud
     from standgrid.mission.metadata import write_metadata
     from standgrid.mission.posegraph import write_pose_graph
     from standgrid.mission.poses_csv import PoseTable, write_poses_csv
-    from standgrid.mission.sensors import write_gnss, write_imu
+    from standgrid.mission.sensors import write_gnss
+    from standgrid.mission.writer import write_payload_logs
 
     write_metadata(metadata, folder / "metadata.yaml")
     write_pose_graph(graph, folder / "slam_pose_graph.g2o")
@@ -343,17 +349,16 @@ def write_canonical_parts(
         (folder / sub).mkdir(parents=True)
     write_gnss(fixes, folder / "gnss" / "fixes.txt")
     n_points = 0
+    payload_stamps: list[Stamp] = []
     for span, cloud in zip(spans, payloads, strict=True):
         n_points += len(cloud)
         stamp = Stamp.from_ns(int(stamps_ns[span.centre]))
+        payload_stamps.append(stamp)
         write_cloud(cloud, folder / "payload_clouds" / stamp.filename("cloud", "pcd"),
                     viewpoint=graph.vertices[span.centre].pose)  # fmt: skip
-        t0, t1 = int(stamps_ns[span.first]), int(stamps_ns[span.last])
-        write_gnss(
-            gnss_subset(fixes, t0, t1), folder / "payloads" / "gnss" / stamp.filename("gnss", "txt")
-        )
-        imu = simulate_imu(rng, stamps_ns, true_poses, t0, t1, imu_rate_hz)
-        write_imu(imu, folder / "payloads" / "imu" / stamp.filename("imu", "txt"))
+    imu = simulate_imu(rng, stamps_ns, true_poses, int(stamps_ns[0]), int(stamps_ns[-1]),
+                       imu_rate_hz)  # fmt: skip
+    write_payload_logs(folder, payload_stamps, fixes, imu)
     return n_points
 
 
@@ -407,6 +412,39 @@ def _prepare(final: Path, overwrite: bool) -> None:
         raise OutputExistsError("exists (use overwrite to replace it)", path=final)
 
 
+def _install_together(moves: list[tuple[Path, Path]]) -> None:
+    """Rename each new folder onto its final path, all or none.
+
+    The old folders are moved aside first; if any rename fails, the new folders already in
+    place are moved back and the old ones restored (the pair stays consistent), then
+    :class:`OutputNotWritableError` is raised. On success the old folders are deleted.
+    """
+    aside: list[tuple[Path, Path]] = []  # (final, old moved aside)
+    placed: list[tuple[Path, Path]] = []  # (new, final)
+    current = moves[0][1]
+    try:
+        for _, final in moves:
+            current = final
+            if final.exists():
+                old = temporary_sibling(final)
+                os.replace(final, old)
+                aside.append((final, old))
+        for new, final in moves:
+            current = final
+            os.replace(new, final)
+            placed.append((new, final))
+    except OSError as exc:
+        for new, final in reversed(placed):
+            os.replace(final, new)
+        for final, old in reversed(aside):
+            os.replace(old, final)
+        raise OutputNotWritableError(
+            f"cannot move the new output into place: {exc.strerror}", path=current
+        ) from exc
+    for _, old in aside:
+        shutil.rmtree(old, ignore_errors=True)
+
+
 def simulate_mission(
     out_root: str | Path,
     *,
@@ -417,6 +455,9 @@ def simulate_mission(
     **overrides: Any,
 ) -> SimulatedMission:
     """Simulate one mission into ``<out_root>/missions/<name>/``, truth into ``truth/<name>/``.
+
+    Both are written to temporary siblings and renamed into place together: a failure
+    leaves the previous mission and truth (or neither) as they were.
 
     ``overrides`` set :class:`SimulationConfig` fields (``area=100``, ``points_per_payload=...``).
     """
@@ -431,12 +472,21 @@ def simulate_mission(
     _prepare(mission_dir, overwrite)
     _prepare(truth_dir, overwrite)
     sim = run_simulation(seed, epoch, base)
-    with atomic_output(mission_dir, overwrite=overwrite) as tmp:
-        tmp.mkdir()
-        n_points = write_mission_folder(sim, tmp, base)
-    with atomic_output(truth_dir, overwrite=overwrite) as tmp:
-        tmp.mkdir()
-        write_truth_folder(sim, tmp, base)
+    tmp_mission, tmp_truth = temporary_sibling(mission_dir), temporary_sibling(truth_dir)
+    try:
+        for tmp in (tmp_mission, tmp_truth):
+            try:
+                tmp.mkdir(parents=True)
+            except OSError as exc:
+                raise OutputNotWritableError(
+                    f"cannot create folder: {exc.strerror}", path=tmp.parent
+                ) from exc
+        n_points = write_mission_folder(sim, tmp_mission, base)
+        write_truth_folder(sim, tmp_truth, base)
+        _install_together([(tmp_mission, mission_dir), (tmp_truth, truth_dir)])
+    finally:
+        for tmp in (tmp_mission, tmp_truth):
+            shutil.rmtree(tmp, ignore_errors=True)
     return replace(sim, mission_dir=mission_dir, truth_dir=truth_dir, n_points=n_points)
 
 

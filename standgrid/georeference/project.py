@@ -12,6 +12,7 @@ reverse, so the round trip is exact either way.
 
 from __future__ import annotations
 
+import threading
 from typing import Any
 
 import numpy as np
@@ -55,6 +56,8 @@ class MapProjector:
         self._r_ecef_map = r_enu_ecef.T @ T[:3, :3]
         self._t_ecef = r_enu_ecef.T @ T[:3, 3] + reference_ecef(fit.lla_ref)
         self._transformer = pyproj.Transformer.from_crs(GEOCENTRIC, self.crs, always_xy=True)
+        # a pyproj Transformer is not thread-safe: one projector may serve several threads
+        self._lock = threading.Lock()
         self.fast_chunks = 0
         self.fallback_chunks = 0
 
@@ -90,9 +93,10 @@ class MapProjector:
         if len(pts) == 0:
             return np.zeros((0, 3))
         try:
-            x, y, z = self._transformer.transform(
-                pts[:, 0], pts[:, 1], pts[:, 2], direction=direction, errcheck=True
-            )
+            with self._lock:
+                x, y, z = self._transformer.transform(
+                    pts[:, 0], pts[:, 1], pts[:, 2], direction=direction, errcheck=True
+                )
         except ProjError as exc:
             raise GeoreferenceError(f"projection to/from {self.crs.name!r} failed: {exc}") from exc
         return np.stack([np.asarray(x), np.asarray(y), np.asarray(z)], axis=-1).astype(

@@ -12,7 +12,8 @@ interrupted run leaves the previous catalog intact and a re-run completes it.
 from __future__ import annotations
 
 import math
-from collections.abc import Callable, Iterable, Sequence
+import threading
+from collections.abc import Callable, Iterable, Iterator, Sequence
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, Literal, TypeVar
@@ -419,11 +420,19 @@ def _tile_epoch(
                 kept = PointCloud(snap_to_storage(kept.xyz, origin), kept.fields)
                 engine.add(_conform(kept, schema, catalog.path(rel)))
                 kept_in += int(keep.sum())
-        for ingest, index, payload in wrap(work, len(work), f"{epoch}: payloads"):
+
+        def prepare(item: tuple[_Ingest, int, Payload]) -> tuple[_Ingest, int, PointCloud, Any]:
+            ingest, index, payload = item
             chunk = _payload_chunk(ingest, index, payload, schema, origin)
             row = rows[_payload_id(ingest.number, index, ingest.mission)]
+            return ingest, index, chunk, _footprint(chunk.xyz, row["geometry"])
+
+        # payloads are read and projected on a second thread while this one partitions
+        prepared = _prefetch(prepare, wrap(work, len(work), f"{epoch}: payloads"))
+        for ingest, index, chunk, footprint in prepared:
+            row = rows[_payload_id(ingest.number, index, ingest.mission)]
             row["point_count"] = len(chunk)
-            row["geometry"] = _footprint(chunk.xyz, row["geometry"])
+            row["geometry"] = footprint
             engine.add(chunk)
             new_in[ingest.mission.name] += len(chunk)
         polygons: dict[str, Any] = {}
@@ -572,8 +581,9 @@ def _payload_chunk(
     from standgrid.export.las import snap_to_storage
 
     assert ingest.projector is not None
-    cloud = ingest.mission.load_base(payload)
-    pose = ingest.mission.pose_of(payload)
+    with _MISSION_LOCK:  # the mission's reader and caches are not shared across threads
+        cloud = ingest.mission.load_base(payload)
+        pose = ingest.mission.pose_of(payload)
     xyz = snap_to_storage(ingest.projector.fast(cloud.xyz, pose=pose), origin)
     n = len(xyz)
     fields = dict(cloud.fields)
@@ -584,6 +594,35 @@ def _payload_chunk(
         n, _payload_id(ingest.number, index, ingest.mission), dtype=np.uint32
     )
     return _conform(PointCloud(xyz, fields), schema, payload.path)
+
+
+_MISSION_LOCK = threading.Lock()
+#: Payloads being prepared ahead of the partition engine (bounds the extra memory).
+PREFETCH = 2
+
+
+def _prefetch(fn: Callable[[Any], T], items: Iterable[Any], depth: int = PREFETCH) -> Iterator[T]:
+    """``fn`` over ``items`` in order, computed up to ``depth`` items ahead on worker threads.
+
+    numpy, laspy and pyproj release the GIL in their inner loops, so on two cores the next
+    payload is read and projected while the current one is partitioned.
+    """
+    from collections import deque
+    from concurrent.futures import Future, ThreadPoolExecutor
+
+    iterator = iter(items)
+    with ThreadPoolExecutor(max_workers=depth) as pool:
+        pending: deque[Future[T]] = deque()
+        for item in iterator:
+            pending.append(pool.submit(fn, item))
+            if len(pending) >= depth:
+                break
+        while pending:
+            result = pending.popleft().result()
+            following = next(iterator, None)
+            if following is not None:
+                pending.append(pool.submit(fn, following))
+            yield result
 
 
 #: Footprint hulls are taken over at most this many points of a payload (display geometry).

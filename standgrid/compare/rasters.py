@@ -19,10 +19,9 @@ from typing import Any, Literal
 
 import numpy as np
 
-from standgrid.enrich.rasters import raster_crs_text
+from standgrid.enrich.rasters import NODATA, raster_crs_text
 from standgrid.errors import FormatError, GridMismatchError
 
-NODATA = -9999.0
 ALIGNMENT_TOLERANCE_PX = 1e-6
 
 

@@ -21,6 +21,8 @@ from standgrid.enrich.ground import PointsLike, as_xyz
 from standgrid.errors import EnrichError, FormatError, GridError
 
 _TOL = 1e-9
+#: The no-data value of every raster standgrid writes (DTM, CHM, density, CHM change).
+NODATA = -9999.0
 #: An empty CHM pixel is filled when at least this many of its 8 neighbours hold a height.
 FILL_MIN_NEIGHBOURS = 6
 

@@ -29,6 +29,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 from numpy.typing import NDArray
 
+from standgrid.enrich.rasters import NODATA
 from standgrid.errors import EnrichError, EpochNotFoundError, StandgridError
 from standgrid.pointcloud import PointCloud
 
@@ -42,7 +43,6 @@ Wrap = Callable[[Iterable[Any], int, str], Iterable[Any]]
 
 GROUND = 2
 OTHER = 1
-NODATA = -9999.0
 
 
 def _no_wrap(items: Iterable[Any], total: int, desc: str) -> Iterable[Any]:

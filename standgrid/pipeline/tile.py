@@ -340,12 +340,8 @@ def _projector(fit: GeoreferenceFit, crs: str) -> MapProjector:
 
 
 def _cloud_payloads(mission: Mission) -> list[Payload]:
-    """The point-cloud payloads that can be tiled (attached to a node, not pre-projected)."""
-    return [
-        p
-        for p in mission.payloads
-        if p.kind == "point_cloud" and p.node_id is not None and p.frame != "utm"
-    ]
+    """The point-cloud payloads (a strict mission attaches every one to a node)."""
+    return [p for p in mission.payloads if p.kind == "point_cloud"]
 
 
 def _payload_id(number: int, index: int, mission: Mission) -> int:

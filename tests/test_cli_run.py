@@ -99,7 +99,9 @@ def test_enrich_json_on_an_existing_catalog(
     for epoch, summary in report["epochs"].items():
         trees = pd.read_parquet(catalog / f"tables/tree_list_{epoch}.parquet")
         assert summary["trees"] == len(trees) > 150
-        assert summary["trees_with_dbh"] == int(trees["dbh_m"].notna().sum())
+        assert summary["trees_dbh_measured"] == int((trees["dbh_source"] == "measured").sum())
+        assert summary["trees_dbh_imputed"] == int((trees["dbh_source"] == "imputed").sum())
+        assert trees["dbh_m"].notna().all()  # every tree gets a DBH, measured or imputed
         assert summary["cells"] == pair.report["enrich"]["epochs"][epoch]["cells"]
         assert summary["cells_without_ground"] == 0
 
@@ -138,7 +140,10 @@ def test_compare_json_on_an_existing_catalog(
     assert report["trees"]["removed"] >= 27  # the simulated harvest
     assert report["stands"] == {"in_both": 28, "from_only": 0, "to_only": 0}
     changes = pd.read_parquet(catalog / report["outputs"]["stand_parquet"])
-    assert np.isfinite(changes["zq95_per_year"]).all()
+    measured = changes["null_reason"].isna()
+    assert measured.sum() >= 20  # the stands both epochs observed well enough
+    assert np.isfinite(changes.loc[measured, "zq95_per_year"]).all()
+    assert changes.loc[~measured, "null_reason"].str.contains("insufficient_coverage").all()
 
 
 def test_compare_before_enrich_is_a_one_line_error(

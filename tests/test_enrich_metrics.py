@@ -173,7 +173,7 @@ def test_tree_metrics_by_hand() -> None:
     table = tree_metrics(cells, height, dbh, cell_area_m2=200.0, cells=[7, 8, 9])
     area_ha = 0.02
     a = table.loc[7]
-    assert a["stems_ha"] == pytest.approx(4 / area_ha) and a["n_dbh"] == 4
+    assert a["stems_ha"] == pytest.approx(4 / area_ha) and a["n_dbh_measured"] == 4
     ba = sum(math.pi * (d / 2) ** 2 for d in (0.3, 0.4, 0.2, 0.5))
     assert a["basal_area_m2_ha"] == pytest.approx(ba / area_ha)
     assert a["qmd_cm"] == pytest.approx(100 * math.sqrt((0.09 + 0.16 + 0.04 + 0.25) / 4))
@@ -181,10 +181,11 @@ def test_tree_metrics_by_hand() -> None:
     # 100 trees/ha on 0.02 ha = the 2 largest-DBH trees: 30 m (0.50) and 25 m (0.40)
     assert a["dominant_height_m"] == pytest.approx(27.5) and a["dominant_by"] == "dbh"
     assert pd_isna(a["null_reason"])
-    b = table.loc[8]  # one tree lacks a DBH: dominant by height, BA from the measured tree
-    assert b["n_dbh"] == 1 and b["dominant_by"] == "height"
+    b = table.loc[8]  # one tree lacks a DBH: dominant by height, no partial basal area
+    assert b["n_dbh_measured"] == 1 and b["dominant_by"] == "height"
     assert b["dominant_height_m"] == pytest.approx(13.0)
-    assert b["basal_area_m2_ha"] == pytest.approx(math.pi * 0.125**2 / area_ha)
+    assert math.isnan(b["basal_area_m2_ha"]) and math.isnan(b["qmd_cm"])
+    assert b["null_reason"] == f"{REASON_NO_DBH}: 1 of 2 trees"
     c = table.loc[9]
     assert (
         c["stems_ha"] == 0
@@ -192,7 +193,7 @@ def test_tree_metrics_by_hand() -> None:
         and math.isnan(c["mean_height_m"])
     )
     only_height = tree_metrics([1, 1], [10.0, 12.0], [np.nan, np.nan], cell_area_m2=400.0)
-    assert only_height.loc[1, "null_reason"] == REASON_NO_DBH
+    assert only_height.loc[1, "null_reason"] == f"{REASON_NO_DBH}: 2 of 2 trees"
     assert math.isnan(only_height.loc[1, "basal_area_m2_ha"])
     assert only_height.loc[1, "dominant_height_m"] == pytest.approx(11.0)  # k = 4 > 2 trees
 

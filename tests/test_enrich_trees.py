@@ -268,6 +268,7 @@ def test_real_mixed_conifer_trees_agree_with_lidr_segmentation() -> None:
 def test_full_chain_on_a_simulated_robot_mission() -> None:
     """CSF -> DTM -> heights -> trees on the simulator's points, against its ground truth."""
     simulate = pytest.importorskip("standgrid.simulate")
+    from standgrid.enrich.allometry import fit_height_diameter, impute_dbh
     from standgrid.enrich.metrics import cell_index, tree_metrics
 
     sim = simulate.run_simulation(7, 1, simulate.SimulationConfig(area=60.0))
@@ -319,8 +320,16 @@ def test_full_chain_on_a_simulated_robot_mission() -> None:
     area = (b[2] - b[0] - 6) * (b[3] - b[1] - 6)
     found = table[inner(table["x"].to_numpy(), table["y"].to_numpy()) & (table["height_m"] > 10)]
     real = truth[tall_truth]
+    # every tree gets a DBH: the unmeasured ones from the height-diameter model
+    measured = table[np.isfinite(table["dbh_m"])]
+    model = fit_height_diameter(measured["height_m"], measured["dbh_m"])
+    found = impute_dbh(found, model)
     est = tree_metrics(
-        np.zeros(len(found), np.int64), found["height_m"], found["dbh_m"], cell_area_m2=area
+        np.zeros(len(found), np.int64),
+        found["height_m"],
+        found["dbh_m"],
+        cell_area_m2=area,
+        dbh_measured=(found["dbh_source"] == "measured").to_numpy(),
     )
     ref = tree_metrics(
         np.zeros(len(real), np.int64), real["height"], real["dbh"], cell_area_m2=area

@@ -20,7 +20,9 @@ from standgrid.errors import EnrichError, EpochNotFoundError, GridMismatchError
 from standgrid.partition import StandGrid
 from standgrid.pipeline.compare import compare_epochs
 from standgrid.pipeline.enrich import enrich_catalog
+from tests.conftest import BUNDLED_MISSIONS
 from tests.pipeline_fixtures import (
+    MISSIONS,
     EnrichedPair,
     build_small_catalog,
     copy_catalog,
@@ -150,7 +152,70 @@ def test_harvested_trees_are_found_removed(pair: EnrichedPair) -> None:
     assert precision >= 0.75
 
 
+def test_voronoi_catalog_finds_the_harvest_too(tmp_path: Path) -> None:
+    """Voronoi cells differ between epochs (ids from each mission's payloads): harvest and
+    unobserved ground come from the observed masks, not from matching cell ids."""
+    from click.testing import CliRunner
+
+    from standgrid.cli import cli
+    from standgrid.pipeline.tile import TileOptions, tile_missions
+
+    catalog = tmp_path / "voronoi"
+    tile_missions(
+        [BUNDLED_MISSIONS / m for m in MISSIONS.values()], catalog, TileOptions(scheme="voronoi")
+    )
+    enrich_catalog(catalog)
+    result = CliRunner().invoke(cli, ["compare", str(catalog)])
+    assert result.exit_code == 0, result.output
+    changes = pd.read_parquet(catalog / FOLDER / "tree_changes.parquet")
+    truth = _truth_pairs()
+    harvested = truth[truth["status_2028"] == "harvested"]
+    removed = changes[changes["status"] == "removed"]
+    h, _ = match_one_to_one(
+        harvested[["x_2024", "y_2024"]].to_numpy(), removed[["x", "y"]].to_numpy(), 2.0
+    )
+    assert len(h) / len(harvested) >= 0.9
+    counts = changes["status"].value_counts()
+    assert re.search(rf"{counts.get('removed', 0)} removed", result.output)
+    assert re.search(rf"{counts.get('unobserved', 0)} unobserved", result.output)
+
+
 # --- the compare outputs -----------------------------------------------------------------
+
+
+_SUFFIXES = ("_from", "_to", "_delta", "_per_year", "_per_ha")
+
+
+def _documented(column: str, text: str) -> bool:
+    """``column`` (or the metric it derives from) appears in docs/METRICS.md."""
+    if f"`{column}`" in text or re.fullmatch(r"zq\d+|zpcum\d|pz.*", column):
+        return True
+    for suffix in _SUFFIXES:
+        if column.endswith(suffix) and _documented(column[: -len(suffix)], text):
+            return True
+    return f"{column}_{{from,to" in text or f"`{column}_{{" in text
+
+
+def test_every_column_a_user_sees_is_defined_in_metrics_md(pair: EnrichedPair) -> None:
+    from tests.conftest import REPO_ROOT
+
+    text = (REPO_ROOT / "docs" / "METRICS.md").read_text(encoding="utf-8")
+    tables = {
+        "stand_metrics": pair.path / "tables/stand_metrics.parquet",
+        "tree_list": pair.path / "tables/tree_list_2024.parquet",
+        "stand_changes": pair.path / FOLDER / "stand_changes.parquet",
+        "tree_changes": pair.path / FOLDER / "tree_changes.parquet",
+    }
+    for name, path in tables.items():
+        columns = pd.read_parquet(path).columns
+        missing = [c for c in columns if not _documented(c, text)]
+        assert not missing, f"{name}: {missing}"
+    changes = pd.read_parquet(tables["stand_changes"]).columns
+    meaningless = ("area_m2_", "n_points_", "observed_m2_", "density_pts_m2_", "n_trees_")
+    assert not [c for c in changes if c.startswith(meaningless) and c.endswith(_SUFFIXES)]
+
+
+# --- the compare outputs (files) ----------------------------------------------------------
 
 
 @pytest.mark.parametrize("stem", ["stand_changes", "tree_changes"])

@@ -16,7 +16,9 @@ def _human(r: dict[str, Any]) -> str:
     lines = [
         f"{r['epoch_from']} -> {r['epoch_to']} ({r['years']:.2f} years) in {r['catalog']}",
         f"trees: {trees.get('grown', 0)} grown, {trees.get('new', 0)} new,"
-        f" {trees.get('removed', 0)} removed (harvested or fallen)",
+        f" {trees.get('removed', 0)} removed (harvested or fallen),"
+        f" {trees.get('unobserved', 0)} unobserved (outside the ground both epochs observed:"
+        " neither harvest nor ingrowth)",
         f"stand cells: {stands['in_both']} in both epochs, {stands['from_only']} only in"
         f" {r['epoch_from']}, {stands['to_only']} only in {r['epoch_to']}",
     ]
@@ -46,6 +48,11 @@ def _human(r: dict[str, Any]) -> str:
     "--max-distance", type=float, default=2.0, show_default=True,
     help="Farthest a tree may be from its position in the earlier epoch to match (m).",
 )  # fmt: skip
+@click.option(
+    "--min-observed", "min_observed_fraction", type=click.FloatRange(0.0, 1.0), default=0.25,
+    show_default=True,
+    help="Least share of a stand observed in both epochs for its change to be reported.",
+)  # fmt: skip
 @json_option
 @quiet_option
 def compare(
@@ -54,6 +61,7 @@ def compare(
     epoch_to: str | None,
     other: Path | None,
     max_distance: float,
+    min_observed_fraction: float,
     as_json: bool,
     quiet: bool,
 ) -> None:
@@ -61,7 +69,9 @@ def compare(
 
     Writes compare/<from>__<to>/ (stand_changes and tree_changes as CSV and Parquet,
     chm_diff.tif) and the stand_changes / tree_changes layers of index.gpkg, styled with a
-    diverging colour ramp. Growth is annualised from the epochs' dates.
+    diverging colour ramp. Growth is annualised from the epochs' dates. Tree counts, basal
+    area and harvest are compared over the ground both epochs observed; trees elsewhere are
+    "unobserved", and stands with less than --min-observed of such ground get no change.
 
     \b
     Example:
@@ -72,6 +82,11 @@ def compare(
 
     status(f"comparing epochs of {catalog}", quiet)
     report = compare_epochs(
-        catalog, epoch_from, epoch_to, other_catalog=other, max_distance=max_distance
+        catalog,
+        epoch_from,
+        epoch_to,
+        other_catalog=other,
+        max_distance=max_distance,
+        min_observed_fraction=min_observed_fraction,
     )
     emit(report.to_dict(), as_json, _human)

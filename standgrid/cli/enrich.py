@@ -16,11 +16,14 @@ def _human(r: dict[str, Any]) -> str:
     for epoch, e in r["epochs"].items():
         lines.append(
             f"epoch {epoch}: {e['cells']} cells ({e['cells_without_ground']} without ground),"
-            f" {e['trees']} trees ({e['trees_with_dbh']} with DBH)"
+            f" {100 * e['observed_fraction']:.0f} % of their area observed;"
+            f" {e['trees']} trees ({e['trees_on_observed_ground']} on observed ground),"
+            f" DBH {e['trees_dbh_measured']} measured, {e['trees_dbh_imputed']} imputed"
         )
     lines.append(
-        "outputs: rasters/<epoch>/{dtm,chm,density}.tif, tables/stand_metrics.{csv,parquet},"
-        " tables/tree_list_<epoch>.{csv,parquet}; index.gpkg layers stand_metrics and trees"
+        "outputs: rasters/<epoch>/{dtm,chm,density,observed}.tif,"
+        " tables/stand_metrics.{csv,parquet}, tables/tree_list_<epoch>.{csv,parquet};"
+        " index.gpkg layers stand_metrics and trees"
     )
     return "\n".join(lines)
 
@@ -44,6 +47,15 @@ def _human(r: dict[str, Any]) -> str:
     "--rigidness", type=click.IntRange(1, 3), default=1, show_default=True,
     help="CSF cloth rigidness: 1 steep terrain, 2 relief, 3 flat.",
 )  # fmt: skip
+@click.option(
+    "--min-observed", "min_observed_fraction", type=click.FloatRange(0.0, 1.0), default=0.25,
+    show_default=True,
+    help="Least share of a stand's area observed for its metrics to be reported.",
+)  # fmt: skip
+@click.option(
+    "--min-density", "min_density", type=click.FloatRange(0.0), default=2.0, show_default=True,
+    help="Least points per m2 of observed ground for a stand's metrics to be reported.",
+)  # fmt: skip
 @json_option
 @quiet_option
 def enrich(
@@ -53,15 +65,19 @@ def enrich(
     halo: float,
     height_break: float,
     rigidness: int,
+    min_observed_fraction: float,
+    min_density: float,
     as_json: bool,
     quiet: bool,
 ) -> None:
     """Classify ground, build terrain rasters, find trees and compute stand metrics.
 
     Tiles get LAS class 2 for ground, a height_above_ground and a tree_id dimension; each
-    epoch gets DTM, CHM and density Cloud-Optimized GeoTIFFs aligned to the stand grid; stand
-    metrics and tree lists go to tables/ (CSV, Parquet) and to index.gpkg. Column
-    definitions: docs/METRICS.md.
+    epoch gets DTM, CHM, density and observed-ground Cloud-Optimized GeoTIFFs aligned to the
+    stand grid; stand metrics (over each stand's observed ground; null with a reason below
+    --min-observed / --min-density) and tree lists (every tree with a measured or imputed
+    DBH) go to tables/ (CSV, Parquet) and to index.gpkg. Column definitions:
+    docs/METRICS.md.
 
     \b
     Example:
@@ -75,6 +91,8 @@ def enrich(
         halo=halo,
         height_break=height_break,
         rigidness=rigidness,
+        min_observed_fraction=min_observed_fraction,
+        min_density_pts_m2=min_density,
         epochs=epochs,
     )
 

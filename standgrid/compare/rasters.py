@@ -19,7 +19,7 @@ from typing import Any, Literal
 
 import numpy as np
 
-from standgrid.enrich.rasters import NODATA, raster_crs_text
+from standgrid.enrich.rasters import NODATA, RasterGrid, raster_crs_text
 from standgrid.errors import FormatError, GridMismatchError
 
 ALIGNMENT_TOLERANCE_PX = 1e-6
@@ -128,6 +128,37 @@ def _read_into(
     out[r_start:r_stop, c_start:c_stop] = values
 
 
+def read_aligned_pair(
+    path_a: str | os.PathLike[str],
+    path_b: str | os.PathLike[str],
+    *,
+    extent: Literal["intersection", "union"] = "intersection",
+) -> tuple[np.ndarray, np.ndarray, RasterGrid]:
+    """Band 1 of two rasters on the same pixel grid, read onto their common (intersection)
+    or joint (union) extent: (a, b, grid), float64 with NaN for nodata and outside."""
+    if extent not in ("intersection", "union"):
+        raise ValueError(f"extent must be 'intersection' or 'union', not {extent!r}")
+    a = _open_grid(Path(path_a))
+    b = _open_grid(Path(path_b))
+    _check_same_pixel_grid(a, b)
+    res = (float(a.transform.a), float(-a.transform.e))
+    if not np.isclose(res[0], res[1], rtol=1e-9, atol=0):
+        raise FormatError(f"non-square pixels {res[0]} x {res[1]} m", path=a.path)
+    pick = (max, min) if extent == "intersection" else (min, max)
+    left, right = pick[0](a.left, b.left), pick[1](a.right, b.right)
+    bottom, top = pick[0](a.bottom, b.bottom), pick[1](a.top, b.top)
+    width = round((right - left) / res[0])
+    height = round((top - bottom) / res[1])
+    if width <= 0 or height <= 0:
+        raise GridMismatchError(f"rasters do not overlap ({a.path} vs {b.path})")
+    first = np.full((height, width), np.nan)
+    second = np.full((height, width), np.nan)
+    _read_into(a, first, left, top, res)
+    _read_into(b, second, left, top, res)
+    grid = RasterGrid(left, top - height * res[0], res[0], width, height)
+    return first, second, grid
+
+
 def chm_difference(
     chm_from_path: str | os.PathLike[str],
     chm_to_path: str | os.PathLike[str],
@@ -137,41 +168,19 @@ def chm_difference(
     overwrite: bool = True,
 ) -> ChmDifference:
     """Write ``to - from`` of two CHMs on the same pixel grid (rules: module docstring)."""
-    if extent not in ("intersection", "union"):
-        raise ValueError(f"extent must be 'intersection' or 'union', not {extent!r}")
-    a = _open_grid(Path(chm_from_path))
-    b = _open_grid(Path(chm_to_path))
-    _check_same_pixel_grid(a, b)
-    res = (float(a.transform.a), float(-a.transform.e))
-    if not np.isclose(res[0], res[1], rtol=1e-9, atol=0):
-        raise FormatError(f"non-square pixels {res[0]} x {res[1]} m", path=a.path)
-    crs_text = raster_crs_text(a.crs)
-    pick = (max, min) if extent == "intersection" else (min, max)
-    left, right = pick[0](a.left, b.left), pick[1](a.right, b.right)
-    bottom, top = pick[0](a.bottom, b.bottom), pick[1](a.top, b.top)
-    width = round((right - left) / res[0])
-    height = round((top - bottom) / res[1])
-    if width <= 0 or height <= 0:
-        raise GridMismatchError(f"rasters do not overlap ({a.path} vs {b.path})")
-
-    from rasterio.transform import Affine
-
-    transform = Affine(res[0], 0.0, left, 0.0, -res[1], top)
-    before = np.full((height, width), np.nan)
-    after = np.full((height, width), np.nan)
-    _read_into(a, before, left, top, res)
-    _read_into(b, after, left, top, res)
+    before, after, grid = read_aligned_pair(chm_from_path, chm_to_path, extent=extent)
+    crs_text = raster_crs_text(_open_grid(Path(chm_from_path)).crs)
     difference = after - before
     valid = np.isfinite(difference)
     data = np.where(valid, difference, NODATA).astype(np.float32)
 
-    from standgrid.enrich.rasters import RasterGrid, write_cog
+    from standgrid.enrich.rasters import write_cog
 
     final = Path(out_path)
     write_cog(
         final,
         data,
-        RasterGrid(x0=left, y0=top - height * res[0], pixel_size=res[0], ncols=width, nrows=height),
+        grid,
         crs=crs_text,
         nodata=NODATA,
         description="CHM difference to - from (m)",
@@ -180,9 +189,9 @@ def chm_difference(
     n_valid = int(valid.sum())
     return ChmDifference(
         path=final,
-        width=width,
-        height=height,
-        transform=tuple(transform)[:6],
+        width=grid.ncols,
+        height=grid.nrows,
+        transform=tuple(grid.transform)[:6],
         crs=crs_text,
         valid_pixels=n_valid,
         mean_change_m=float(difference[valid].mean()) if n_valid else None,

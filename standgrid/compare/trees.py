@@ -33,6 +33,12 @@ Tree-matching rule
     the height noise of a lidar tree top) is kept as ``grown`` but flagged ``suspicious``
     (broken top, or a doubtful match).
 
+DBH sources
+    With a ``dbh_source`` column in both tree lists (``measured`` / ``imputed``), a matched
+    tree whose DBH was measured in one epoch and imputed in the other is flagged
+    ``dbh_mixed_sources`` and gets no ``dbh_m_delta``: the difference of a fit and a model
+    is not growth.
+
 Statuses
     ``grown``: matched (re-observed). ``new``: only in *to* (ingrowth, or a tree hidden
     before). ``removed``: only in *from*, i.e. not re-observed within ``max_distance``:
@@ -265,6 +271,12 @@ def _nullable_ids(values: pd.Series, index: np.ndarray, present: np.ndarray) -> 
     return series
 
 
+def _take_text(values: pd.Series, index: np.ndarray, present: np.ndarray) -> np.ndarray:
+    out = np.full(len(index), None, dtype=object)
+    out[present] = values.astype(object).to_numpy()[index[present]]
+    return out
+
+
 def match_trees(
     trees_from: pd.DataFrame,
     trees_to: pd.DataFrame,
@@ -351,6 +363,14 @@ def match_trees(
         table[f"{attribute}_to"] = after
         table[f"{attribute}_delta"] = after - before
         table[f"{attribute}_per_year"] = (after - before) / years
+    if "dbh_source" in a.columns and "dbh_source" in b.columns:
+        # a DBH measured in one epoch and imputed in the other is no growth measurement
+        source_from = _take_text(a["dbh_source"], idx_a, has_a)
+        source_to = _take_text(b["dbh_source"], idx_b, has_b)
+        table["dbh_source_from"], table["dbh_source_to"] = source_from, source_to
+        mixed = has_a & has_b & (source_from != source_to)
+        table["dbh_mixed_sources"] = mixed
+        table.loc[mixed, ["dbh_m_delta", "dbh_m_per_year"]] = np.nan
     table["suspicious"] = (table["status"] == "grown") & (
         table["height_m_delta"] < -height_tolerance_m
     )

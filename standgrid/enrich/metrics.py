@@ -25,7 +25,7 @@ DEFAULT_STRATA: tuple[float, ...] = (0.5, 2.0, 5.0, 10.0, 20.0, 30.0)
 REASON_NO_POINTS = "no points"
 REASON_NO_HEIGHT = "no height above ground (no ground/DTM)"
 REASON_NO_TREES = "no trees detected"
-REASON_NO_DBH = "no tree with a DBH"
+REASON_NO_DBH = "basal area and QMD unknown: trees without a DBH"
 
 
 def _fmt(value: float) -> str:
@@ -291,14 +291,19 @@ def tree_metrics(
     cell_area_m2: float,
     cells: ArrayLike | None = None,
     dominant_per_ha: float = 100.0,
+    dbh_measured: ArrayLike | None = None,
 ) -> pd.DataFrame:
     """Tree-based stand metrics per cell from a tree list (one entry per tree).
 
-    ``stems_ha`` (trees per ha), ``basal_area_m2_ha`` and ``qmd_cm`` (from the trees with a
-    DBH; ``n_dbh`` tells how many), ``mean_height_m`` and ``dominant_height_m``: the mean
-    height of the k = max(1, round(dominant_per_ha * area_ha)) largest-DBH trees of the cell,
-    or of the k tallest when any tree of the cell lacks a DBH. ``cells`` lists cells that were
-    measured (they get a row with 0 stems and a ``null_reason`` when they hold no tree).
+    ``dbh_m`` is measured or imputed (``dbh_measured`` tells which; all measured when not
+    given). ``stems_ha`` (trees per ha); ``basal_area_m2_ha`` and ``qmd_cm`` over **all**
+    trees, null with a reason when any tree of the cell has no DBH (a sum over some trees
+    is no basal area); ``n_dbh_measured``, ``n_dbh_imputed`` and ``dbh_measured_share``
+    tell how much rests on stem fits; ``mean_height_m`` and ``dominant_height_m``: the mean
+    height of the k = max(1, round(dominant_per_ha * area_ha)) largest-DBH trees of the
+    cell, or of the k tallest when any tree of the cell lacks a DBH. ``cells`` lists cells
+    that were measured (they get a row with 0 stems and a ``null_reason`` when they hold
+    no tree).
     """
     keys = np.asarray(cell, dtype=np.int64)
     height = np.asarray(height_m, dtype=np.float64)
@@ -307,17 +312,24 @@ def tree_metrics(
         raise EnrichError("cell, height_m and dbh_m must be 1-D arrays of one length")
     if cell_area_m2 <= 0:
         raise EnrichError(f"cell area must be > 0, got {cell_area_m2}")
+    has_dbh = np.isfinite(dbh)
+    measured = has_dbh if dbh_measured is None else np.asarray(dbh_measured, dtype=bool)
+    if measured.shape != dbh.shape:
+        raise EnrichError("dbh_measured must have one entry per tree")
+    measured = measured & has_dbh
     area_ha = cell_area_m2 / 10_000.0
     k_dominant = max(1, round(dominant_per_ha * area_ha))
     trees = pd.DataFrame({"cell": keys, "h": height, "dbh": dbh})
-    trees["has_dbh"] = np.isfinite(dbh)
-    trees["ba"] = np.where(trees["has_dbh"], math.pi * (trees["dbh"] / 2.0) ** 2, 0.0)
-    trees["dbh2"] = np.where(trees["has_dbh"], trees["dbh"] ** 2, 0.0)
+    trees["has_dbh"] = has_dbh
+    trees["measured"] = measured
+    trees["ba"] = np.where(has_dbh, math.pi * (dbh / 2.0) ** 2, 0.0)
+    trees["dbh2"] = np.where(has_dbh, dbh**2, 0.0)
     grouped = trees.groupby("cell", sort=True)
     out = pd.DataFrame(
         {
             "n_trees": grouped.size(),
             "n_dbh": grouped["has_dbh"].sum(),
+            "n_measured": grouped["measured"].sum(),
             "ba_sum": grouped["ba"].sum(),
             "dbh2_sum": grouped["dbh2"].sum(),
             "mean_height_m": grouped["h"].mean(),
@@ -339,18 +351,28 @@ def tree_metrics(
     out = out.reindex(pd.Index(index, name="cell"))
     n_trees = out["n_trees"].fillna(0).astype(np.int64)
     n_dbh = out["n_dbh"].fillna(0).astype(np.int64)
+    n_measured = out["n_measured"].fillna(0).astype(np.int64)
+    complete = (n_dbh == n_trees) & (n_trees > 0)
     result = pd.DataFrame(index=out.index)
     result["n_trees"] = n_trees
-    result["n_dbh"] = n_dbh
-    result["stems_ha"] = n_trees / area_ha
+    result["n_dbh_measured"] = n_measured
+    result["n_dbh_imputed"] = n_dbh - n_measured
     with np.errstate(invalid="ignore", divide="ignore"):
-        result["basal_area_m2_ha"] = np.where(n_dbh > 0, out["ba_sum"] / area_ha, np.nan)
-        result["qmd_cm"] = np.where(n_dbh > 0, 100.0 * np.sqrt(out["dbh2_sum"] / n_dbh), np.nan)
+        result["dbh_measured_share"] = np.where(n_trees > 0, n_measured / n_trees, np.nan)
+        result["stems_ha"] = n_trees / area_ha
+        result["basal_area_m2_ha"] = np.where(complete, out["ba_sum"] / area_ha, np.nan)
+        result["qmd_cm"] = np.where(
+            complete, 100.0 * np.sqrt(out["dbh2_sum"] / np.maximum(n_dbh, 1)), np.nan
+        )
+    result.loc[n_trees == 0, "basal_area_m2_ha"] = 0.0
     result["mean_height_m"] = out["mean_height_m"]
     result["dominant_height_m"] = out["dominant_height_m"]
     result["dominant_by"] = pd.array(out["dominant_by"].where(n_trees > 0, None), dtype="string")
     reason = np.full(len(result), None, dtype=object)
-    reason[(n_dbh == 0).to_numpy()] = REASON_NO_DBH
+    incomplete = ((n_dbh < n_trees) & (n_trees > 0)).to_numpy()
+    for i in np.flatnonzero(incomplete):
+        missing = int(n_trees.iat[i] - n_dbh.iat[i])
+        reason[i] = f"{REASON_NO_DBH}: {missing} of {int(n_trees.iat[i])} trees"
     reason[(n_trees == 0).to_numpy()] = REASON_NO_TREES
     result["null_reason"] = pd.array(reason, dtype="string")
     return result

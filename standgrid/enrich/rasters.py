@@ -46,11 +46,14 @@ class RasterGrid:
         cell_size: float,
         pixel_size: float = 1.0,
         snap_to_cells: bool = True,
+        closed: bool = False,
     ) -> RasterGrid:
         """The aligned raster covering ``bounds`` = (xmin, ymin, xmax, ymax).
 
         ``origin`` and ``cell_size`` are the stand grid's; ``pixel_size`` must divide
-        ``cell_size``. With ``snap_to_cells`` the extent grows to whole stand cells.
+        ``cell_size``. With ``snap_to_cells`` the extent grows to whole stand cells. Bounds
+        are of points (half-open: a point at ``xmax`` is inside) unless ``closed``: the
+        bounds of polygons, so cells whose upper edge is ``xmax`` end the raster there.
         """
         if pixel_size <= 0 or cell_size <= 0:
             raise GridError(f"pixel size {pixel_size} and cell size {cell_size} must be > 0")
@@ -66,8 +69,12 @@ class RasterGrid:
         ox, oy = float(origin[0]), float(origin[1])
         i0 = math.floor((xmin - ox) / step + _TOL)
         j0 = math.floor((ymin - oy) / step + _TOL)
-        i1 = max(math.floor((xmax - ox) / step + _TOL) + 1, i0 + 1)  # half-open: xmax inside
-        j1 = max(math.floor((ymax - oy) / step + _TOL) + 1, j0 + 1)
+        if closed:  # the bounds of polygons: an upper edge on the lattice ends the raster
+            i1 = max(math.ceil((xmax - ox) / step - _TOL), i0 + 1)
+            j1 = max(math.ceil((ymax - oy) / step - _TOL), j0 + 1)
+        else:  # half-open: a point at xmax must be inside
+            i1 = max(math.floor((xmax - ox) / step + _TOL) + 1, i0 + 1)
+            j1 = max(math.floor((ymax - oy) / step + _TOL) + 1, j0 + 1)
         per = round(step / pixel_size)
         return cls(
             x0=ox + i0 * step,

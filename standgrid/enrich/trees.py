@@ -61,6 +61,8 @@ TREE_COLUMNS = [
     "stem_x",
     "stem_y",
     "dbh_rmse_m",
+    "dbh_n_points",
+    "dbh_arc_deg",
     "owned",
     "crown",
 ]
@@ -218,6 +220,8 @@ def segment_trees(
     table["stem_x"] = np.nan
     table["stem_y"] = np.nan
     table["dbh_rmse_m"] = np.nan
+    table["dbh_n_points"] = 0
+    table["dbh_arc_deg"] = np.nan
     if fit_dbh:
         near = np.ones(len(xyz), dtype=bool)
         if keep_bounds is not None:  # only stems that can belong to the block's own trees
@@ -234,6 +238,7 @@ def _empty_table() -> pd.DataFrame:
     table = pd.DataFrame({name: pd.Series(dtype=float) for name in TREE_COLUMNS})
     table["tree_id"] = table["tree_id"].astype(np.int64)
     table["n_points"] = table["n_points"].astype(np.int64)
+    table["dbh_n_points"] = table["dbh_n_points"].astype(np.int64)
     table["owned"] = table["owned"].astype(bool)
     table["dbh_reason"] = table["dbh_reason"].astype("string")
     table["crown"] = table["crown"].astype(object)
@@ -294,6 +299,8 @@ def _attach_stems(
     stem_x = table["stem_x"].to_numpy(dtype=float, copy=True)
     stem_y = table["stem_y"].to_numpy(dtype=float, copy=True)
     rmse = table["dbh_rmse_m"].to_numpy(dtype=float, copy=True)
+    n_used = table["dbh_n_points"].to_numpy(dtype=np.int64, copy=True)
+    arc = table["dbh_arc_deg"].to_numpy(dtype=float, copy=True)
     for s, t in pairs:
         if s in used_stem or t in used_tree:
             continue
@@ -306,9 +313,12 @@ def _attach_stems(
         dbh[t] = stems["dbh_m"].iat[s]
         stem_x[t], stem_y[t] = sx[s], sy[s]
         rmse[t] = stems["rmse_m"].iat[s]
+        n_used[t] = stems["n_inliers"].iat[s]
+        arc[t] = stems["arc_deg"].iat[s]
         reasons[t] = None
     table["dbh_m"] = dbh
     table["stem_x"], table["stem_y"], table["dbh_rmse_m"] = stem_x, stem_y, rmse
+    table["dbh_n_points"], table["dbh_arc_deg"] = n_used, arc
     table["dbh_reason"] = pd.array(reasons, dtype="string")
 
 

@@ -13,6 +13,16 @@ from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
+import numpy as np
+
+from standgrid.compare.coverage import (
+    CO_OBSERVED_METRICS,
+    UNOBSERVED,
+    CoObserved,
+    mark_unobserved,
+    stand_change,
+)
+from standgrid.enrich.stands import SAMPLE_COLUMNS, TREE_COUNT_COLUMNS, CoverageRule
 from standgrid.errors import EnrichError, EpochNotFoundError
 
 if TYPE_CHECKING:
@@ -62,11 +72,15 @@ def compare_epochs(
     *,
     other_catalog: str | Path | None = None,
     max_distance: float = 2.0,
+    min_observed_fraction: float = CoverageRule.min_observed_fraction,
 ) -> CompareReport:
     """Change from ``epoch_from`` to ``epoch_to`` (default: the first and last epochs).
 
     With ``other_catalog``, ``epoch_to`` is read from that catalog, which must be on the same
-    grid (``GridMismatchError`` otherwise). Outputs go into ``catalog_path``.
+    grid (``GridMismatchError`` otherwise). Outputs go into ``catalog_path``. Tree counts,
+    basal area and harvest are compared over the ground both epochs observed only
+    (:mod:`standgrid.compare.coverage`); stands with less than ``min_observed_fraction`` of
+    it get null changes with a reason.
     """
     import pandas as pd
 
@@ -89,29 +103,37 @@ def compare_epochs(
     matches = match_trees(
         trees_from, trees_to, date_from=date_from, date_to=date_to, max_distance=max_distance
     )
-    matches = _locate(matches, trees_from, trees_to, metrics_from, metrics_to)
+    co = CoObserved.read(
+        source.path(f"rasters/{epoch_from}/observed.tif"),
+        target.path(f"rasters/{epoch_to}/observed.tif"),
+    )
+    matches = _locate(matches, trees_from, trees_to)
+    matches = replace(matches, table=mark_unobserved(matches.table, co))
     cells = _cell_polygons(source, target, metrics_from, metrics_to)
     per_level = []
     for level in sorted(set(metrics_from["level"]) | set(metrics_to["level"])):
         a = metrics_from[metrics_from["level"] == level]
         b = metrics_to[metrics_to["level"] == level]
         polygons = cells[cells["cell_id"].isin(set(a["cell_id"]) | set(b["cell_id"]))]
-        area = pd.concat([b, a]).drop_duplicates("cell_id", keep="last").set_index("cell_id")
-        key = "cell_id" if level == 0 else "stand_id"
-        located = replace(matches, table=matches.table.assign(cell_id=matches.table[key]))
         changes = compare_stands(
-            a.drop(columns=["level", "cell_size"]),
-            b.drop(columns=["level", "cell_size"]),
+            _forest_metrics(a),
+            _forest_metrics(b),
             date_from=date_from,
             date_to=date_to,
             epoch_from=epoch_from,
             epoch_to=epoch_to,
-            tree_matches=located,
-            cells=polygons.reset_index(drop=True),
-            stand_area_m2=area["area_m2"],
         )
+        trees = stand_change(
+            matches.table,
+            "cell_id" if level == 0 else "stand_id",
+            polygons.reset_index(drop=True),
+            co,
+            years=matches.years,
+            min_fraction=min_observed_fraction,
+        )
+        changes = _with_coverage(changes, trees, a, b)
         changes.insert(1, "level", int(level))
-        per_level.append(_note_area_change(changes))
+        per_level.append(changes)
     changes = pd.concat(per_level, ignore_index=True)
 
     folder = pair_folder(epoch_from, epoch_to)
@@ -188,9 +210,6 @@ def _write_outputs(
     return written
 
 
-UNOBSERVED = "unobserved"
-
-
 def _read_table(catalog: Catalog, rel: str) -> pd.DataFrame:
     import pandas as pd
 
@@ -202,65 +221,64 @@ def _read_table(catalog: Catalog, rel: str) -> pd.DataFrame:
     return pd.read_parquet(path)
 
 
-def _locate(
-    matches: Any,
-    trees_from: pd.DataFrame,
-    trees_to: pd.DataFrame,
-    metrics_from: pd.DataFrame,
-    metrics_to: pd.DataFrame,
-) -> Any:
-    """Give every matched tree its cell and 1 ha stand, and tell unobserved trees apart.
+def _locate(matches: Any, trees_from: pd.DataFrame, trees_to: pd.DataFrame) -> Any:
+    """Give every matched tree its cell, 1 ha stand and stem position.
 
     A tree's stand is where enrich put it (the cell holding its top, half-open), taken from
     the tree lists: the later epoch's for grown and new trees, the earlier one's for removed
-    trees. A tree "removed" from a cell that the later epoch did not measure (not surveyed, or
-    no terrain there), or "new" in a cell the earlier epoch did not measure, was not observed
-    twice: its status becomes ``unobserved`` and it counts as neither harvest nor ingrowth.
+    trees; so is its stem position (the fitted stem, or the top without a stem fit).
     """
     table = matches.table.copy()
+    removed = (table["status"] == "removed").to_numpy()
+    for frame in (trees_from, trees_to):
+        for xy in ("x", "y"):
+            stem = f"stem_{xy}"
+            values = frame[stem] if stem in frame.columns else frame[xy]
+            frame[f"_{stem}"] = values.where(values.notna(), frame[xy])
     columns = [c for c in ("cell_id", "stand_id") if c in trees_from.columns]
+    columns += ["_stem_x", "_stem_y"]
     by_id_from = trees_from.set_index("tree_id")[columns]
     by_id_to = trees_to.set_index("tree_id")[columns]
-    removed = (table["status"] == "removed").to_numpy()
     for column in columns:
         later = table["tree_id_to"].map(by_id_to[column])
         earlier = table["tree_id_from"].map(by_id_from[column])
-        table[column] = later.where(~removed, earlier)
+        table[column.lstrip("_")] = later.where(~removed, earlier)
     if "stand_id" not in table.columns:
         table["stand_id"] = None
-
-    def measured(metrics: pd.DataFrame) -> set[str]:
-        cells = metrics[(metrics["level"] == 0) & metrics["n_trees"].notna()]
-        return set(cells["cell_id"])
-
-    unseen_later = removed & ~table["cell_id"].isin(measured(metrics_to)).to_numpy()
-    new = (table["status"] == "new").to_numpy()
-    unseen_earlier = new & ~table["cell_id"].isin(measured(metrics_from)).to_numpy()
-    table.loc[unseen_later | unseen_earlier, "status"] = UNOBSERVED
     return replace(matches, table=table)
 
 
-def _note_area_change(changes: pd.DataFrame) -> pd.DataFrame:
-    """Say so where a stand was measured over different areas in the two epochs."""
-    if "area_m2_from" not in changes.columns:
-        return changes
-    differs = (
-        changes["area_m2_from"].notna()
-        & changes["area_m2_to"].notna()
-        & (changes["area_m2_from"] != changes["area_m2_to"])
-    )
-    note = (
-        "measured over different areas ("
-        + changes["area_m2_from"].round(0).astype("Int64").astype(str)
-        + " vs "
-        + changes["area_m2_to"].round(0).astype("Int64").astype(str)
-        + " m2): area-based changes compare different ground"
-    )
-    reason = changes["null_reason"].astype("string")
-    changes["null_reason"] = reason.where(
-        ~differs, (reason.fillna("") + "; " + note).str.lstrip("; ")
-    )
-    return changes
+#: stand_metrics columns that describe the sample or are recomputed over co-observed ground.
+_NOT_COMPARED = frozenset((*SAMPLE_COLUMNS, *TREE_COUNT_COLUMNS, *CO_OBSERVED_METRICS))
+
+
+def _forest_metrics(metrics: pd.DataFrame) -> pd.DataFrame:
+    """The metric columns whose change means something about the forest."""
+    return metrics.drop(columns=[c for c in metrics.columns if c in _NOT_COMPARED])
+
+
+def _with_coverage(
+    changes: pd.DataFrame, trees: pd.DataFrame, a: pd.DataFrame, b: pd.DataFrame
+) -> pd.DataFrame:
+    """Join the co-observed tree change; null every change of a stand short of coverage."""
+    import pandas as pd
+
+    out = changes.merge(trees, on="cell_id", how="left")
+    for side, frame in (("from", a), ("to", b)):
+        observed = frame.set_index("cell_id")["observed_fraction"]
+        out[f"observed_fraction_{side}"] = out["cell_id"].map(observed)
+    short = out["coverage_reason"].notna().to_numpy()
+    changed = [c for c in out.columns if c.endswith(("_delta", "_per_year"))]
+    changed += [c for c in out.columns if c.startswith("trees_") or c.startswith("tree_height")]
+    changed += [f"{m}_{side}" for m in CO_OBSERVED_METRICS for side in ("from", "to")]
+    out.loc[short, list(dict.fromkeys(changed))] = np.nan
+    reason = out["null_reason"].astype("string").fillna("")
+    extra = out["coverage_reason"].astype("string").fillna("")
+    joined = (extra + "; " + reason).str.strip("; ")
+    out["null_reason"] = joined.where(joined != "", pd.NA)
+    for column in ("trees_grown", "trees_removed", "trees_new"):
+        out[column] = out[column].astype("Int64")
+    return out.drop(columns=["coverage_reason"]).copy()
 
 
 def _default_epoch(catalog: Catalog, *, first: bool) -> str:

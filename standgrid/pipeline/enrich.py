@@ -29,13 +29,16 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 from numpy.typing import NDArray
 
-from standgrid.enrich.rasters import NODATA
+from standgrid.enrich.rasters import NODATA, chm, density
+from standgrid.enrich.stands import CoverageRule, StandSample
 from standgrid.errors import EnrichError, EpochNotFoundError, StandgridError
 from standgrid.pointcloud import PointCloud
 
 if TYPE_CHECKING:
     import pandas as pd
 
+    from standgrid.enrich.allometry import HeightDiameterModel
+    from standgrid.enrich.coverage import Coverage
     from standgrid.enrich.rasters import RasterGrid
     from standgrid.export.catalog import Catalog, Transaction
 
@@ -60,6 +63,9 @@ class EnrichOptions:
     rigidness: int = 1
     tree_pixel_size: float = 0.5
     tree_min_height: float = 2.0
+    min_observed_fraction: float = 0.25
+    min_density_pts_m2: float = 2.0
+    coverage_closing_m: float = 2.0
     epochs: tuple[str, ...] = ()
 
 
@@ -119,6 +125,7 @@ def enrich_catalog(
     status: Callable[[str], None] = lambda message: None,
 ) -> EnrichReport:
     """Enrich every epoch of the catalog (or ``options.epochs``); returns what was done."""
+    from standgrid.enrich.allometry import impute_dbh
     from standgrid.export.catalog import Catalog
 
     catalog = Catalog.open(catalog_path)
@@ -134,14 +141,27 @@ def enrich_catalog(
         raise EnrichError(
             "the catalog has no epochs: tile missions into it first", path=catalog.root
         )
+    rule = CoverageRule(options.min_observed_fraction, options.min_density_pts_m2)
     report = EnrichReport(catalog.root)
     metric_tables: dict[str, pd.DataFrame] = {}
     tree_tables: dict[str, pd.DataFrame] = {}
     with catalog.transaction() as txn:
+        results = {}
         for epoch in epochs:
             status(f"enriching epoch {epoch}")
-            metrics, trees, summary = _enrich_epoch(catalog, txn, epoch, options, wrap)
-            metric_tables[epoch], tree_tables[epoch] = metrics, trees
+            results[epoch] = _enrich_epoch(catalog, txn, epoch, options, wrap)
+        models = _height_diameter_models(catalog, {e: r.trees for e, r in results.items()})
+        for epoch, result in results.items():
+            trees = impute_dbh(result.trees, models[epoch])
+            metric_tables[epoch] = _metrics_table(
+                _stand_rows(catalog, result, trees, rule, options), epoch
+            )
+            tree_tables[epoch] = trees
+            summary = result.summary | _tree_summary(trees, models[epoch])
+            summary["coverage_rule"] = {
+                "min_observed_fraction": rule.min_observed_fraction,
+                "min_density_pts_m2": rule.min_density_pts_m2,
+            }
             report.epochs[epoch] = summary
             txn.state["epochs"][epoch]["enriched"] = True
             txn.state["epochs"][epoch]["enrichment"] = summary
@@ -151,6 +171,16 @@ def enrich_catalog(
 
 
 # --- one epoch ---------------------------------------------------------------------------
+
+
+@dataclass
+class _EpochResult:
+    """An epoch after segmentation: per-cell samples (trees not yet attached), trees."""
+
+    cells: list[_Cell]
+    samples: dict[str, StandSample]
+    trees: pd.DataFrame
+    summary: dict[str, Any]
 
 
 def _epoch_cells(catalog: Catalog, epoch: str) -> list[_Cell]:
@@ -192,25 +222,30 @@ def _grid_alignment(catalog: Catalog) -> tuple[tuple[float, float], float]:
 
 def _enrich_epoch(
     catalog: Catalog, txn: Transaction, epoch: str, options: EnrichOptions, wrap: Wrap
-) -> tuple[pd.DataFrame, pd.DataFrame, dict[str, Any]]:
+) -> _EpochResult:
     import shapely
 
+    from standgrid.enrich.coverage import cells_mask, coverage_from_hits, ground_hits
     from standgrid.enrich.rasters import RasterGrid
 
     cells = _epoch_cells(catalog, epoch)
     if not cells:
         raise EnrichError(f"epoch {epoch} has no tiles", path=catalog.root)
     origin, cell_size = _grid_alignment(catalog)
-    bounds = shapely.bounds(shapely.union_all([c.polygon for c in cells]))
+    polygons = [c.polygon for c in cells]
     grid = RasterGrid.covering(
-        tuple(bounds), origin=origin, cell_size=cell_size, pixel_size=options.pixel_size
+        tuple(shapely.bounds(shapely.union_all(polygons))),
+        origin=origin,
+        cell_size=cell_size,
+        pixel_size=options.pixel_size,
+        closed=True,
     )
-    tree = shapely.STRtree([c.polygon for c in cells])
+    tree = shapely.STRtree(polygons)
     tiles = _TileCache(catalog, origin)
     # the block must reach every buffer copy a tile holds, so those get heights and ids too
     halo = max(options.halo, float(txn.state.get("tiling", {}).get("buffer", 0.0)))
 
-    def block(cell: _Cell) -> NDArray[np.float64]:
+    def block(cell: _Cell) -> tuple[NDArray[np.float64], int]:
         """The cell's core points first, then every neighbour core point within the halo."""
         xmin, ymin, xmax, ymax = cell.polygon.bounds
         h = halo
@@ -221,69 +256,160 @@ def _enrich_epoch(
             xyz = _core_xyz(tiles.get(cells[j].rel))
             x, y = xyz[:, 0], xyz[:, 1]
             parts.append(xyz[(x >= xmin - h) & (x < xmax + h) & (y >= ymin - h) & (y < ymax + h)])
-        return np.concatenate(parts)
+        return np.concatenate(parts), len(parts[0])
 
-    # pass 1: ground and the terrain model
+    # pass 1: ground, the terrain model and where the ground was seen
     dtm = np.full(grid.shape, np.nan, dtype=np.float32)
+    hits = np.zeros(grid.shape, dtype=np.int64)
     ground_of: dict[str, NDArray[np.bool_]] = {}
     no_ground: set[str] = set()
     for cell in wrap(cells, len(cells), f"{epoch}: ground"):
-        xyz = block(cell)
+        xyz, n_core = block(cell)
         mask = _classify(xyz, options, catalog.path(cell.rel))
         ground_of[cell.rel] = mask
         if not mask.any():
             no_ground.add(cell.cell_id)
             continue
+        hits += ground_hits(grid, xyz[:n_core][mask[:n_core], :2])
         ground = xyz[mask]
         _paste(dtm, grid, cell.polygon, functools.partial(_dtm, ground))
     if np.isnan(dtm).all():
         raise EnrichError(
             f"epoch {epoch}: no ground points anywhere, so no terrain model", path=catalog.root
         )
+    coverage = coverage_from_hits(
+        hits, grid, cells_mask(grid, polygons), closing_radius=options.coverage_closing_m
+    )
     dtm_filled = _nearest_fill(dtm)
 
-    # pass 2: heights, rasters, trees, metrics, tiles
+    # pass 2: heights, rasters, trees, tiles
     chm_raster = np.full(grid.shape, np.nan, dtype=np.float32)
     density_raster = np.zeros(grid.shape, dtype=np.float32)
-    metric_rows = []
+    samples: dict[str, StandSample] = {}
     tree_frames: list[pd.DataFrame] = []
-    heights: dict[str, NDArray[np.float32]] = {}
-    for cell in wrap(cells, len(cells), f"{epoch}: trees and metrics"):
-        metric_rows.append(
-            _enrich_cell(
-                catalog,
-                txn,
-                cell,
-                tiles,
-                block(cell),
-                ground_of.pop(cell.rel),
-                dtm_filled,
-                grid,
-                chm_raster,
-                density_raster,
-                tree_frames,
-                heights,
-                options,
-                cell.cell_id in no_ground,
-            )
+    size = _cell_size(catalog)
+    for cell in wrap(cells, len(cells), f"{epoch}: trees and tiles"):
+        xyz, _ = block(cell)
+        core_xyz, core_hag, owned = _enrich_cell(
+            catalog, txn, cell, tiles, xyz, ground_of.pop(cell.rel), dtm_filled, grid,
+            options, cell.cell_id in no_ground,
+        )  # fmt: skip
+        tree_frames.append(owned)
+        if cell.cell_id not in no_ground:
+            _paste(chm_raster, grid, cell.polygon, functools.partial(chm, core_xyz, core_hag))
+        _paste(density_raster, grid, cell.polygon, functools.partial(density, core_xyz))
+        on_observed = coverage.observed_at(core_xyz[:, 0], core_xyz[:, 1])
+        samples[cell.cell_id] = StandSample(
+            stand_id=cell.cell_id,
+            level=0,
+            cell_size=size,
+            area_m2=float(cell.polygon.area),
+            observed_m2=coverage.observed_m2(cell.polygon),
+            n_points=len(core_xyz),
+            heights=core_hag[on_observed],
+            trees=owned.iloc[0:0],
+            no_ground=cell.cell_id in no_ground,
         )
-    metric_rows.extend(_stand_rows(catalog, cells, heights, tree_frames, no_ground, options))
+    trees = _tree_table(tree_frames, epoch)
+    stem_x = trees["stem_x"].where(trees["stem_x"].notna(), trees["x"]).to_numpy(np.float64)
+    stem_y = trees["stem_y"].where(trees["stem_y"].notna(), trees["y"]).to_numpy(np.float64)
+    trees["observed"] = coverage.observed_at(stem_x, stem_y)
+
+    unseen = ~coverage.near_ground
     for name, array, description in (
         ("dtm", dtm, "digital terrain model: ellipsoidal height of the ground (m)"),
         ("chm", chm_raster, "canopy height model: height above ground (m)"),
-        ("density", density_raster, "points per square metre"),
     ):
+        array[unseen] = np.nan  # terrain (and heights over it) extrapolated there
         _write_raster(txn, f"rasters/{epoch}/{name}.tif", array, grid, catalog.crs, description)
-    metrics = _metrics_table(metric_rows, epoch)
-    trees = _tree_table(tree_frames, epoch)
+    _write_raster(
+        txn, f"rasters/{epoch}/density.tif", density_raster, grid, catalog.crs,
+        "points per square metre",
+    )  # fmt: skip
+    _write_coverage(txn, f"rasters/{epoch}/observed.tif", coverage, catalog.crs)
+    observed_m2 = float(coverage.observed.sum()) * grid.pixel_size**2
     summary = {
         "cells": len(cells),
         "cells_without_ground": len(no_ground),
-        "trees": len(trees),
-        "trees_with_dbh": int(np.isfinite(trees["dbh_m"]).sum()) if len(trees) else 0,
         "raster_pixel_size_m": options.pixel_size,
+        "observed_m2": observed_m2,
+        "observed_fraction": observed_m2 / float(sum(p.area for p in polygons)),
     }
-    return metrics, trees, summary
+    return _EpochResult(cells, samples, trees, summary)
+
+
+def _height_diameter_models(
+    catalog: Catalog, trees: dict[str, pd.DataFrame]
+) -> dict[str, HeightDiameterModel | None]:
+    """Per epoch: its own height-diameter model, or one pooled over the catalog's epochs."""
+    import pandas as pd
+
+    from standgrid.enrich.allometry import fit_height_diameter
+
+    measured = {e: t[np.isfinite(t["dbh_m"].to_numpy(np.float64))] for e, t in trees.items()}
+    for epoch in catalog.epochs:  # measured trees of epochs enriched before
+        path = catalog.path(f"tables/tree_list_{epoch}.parquet")
+        if epoch not in measured and path.exists():
+            old = pd.read_parquet(path)
+            if "dbh_source" in old.columns:
+                measured[epoch] = old[old["dbh_source"] == "measured"]
+    frames = [m[["height_m", "dbh_m"]] for m in measured.values() if len(m)]
+    pooled_trees = pd.concat(frames, ignore_index=True) if frames else None
+    pooled = None
+    if pooled_trees is not None:
+        pooled = fit_height_diameter(
+            pooled_trees["height_m"], pooled_trees["dbh_m"], source="catalog (all epochs)"
+        )
+    models: dict[str, HeightDiameterModel | None] = {}
+    for epoch in trees:
+        own = measured[epoch]
+        model = fit_height_diameter(own["height_m"], own["dbh_m"], source=f"epoch {epoch}")
+        models[epoch] = model or pooled
+    return models
+
+
+def _tree_summary(trees: pd.DataFrame, model: HeightDiameterModel | None) -> dict[str, Any]:
+    source = trees["dbh_source"] if len(trees) else None
+    return {
+        "trees": len(trees),
+        "trees_on_observed_ground": int(trees["observed"].sum()) if len(trees) else 0,
+        "trees_dbh_measured": int((source == "measured").sum()) if source is not None else 0,
+        "trees_dbh_imputed": int((source == "imputed").sum()) if source is not None else 0,
+        "height_diameter_model": model.to_dict() if model is not None else None,
+    }
+
+
+def _stand_rows(
+    catalog: Catalog,
+    result: _EpochResult,
+    trees: pd.DataFrame,
+    rule: CoverageRule,
+    options: EnrichOptions,
+) -> list[dict[str, Any]]:
+    """Every cell's row, then every 1 ha stand's (the grid's next level) over its measured
+    cells: a stand aggregates the observed ground, points and trees of its cells that pass
+    the coverage rule; its area is the whole stand's."""
+    from standgrid.enrich.stands import aggregate, passes, stand_row
+
+    on_ground = trees[trees["observed"]] if len(trees) else trees
+    by_cell = dict(tuple(on_ground.groupby("cell_id"))) if len(on_ground) else {}
+    rows, measured = [], []
+    for cell in result.cells:
+        sample = result.samples[cell.cell_id]
+        sample.trees = by_cell.get(cell.cell_id, trees.iloc[0:0])
+        row = stand_row(sample, rule, height_break=options.height_break)
+        rows.append(row)
+        if passes(row):
+            measured.append(cell)
+    grid = _stand_grid(catalog)
+    if grid is None:
+        return rows
+    size = float(grid.levels[1])
+    for stand_id in sorted({c.stand_id for c in result.cells if c.stand_id is not None}):
+        members = [result.samples[c.cell_id] for c in measured if c.stand_id == stand_id]
+        sample = aggregate(stand_id, size, size * size, members)
+        rows.append(stand_row(sample, rule, height_break=options.height_break))
+    return rows
 
 
 # --- one cell ----------------------------------------------------------------------------
@@ -335,23 +461,6 @@ def _thin(points: NDArray[np.float64], spacing: float) -> NDArray[np.float64]:
     return points[np.sort(first)]
 
 
-def _window(grid: RasterGrid, polygon: Any) -> tuple[RasterGrid, tuple[slice, slice]]:
-    """The pixels of ``grid`` covering ``polygon``'s bounds, and their slice of the array."""
-    from standgrid.enrich.rasters import RasterGrid
-
-    xmin, ymin, xmax, ymax = polygon.bounds
-    ps = grid.pixel_size
-    tol = 1e-9
-    i0 = max(0, math.floor((xmin - grid.x0) / ps + tol))
-    i1 = min(grid.ncols, math.ceil((xmax - grid.x0) / ps - tol))
-    j0 = max(0, math.floor((ymin - grid.y0) / ps + tol))
-    j1 = min(grid.nrows, math.ceil((ymax - grid.y0) / ps - tol))
-    i1, j1 = max(i1, i0 + 1), max(j1, j0 + 1)
-    sub = RasterGrid(grid.x0 + i0 * ps, grid.y0 + j0 * ps, ps, i1 - i0, j1 - j0)
-    rows = slice(grid.nrows - j1, grid.nrows - j0)  # row 0 is the northern edge
-    return sub, (rows, slice(i0, i1))
-
-
 def _paste(
     target: NDArray[np.float32],
     grid: RasterGrid,
@@ -359,14 +468,12 @@ def _paste(
     compute: Callable[[RasterGrid], NDArray[np.floating]],
 ) -> None:
     """Compute a raster window over ``polygon`` and keep the pixels whose centre is inside."""
-    import shapely
+    from standgrid.enrich.coverage import polygon_pixels, window
 
-    sub, index = _window(grid, polygon)
+    sub, _ = window(grid, polygon)
+    index, inside = polygon_pixels(grid, polygon)
     values = compute(sub)
-    cx, cy = sub.centers()
-    inside = shapely.contains_xy(polygon, cx, cy)
-    window = target[index]
-    window[inside] = np.asarray(values, dtype=np.float32)[inside]
+    target[index][inside] = np.asarray(values, dtype=np.float32)[inside]
 
 
 def _nearest_fill(raster: NDArray[np.float32]) -> NDArray[np.float32]:
@@ -389,17 +496,15 @@ def _enrich_cell(
     block_ground: NDArray[np.bool_],
     dtm: NDArray[np.float32],
     grid: RasterGrid,
-    chm_raster: NDArray[np.float32],
-    density_raster: NDArray[np.float32],
-    tree_frames: list[pd.DataFrame],
-    heights: dict[str, NDArray[np.float32]],
     options: EnrichOptions,
     no_ground: bool,
-) -> dict[str, Any]:
+) -> tuple[NDArray[np.float64], NDArray[np.float32], pd.DataFrame]:
+    """Heights, trees and the rewritten tile of one cell: (core xyz, core heights, the
+    trees whose top is in the cell)."""
     import shapely
     from scipy.spatial import cKDTree
 
-    from standgrid.enrich.rasters import chm, density, height_above_ground
+    from standgrid.enrich.rasters import height_above_ground
     from standgrid.enrich.trees import segment_trees
     from standgrid.export.las import write_tile
 
@@ -441,13 +546,6 @@ def _enrich_cell(
     owned.insert(0, "cell_id", cell.cell_id)
     if cell.stand_id is not None:
         owned.insert(1, "stand_id", cell.stand_id)
-    tree_frames.append(owned)
-
-    core_xyz = full.xyz[core]
-    core_hag = hag[core]
-    if not no_ground:
-        _paste(chm_raster, grid, cell.polygon, lambda g: chm(core_xyz, core_hag, g))
-    _paste(density_raster, grid, cell.polygon, lambda g: density(core_xyz, g))
 
     classification = np.where(rows >= 0, block_ground[np.maximum(rows, 0)], False)
     fields = dict(full.fields)
@@ -468,109 +566,11 @@ def _enrich_cell(
         core_bounds=cell.polygon,
         lattice_origin=tiles.origin,
     )
-
-    heights[cell.cell_id] = core_hag
-    size = _cell_size(catalog)
-    return _metrics_row(
-        cell.cell_id, 0, size, float(cell.polygon.area), core_hag, owned, options, no_ground
-    )
+    return full.xyz[core], hag[core], owned
 
 
 def _cell_size(catalog: Catalog) -> float:
     return float(catalog.grid_definition["cell_size"]) if catalog.scheme == "grid" else math.nan
-
-
-NO_TERRAIN = "no ground points in or near the stand: no terrain model"
-
-
-def _metrics_row(
-    stand_id: str,
-    level: int,
-    size: float,
-    area: float,
-    heights: NDArray[np.floating],
-    trees: pd.DataFrame,
-    options: EnrichOptions,
-    no_ground: bool,
-) -> dict[str, Any]:
-    """One stand_metrics row: the area-based and the tree-based set, nulls with reasons."""
-    from standgrid.enrich.metrics import area_metrics, tree_metrics
-
-    area_row = area_metrics(
-        np.zeros(len(heights), dtype=np.int64),
-        heights,
-        cell_area_m2=area,
-        cells=[0],
-        height_break=options.height_break,
-    ).iloc[0]
-    tree_row = tree_metrics(
-        np.zeros(len(trees), dtype=np.int64),
-        trees["height_m"].to_numpy(dtype=np.float64),
-        trees["dbh_m"].to_numpy(dtype=np.float64),
-        cell_area_m2=max(area, 1e-9),
-        cells=[0],
-    ).iloc[0]
-    reasons = [area_row.get("null_reason")]
-    if no_ground:  # the tree set was not looked for: its own reason does not apply
-        reasons.insert(0, NO_TERRAIN)
-    else:
-        reasons.append(tree_row.get("null_reason"))
-    reasons = [r for r in reasons if _text(r)]
-    row: dict[str, Any] = {"cell_id": stand_id, "level": level, "cell_size": size, "area_m2": area}
-    row.update({k: v for k, v in area_row.items() if k != "null_reason"})
-    row.update({k: v for k, v in tree_row.items() if k != "null_reason"})
-    if no_ground:  # no tree could be looked for: unknown, not zero
-        for name in tree_row.index:
-            if name != "null_reason":
-                row[name] = None if name == "dominant_by" else math.nan
-    row["null_reason"] = "; ".join(dict.fromkeys(str(r) for r in reasons)) or None
-    return row
-
-
-def _stand_rows(
-    catalog: Catalog,
-    cells: list[_Cell],
-    heights: dict[str, NDArray[np.float32]],
-    tree_frames: list[pd.DataFrame],
-    no_ground: set[str],
-    options: EnrichOptions,
-) -> list[dict[str, Any]]:
-    """Metrics of each 1 ha stand (the grid's next level) over its measured cells.
-
-    The stand's area is that of its cells that have points and ground (a stand at the edge
-    of the survey is measured over what was surveyed); its trees are the trees of those cells.
-    """
-    import pandas as pd
-
-    grid = _stand_grid(catalog)
-    if grid is None:
-        return []
-    frames = [t for t in tree_frames if len(t)]
-    trees = pd.concat(frames, ignore_index=True) if frames else None
-    rows = []
-    for stand_id in sorted({c.stand_id for c in cells if c.stand_id is not None}):
-        members = [c for c in cells if c.stand_id == stand_id]
-        measured = [c for c in members if c.cell_id not in no_ground]
-        # every member's points count (heights are NaN where a cell has no terrain)
-        h = np.concatenate([heights[c.cell_id] for c in members])
-        stand_trees = (
-            trees[trees["stand_id"] == stand_id]
-            if trees is not None and "stand_id" in trees.columns
-            else pd.DataFrame({"height_m": [], "dbh_m": []})
-        )
-        area = float(sum(c.polygon.area for c in measured))
-        row = _metrics_row(stand_id, 1, grid.levels[1], area, h, stand_trees, options, not measured)
-        measured_points = row["n_points"] - row["n_no_height"]
-        row["density_pts_m2"] = measured_points / area if area > 0 else math.nan
-        rows.append(row)
-    return rows
-
-
-def _text(value: Any) -> bool:
-    """True for a real reason text (not None, NaN or pandas NA)."""
-    import pandas as pd
-
-    return isinstance(value, str) and value != "" and value is not pd.NA
 
 
 # --- outputs -----------------------------------------------------------------------------
@@ -583,6 +583,20 @@ def _write_raster(
 
     data = np.where(np.isfinite(array), array, NODATA).astype(np.float32)
     write_cog(txn.stage(rel), data, grid, crs=crs, nodata=NODATA, description=text)
+
+
+def _write_coverage(txn: Transaction, rel: str, coverage: Coverage, crs: str) -> None:
+    from standgrid.enrich.coverage import MASK_NODATA
+    from standgrid.enrich.rasters import write_cog
+
+    write_cog(
+        txn.stage(rel),
+        coverage.as_mask_raster(),
+        coverage.grid,
+        crs=crs,
+        nodata=MASK_NODATA,
+        description="observed ground: 1 observed, 0 not observed (docs/METRICS.md)",
+    )
 
 
 def _metrics_table(rows: list[dict[str, Any]], epoch: str) -> pd.DataFrame:

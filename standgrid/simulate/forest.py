@@ -146,11 +146,14 @@ def grow_forest(
     *,
     years: float = 4.0,
     harvest_fraction: float = 0.12,
+    harvest_box: tuple[float, float, float, float] | None = None,
     new_trees: int = 3,
 ) -> Trees:
     """The same stand ``years`` later: growth, a harvest (kept as status) and a few new trees.
 
     Surviving trees keep their ``tree_id``; harvested trees keep their last dimensions.
+    ``harvest_fraction`` of the trees (of those inside ``harvest_box``, when given) are
+    harvested.
     """
     n = len(trees)
     height = trees.height + years * rng.uniform(0.3, 0.6, n)
@@ -160,7 +163,13 @@ def grow_forest(
     crown_radius = np.minimum(trees.crown_radius + years * 0.05, 0.45 * nn_dist)
     crown_radius = np.maximum(crown_radius, trees.crown_radius)
     harvested = np.zeros(n, dtype=bool)
-    harvested[rng.choice(n, size=round(harvest_fraction * n), replace=False)] = True
+    candidates = np.arange(n)
+    if harvest_box is not None:  # a harvest confined to one area (e.g. one stand)
+        x0, y0, x1, y1 = harvest_box
+        inside = (trees.x >= x0) & (trees.x < x1) & (trees.y >= y0) & (trees.y < y1)
+        candidates = np.flatnonzero(inside)
+    size = round(harvest_fraction * len(candidates))
+    harvested[rng.choice(candidates, size=size, replace=False)] = True
     grown = replace(
         trees,
         height=np.where(harvested, trees.height, height),

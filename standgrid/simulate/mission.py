@@ -33,6 +33,7 @@ from standgrid.simulate.scanner import ScannerModel, ScanPoints, scan
 from standgrid.simulate.terrain import Terrain, random_terrain
 from standgrid.simulate.trajectory import (
     Span,
+    clip_waypoints,
     drifted_poses,
     information_matrix,
     loop_closure_pairs,
@@ -88,6 +89,13 @@ class SimulationConfig:
     drift_m: float = 0.03
     imu_rate_hz: float = 5.0
     write_georef: bool = False
+    #: The polygon the robot walks (stand-local metres from the stand's lower-left corner;
+    #: None: the whole stand). Lanes are cut to it, so coverage has its irregular edges.
+    survey_polygon: tuple[tuple[float, float], ...] | None = None
+    #: Share of the trees harvested by epoch 2, and where (stand-local box; None: anywhere).
+    harvest_fraction: float = 0.12
+    harvest_box: tuple[float, float, float, float] | None = None
+    new_trees: int = 3
     scanner: ScannerModel = field(default_factory=ScannerModel)
     gnss: GnssModel = field(default_factory=GnssModel)
 
@@ -185,7 +193,19 @@ def build_world(seed: int, epoch: int, config: SimulationConfig) -> World:
     terrain = random_terrain(rng, bounds)
     trees, shrubs = generate_forest(rng, bounds, terrain, density_ha=config.density_ha)
     if epoch == 2:
-        trees = grow_forest(_rng(seed, 100), trees, terrain, years=config.years_between)
+        box = None
+        if config.harvest_box is not None:
+            bx0, by0, bx1, by1 = config.harvest_box
+            box = (bounds[0] + bx0, bounds[1] + by0, bounds[0] + bx1, bounds[1] + by1)
+        trees = grow_forest(
+            _rng(seed, 100),
+            trees,
+            terrain,
+            years=config.years_between,
+            harvest_fraction=config.harvest_fraction,
+            harvest_box=box,
+            new_trees=config.new_trees,
+        )
     elif epoch != 1:
         raise ValueError(f"epoch must be 1 or 2, got {epoch}")
     return World(bounds, terrain, trees, shrubs)
@@ -247,6 +267,10 @@ def run_simulation(
     rng = _rng(seed, epoch)
     # Trajectory in the CRS: nodes every ~1.5 m, sensor above the true ground.
     waypoints = serpentine_waypoints(rng, world.bounds, along=spec.lanes_along)
+    if config.survey_polygon is not None:
+        x0, y0 = world.bounds[:2]
+        outline = [(x0 + u, y0 + v) for u, v in config.survey_polygon]
+        waypoints = clip_waypoints(waypoints, outline)
     xy, arc = resample_polyline(waypoints, config.node_spacing)
     node_crs = np.column_stack([xy, world.terrain.height(xy[:, 0], xy[:, 1]) + spec.sensor_height])
     stamps_ns = _node_stamps(rng, spec, len(xy), config)

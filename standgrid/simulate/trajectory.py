@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import itertools
 from dataclasses import dataclass
 
 import numpy as np
@@ -43,6 +44,28 @@ def serpentine_waypoints(
     y_mid = (y0 + y1) / 2 + rng.uniform(-5.0, 5.0)
     last_x = lanes[-1]
     pts += [(last_x, y_mid), (lanes[0] - 0.0, y_mid)]
+    return np.asarray(pts, dtype=np.float64)
+
+
+def clip_waypoints(
+    waypoints: NDArray[np.float64], outline: list[tuple[float, float]]
+) -> NDArray[np.float64]:
+    """The parts of a waypoint path inside a polygon, joined in order (a robot walking
+    only the survey area: each leg keeps its longest piece inside)."""
+    import shapely
+
+    polygon = shapely.Polygon(outline)
+    pts: list[tuple[float, float]] = []
+    for a, b in itertools.pairwise(waypoints):
+        inside = shapely.LineString([a, b]).intersection(polygon)
+        pieces = list(getattr(inside, "geoms", [inside]))
+        pieces = [p for p in pieces if isinstance(p, shapely.LineString) and not p.is_empty]
+        if not pieces:
+            continue
+        longest = max(pieces, key=lambda p: p.length)
+        pts.extend((float(x), float(y)) for x, y in longest.coords)
+    if len(pts) < 2:
+        raise ValueError("the survey polygon holds no part of the robot's path")
     return np.asarray(pts, dtype=np.float64)
 
 

@@ -1,0 +1,184 @@
+"""One ``stand_metrics`` row per stand: the coverage rule, then the area- and tree-based sets.
+
+A stand (a 20 m cell, or a 1 ha stand aggregating its cells) is measured over its
+**observed** ground (:mod:`standgrid.enrich.coverage`): heights of the points standing on
+it, trees whose stem stands on it, per-hectare values divided by its area. A stand whose
+observed fraction or point density is below :class:`CoverageRule` gets null metrics with
+``null_reason`` starting ``insufficient_coverage``, never a number from a sliver of data.
+Definitions: docs/METRICS.md.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+import pandas as pd
+from numpy.typing import NDArray
+
+from standgrid.errors import EnrichError
+
+INSUFFICIENT_COVERAGE = "insufficient_coverage"
+NO_TERRAIN = "no ground points in or near the stand: no terrain model"
+#: Columns of a stand row that describe the sample, not the forest: kept when the metrics
+#: are null (they say why), never "changed" between epochs.
+SAMPLE_COLUMNS = (
+    "level",
+    "cell_size",
+    "area_m2",
+    "observed_m2",
+    "observed_fraction",
+    "n_points",
+    "n_outside_observed",
+    "n_no_height",
+    "density_pts_m2",
+)
+#: Counts of the tree sample: null with the metrics, never "changed" either.
+TREE_COUNT_COLUMNS = ("n_trees", "n_dbh_measured", "n_dbh_imputed", "dbh_measured_share")
+
+
+@dataclass(frozen=True)
+class CoverageRule:
+    """The least a stand must have observed for its metrics to be reported."""
+
+    min_observed_fraction: float = 0.25
+    min_density_pts_m2: float = 2.0
+
+    def __post_init__(self) -> None:
+        if not 0.0 <= self.min_observed_fraction <= 1.0 or self.min_density_pts_m2 < 0:
+            raise EnrichError(
+                f"coverage rule needs 0 <= min observed fraction <= 1 (got "
+                f"{self.min_observed_fraction}) and min density >= 0 "
+                f"(got {self.min_density_pts_m2})"
+            )
+
+    def shortfall(self, observed_fraction: float, density: float) -> str | None:
+        """Why a stand fails the rule (``insufficient_coverage: ...``), or None."""
+        problems = []
+        if not observed_fraction >= self.min_observed_fraction:
+            problems.append(
+                f"{100 * observed_fraction:.0f} % of the stand observed "
+                f"(minimum {100 * self.min_observed_fraction:.0f} %)"
+            )
+        if not density >= self.min_density_pts_m2:
+            shown = 0.0 if not math.isfinite(density) else density
+            problems.append(
+                f"{shown:.2g} points/m2 on observed ground (minimum {self.min_density_pts_m2:g})"
+            )
+        return f"{INSUFFICIENT_COVERAGE}: " + ", ".join(problems) if problems else None
+
+
+@dataclass
+class StandSample:
+    """What one stand's metrics are computed from."""
+
+    stand_id: str
+    level: int
+    cell_size: float
+    area_m2: float
+    observed_m2: float
+    #: every return of the stand, observed ground or not
+    n_points: int
+    #: heights above ground of the returns on observed ground (NaN: no terrain height)
+    heights: NDArray[np.floating]
+    #: trees whose stem (or top, without a stem fit) stands on observed ground
+    trees: pd.DataFrame
+    no_ground: bool = False
+
+    @property
+    def observed_fraction(self) -> float:
+        return self.observed_m2 / self.area_m2 if self.area_m2 > 0 else math.nan
+
+
+def stand_row(
+    sample: StandSample, rule: CoverageRule, *, height_break: float = 2.0
+) -> dict[str, Any]:
+    """One ``stand_metrics`` row (columns: docs/METRICS.md)."""
+    from standgrid.enrich.metrics import area_metrics, tree_metrics
+
+    observed = sample.observed_m2
+    n_on_observed = len(sample.heights)
+    density = n_on_observed / observed if observed > 0 else math.nan
+    row: dict[str, Any] = {
+        "cell_id": sample.stand_id,
+        "level": sample.level,
+        "cell_size": sample.cell_size,
+        "area_m2": sample.area_m2,
+        "observed_m2": observed,
+        "observed_fraction": sample.observed_fraction,
+        "n_points": sample.n_points,
+        "n_outside_observed": sample.n_points - n_on_observed,
+    }
+    area_row = area_metrics(
+        np.zeros(n_on_observed, dtype=np.int64),
+        sample.heights,
+        cell_area_m2=observed if observed > 0 else None,
+        cells=[0],
+        height_break=height_break,
+    ).iloc[0]
+    trees = sample.trees
+    source = trees["dbh_source"] if "dbh_source" in trees.columns else None
+    tree_row = tree_metrics(
+        np.zeros(len(trees), dtype=np.int64),
+        trees["height_m"].to_numpy(dtype=np.float64),
+        trees["dbh_m"].to_numpy(dtype=np.float64),
+        cell_area_m2=max(observed, 1e-9),
+        cells=[0],
+        dbh_measured=None if source is None else (source == "measured").to_numpy(dtype=bool),
+    ).iloc[0]
+    row.update({k: v for k, v in area_row.items() if k not in ("null_reason", "n_points")})
+    row["density_pts_m2"] = density
+    row.update({k: v for k, v in tree_row.items() if k != "null_reason"})
+
+    shortfall = rule.shortfall(sample.observed_fraction, density)
+    if sample.no_ground:
+        reasons = [NO_TERRAIN]
+    elif shortfall:
+        reasons = [shortfall]
+    else:
+        reasons = [
+            r for r in (area_row.get("null_reason"), tree_row.get("null_reason")) if _text(r)
+        ]
+    if sample.no_ground or shortfall:  # unknown, not zero
+        for name in (*area_row.index, *tree_row.index):
+            if name in row and name not in SAMPLE_COLUMNS and name != "null_reason":
+                row[name] = None if name == "dominant_by" else math.nan
+    row["null_reason"] = "; ".join(dict.fromkeys(str(r) for r in reasons)) or None
+    return row
+
+
+def passes(row: dict[str, Any]) -> bool:
+    """Whether a stand row was measured (not null for lack of coverage or terrain)."""
+    reason = row.get("null_reason")
+    return not (isinstance(reason, str) and reason.startswith((INSUFFICIENT_COVERAGE, NO_TERRAIN)))
+
+
+def aggregate(
+    stand_id: str, cell_size: float, area_m2: float, members: list[StandSample]
+) -> StandSample:
+    """A coarser stand from its measured member cells (the others contribute no area)."""
+    frames = [m.trees for m in members if len(m.trees)]
+    return StandSample(
+        stand_id=stand_id,
+        level=1,
+        cell_size=cell_size,
+        area_m2=area_m2,
+        observed_m2=float(sum(m.observed_m2 for m in members)),
+        n_points=int(sum(m.n_points for m in members)),
+        heights=(
+            np.concatenate([m.heights for m in members]) if members else np.zeros(0, np.float32)
+        ),
+        trees=(
+            pd.concat(frames, ignore_index=True)
+            if frames
+            else pd.DataFrame({"height_m": [], "dbh_m": []})
+        ),
+        no_ground=False,
+    )
+
+
+def _text(value: Any) -> bool:
+    """True for a real reason text (not None, NaN or pandas NA)."""
+    return isinstance(value, str) and value != ""

@@ -1,0 +1,195 @@
+"""Observed ground, the coverage rule, complete basal area (height-diameter imputation)."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pandas as pd
+import pytest
+import shapely
+
+from standgrid.enrich.allometry import MIN_TREES, fit_height_diameter, impute_dbh
+from standgrid.enrich.coverage import (
+    cells_mask,
+    coverage_from_hits,
+    ground_hits,
+    polygon_pixel_count,
+)
+from standgrid.enrich.metrics import tree_metrics
+from standgrid.enrich.rasters import RasterGrid
+from standgrid.enrich.stands import CoverageRule, StandSample, aggregate, stand_row
+from standgrid.errors import EnrichError
+
+GRID = RasterGrid(0.0, 0.0, 1.0, 40, 40)
+
+
+def _full_cells() -> np.ndarray:
+    return np.ones(GRID.shape, dtype=bool)
+
+
+def test_ground_hits_count_returns_per_pixel_and_ignore_outside() -> None:
+    xy = np.array([[0.5, 0.5], [0.6, 0.4], [39.5, 39.5], [-1.0, 3.0], [40.0, 1.0]])
+    hits = ground_hits(GRID, xy)
+    assert hits.sum() == 3
+    assert hits[GRID.nrows - 1, 0] == 2  # row 0 is north
+    assert hits[0, GRID.ncols - 1] == 1
+
+
+def test_closing_fills_narrow_gaps_but_not_the_outer_edge() -> None:
+    seen = np.zeros(GRID.shape, dtype=np.int64)
+    seen[:, :20] = 1
+    seen[10:12, 5:7] = 0  # a 2 x 2 m hole behind a stem: closed
+    seen[5:35, 10] = 0  # a 1 m stripe between scan lines: closed
+    coverage = coverage_from_hits(seen, GRID, _full_cells(), closing_radius=2.0)
+    assert coverage.observed[:, :20].all()
+    assert not coverage.observed[:, 20:].any()  # the survey's edge does not grow
+    assert coverage.near_ground[:, 20:22].all() and not coverage.near_ground[:, 23:].any()
+
+
+def test_closing_keeps_a_wide_unsurveyed_gap() -> None:
+    seen = np.ones(GRID.shape, dtype=np.int64)
+    seen[:, 15:25] = 0  # 10 m never surveyed
+    coverage = coverage_from_hits(seen, GRID, _full_cells(), closing_radius=2.0)
+    assert not coverage.observed[:, 15:25].any()
+    assert coverage.observed[:, :15].all() and coverage.observed[:, 25:].all()
+
+
+def test_observed_is_cut_to_the_cells_and_the_mask_raster_says_so() -> None:
+    cells = cells_mask(GRID, [shapely.box(0, 0, 20, 40)])
+    coverage = coverage_from_hits(np.ones(GRID.shape, np.int64), GRID, cells)
+    assert coverage.observed.sum() == 20 * 40
+    raster = coverage.as_mask_raster()
+    assert set(np.unique(raster)) == {1, 255}
+    assert coverage.observed_m2(shapely.box(10, 0, 30, 20)) == pytest.approx(200.0)
+    assert polygon_pixel_count(coverage.observed, GRID, shapely.box(0, 0, 40, 40)) == 800
+
+
+def test_coverage_rule_names_what_is_missing() -> None:
+    rule = CoverageRule(min_observed_fraction=0.5, min_density_pts_m2=2.0)
+    assert rule.shortfall(0.6, 10.0) is None
+    text = rule.shortfall(0.1, 1.0)
+    assert text is not None and text.startswith("insufficient_coverage")
+    assert "10 %" in text and "points/m2" in text
+    with pytest.raises(EnrichError):
+        CoverageRule(min_observed_fraction=1.5)
+
+
+def _trees(n: int, dbh: float = 0.3) -> pd.DataFrame:
+    return pd.DataFrame(
+        {
+            "height_m": np.full(n, 25.0),
+            "dbh_m": np.full(n, dbh),
+            "dbh_source": pd.array(["measured"] * n, dtype="string"),
+        }
+    )
+
+
+def test_one_point_cell_is_null_with_insufficient_coverage_not_zero() -> None:
+    sample = StandSample("20m_E0_N0", 0, 20.0, 400.0, 1.0, 1, np.array([27.4]), _trees(0))
+    row = stand_row(sample, CoverageRule())
+    assert row["null_reason"].startswith("insufficient_coverage")
+    assert math.isnan(row["zq95"]) and math.isnan(row["stems_ha"])
+    assert math.isnan(row["basal_area_m2_ha"])
+    assert row["n_points"] == 1 and row["observed_m2"] == 1.0  # the sample stays visible
+
+
+def test_per_hectare_values_divide_by_the_observed_area() -> None:
+    heights = np.linspace(0, 20, 2000)
+    sample = StandSample("20m_E0_N0", 0, 20.0, 400.0, 200.0, 2500, heights, _trees(7))
+    row = stand_row(sample, CoverageRule())
+    assert row["null_reason"] is None
+    assert row["stems_ha"] == pytest.approx(7 / 0.02)
+    assert row["basal_area_m2_ha"] == pytest.approx(7 * math.pi * 0.15**2 / 0.02)
+    assert row["density_pts_m2"] == pytest.approx(2000 / 200.0)
+    assert row["n_outside_observed"] == 500
+    assert row["observed_fraction"] == pytest.approx(0.5)
+
+
+def test_a_stand_aggregates_its_measured_cells_over_the_whole_stand_area() -> None:
+    cells = [
+        StandSample(f"20m_E{i}_N0", 0, 20.0, 400.0, 400.0, 4000, np.full(4000, 10.0), _trees(14))
+        for i in range(20)
+    ]
+    stand = aggregate("100m_E0_N0", 100.0, 10_000.0, cells)
+    row = stand_row(stand, CoverageRule())
+    assert row["observed_fraction"] == pytest.approx(0.8)
+    assert row["stems_ha"] == pytest.approx(20 * 14 / 0.8)
+    assert row["area_m2"] == 10_000.0
+
+
+def test_basal_area_is_null_when_a_tree_has_no_dbh_and_reports_the_measured_share() -> None:
+    cell = np.zeros(4, dtype=np.int64)
+    height = np.array([20.0, 22, 24, 26])
+    dbh = np.array([0.2, 0.25, np.nan, 0.3])
+    out = tree_metrics(cell, height, dbh, cell_area_m2=400.0).iloc[0]
+    assert math.isnan(out["basal_area_m2_ha"]) and "1 of 4 trees" in out["null_reason"]
+    full = np.array([0.2, 0.25, 0.28, 0.3])
+    measured = np.array([True, True, False, True])
+    out = tree_metrics(cell, height, full, cell_area_m2=400.0, dbh_measured=measured).iloc[0]
+    assert out["basal_area_m2_ha"] == pytest.approx(np.sum(np.pi * full**2 / 4) / 0.04)
+    assert out["n_dbh_measured"] == 3 and out["n_dbh_imputed"] == 1
+    assert out["dbh_measured_share"] == pytest.approx(0.75)
+
+
+def _chapman_richards_forest(seed: int, n: int) -> tuple[np.ndarray, np.ndarray]:
+    """The simulator's height-diameter relation, with its height noise."""
+    rng = np.random.default_rng(seed)
+    dbh = np.clip(0.15 + rng.gamma(2.0, 0.07, n), 0.15, 0.6)
+    height = 1.3 + 36.0 * (1 - np.exp(-0.045 * dbh * 100)) ** 1.1 + rng.normal(0, 0.8, n)
+    return height, dbh
+
+
+def test_naslund_model_imputes_dbh_within_its_stated_uncertainty() -> None:
+    height, dbh = _chapman_richards_forest(1, 400)
+    model = fit_height_diameter(height[:200], dbh[:200])
+    assert model is not None and model.n_trees == 200
+    predicted, limited = model.predict_dbh_m(height[200:])
+    error = predicted - dbh[200:]
+    rmse = float(np.sqrt(np.mean(error**2)))
+    assert rmse < 0.06
+    assert abs(float(np.mean(error))) < 0.01  # unbiased on average
+    se = model.dbh_se_m(predicted)
+    assert 0.5 < rmse / float(np.sqrt(np.mean(se**2))) < 1.6  # the stated SE is honest
+    ba_true = np.sum(np.pi * dbh[200:] ** 2 / 4)
+    assert np.sum(np.pi * predicted**2 / 4) == pytest.approx(ba_true, rel=0.06)
+    assert not limited.all()
+
+
+def test_too_few_measured_trees_give_no_model_and_no_guess() -> None:
+    height, dbh = _chapman_richards_forest(2, MIN_TREES - 1)
+    assert fit_height_diameter(height, dbh) is None
+    table = pd.DataFrame(
+        {
+            "height_m": [20.0, 25.0],
+            "dbh_m": [0.3, np.nan],
+            "dbh_reason": pd.array([None, "no stem points at 1.3 m near the tree"], "string"),
+        }
+    )
+    out = impute_dbh(table, None)
+    assert list(out["dbh_source"]) == ["measured", "none"]
+    assert math.isnan(out["dbh_m"].iloc[1]) and "no height-diameter model" in out["dbh_reason"][1]
+
+
+def test_imputation_fills_only_missing_dbh_and_says_so() -> None:
+    height, dbh = _chapman_richards_forest(3, 60)
+    known = dbh.copy()
+    known[::3] = np.nan
+    table = pd.DataFrame(
+        {
+            "height_m": height,
+            "dbh_m": known,
+            "dbh_reason": pd.array(
+                [None if np.isfinite(d) else "stem fit rejected: arc" for d in known], "string"
+            ),
+            "dbh_rmse_m": np.where(np.isfinite(known), 0.004, np.nan),
+            "dbh_n_points": np.where(np.isfinite(known), 40, 0),
+        }
+    )
+    model = fit_height_diameter(height[np.isfinite(known)], known[np.isfinite(known)])
+    out = impute_dbh(table, model)
+    imputed = out["dbh_source"] == "imputed"
+    assert imputed.sum() == 20 and out["dbh_m"].notna().all()
+    np.testing.assert_array_equal(out.loc[~imputed, "dbh_m"], known[np.isfinite(known)])
+    assert out.loc[~imputed, "dbh_se_m"].to_numpy() == pytest.approx(2 * 0.004 / np.sqrt(40))
+    assert out.loc[imputed, "dbh_reason"].str.startswith("imputed from height").all()

@@ -580,9 +580,12 @@ def _write_raster(
     txn: Transaction, rel: str, array: NDArray[np.float32], grid: RasterGrid, crs: str, text: str
 ) -> None:
     from standgrid.enrich.rasters import write_cog
+    from standgrid.export.styles import raster_style_path, write_raster_style
 
     data = np.where(np.isfinite(array), array, NODATA).astype(np.float32)
-    write_cog(txn.stage(rel), data, grid, crs=crs, nodata=NODATA, description=text)
+    tif = txn.stage(rel)
+    write_cog(tif, data, grid, crs=crs, nodata=NODATA, description=text)
+    write_raster_style(tif, qml=txn.stage(raster_style_path(rel)))  # QGIS default style
 
 
 def _metrics_table(rows: list[dict[str, Any]], epoch: str) -> pd.DataFrame:

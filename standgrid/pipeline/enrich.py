@@ -120,6 +120,7 @@ def enrich_catalog(
 ) -> EnrichReport:
     """Enrich every epoch of the catalog (or ``options.epochs``); returns what was done."""
     from standgrid.export.catalog import Catalog
+    from standgrid.pipeline.invalidate import clear_invalidation
 
     catalog = Catalog.open(catalog_path)
     if not catalog.crs:
@@ -139,7 +140,8 @@ def enrich_catalog(
     tree_tables: dict[str, pd.DataFrame] = {}
     with catalog.transaction() as txn:
         for epoch in epochs:
-            status(f"enriching epoch {epoch}")
+            note = clear_invalidation(txn.state["epochs"][epoch])  # says if it was stale
+            status(f"enriching epoch {epoch}: {note}")
             metrics, trees, summary = _enrich_epoch(catalog, txn, epoch, options, wrap)
             metric_tables[epoch], tree_tables[epoch] = metrics, trees
             report.epochs[epoch] = summary

@@ -169,6 +169,8 @@ def _ingest(
     catalog: Catalog, ingests: list[_Ingest], options: TileOptions, wrap: Wrap, status: Any
 ) -> TileReport:
     """Tile the prepared missions into an open catalog, in one transaction."""
+    from standgrid.pipeline.invalidate import invalidate_epochs, retile_reason
+
     grid = _catalog_grid(catalog)
     report = TileReport(catalog.root, catalog.crs, catalog.scheme, catalog.fingerprint)
     layers = _IndexLayers.read(catalog)
@@ -184,13 +186,24 @@ def _ingest(
             for i in ingests
             if i.mission.name in catalog.missions
         }
+        reasons = {}
         for epoch in sorted({i.epoch for i in ingests} | left):
             group = [i for i in ingests if i.epoch == epoch]
             names = ", ".join(i.mission.name for i in group) or "missions that moved out"
             status(f"tiling epoch {epoch}: {names}")
             _tile_epoch(catalog, txn, grid, epoch, group, renewed, options, layers, report, wrap)
+            moved = [
+                i.mission.name
+                for i in ingests
+                if i.epoch != epoch
+                and catalog.missions.get(i.mission.name, {}).get("epoch") == epoch
+            ]
+            reasons[epoch] = retile_reason([i.mission.name for i in group], moved)
         layers.write(txn, catalog)
         _write_vpcs(txn, catalog, layers)
+        # the re-tiled epochs' enrichment and comparisons describe points that are gone
+        for epoch, removed in invalidate_epochs(catalog, txn, reasons, status=status).items():
+            report.epochs[epoch]["invalidated"] = removed
     status(f"tiled {report.points_out} points into {len(layers.cells)} cells")
     return report
 

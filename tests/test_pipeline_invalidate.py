@@ -10,6 +10,8 @@ import sqlite3
 from pathlib import Path
 from typing import Any
 
+import laspy
+import numpy as np
 import pandas as pd
 import pyogrio
 import pytest
@@ -19,7 +21,7 @@ from standgrid.cli import cli
 from standgrid.errors import EnrichError
 from standgrid.pipeline.compare import compare_epochs
 from standgrid.pipeline.enrich import EnrichOptions, enrich_catalog
-from standgrid.pipeline.invalidate import clear_invalidation
+from standgrid.pipeline.invalidate import clear_invalidation, without_enrichment
 from standgrid.pipeline.status import catalog_status
 from standgrid.pipeline.tile import tile_missions
 from tests.conftest import BUNDLED_MISSIONS
@@ -93,8 +95,28 @@ def test_retile_removes_the_epochs_files_and_comparison(retiled: dict[str, Any])
     assert not (root / "tables/tree_list_2028.csv").exists()
     assert _files(root, f"compare/{PAIR}") == set()
     assert not (root / ".staging").exists()  # committed
-    # the tiles themselves are back (re-tiling is not deleting)
-    assert _files(root, "tiles/2028")
+    # the tiles themselves are back (re-tiling is not deleting), without old heights or trees
+    tiles = sorted(_files(root, "tiles/2028"))
+    assert tiles
+    with laspy.open(root / tiles[0]) as reader:
+        points = reader.read()
+    assert np.isnan(np.asarray(points["height_above_ground"])).all()
+    assert (np.asarray(points["tree_id"]) == 0).all()
+
+
+def test_kept_points_lose_their_enrichment() -> None:
+    fields = {
+        "height_above_ground": np.array([1.5, 20.0], dtype=np.float32),
+        "tree_id": np.array([7, 0], dtype=np.int64),
+        "classification": np.array([2, 1], dtype=np.uint8),
+        "intensity": np.array([10, 20], dtype=np.uint16),
+    }
+    out = without_enrichment(fields)
+    assert np.isnan(out["height_above_ground"]).all()
+    assert out["height_above_ground"].dtype == np.float32
+    assert (out["tree_id"] == 0).all() and out["tree_id"].dtype == np.int64
+    assert out["classification"] is fields["classification"]  # source classes are kept
+    assert out["intensity"] is fields["intensity"]
 
 
 def test_retile_removes_the_epochs_rows_from_tables_and_layers(retiled: dict[str, Any]) -> None:

@@ -12,6 +12,11 @@ was derived from the re-tiled epochs, so a reader never sees old numbers next to
 - every comparison involving the epoch: ``compare/<from>__<to>/*``, its rows of the
   ``stand_changes`` and ``tree_changes`` layers and its ``comparisons`` entry.
 
+The points kept from the old tiles lose their per-point enrichment too
+(:func:`without_enrichment`: ``height_above_ground`` NaN, ``tree_id`` 0), so a re-tiled tile
+never mixes heights and tree ids of the old terrain with new points; ``classification`` is
+kept (it may hold the source's classes; ``enrich`` re-derives ground).
+
 The epoch's ``catalog.json`` entry gets ``enriched = false`` and
 ``invalidated = {"at", "reason", "comparisons"}``; the next ``enrich`` of the epoch clears it
 (:func:`clear_invalidation`). ``comparisons_invalidated`` (key -> ``{"at", "reason"}``) stays,
@@ -31,6 +36,9 @@ from datetime import UTC, datetime
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
+import numpy as np
+from numpy.typing import NDArray
+
 from standgrid.errors import CatalogError
 
 if TYPE_CHECKING:
@@ -42,6 +50,8 @@ ENRICH_LAYERS = ("stand_metrics", "trees")
 CHANGE_LAYERS = ("stand_changes", "tree_changes")
 METRICS_TABLE = "tables/stand_metrics"
 INDEX = "index.gpkg"
+#: Per-point fields enrich writes into tiles, and their "not computed" value.
+ENRICH_POINT_FIELDS: dict[str, float] = {"height_above_ground": np.nan, "tree_id": 0}
 
 
 def _now() -> str:
@@ -126,6 +136,16 @@ def invalidate_epochs(
             "are removed; run `standgrid enrich` again"
         )
     return done
+
+
+def without_enrichment(fields: Mapping[str, NDArray[Any]]) -> dict[str, NDArray[Any]]:
+    """Per-point fields with enrich's values reset to "not computed" (same dtypes)."""
+    return {
+        name: np.full_like(values, ENRICH_POINT_FIELDS[name])
+        if name in ENRICH_POINT_FIELDS
+        else values
+        for name, values in fields.items()
+    }
 
 
 def retile_reason(tiled: list[str], moved_out: list[str]) -> str:

@@ -382,6 +382,7 @@ def _tile_epoch(
     from standgrid.errors import ConservationError
     from standgrid.export.las import read_tile, snap_to_storage
     from standgrid.partition import GridBuffer, PartitionEngine
+    from standgrid.pipeline.invalidate import without_enrichment
 
     origin = grid.origin if grid is not None else (0.0, 0.0)
     group_names = {i.mission.name for i in group}
@@ -426,7 +427,10 @@ def _tile_epoch(
             keep = ~np.isin(cloud.fields["point_source_id"], renewed)
             if keep.any():
                 kept = cloud.select(keep)
-                kept = PointCloud(snap_to_storage(kept.xyz, origin), kept.fields)
+                # heights and tree ids of the old enrichment do not survive a re-tile
+                kept = PointCloud(
+                    snap_to_storage(kept.xyz, origin), without_enrichment(kept.fields)
+                )
                 engine.add(_conform(kept, schema, catalog.path(rel)))
                 kept_in += int(keep.sum())
 

@@ -7,11 +7,14 @@ import xml.etree.ElementTree as ET
 from pathlib import Path
 
 import geopandas as gpd
+import numpy as np
 import pyogrio
 import pytest
+import rasterio
+from rasterio.transform import Affine
 from shapely.geometry import Point, box
 
-from standgrid.errors import CatalogError
+from standgrid.errors import CatalogError, FormatError
 from standgrid.export import styles
 from standgrid.export.styles import STYLE_COLUMNS, add_layer_style
 
@@ -141,3 +144,102 @@ def test_categorized_and_metric_styles() -> None:
     metric = parse(styles.stand_metric_style("canopy_height_p95", 0, 30))
     assert metric.find("renderer-v2").get("attr") == "canopy_height_p95"
     assert len(metric.findall("renderer-v2/ranges/range")) == 5
+
+
+# --- raster styles (QML sidecars) ---------------------------------------------------------
+
+
+def _raster(path: Path, data: np.ndarray, nodata: float = -9999.0) -> Path:
+    """A real GeoTIFF (rasterio) of ``data`` at 1 m pixels."""
+    with rasterio.open(
+        path, "w", driver="GTiff", width=data.shape[1], height=data.shape[0], count=1,
+        dtype=data.dtype, crs=CRS, transform=Affine(1.0, 0, 500_000.0, 0, -1.0, 6_700_000.0),
+        nodata=nodata,
+    ) as dst:  # fmt: skip
+        dst.write(data, 1)
+    return path
+
+
+def _pseudocolor(root: ET.Element) -> tuple[ET.Element, ET.Element, list[ET.Element]]:
+    renderer = root.find("pipe/rasterrenderer")
+    assert renderer is not None and renderer.get("type") == "singlebandpseudocolor"
+    assert renderer.get("band") == "1"
+    shader = renderer.find("rastershader/colorrampshader")
+    assert shader is not None and shader.get("colorRampType") == "INTERPOLATED"
+    assert shader.find("colorramp").get("type") == "gradient"
+    return renderer, shader, shader.findall("item")
+
+
+def test_chm_style_is_a_height_ramp_over_0_to_p98(tmp_path: Path) -> None:
+    heights = np.linspace(0.0, 40.0, 10_000, dtype=np.float32).reshape(100, 100)
+    heights[0, :5] = -9999.0  # nodata does not enter the range
+    heights[99, 99] = 400.0  # an outlier does not stretch it
+    tif = _raster(tmp_path / "chm.tif", heights)
+    qml = styles.write_raster_style(tif)
+    assert qml == tmp_path / "chm.qml"  # beside the raster, where QGIS looks for it
+    renderer, shader, items = _pseudocolor(parse(qml.read_text("utf-8")))
+    valid = heights[heights != -9999.0].astype(np.float64)
+    p98 = float(np.percentile(valid, 98))
+    assert float(shader.get("minimumValue")) == 0.0
+    assert float(shader.get("maximumValue")) == pytest.approx(p98, rel=1e-6)
+    assert float(renderer.get("classificationMax")) == pytest.approx(p98, rel=1e-6)
+    values = [float(i.get("value")) for i in items]
+    assert values[0] == 0.0 and values[-1] == pytest.approx(p98, rel=1e-6)
+    assert values == sorted(values) and len(values) == len(styles.VIRIDIS)
+    assert [i.get("color") for i in items] == list(styles.VIRIDIS)
+    assert all(i.get("label").endswith(" m") for i in items)
+    assert items[-1].get("label") == f"{p98:.1f} m"
+    assert shader.get("clip") == "0"  # taller than p98: the top colour, not hidden
+
+
+def test_dtm_density_and_change_ranges(tmp_path: Path) -> None:
+    ground = np.arange(120.0, 220.0, dtype=np.float32).reshape(10, 10)
+    _, _, items = _pseudocolor(
+        parse(styles.write_raster_style(_raster(tmp_path / "dtm.tif", ground)).read_text())
+    )
+    assert [float(i.get("value")) for i in (items[0], items[-1])] == [120.0, 219.0]
+    assert [i.get("color") for i in items] == list(styles.TERRAIN)
+
+    density = np.full((10, 10), 50.0, dtype=np.float32)
+    _, _, items = _pseudocolor(
+        parse(styles.write_raster_style(_raster(tmp_path / "density.tif", density)).read_text())
+    )
+    assert float(items[0].get("value")) == 0.0 and items[-1].get("label") == "50 pts/m²"
+    assert [i.get("color") for i in items] == list(styles.YLORRD)
+
+    change = np.linspace(-1.0, 6.0, 100, dtype=np.float32).reshape(10, 10)
+    tif = _raster(tmp_path / "chm_diff.tif", change)
+    _, _, items = _pseudocolor(parse(styles.write_raster_style(tif).read_text()))
+    half = float(np.percentile(np.abs(change.astype(np.float64)), 98))
+    values = [float(i.get("value")) for i in items]
+    assert values[0] == pytest.approx(-half) and values[-1] == pytest.approx(half)
+    middle = items[len(items) // 2]
+    assert float(middle.get("value")) == 0.0 and middle.get("label") == "0.00 m"
+    assert middle.get("color") == "#f7f7f7"  # white at no change
+    assert items[0].get("color") == styles.RDBU[0]  # loss red
+    assert items[-1].get("color") == styles.RDBU[-1]  # gain blue
+    assert items[0].get("label") == f"{-half:.2f} m" and items[-1].get("label").startswith("+")
+
+
+def test_observed_mask_is_paletted_and_semi_transparent() -> None:
+    root = parse(styles.raster_style("observed"))
+    renderer = root.find("pipe/rasterrenderer")
+    assert renderer.get("type") == "paletted"
+    entries = {e.get("value"): e for e in renderer.findall("colorPalette/paletteEntry")}
+    assert set(entries) == {"0", "1"}
+    assert entries["1"].get("label") == "observed"
+    assert entries["0"].get("label") == "not observed"
+    assert all(0 < int(e.get("alpha")) < 255 for e in entries.values())
+    assert entries["0"].get("color") != entries["1"].get("color")
+
+
+def test_raster_style_errors(tmp_path: Path) -> None:
+    with pytest.raises(ValueError, match="no raster style"):
+        styles.write_raster_style(tmp_path / "something.tif")
+    with pytest.raises(ValueError, match="unknown raster kind"):
+        styles.raster_style("slope")
+    with pytest.raises(FormatError, match="cannot read raster"):
+        styles.write_raster_style(tmp_path / "chm.tif")  # no such file
+    assert styles.raster_kind("compare/a__b/chm_diff.tif") == "chm_change"
+    empty = _raster(tmp_path / "chm.tif", np.full((3, 3), -9999.0, dtype=np.float32))
+    assert styles.raster_range(empty, "chm") == (0.0, 1.0)  # no valid pixel: a usable ramp

@@ -24,6 +24,7 @@ COMMANDS: dict[str, str] = {
     "enrich": "standgrid.cli.enrich:enrich",
     "compare": "standgrid.cli.compare:compare",
     "run": "standgrid.cli.run:run",
+    "status": "standgrid.cli.status:status",
 }
 
 

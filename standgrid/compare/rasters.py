@@ -6,8 +6,9 @@ extents may differ: the difference covers their intersection (default) or their 
 nodata wherever either input has no value. Output: ``to - from``, float32, nodata
 :data:`NODATA`, a Cloud-Optimized GeoTIFF written atomically by the one COG writer of the
 project, :func:`standgrid.enrich.rasters.write_cog` (GDAL ``COG`` driver; a tiled GeoTIFF
-with overviews when that driver is missing). Two rasters without CRS (local coordinates)
-count as the same CRS; square pixels are required.
+with overviews when that driver is missing), with its QGIS style beside it (``<name>.qml``).
+Two rasters without CRS (local coordinates) count as the same CRS; square pixels are
+required.
 """
 
 from __future__ import annotations
@@ -21,6 +22,7 @@ import numpy as np
 
 from standgrid.enrich.rasters import NODATA, RasterGrid, raster_crs_text
 from standgrid.errors import FormatError, GridMismatchError
+from standgrid.export.styles import write_raster_style
 
 ALIGNMENT_TOLERANCE_PX = 1e-6
 
@@ -166,8 +168,13 @@ def chm_difference(
     *,
     extent: Literal["intersection", "union"] = "intersection",
     overwrite: bool = True,
+    style: str | os.PathLike[str] | None = None,
 ) -> ChmDifference:
-    """Write ``to - from`` of two CHMs on the same pixel grid (rules: module docstring)."""
+    """Write ``to - from`` of two CHMs on the same pixel grid (rules: module docstring).
+
+    Its default QGIS style (diverging ramp centred on 0, +-p98 of the change, legend in m)
+    goes beside it as ``<name>.qml``, or to ``style`` when given.
+    """
     before, after, grid = read_aligned_pair(chm_from_path, chm_to_path, extent=extent)
     crs_text = raster_crs_text(_open_grid(Path(chm_from_path)).crs)
     difference = after - before
@@ -186,6 +193,7 @@ def chm_difference(
         description="CHM difference to - from (m)",
         overwrite=overwrite,
     )
+    write_raster_style(final, "chm_change", qml=style)  # diverging ramp around 0 for QGIS
     n_valid = int(valid.sum())
     return ChmDifference(
         path=final,

@@ -10,19 +10,28 @@ every stage uses to add a style; the builders return QGIS 3 QML text:
 - :func:`graduated_style` — equal-interval classes over a sequential ramp (density,
   canopy height; see :func:`stand_metric_style`);
 - :func:`diverging_style` — classes symmetric around a centre on the RdBu ramp (change).
+
+Rasters get their style as a sidecar: QGIS loads ``<name>.qml`` beside ``<name>.tif`` as the
+layer's default style. :func:`write_raster_style` writes one for each kind of raster
+standgrid makes (:data:`RASTER_KINDS`): a height ramp for the CHM, a terrain ramp for the
+DTM, a density ramp, a diverging ramp centred on 0 for CHM change and a paletted style for
+the observed-area mask.
 """
 
 from __future__ import annotations
 
 import contextlib
+import math
 import os
 import sqlite3
 import xml.etree.ElementTree as ET
 from collections.abc import Sequence
+from dataclasses import dataclass
 from importlib import resources
 from pathlib import Path
 
-from standgrid.errors import CatalogError
+from standgrid._atomic import write_text_atomic
+from standgrid.errors import CatalogError, FormatError
 
 QGIS_VERSION = "3.28.0-Firenze"
 STYLE_TABLE = "layer_styles"
@@ -36,6 +45,8 @@ RDBU = (
 VIRIDIS = ("#440154", "#3b528b", "#21918c", "#5ec962", "#fde725")
 #: ColorBrewer YlOrRd (5 classes), for point density.
 YLORRD = ("#ffffb2", "#fecc5c", "#fd8d3c", "#f03b20", "#bd0026")
+#: Terrain: green lowland through tan to brown and pale high ground (DTM).
+TERRAIN = ("#1a9850", "#91cf60", "#d9ef8b", "#fee08b", "#d8b365", "#8c510a", "#f5f5f5")
 #: ColorBrewer Set1 + Dark2: distinct colours for categories (cycled).
 CATEGORY_COLOURS = (
     "#e41a1c", "#377eb8", "#4daf4a", "#984ea3", "#ff7f00", "#a65628", "#f781bf",
@@ -392,3 +403,217 @@ def write_builtin_styles(folder: Path | None = None) -> None:
     target.mkdir(exist_ok=True)
     for style_name, text in _builtin_styles().items():
         (target / f"{style_name}.qml").write_text(text, encoding="utf-8")
+
+
+# --- raster styles (QML sidecars) --------------------------------------------------------
+
+#: Percentile of the data a one-sided ramp ends at (outliers do not wash the ramp out).
+RASTER_UPPER_PERCENTILE = 98.0
+#: Observed-area mask: value -> (colour, alpha 0-255, legend label).
+OBSERVED_PALETTE = {1: ("#1a9641", 90, "observed"), 0: ("#d7191c", 140, "not observed")}
+
+
+@dataclass(frozen=True)
+class RasterKind:
+    """How one kind of raster is styled: ramp, unit of the legend, how its range is found."""
+
+    ramp: tuple[str, ...]
+    unit: str
+    precision: int
+    #: "zero_to_upper" (0 .. p98), "min_max" (data min .. max), "symmetric" (+-p98 of |v|),
+    #: "palette" (fixed classes, no range).
+    range_rule: str
+
+
+#: Raster kinds (the file stem of the raster) and their styles.
+RASTER_KINDS: dict[str, RasterKind] = {
+    "chm": RasterKind(VIRIDIS, "m", 1, "zero_to_upper"),
+    "dtm": RasterKind(TERRAIN, "m", 1, "min_max"),
+    "density": RasterKind(YLORRD, "pts/m²", 0, "zero_to_upper"),
+    "chm_change": RasterKind(RDBU, "m", 2, "symmetric"),
+    "observed": RasterKind((), "", 0, "palette"),
+}
+#: Raster file stems whose kind differs from their stem.
+_KIND_OF_STEM = {"chm_diff": "chm_change"}
+
+
+def raster_kind(path: str | os.PathLike[str]) -> str | None:
+    """The style kind of a raster file from its name (``chm.tif`` -> ``chm``), or None."""
+    stem = Path(path).stem
+    kind = _KIND_OF_STEM.get(stem, stem)
+    return kind if kind in RASTER_KINDS else None
+
+
+def raster_style_path(tif_path: str | os.PathLike[str]) -> Path:
+    """The sidecar QGIS loads as a raster's default style: ``<name>.qml`` beside ``<name>.tif``."""
+    return Path(tif_path).with_suffix(".qml")
+
+
+def _raster_document(renderer: ET.Element, opacity: float = 1.0) -> str:
+    """A QGIS 3 raster layer style: the renderer in a pipe with the default filters."""
+    root = ET.Element(
+        "qgis", version=QGIS_VERSION, styleCategories="AllStyleCategories",
+        hasScaleBasedVisibilityFlag="0", minScale="1e+08", maxScale="0",
+    )  # fmt: skip
+    pipe = ET.SubElement(root, "pipe")
+    provider = ET.SubElement(pipe, "provider")
+    ET.SubElement(
+        provider, "resampling", enabled="false", maxOversampling="2",
+        zoomedInResamplingMethod="nearestNeighbour", zoomedOutResamplingMethod="nearestNeighbour",
+    )  # fmt: skip
+    renderer.set("opacity", f"{opacity:g}")
+    pipe.append(renderer)
+    ET.SubElement(pipe, "brightnesscontrast", brightness="0", contrast="0", gamma="1")
+    ET.SubElement(
+        pipe, "huesaturation", saturation="0", grayscaleMode="0", invertColors="0",
+        colorizeOn="0", colorizeRed="255", colorizeGreen="128", colorizeBlue="128",
+        colorizeStrength="100",
+    )  # fmt: skip
+    ET.SubElement(pipe, "rasterresampler", maxOversampling="2")
+    ET.SubElement(pipe, "resamplingStage").text = "resamplingFilter"
+    ET.SubElement(root, "blendMode").text = "0"
+    ET.indent(root)
+    body = ET.tostring(root, encoding="unicode")
+    return "<!DOCTYPE qgis PUBLIC 'http://mrcc.com/qgis.dtd' 'SYSTEM'>\n" + body + "\n"
+
+
+def _raster_renderer(kind: str, **attrs: str) -> ET.Element:
+    base = {"type": kind, "band": "1", "alphaBand": "-1", "nodataColor": ""}
+    renderer = ET.Element("rasterrenderer", {**base, **attrs})
+    ET.SubElement(renderer, "rasterTransparency")
+    origin = ET.SubElement(renderer, "minMaxOrigin")
+    for tag, text in (
+        ("limits", "None"), ("extent", "WholeRaster"), ("statAccuracy", "Estimated"),
+        ("cumulativeCutLower", "0.02"), ("cumulativeCutUpper", "0.98"), ("stdDevFactor", "2"),
+    ):  # fmt: skip
+        ET.SubElement(origin, tag).text = text
+    return renderer
+
+
+def _value_label(value: float, unit: str, precision: int, signed: bool) -> str:
+    text = f"{value:+.{precision}f}" if signed and value != 0 else f"{value:.{precision}f}"
+    if text.lstrip("+-").strip("0.") == "":  # -0.00 and +0.00 read as 0
+        text = f"{0:.{precision}f}"
+    return f"{text} {unit}".strip()
+
+
+def pseudocolor_raster_style(
+    vmin: float,
+    vmax: float,
+    ramp: Sequence[str],
+    *,
+    unit: str = "",
+    precision: int = 1,
+    signed: bool = False,
+    opacity: float = 1.0,
+) -> str:
+    """Band 1 on a continuous colour ramp from ``vmin`` to ``vmax`` (singlebandpseudocolor).
+
+    One legend item per ramp stop, labelled with its value and ``unit``; values outside the
+    range take the end colours (not clipped); nodata stays transparent.
+    """
+    if not (math.isfinite(vmin) and math.isfinite(vmax)):
+        raise ValueError(f"raster style range must be finite, got {vmin}..{vmax}")
+    if not vmax > vmin:
+        vmax = vmin + 1.0
+    renderer = _raster_renderer(
+        "singlebandpseudocolor", classificationMin=f"{vmin:.10g}", classificationMax=f"{vmax:.10g}"
+    )
+    shader = ET.SubElement(ET.SubElement(renderer, "rastershader"), "colorrampshader")
+    shader.attrib.update(
+        colorRampType="INTERPOLATED", classificationMode="1", clip="0",
+        minimumValue=f"{vmin:.10g}", maximumValue=f"{vmax:.10g}", labelPrecision=str(precision),
+    )  # fmt: skip
+    shader.append(_colour_ramp(ramp))
+    for i, colour in enumerate(ramp):
+        t = i / (len(ramp) - 1)
+        value = vmin * (1 - t) + vmax * t  # exact ends, and exactly 0 mid-way on -h..h
+        ET.SubElement(
+            shader, "item", alpha="255", value=f"{value:.10g}", color=colour,
+            label=_value_label(value, unit, precision, signed),
+        )  # fmt: skip
+    return _raster_document(renderer, opacity)
+
+
+def paletted_raster_style(entries: dict[int, tuple[str, int, str]], *, opacity: float = 1.0) -> str:
+    """One colour per integer value of band 1 (QGIS "paletted/unique values")."""
+    renderer = _raster_renderer("paletted")
+    palette = ET.SubElement(renderer, "colorPalette")
+    for value, (colour, alpha, label) in sorted(entries.items()):
+        ET.SubElement(
+            palette, "paletteEntry", value=str(value), color=colour, alpha=str(alpha), label=label
+        )
+    return _raster_document(renderer, opacity)
+
+
+def raster_style(kind: str, vmin: float = 0.0, vmax: float = 1.0) -> str:
+    """The QML of a raster kind (:data:`RASTER_KINDS`) over ``vmin``..``vmax``.
+
+    ``chm_change`` is made symmetric around 0 (half-width ``max(|vmin|, |vmax|)``); the
+    ``observed`` mask ignores the range (1 = observed, 0 = not observed, semi-transparent).
+    """
+    spec = RASTER_KINDS.get(kind)
+    if spec is None:
+        raise ValueError(f"unknown raster kind {kind!r} (one of {sorted(RASTER_KINDS)})")
+    if spec.range_rule == "palette":
+        return paletted_raster_style(OBSERVED_PALETTE)
+    signed = spec.range_rule == "symmetric"
+    if signed:
+        half = max(abs(vmin), abs(vmax)) or 1.0
+        vmin, vmax = -half, half
+    return pseudocolor_raster_style(
+        vmin, vmax, spec.ramp, unit=spec.unit, precision=spec.precision, signed=signed
+    )
+
+
+def raster_range(tif_path: str | os.PathLike[str], kind: str) -> tuple[float, float]:
+    """The style range of a raster's valid pixels by its kind's rule (0..1 when none valid)."""
+    import numpy as np
+    import rasterio
+
+    spec = RASTER_KINDS[kind]
+    if spec.range_rule == "palette":
+        return 0.0, 1.0
+    try:
+        with rasterio.open(tif_path) as src:
+            band = src.read(1, masked=True)
+    except rasterio.errors.RasterioIOError as exc:
+        raise FormatError(f"cannot read raster: {exc}", path=tif_path) from exc
+    values = np.ma.compressed(band).astype(np.float64)
+    values = values[np.isfinite(values)]
+    if len(values) == 0:
+        return 0.0, 1.0
+    upper = float(np.percentile(values, RASTER_UPPER_PERCENTILE))
+    if spec.range_rule == "zero_to_upper":
+        return 0.0, upper
+    if spec.range_rule == "symmetric":
+        half = float(np.percentile(np.abs(values), RASTER_UPPER_PERCENTILE))
+        return -half, half
+    return float(values.min()), float(values.max())
+
+
+def write_raster_style(
+    tif_path: str | os.PathLike[str],
+    kind: str | None = None,
+    vmin: float | None = None,
+    vmax: float | None = None,
+    *,
+    qml: str | os.PathLike[str] | None = None,
+) -> Path:
+    """Write the default QGIS style ``<name>.qml`` beside the raster ``<name>.tif``.
+
+    ``kind`` defaults to the one the file name says (:func:`raster_kind`); a range not given
+    comes from the raster's valid pixels (:func:`raster_range`: CHM and density 0..p98, DTM
+    min..max, change +-p98 of |change|). ``qml`` writes it elsewhere (a transaction's staged
+    path of the sidecar). Returns the style's path (written atomically).
+    """
+    kind = kind or raster_kind(tif_path)
+    if kind is None:
+        raise ValueError(f"no raster style for {Path(tif_path).name} (give kind=)")
+    if vmin is None or vmax is None:
+        lo, hi = raster_range(tif_path, kind)
+        vmin = lo if vmin is None else vmin
+        vmax = hi if vmax is None else vmax
+    path = Path(qml) if qml is not None else raster_style_path(tif_path)
+    write_text_atomic(path, raster_style(kind, vmin, vmax))
+    return path

@@ -87,6 +87,7 @@ def compare_epochs(
     from standgrid.compare import chm_difference, compare_stands, match_trees
     from standgrid.compare.stands import check_same_grid
     from standgrid.export.catalog import Catalog
+    from standgrid.export.styles import raster_style_path
 
     source = Catalog.open(catalog_path)
     target = Catalog.open(other_catalog) if other_catalog is not None else source
@@ -142,16 +143,21 @@ def compare_epochs(
         index = txn.stage("index.gpkg")
         shutil.copyfile(source.path("index.gpkg"), index)
         chm_rel = f"{folder}/chm_diff.tif"
+        style_rel = raster_style_path(chm_rel).as_posix()
         chm_difference(
             source.path(f"rasters/{epoch_from}/chm.tif"),
             target.path(f"rasters/{epoch_to}/chm.tif"),
             txn.stage(chm_rel),
             extent="union",
+            style=txn.stage(style_rel),
         )
         written = _write_outputs(
             txn, folder, index, changes, matches, epoch_from, epoch_to, cells, source.crs
         )
-        outputs = {"chm_difference": chm_rel, **written, "gpkg": "index.gpkg"}
+        outputs = {
+            "chm_difference": chm_rel, "chm_difference_style": style_rel, **written,
+            "gpkg": "index.gpkg",
+        }  # fmt: skip
         comparisons = txn.state.setdefault("comparisons", {})
         comparisons[f"{epoch_from}__{epoch_to}"] = {
             "from": epoch_from,

@@ -127,6 +127,7 @@ def enrich_catalog(
     """Enrich every epoch of the catalog (or ``options.epochs``); returns what was done."""
     from standgrid.enrich.allometry import impute_dbh
     from standgrid.export.catalog import Catalog
+    from standgrid.pipeline.invalidate import clear_invalidation
 
     catalog = Catalog.open(catalog_path)
     if not catalog.crs:
@@ -148,7 +149,8 @@ def enrich_catalog(
     with catalog.transaction() as txn:
         results = {}
         for epoch in epochs:
-            status(f"enriching epoch {epoch}")
+            note = clear_invalidation(txn.state["epochs"][epoch])  # says if it was stale
+            status(f"enriching epoch {epoch}: {note}")
             results[epoch] = _enrich_epoch(catalog, txn, epoch, options, wrap)
         models = _height_diameter_models(catalog, {e: r.trees for e, r in results.items()})
         for epoch, result in results.items():
@@ -580,23 +582,29 @@ def _write_raster(
     txn: Transaction, rel: str, array: NDArray[np.float32], grid: RasterGrid, crs: str, text: str
 ) -> None:
     from standgrid.enrich.rasters import write_cog
+    from standgrid.export.styles import raster_style_path, write_raster_style
 
     data = np.where(np.isfinite(array), array, NODATA).astype(np.float32)
-    write_cog(txn.stage(rel), data, grid, crs=crs, nodata=NODATA, description=text)
+    tif = txn.stage(rel)
+    write_cog(tif, data, grid, crs=crs, nodata=NODATA, description=text)
+    write_raster_style(tif, qml=txn.stage(raster_style_path(rel)))  # QGIS default style
 
 
 def _write_coverage(txn: Transaction, rel: str, coverage: Coverage, crs: str) -> None:
     from standgrid.enrich.coverage import MASK_NODATA
     from standgrid.enrich.rasters import write_cog
+    from standgrid.export.styles import raster_style_path, write_raster_style
 
+    tif = txn.stage(rel)
     write_cog(
-        txn.stage(rel),
+        tif,
         coverage.as_mask_raster(),
         coverage.grid,
         crs=crs,
         nodata=MASK_NODATA,
         description="observed ground: 1 observed, 0 not observed (docs/METRICS.md)",
     )
+    write_raster_style(tif, "observed", qml=txn.stage(raster_style_path(rel)))
 
 
 def _metrics_table(rows: list[dict[str, Any]], epoch: str) -> pd.DataFrame:

@@ -169,6 +169,8 @@ def _ingest(
     catalog: Catalog, ingests: list[_Ingest], options: TileOptions, wrap: Wrap, status: Any
 ) -> TileReport:
     """Tile the prepared missions into an open catalog, in one transaction."""
+    from standgrid.pipeline.invalidate import invalidate_epochs, retile_reason
+
     grid = _catalog_grid(catalog)
     report = TileReport(catalog.root, catalog.crs, catalog.scheme, catalog.fingerprint)
     layers = _IndexLayers.read(catalog)
@@ -184,13 +186,24 @@ def _ingest(
             for i in ingests
             if i.mission.name in catalog.missions
         }
+        reasons = {}
         for epoch in sorted({i.epoch for i in ingests} | left):
             group = [i for i in ingests if i.epoch == epoch]
             names = ", ".join(i.mission.name for i in group) or "missions that moved out"
             status(f"tiling epoch {epoch}: {names}")
             _tile_epoch(catalog, txn, grid, epoch, group, renewed, options, layers, report, wrap)
+            moved = [
+                i.mission.name
+                for i in ingests
+                if i.epoch != epoch
+                and catalog.missions.get(i.mission.name, {}).get("epoch") == epoch
+            ]
+            reasons[epoch] = retile_reason([i.mission.name for i in group], moved)
         layers.write(txn, catalog)
         _write_vpcs(txn, catalog, layers)
+        # the re-tiled epochs' enrichment and comparisons describe points that are gone
+        for epoch, removed in invalidate_epochs(catalog, txn, reasons, status=status).items():
+            report.epochs[epoch]["invalidated"] = removed
     status(f"tiled {report.points_out} points into {len(layers.cells)} cells")
     return report
 
@@ -369,6 +382,7 @@ def _tile_epoch(
     from standgrid.errors import ConservationError
     from standgrid.export.las import read_tile, snap_to_storage
     from standgrid.partition import GridBuffer, PartitionEngine
+    from standgrid.pipeline.invalidate import without_enrichment
 
     origin = grid.origin if grid is not None else (0.0, 0.0)
     group_names = {i.mission.name for i in group}
@@ -413,7 +427,10 @@ def _tile_epoch(
             keep = ~np.isin(cloud.fields["point_source_id"], renewed)
             if keep.any():
                 kept = cloud.select(keep)
-                kept = PointCloud(snap_to_storage(kept.xyz, origin), kept.fields)
+                # heights and tree ids of the old enrichment do not survive a re-tile
+                kept = PointCloud(
+                    snap_to_storage(kept.xyz, origin), without_enrichment(kept.fields)
+                )
                 engine.add(_conform(kept, schema, catalog.path(rel)))
                 kept_in += int(keep.sum())
 

@@ -1,0 +1,70 @@
+"""What a catalog holds, from ``catalog.json`` alone: epochs, missions, tiles, points, what
+is enriched, stale or not enriched, and which comparisons are present or were invalidated."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+from typing import Any
+
+ENRICHED, STALE, NOT_ENRICHED = "enriched", "stale", "not enriched"
+
+
+def catalog_status(catalog_path: str | Path) -> dict[str, Any]:
+    """The status of a catalog (the ``standgrid status --json`` document).
+
+    An epoch is ``enriched``, ``stale`` (it was enriched, then re-tiled: its results were
+    removed, ``invalidated`` says when and why) or ``not enriched``. Points are the missions'
+    point counts at ingest (no tile is read). A comparison is ``present``, or ``invalidated``
+    (removed when one of its epochs was re-tiled, and not made again since).
+    """
+    from standgrid.export.catalog import CATALOG_FILE, Catalog
+
+    catalog = Catalog.open(catalog_path)  # completes an interrupted transaction first
+    stored = json.loads((catalog.root / CATALOG_FILE).read_text(encoding="utf-8"))
+    missions = catalog.missions
+    epochs: dict[str, Any] = {}
+    invalidated: list[dict[str, Any]] = []
+    for epoch, entry in sorted(catalog.epochs.items()):
+        names = list(entry.get("missions", []))
+        stale = entry.get("invalidated")
+        state = ENRICHED if entry.get("enriched") else STALE if stale else NOT_ENRICHED
+        epochs[epoch] = {
+            "date": entry.get("date") or None,
+            "missions": names,
+            "tiles": len(catalog.tiles(epoch)),
+            "points": sum(int(missions[n].get("point_count", 0)) for n in names if n in missions),
+            "state": state,
+            "invalidated": stale if state == STALE else None,
+            "enrichment": entry.get("enrichment") if state == ENRICHED else None,
+        }
+        for key, lost in entry.get("comparisons_invalidated", {}).items():
+            invalidated.append({"comparison": key, **lost})
+    comparisons = {
+        key: {
+            "from": entry.get("from"),
+            "to": entry.get("to"),
+            "other_catalog": entry.get("other_catalog"),
+            "state": "present",
+        }
+        for key, entry in sorted(stored.get("comparisons", {}).items())
+    }
+    for item in sorted(invalidated, key=lambda i: str(i["at"])):  # the latest reason wins
+        key = item["comparison"]
+        if comparisons.get(key, {}).get("state") != "present":  # compared again since
+            epoch_from, _, epoch_to = key.partition("__")
+            comparisons[key] = {
+                "from": epoch_from,
+                "to": epoch_to,
+                "other_catalog": None,
+                "state": "invalidated",
+                "reason": item["reason"],
+                "at": item["at"],
+            }
+    return {
+        "catalog": str(catalog.root),
+        "crs": catalog.crs,
+        "scheme": catalog.scheme,
+        "epochs": epochs,
+        "comparisons": comparisons,
+    }

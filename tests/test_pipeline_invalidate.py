@@ -1,0 +1,237 @@
+"""No stale results, through the real pipeline on the bundled pair: re-tiling an enriched and
+compared epoch removes exactly that epoch's enrichment and its comparisons (files, tables,
+GeoPackage layers read back with pyogrio and sqlite3, catalog.json), ``status`` says so, and
+``enrich`` refreshes it."""
+
+from __future__ import annotations
+
+import json
+import sqlite3
+from pathlib import Path
+from typing import Any
+
+import laspy
+import numpy as np
+import pandas as pd
+import pyogrio
+import pytest
+from click.testing import CliRunner
+
+from standgrid.cli import cli
+from standgrid.errors import EnrichError
+from standgrid.pipeline.compare import compare_epochs
+from standgrid.pipeline.enrich import EnrichOptions, enrich_catalog
+from standgrid.pipeline.invalidate import clear_invalidation, without_enrichment
+from standgrid.pipeline.status import catalog_status
+from standgrid.pipeline.tile import tile_missions
+from tests.conftest import BUNDLED_MISSIONS
+from tests.pipeline_fixtures import (
+    MISSIONS,
+    EnrichedPair,
+    copy_catalog,
+    enriched_pair,
+    tiled_grid25,
+)
+
+PAIR = "2024__2028"
+
+
+@pytest.fixture(scope="session")
+def pair(tmp_path_factory: pytest.TempPathFactory) -> EnrichedPair:
+    return enriched_pair(tmp_path_factory)
+
+
+def _files(root: Path, folder: str) -> set[str]:
+    base = root / folder
+    return {p.relative_to(root).as_posix() for p in base.rglob("*") if p.is_file()}
+
+
+def _layer_epochs(gpkg: Path, layer: str, column: str = "epoch") -> pd.Series:
+    return pyogrio.read_dataframe(gpkg, layer=layer, read_geometry=False)[column].astype(str)
+
+
+def _sql_count(gpkg: Path, layer: str, where: str = "1") -> int:
+    with sqlite3.connect(gpkg) as db:
+        return int(db.execute(f'SELECT COUNT(*) FROM "{layer}" WHERE {where}').fetchone()[0])
+
+
+def _snapshot(root: Path) -> dict[str, Any]:
+    """Everything of epoch 2024 a re-tile of 2028 must leave exactly as it was."""
+    gpkg = root / "index.gpkg"
+    metrics = pd.read_parquet(root / "tables/stand_metrics.parquet")
+    return {
+        "rasters": {rel: (root / rel).read_bytes() for rel in _files(root, "rasters/2024")},
+        "trees": (root / "tables/tree_list_2024.parquet").read_bytes(),
+        "metrics": metrics[metrics["epoch"].astype(str) == "2024"].reset_index(drop=True),
+        "metric_layer": int((_layer_epochs(gpkg, "stand_metrics") == "2024").sum()),
+        "tree_layer": int((_layer_epochs(gpkg, "trees") == "2024").sum()),
+        "entry": json.loads((root / "catalog.json").read_text())["epochs"]["2024"],
+    }
+
+
+@pytest.fixture(scope="module")
+def retiled(pair: EnrichedPair, tmp_path_factory: pytest.TempPathFactory) -> dict[str, Any]:
+    """A copy of the enriched, compared pair whose 2028 mission is ingested again."""
+    root = copy_catalog(pair.path, tmp_path_factory.mktemp("retile") / "catalog")
+    before = _snapshot(root)
+    gpkg = root / "index.gpkg"
+    counts = {
+        "metrics_2028": int((_layer_epochs(gpkg, "stand_metrics") == "2028").sum()),
+        "stand_changes": _sql_count(gpkg, "stand_changes"),
+        "tree_changes": _sql_count(gpkg, "tree_changes"),
+    }
+    assert counts["metrics_2028"] > 0 and counts["stand_changes"] > 0  # something to remove
+    assert _files(root, f"compare/{PAIR}") and _files(root, "rasters/2028")
+    messages: list[str] = []
+    report = tile_missions([BUNDLED_MISSIONS / MISSIONS["2028"]], root, status=messages.append)
+    return {"root": root, "before": before, "counts": counts, "report": report.to_dict(),
+            "messages": messages}  # fmt: skip
+
+
+def test_retile_removes_the_epochs_files_and_comparison(retiled: dict[str, Any]) -> None:
+    root = retiled["root"]
+    assert _files(root, "rasters/2028") == set()
+    assert not (root / "tables/tree_list_2028.parquet").exists()
+    assert not (root / "tables/tree_list_2028.csv").exists()
+    assert _files(root, f"compare/{PAIR}") == set()
+    assert not (root / ".staging").exists()  # committed
+    # the tiles themselves are back (re-tiling is not deleting), without old heights or trees
+    tiles = sorted(_files(root, "tiles/2028"))
+    assert tiles
+    with laspy.open(root / tiles[0]) as reader:
+        points = reader.read()
+    assert np.isnan(np.asarray(points["height_above_ground"])).all()
+    assert (np.asarray(points["tree_id"]) == 0).all()
+
+
+def test_kept_points_lose_their_enrichment() -> None:
+    fields = {
+        "height_above_ground": np.array([1.5, 20.0], dtype=np.float32),
+        "tree_id": np.array([7, 0], dtype=np.int64),
+        "classification": np.array([2, 1], dtype=np.uint8),
+        "intensity": np.array([10, 20], dtype=np.uint16),
+    }
+    out = without_enrichment(fields)
+    assert np.isnan(out["height_above_ground"]).all()
+    assert out["height_above_ground"].dtype == np.float32
+    assert (out["tree_id"] == 0).all() and out["tree_id"].dtype == np.int64
+    assert out["classification"] is fields["classification"]  # source classes are kept
+    assert out["intensity"] is fields["intensity"]
+
+
+def test_retile_removes_the_epochs_rows_from_tables_and_layers(retiled: dict[str, Any]) -> None:
+    root, gpkg = retiled["root"], retiled["root"] / "index.gpkg"
+    for table in (
+        pd.read_parquet(root / "tables/stand_metrics.parquet"),
+        pd.read_csv(root / "tables/stand_metrics.csv", dtype={"epoch": str}),
+    ):
+        assert set(table["epoch"].astype(str)) == {"2024"}
+    assert set(_layer_epochs(gpkg, "stand_metrics")) == {"2024"}
+    assert set(_layer_epochs(gpkg, "trees")) == {"2024"}
+    assert _sql_count(gpkg, "stand_metrics", "CAST(epoch AS TEXT) = '2028'") == 0
+    assert _sql_count(gpkg, "stand_changes") == 0 and _sql_count(gpkg, "tree_changes") == 0
+    # GDAL's own count and spatial index agree with the rows (triggers ran)
+    info = pyogrio.read_info(gpkg, layer="stand_metrics")
+    assert info["features"] == _sql_count(gpkg, "stand_metrics")
+    with sqlite3.connect(gpkg) as db:
+        rtree = db.execute("SELECT COUNT(*) FROM rtree_stand_metrics_geom").fetchone()[0]
+        styled = db.execute(
+            "SELECT COUNT(*) FROM layer_styles WHERE f_table_name = 'stand_metrics'"
+        ).fetchone()[0]
+    assert rtree == _sql_count(gpkg, "stand_metrics")
+    assert styled >= 1  # the layer keeps its QGIS style
+
+
+def test_retile_leaves_the_other_epoch_untouched(retiled: dict[str, Any]) -> None:
+    after = _snapshot(retiled["root"])
+    before = retiled["before"]
+    assert after["rasters"] == before["rasters"] and len(before["rasters"]) >= 6
+    assert after["trees"] == before["trees"]
+    pd.testing.assert_frame_equal(after["metrics"], before["metrics"])
+    assert after["metric_layer"] == before["metric_layer"] > 0
+    assert after["tree_layer"] == before["tree_layer"] > 0
+    assert after["entry"] == before["entry"] and after["entry"]["enriched"] is True
+
+
+def test_retile_marks_the_epoch_stale_in_the_catalog(retiled: dict[str, Any]) -> None:
+    state = json.loads((retiled["root"] / "catalog.json").read_text())
+    entry = state["epochs"]["2028"]
+    assert entry["enriched"] is False and "enrichment" not in entry
+    stale = entry["invalidated"]
+    assert stale["reason"] == f"re-tiled: missions {MISSIONS['2028']}"
+    assert stale["comparisons"] == [PAIR] and stale["at"].endswith("Z")
+    assert PAIR not in state.get("comparisons", {})
+    assert "invalidated" not in state["epochs"]["2024"]
+    # the tiler's report and its progress lines say what went
+    removed = retiled["report"]["epochs"]["2028"]["invalidated"]
+    assert removed["comparisons"] == [PAIR]
+    assert "rasters/2028/chm.tif" in removed["files"]
+    assert f"compare/{PAIR}/chm_diff.tif" in removed["files"]
+    assert removed["rows"]["stand_metrics"] == retiled["counts"]["metrics_2028"]
+    assert removed["rows"]["stand_changes"] == retiled["counts"]["stand_changes"]
+    assert any("epoch 2028 re-tiled" in m and PAIR in m for m in retiled["messages"])
+
+
+def test_status_reports_stale_epoch_and_invalidated_comparison(retiled: dict[str, Any]) -> None:
+    root = retiled["root"]
+    status = catalog_status(root)
+    assert status["epochs"]["2024"]["state"] == "enriched"
+    e2028 = status["epochs"]["2028"]
+    assert e2028["state"] == "stale" and e2028["missions"] == [MISSIONS["2028"]]
+    assert e2028["invalidated"]["reason"].startswith("re-tiled")
+    assert e2028["tiles"] == len(_files(root, "tiles/2028"))
+    assert e2028["points"] == retiled["report"]["epochs"]["2028"]["points_new"] > 0
+    assert status["comparisons"][PAIR]["state"] == "invalidated"
+
+    runner = CliRunner()
+    result = runner.invoke(cli, ["status", str(root), "--json"])
+    assert result.exit_code == 0, result.output
+    assert json.loads(result.output)["epochs"]["2028"]["state"] == "stale"
+    human = runner.invoke(cli, ["status", str(root)])
+    assert human.exit_code == 0
+    assert "stale: re-tiled" in human.output and f"{PAIR}  invalidated" in human.output
+
+
+def test_compare_refuses_the_stale_epoch(retiled: dict[str, Any]) -> None:
+    with pytest.raises(EnrichError, match="not enriched"):
+        compare_epochs(retiled["root"], "2024", "2028")
+
+
+@pytest.mark.slow
+def test_enrich_refreshes_the_stale_epoch(
+    retiled: dict[str, Any], tmp_path_factory: pytest.TempPathFactory
+) -> None:
+    root = copy_catalog(retiled["root"], tmp_path_factory.mktemp("refresh") / "catalog")
+    messages: list[str] = []
+    enrich_catalog(root, EnrichOptions(epochs=("2028",)), status=messages.append)
+    assert any("2028" in m and "refreshing stale epoch" in m and PAIR in m for m in messages)
+    entry = json.loads((root / "catalog.json").read_text())["epochs"]["2028"]
+    assert entry["enriched"] is True and "invalidated" not in entry
+    assert {"rasters/2028/chm.tif", "rasters/2028/chm.qml"} <= _files(root, "rasters/2028")
+    assert set(_layer_epochs(root / "index.gpkg", "stand_metrics")) == {"2024", "2028"}
+    status = catalog_status(root)
+    assert status["epochs"]["2028"]["state"] == "enriched"
+    assert status["comparisons"][PAIR]["state"] == "invalidated"  # until compared again
+    compare_epochs(root, "2024", "2028")
+    assert catalog_status(root)["comparisons"][PAIR]["state"] == "present"
+
+
+def test_enrich_says_what_it_computes() -> None:
+    assert clear_invalidation({"enriched": True}) == "recomputing (was enriched)"
+    assert clear_invalidation({"enriched": False}) == "computing (not enriched)"
+    entry = {"enriched": False, "invalidated": {"at": "T", "reason": "re-tiled: missions m",
+                                                "comparisons": ["a__b"]}}  # fmt: skip
+    note = clear_invalidation(entry)
+    assert note == "refreshing stale epoch (re-tiled: missions m, T); compare again: a__b"
+    assert "invalidated" not in entry
+
+
+def test_retiling_an_unenriched_epoch_marks_nothing(
+    tmp_path_factory: pytest.TempPathFactory,
+) -> None:
+    root = copy_catalog(tiled_grid25(tmp_path_factory), tmp_path_factory.mktemp("g25") / "c")
+    report = tile_missions([BUNDLED_MISSIONS / MISSIONS["2024"]], root)
+    assert "invalidated" not in report.to_dict()["epochs"]["2024"]
+    entry = json.loads((root / "catalog.json").read_text())["epochs"]["2024"]
+    assert "invalidated" not in entry and entry["enriched"] is False
+    assert catalog_status(root)["epochs"]["2024"]["state"] == "not enriched"

@@ -760,8 +760,8 @@ def _metadata_extra(mission: Mission) -> dict[str, Any]:
     if meta is None:
         return {"robot": "", "place": "", "unit": "", "sensors": []}
     return {
-        "robot": meta.robot,
-        "place": meta.place,
+        "robot": meta.robot or "",
+        "place": meta.place or "",
         "unit": meta.unit or "",
         "sensors": list(meta.sensors),
     }

@@ -247,10 +247,11 @@ class Mission:
 
     # --- re-alignment --------------------------------------------------------------------
 
-    def with_graph(self, graph: PoseGraph) -> Mission:
+    def with_graph(self, graph: PoseGraph, *, whole: bool = False) -> Mission:
         """A view of this mission re-aligned on ``graph`` (re-optimised, or a merged graph
         whose vertices are matched to this mission's payloads by stamp). No cloud is re-read:
-        the base-frame cache is shared."""
+        the base-frame cache is shared. ``whole``: every vertex of ``graph`` belongs to this
+        mission (a graph file given for it), not only those matching its own stamps."""
         problems = list(self.problems)
         by_stamp = _vertices_by_stamp(graph)
         dups = graph.duplicate_stamps()
@@ -282,7 +283,10 @@ class Mission:
             warnings=list(self.warnings),
         )
         # Keep only this mission's vertices when matching (merged graphs hold others too).
-        view._by_stamp = {s: v for s, v in by_stamp.items() if s in own} if own else by_stamp
+        if own and not whole:
+            view._by_stamp = {s: v for s, v in by_stamp.items() if s in own}
+        else:
+            view._by_stamp = by_stamp
         return view
 
     # --- summary -------------------------------------------------------------------------

@@ -22,6 +22,7 @@ from standgrid.errors import (
     MissionConsistencyError,
     MissionNotFoundError,
     OrphanPayloadError,
+    PointCloudFormatError,
     StandgridError,
 )
 from standgrid.geometry import Matrix4, invert_pose
@@ -297,8 +298,9 @@ class Mission:
         edges: dict[str, int] = {}
         if graph is not None:
             edges = {str(kind): n for kind, n in sorted(graph.edge_counts().items())}
-        points = sum(read_cloud_header(p.path).points for p in self.payloads)
-        scan_points = sum(read_cloud_header(p.path).points for p in self.scans)
+        problems = list(self.problems)
+        points, bad_payloads = _counted_points(self.payloads, problems, self.strict)
+        scan_points, bad_scans = _counted_points(self.scans, problems, self.strict)
         stamps, positions = self.trajectory()
         all_ns = [int(s) for s in stamps]
         all_ns += [p.stamp.ns for p in self.payloads + self.scans]
@@ -325,8 +327,10 @@ class Mission:
             if self.layout.payload_source is None
             else self.layout.payload_source.name,
             "points": points,
+            "payloads_truncated": bad_payloads,
             "scans": len(self.scans),
             "scan_points": scan_points,
+            "scans_truncated": bad_scans,
             "cloud_folders": {
                 f.name: len(f.files)
                 for f in (
@@ -341,9 +345,26 @@ class Mission:
             "cameras": sorted({i.camera for i in self.images}),
             "time_span": span,
             "extent_map": extent,
-            "problems": list(self.problems),
+            "problems": problems,
             "warnings": list(self.warnings),
         }
+
+
+def _counted_points(items: list[Payload], problems: list[str], strict: bool) -> tuple[int, int]:
+    """Points the clouds' headers announce, files too short for their header left out (and
+    reported in ``problems``; a strict mission raises). Returns ``(points, truncated files)``."""
+    total = bad = 0
+    for item in items:
+        header = read_cloud_header(item.path)
+        problem = header.size_problem()
+        if problem is None:
+            total += header.points
+            continue
+        if strict:
+            raise PointCloudFormatError(problem, path=item.path)
+        bad += 1
+        problems.append(f"{item.path}: {problem}; not counted")
+    return total, bad
 
 
 def _metadata_dict(meta: MissionMetadata) -> dict[str, Any]:

@@ -748,6 +748,7 @@ def fit_summary(fit: GeoreferenceFit) -> dict[str, Any]:
         "rmse_vertical_m": _finite(fit.rmse_vertical_m),
         "yaw_deg": fit.yaw_deg,
         "lla_ref": list(fit.lla_ref),
+        "uncertainty": None if fit.uncertainty is None else fit.uncertainty.to_dict(),
     }
 
 

@@ -54,7 +54,9 @@ class Payload:
     """One stamped piece of mission data, attached to the graph node of the same stamp.
 
     ``node_id`` is None when no node has the stamp (reported in ``Mission.problems``).
-    ``frame`` is the frame of the file's coordinates; ``layers`` maps a layer name
+    ``frame`` is the frame of the file's coordinates (``utm``: any projected CRS, for
+    clouds in a ``*_in_utm`` folder and LAS/LAZ files carrying a projected CRS, which
+    wins over the folder's frame); ``layers`` maps a layer name
     (``ground``) to a cloud file of the same stamp. ``sensor`` names the camera of an image.
     """
 
@@ -65,6 +67,8 @@ class Payload:
     layers: dict[str, Path] = field(default_factory=dict, hash=False, compare=False)
     kind: PayloadKind = "point_cloud"
     sensor: str | None = None
+    #: The projected CRS of a ``utm``-frame cloud, when its file says (LAS/LAZ CRS VLR).
+    crs: str | None = field(default=None, hash=False, compare=False)
 
 
 class CloudCache:
@@ -209,6 +213,20 @@ class Mission:
             )
         self._cache.put(key, cloud)
         return cloud
+
+    @property
+    def is_projected(self) -> bool:
+        """True when the payloads are clouds already in a projected CRS (frame ``utm``)."""
+        clouds = [p for p in self.payloads if p.kind == "point_cloud"]
+        return bool(clouds) and all(p.frame == "utm" for p in clouds)
+
+    def load_projected(self, payload: Payload) -> PointCloud:
+        """A ``utm``-frame payload as stored: float64 coordinates in its projected CRS."""
+        if payload.frame != "utm":
+            raise MissionConsistencyError(
+                f"a {payload.frame}-frame cloud is not in a projected CRS", path=payload.path
+            )
+        return self.read_cloud(payload.path)
 
     def load_payload(
         self,
@@ -448,6 +466,46 @@ def _cloud_payloads(
     ]
 
 
+def _las_crs(path: Path) -> Any:
+    """The CRS a LAS/LAZ header carries (pyproj.CRS), or None."""
+    import laspy
+
+    try:
+        with laspy.open(path) as reader:
+            return reader.header.parse_crs()
+    except (laspy.errors.LaspyException, ValueError, OSError, EOFError) as exc:
+        raise PointCloudFormatError(f"unreadable LAS/LAZ header ({exc})", path=path) from exc
+
+
+def _crs_text(crs: Any) -> str:
+    """``EPSG:XXXX`` when the code round-trips to an equal CRS, else WKT2 (as the catalog)."""
+    import pyproj
+
+    epsg = crs.to_epsg()
+    if epsg is not None and pyproj.CRS.from_epsg(epsg) == crs:
+        return f"EPSG:{epsg}"
+    return str(crs.to_wkt("WKT2_2019"))
+
+
+def _projected_las(items: list[Payload]) -> list[Payload]:
+    """LAS/LAZ payloads whose header carries a projected CRS are in that CRS (frame ``utm``),
+    whatever their folder; a geographic or geocentric CRS is refused (x/y must be metres)."""
+    out = []
+    for p in items:
+        if p.path.suffix.lower() in (".las", ".laz"):
+            crs = _las_crs(p.path)
+            if crs is not None:
+                if not crs.is_projected:
+                    raise MissionConsistencyError(
+                        f"the cloud's CRS {crs.name!r} is not projected; standgrid reads "
+                        "clouds in a projected CRS (metres) or in the robot/map frame",
+                        path=p.path,
+                    )
+                p = replace(p, frame="utm", crs=_crs_text(crs))
+        out.append(p)
+    return out
+
+
 def _attach(
     items: list[Payload],
     by_stamp: dict[Stamp, Vertex],
@@ -531,9 +589,13 @@ def open_mission(
         for f in folder.files:
             layers.setdefault(f.stamp, {})[layer_name(folder)] = f.path
 
-    source = layout.payload_source
+    source = layout.payload_source or next(
+        (f for f in layout.payload_folders if f.frame == "utm"), None
+    )
     payloads = _attach(
-        _check_duplicates(_cloud_payloads(source, "point_cloud", layers), strict, problems),
+        _check_duplicates(
+            _projected_las(_cloud_payloads(source, "point_cloud", layers)), strict, problems
+        ),
         by_stamp,
         graph,
         strict,

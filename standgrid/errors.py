@@ -61,7 +61,18 @@ class SensorLogFormatError(FormatError):
 
 
 class MetadataError(FormatError):
-    """An unreadable or invalid ``metadata.yaml``."""
+    """An unreadable or invalid ``metadata.yaml``; ``key`` names the metadata key at fault."""
+
+    def __init__(
+        self,
+        message: str,
+        *,
+        path: str | PathLike[str] | None = None,
+        line: int | None = None,
+        key: str | None = None,
+    ) -> None:
+        super().__init__(message, path=path, line=line)
+        self.key = key
 
 
 class MissionNameError(FormatError):

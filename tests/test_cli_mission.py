@@ -56,6 +56,53 @@ def test_info_reports_orphans_and_fails_strict(tmp_path: Path) -> None:
     assert result.exit_code != 0 and "OrphanPayloadError" in result.output
 
 
+def test_info_reports_a_truncated_cloud_and_does_not_count_it(tmp_path: Path) -> None:
+    syn = make_mission(tmp_path)  # 5 payloads of 200 points, binary PCD
+    cut = syn.path / "payload_clouds" / syn.stamps[2].filename("cloud", "pcd")
+    cut.write_bytes(cut.read_bytes()[:-100])
+    data = json.loads(run("info", syn.path, "--json"))
+    assert data["payloads"] == 5 and data["payloads_truncated"] == 1
+    assert data["points"] == 800  # the truncated payload's 200 points are not counted
+    assert any(cut.name in p and "truncated" in p for p in data["problems"])
+    assert "1 truncated, not counted" in run("info", syn.path)
+    result = CliRunner().invoke(cli, ["info", str(syn.path), "--strict"])
+    assert result.exit_code != 0 and "truncated" in result.output
+
+
+@pytest.mark.parametrize(
+    "name, encoding",
+    [
+        ("c.pcd", "binary"),
+        ("c.pcd", "binary_compressed"),
+        ("c.ply", "binary"),
+        ("c.las", "binary"),
+    ],
+)
+def test_cloud_headers_know_the_size_their_data_needs(
+    tmp_path: Path, name: str, encoding: str
+) -> None:
+    import numpy as np
+
+    from standgrid.errors import PointCloudFormatError
+    from standgrid.mission.clouds import read_cloud, read_cloud_header, write_cloud
+    from standgrid.pointcloud import PointCloud
+
+    rng = np.random.default_rng(4)
+    cloud = PointCloud(
+        rng.uniform(-5, 5, (500, 3)), {"intensity": rng.integers(0, 9, 500).astype(np.uint16)}
+    )
+    path = tmp_path / name
+    write_cloud(cloud, path, encoding=encoding)  # type: ignore[arg-type]
+    header = read_cloud_header(path)
+    assert header.size_problem() is None and header.data_bytes is not None
+    assert header.data_offset + header.data_bytes <= path.stat().st_size
+    path.write_bytes(path.read_bytes()[:-7])
+    problem = read_cloud_header(path).size_problem()
+    assert problem is not None and "truncated" in problem and "500 points" in problem
+    with pytest.raises(PointCloudFormatError):
+        read_cloud(path)  # the second reader agrees: the file is short
+
+
 def test_missions(tmp_path: Path) -> None:
     make_mission(tmp_path, "2023-01-13-wytham-anymal-coyote", n_nodes=2, gnss=True)
     make_mission(tmp_path, "2024-04-21-stein-am-rhein-frontier-v15", n_nodes=2)

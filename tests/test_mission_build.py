@@ -133,3 +133,57 @@ def test_real_vilens_scans(tmp_path: Path, vilens: Path) -> None:
     assert built.payloads[0].stamp in {s.stamp for s in source.scans}
     assert len(read_cloud(pcds[0])) == 65536
     assert built.metadata is not None and built.graph is not None and len(built.graph) == 50
+
+
+def test_real_folder_with_its_graph_in_graphs_is_refused_then_built_with_graph(
+    tmp_path: Path, vilens: Path
+) -> None:
+    """The tutorial's layout as published: graphs/ beside individual_clouds/."""
+    from click.testing import CliRunner
+
+    from standgrid.cli import cli
+
+    root = tmp_path / "slam_tutorial"
+    for sub in ("individual_clouds", "graphs"):
+        (root / sub).mkdir(parents=True)
+        for f in sorted((vilens / "slam_tutorial" / sub).iterdir()):
+            (root / sub / f.name).symlink_to(f)
+    with pytest.raises(MissionConsistencyError, match="cannot pose the scans") as info:
+        build_payloads(root, tmp_path / "out")
+    message = str(info.value)
+    assert "same VIEWPOINT" in message  # both real scans carry the identity VIEWPOINT
+    assert "graphs/ground_truth.slam (its nodes match 2 of 2 scans)" in message
+    assert "graphs/slam_pose_graph.slam (its nodes match 0 of 2 scans)" in message
+    assert not (tmp_path / "out").exists()
+
+    result = CliRunner().invoke(cli, ["payloads", "build", str(root), "-o", str(tmp_path / "o")])
+    assert result.exit_code != 0 and "--graph" in result.output
+
+    graph = root / "graphs" / "ground_truth.slam"
+    out = build_payloads(root, tmp_path / "out", graph=graph)
+    built = open_mission(out)
+    assert len(built.payloads) == 1 and built.graph is not None and len(built.graph) == 50
+    got = built.load_payload(built.payloads[0], "map").xyz
+    source = open_mission(root).with_graph(built.graph)
+    expected = np.concatenate([source.load_payload(s, "map").xyz for s in source.scans])
+    np.testing.assert_allclose(got, expected, rtol=0, atol=1e-9)
+    # the two scans are 5-6 m apart in the map frame, not stacked at the identity
+    centres = [source.load_payload(s, "map").xyz.mean(axis=0) for s in source.scans]
+    assert np.linalg.norm(centres[1] - centres[0]) > 4.0
+
+
+def test_scans_with_distinct_viewpoints_need_no_graph(tmp_path: Path) -> None:
+    syn = make_mission(
+        tmp_path,
+        n_nodes=3,
+        cloud_folder="individual_clouds",
+        graph_name=None,
+        csv_name=None,
+        viewpoints=True,
+    )
+    out = build_payloads(syn.path, tmp_path / "out", distance=100.0)
+    built = open_mission(out)
+    assert len(built.payloads) == 1
+    expected = union_in_map(syn, range(3))
+    got = built.load_payload(built.payloads[0], "map").xyz
+    np.testing.assert_allclose(sort_rows(got), sort_rows(expected), rtol=0, atol=1e-6)

@@ -85,12 +85,55 @@ def test_unreadable_metadata_reported_or_raised(tmp_path: Path) -> None:
 
 
 def test_unconventional_name_without_metadata(tmp_path: Path) -> None:
-    make_mission(tmp_path, "2023-05-01-14-01-05", n_nodes=2)
+    make_mission(tmp_path, "forest-walk-b", n_nodes=2)
     c = MissionCollection(tmp_path)
     assert len(c) == 1
     assert c.records[0].metadata is None and c.records[0].date is None
     assert len(c.problems) == 1 and "no metadata.yaml" in c.problems[0]
     assert MissionCollection(tmp_path, strict=True).records[0].metadata is None
     assert c.search(site="wytham") == [] and len(c.search()) == 1
+
+
+def test_vilens_date_time_name_gives_date_only(tmp_path: Path) -> None:
+    make_mission(tmp_path, "2023-05-01-14-01-05", n_nodes=2)
+    c = MissionCollection(tmp_path)
+    assert c.problems == []
+    assert c.records[0].date == dt.date(2023, 5, 1) and c.records[0].site is None
+    assert len(c.search(date_from="2023-05-01", date_to="2023-05-01")) == 1
+    assert c.search(site="wytham") == [] and c.search(robot="anymal") == []
     with pytest.raises(MissionNotFoundError):
         MissionCollection(tmp_path / "absent")
+
+
+def test_sensor_search_matches_kinds_makes_and_models(tmp_path: Path) -> None:
+    from click.testing import CliRunner
+
+    from standgrid.cli import cli
+
+    models = {
+        "2023-01-13-wytham-anymal-coyote": ["velodyne-vlp16", "septentrio-mosaic"],
+        "2023-02-13-wytham-anymal-coyote": ["hesai-xt32", "xsens-mti"],
+        "2023-03-13-wytham-frontier-v15": ["Ouster_OS0-128", "zed-f9p", "cam_front"],
+        "2023-04-13-wytham-spot": ["zed2i", "imu"],
+    }
+    for name, sensors in models.items():
+        folder = tmp_path / name
+        folder.mkdir()
+        (folder / "metadata.yaml").write_text("sensors: [" + ", ".join(sensors) + "]\n")
+    c = MissionCollection(tmp_path)
+    assert c.problems == []
+
+    def dates(*wanted: str) -> list[int]:
+        return [r.date.month for r in c.search(sensors=wanted) if r.date is not None]
+
+    assert dates("lidar") == [1, 2, 3]
+    assert dates("LiDAR", "gnss") == [1, 3]  # zed-f9p is a GNSS receiver ...
+    assert dates("camera") == [3, 4]  # ... zed2i a camera
+    assert dates("imu") == [2, 4]
+    assert dates("velodyne") == [1] and dates("hesai-xt32") == [2] and dates("ouster") == [3]
+    assert dates("radar") == []
+    result = CliRunner().invoke(cli, ["missions", str(tmp_path), "--sensor", "lidar", "--json"])
+    assert result.exit_code == 0, result.output
+    import json
+
+    assert len(json.loads(result.stdout)["missions"]) == 3

@@ -66,7 +66,9 @@ def test_real_vilens_graph_and_clouds(tmp_path: Path, vilens: Path) -> None:
     assert m.payloads == []
     assert [s.node_id for s in m.scans] == [0, 1]
     assert m.scans[0].stamp == Stamp(1583840261, 39995392)
-    assert m.metadata is None  # not a conventional name
+    # the VILENS logger's date-time name gives the date and time (no place, no robot)
+    assert m.metadata is not None and m.metadata.date.isoformat() == "2023-05-01"
+    assert m.metadata.place is None and m.metadata.robot is None
     cloud = m.load_payload(m.scans[0], frame="map")
     assert cloud.xyz.dtype == np.float64 and len(cloud) == 65536
     base = m.load_payload(m.scans[0], frame="base")

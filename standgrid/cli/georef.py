@@ -51,9 +51,10 @@ def georef(
 ) -> None:
     """Georeference MISSION: fit its SLAM map frame to its GNSS fixes and report the fit.
 
-    Prints fixes used/rejected (by reason), horizontal/vertical RMSE, yaw, translation, the
-    ENU reference and the output CRS; --json adds per-fix residuals (ENU metres, fit minus fix).
-    Heights are WGS 84 ellipsoidal.
+    Prints fixes used/rejected (by reason), horizontal/vertical RMSE, yaw, translation and
+    their 1-sigma uncertainty (a warning when the GNSS baseline is too short to fix the
+    heading), the ENU reference and the output CRS; --json adds per-fix residuals (ENU
+    metres, fit minus fix). Heights are WGS 84 ellipsoidal.
 
     \b
     Example:
@@ -88,7 +89,11 @@ def georef(
         "rmse_horizontal_m": fit.rmse_m,
         "rmse_vertical_m": fit.rmse_vertical_m,
         "T_enu_map": fit.T_enu_map.tolist(),
+        "uncertainty": None if fit.uncertainty is None else fit.uncertainty.to_dict(),
+        "warnings": [] if fit.uncertainty is None else list(fit.uncertainty.warnings),
     }
+    for warning in report["warnings"]:
+        status(f"warning: {warning}", quiet)
     if as_json:
         d = fit.to_dict()
         report["rmse_horizontal_m"] = d["rmse_m"]
@@ -112,6 +117,17 @@ def _human(r: dict[str, Any]) -> str:
     reasons = ", ".join(f"{k} {v}" for k, v in r["rejected_by_reason"].items() if v) or "none"
     tx, ty, tz = r["translation_enu_m"]
     ox, oy, oz = r["map_origin_crs"]
+    u = r.get("uncertainty")
+    sigma = ["uncertainty  none (a given transform, not a fit)"]
+    if u:
+        se, sn, su = (_num(v) for v in u["sigma_translation_m"])
+        sigma = [
+            f"uncertainty  1-sigma yaw {_num(u['sigma_yaw_deg'], 4)} deg, "
+            f"translation E {se}  N {sn}  U {su} m ({u['method']})",
+            f"             up to {_num(u['sigma_horizontal_max_m'])} m horizontally along the "
+            f"fixes; GNSS baseline {_num(u['baseline_m'], 1)} m",
+        ]
+    sigma += [f"WARNING      {w}" for w in r.get("warnings", [])]
     return "\n".join(
         [
             f"mission      {r['mission']}",
@@ -122,8 +138,13 @@ def _human(r: dict[str, Any]) -> str:
             f"vertical {r['rmse_vertical_m']:.3f} m",
             f"yaw          {r['yaw_deg']:.4f} deg (map x axis, counter-clockwise from East)",
             f"translation  E {tx:.3f}  N {ty:.3f}  U {tz:.3f} m (map origin in ENU)",
+            *sigma,
             f"ENU origin   lat {lat:.9f}  lon {lon:.9f}  h {alt:.3f} m",
             f"output CRS   {r['crs_name']} ({r['crs'] if len(r['crs']) < 40 else 'WKT2'})",
             f"map origin   x {ox:.3f}  y {oy:.3f}  h {oz:.3f} m ({r['vertical']})",
         ]
     )
+
+
+def _num(value: float | None, digits: int = 3) -> str:
+    return "n/a" if value is None else f"{value:.{digits}f}"

@@ -19,7 +19,10 @@ def _human(s: dict[str, Any]) -> str:
     edges = ", ".join(f"{n} {k}" for k, n in s["edges"].items()) or "none"
     lines.append(f"graph     {s['graph'] or '-'}: {s['nodes']} nodes, edges: {edges}")
     folder = f" from {s['payload_folder']}/" if s["payload_folder"] else ""
-    lines.append(f"payloads  {s['payloads']}{folder}, {s['points']:,} points")
+    truncated = (
+        f" ({s['payloads_truncated']} truncated, not counted)" if s["payloads_truncated"] else ""
+    )
+    lines.append(f"payloads  {s['payloads']}{folder}, {s['points']:,} points{truncated}")
     if s["scans"]:
         lines.append(f"scans     {s['scans']}, {s['scan_points']:,} points (per-node clouds)")
     folders = ", ".join(f"{name}/ ({n})" for name, n in s["cloud_folders"].items())
@@ -52,7 +55,9 @@ def _human(s: dict[str, Any]) -> str:
 def info(mission: Path, strict: bool, as_json: bool) -> None:
     """Summarise a mission folder: graph, payloads, points, sensors, time span, extent.
 
-    Point counts come from the cloud headers; no point is read.
+    Point counts come from the cloud headers; no point is read. Each file's size is checked
+    against its header (binary PCD and PLY, uncompressed LAS): a truncated file is reported
+    as a problem and its points are not counted (--strict: an error).
 
     \b
     Example:

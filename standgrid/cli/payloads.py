@@ -30,6 +30,11 @@ def payloads() -> None:
 @click.option(
     "--area", type=float, help="Instead: square tiles of this side (metres) in the map x/y."
 )
+@click.option(
+    "--graph",
+    type=click.Path(exists=True, dir_okay=False, path_type=Path),
+    help="Pose the scans with this graph (.g2o/.slam) or pose table, matched by stamp.",
+)
 @overwrite_option
 @quiet_option
 @json_option
@@ -38,6 +43,7 @@ def build(
     output: Path,
     distance: float,
     area: float | None,
+    graph: Path | None,
     overwrite: bool,
     quiet: bool,
     as_json: bool,
@@ -46,18 +52,24 @@ def build(
 
     Each payload holds the scans of DISTANCE metres of travel (or of one AREA x AREA m
     tile), in the base frame of the node at its centre, stamped with that node's stamp.
+    A folder whose scans cannot be posed (no graph at its root, no VIEWPOINTs telling the
+    scans apart) is refused; the message names graph files seen elsewhere (e.g. graphs/),
+    to pass with --graph.
 
     \b
     Example:
       standgrid payloads build 2023-05-01-14-01-05 -o 2023-05-01-forest-anymal --distance 20
       standgrid payloads build MISSION -o OUT --area 25 --overwrite --json
+      standgrid payloads build slam_tutorial -o OUT --graph slam_tutorial/graphs/ground_truth.slam
     """
     from standgrid.mission.build import build_payloads
     from standgrid.mission.model import open_mission
 
     how = f"{area} m tiles" if area is not None else f"every {distance} m"
     status(f"building payloads ({how}) from {mission} ...", quiet)
-    out = build_payloads(mission, output, distance=distance, area=area, overwrite=overwrite)
+    out = build_payloads(
+        mission, output, distance=distance, area=area, graph=graph, overwrite=overwrite
+    )
     built = open_mission(out)
     points = built.summary()["points"]
     result = {

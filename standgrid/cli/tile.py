@@ -51,6 +51,9 @@ def _human(report: dict[str, Any]) -> str:
     for name, m in report["missions"].items():
         g = m["georeference"]
         rmse = g["rmse_horizontal_m"]
+        u = g.get("uncertainty") or {}
+        for warning in u.get("warnings", []):
+            lines.append(f"  WARNING {name}: {warning}")
         lines.append(
             f"  {name}: #{m['number']}, {m['payloads']} payloads, {m['points']:,} points,"
             f" {m['tiles']} tiles; georef {g['method']} with {g['fixes_used']} fixes"
@@ -76,7 +79,14 @@ def _human(report: dict[str, Any]) -> str:
 @click.option("--voronoi", is_flag=True, help="Voronoi cells around payload poses, not a grid.")
 @click.option(
     "--crs", "crs_spec", default="auto", show_default=True,
-    help="Output CRS: EPSG:XXXX, WKT2, or auto (the missions' UTM zone).",
+    help="Output CRS: EPSG:XXXX, WKT2, or auto (the missions' UTM zone; for clouds already"
+    " projected, their own CRS). Also the CRS of PCD/PLY clouds in payload_clouds_in_utm/,"
+    " which name none.",
+)  # fmt: skip
+@click.option(
+    "--anchor", type=float, nargs=4, default=None, metavar="LAT LON ALT YAW",
+    help="Place a mission without GNSS: map origin at WGS 84 LAT LON (deg) and ellipsoidal"
+    " ALT (m), map x axis YAW deg counter-clockwise from East (90 - compass heading).",
 )  # fmt: skip
 @click.option(
     "--buffer", type=float, default=None,
@@ -112,6 +122,7 @@ def tile(
     buffer: float | None,
     las: bool | None,
     method: str,
+    anchor: tuple[float, float, float, float] | None,
     epoch: str | None,
     memory_mb: int,
     overwrite: bool,
@@ -125,10 +136,17 @@ def tile(
     fixes, missions, with QGIS styles) and tiles_<epoch>.vpc. Adding missions to an existing
     catalog merges them into its epochs; re-ingesting a mission replaces its points.
 
+    How a mission is placed: clouds already in a projected CRS (payload_clouds_in_utm/
+    alone, or LAS/LAZ payloads with a CRS) are tiled as they are, without a GNSS fit (PCD/PLY
+    need --crs); --anchor places a mission by hand; otherwise the pose graph's GNSS anchor
+    or a fit of the GNSS fixes.
+
     \b
     Example:
       standgrid tile data/missions/* -o catalog
       standgrid tile M1 M2 -o catalog --grid 100 --crs EPSG:25832 --buffer 5 --las
+      standgrid tile NO_GNSS -o catalog --anchor 51.7733 -1.3372 147.6 78.1
+      standgrid tile UTM_PCD_MISSION -o catalog --crs EPSG:32630
     """
     from standgrid.pipeline.tile import TileOptions, tile_missions
 
@@ -140,6 +158,7 @@ def tile(
         buffer=buffer,
         laz=None if las is None else not las,
         method=method,
+        anchor=anchor,
         epoch=epoch,
         memory_budget=memory_mb << 20,
         overwrite=overwrite,

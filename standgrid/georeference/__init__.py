@@ -1,5 +1,6 @@
 """Georeferencing: GNSS fixes -> a transform from the SLAM map frame into a projected CRS."""
 
+from .anchor import fit_from_anchor
 from .crs import crs_to_text, resolve_crs, utm_crs_for
 from .enu import ecef_to_lla, enu_rotation, enu_to_lla, lla_to_ecef, lla_to_enu
 from .fit import (
@@ -21,6 +22,7 @@ __all__ = [
     "enu_rotation",
     "enu_to_lla",
     "evaluate_georeference",
+    "fit_from_anchor",
     "fit_from_pose_graph",
     "fit_georeference",
     "georeference_mission",

@@ -43,6 +43,7 @@ from standgrid.mission.sensors import FixQuality
 from standgrid.stamps import NS_PER_S
 
 from .enu import LLA, lla_to_enu
+from .uncertainty import GeoreferenceUncertainty, fit_uncertainty
 
 FloatArray = NDArray[np.float64]
 Method = Literal["yaw2d", "rigid3d", "pose_graph"]
@@ -93,6 +94,8 @@ class GeoreferenceFit:
     rmse_vertical_m: float
     n_used: int
     n_rejected: int
+    #: 1-sigma of yaw and translation (GNSS fits; None for given transforms and anchors).
+    uncertainty: GeoreferenceUncertainty | None = None
 
     @property
     def T_map_enu(self) -> Matrix4:
@@ -149,6 +152,7 @@ class GeoreferenceFit:
                 "status": self.status_names,
                 "weights": [float(w) for w in self.weights],
             },
+            "uncertainty": None if self.uncertainty is None else self.uncertainty.to_dict(),
         }
 
     @classmethod
@@ -176,6 +180,7 @@ class GeoreferenceFit:
                 rmse_vertical_m=_nan_if_none(data["rmse_vertical_m"]),
                 n_used=int(data["n_used"]),
                 n_rejected=int(data["n_rejected"]),
+                uncertainty=_uncertainty_from_dict(data.get("uncertainty")),
             )
         except (KeyError, TypeError, ValueError) as exc:
             raise GeoreferenceError(f"malformed georeference dict: {exc!r}") from exc
@@ -606,7 +611,8 @@ def fit_georeference(
                 "roll/pitch are unobservable, use method='yaw2d'",
                 path=source,
             )
-    return fit
+    stamps = prep.stamps_ns[usable][inl]
+    return _with_uncertainty(fit, p[inl], q[inl], sh[inl], sv[inl], stamps)
 
 
 def evaluate_georeference(
@@ -666,3 +672,25 @@ def fit_from_pose_graph(graph: PoseGraph) -> GeoreferenceFit | None:
         n_used=0,
         n_rejected=0,
     )
+
+
+# --- uncertainty (standgrid.georeference.uncertainty) ----------------------------------------
+
+
+def _with_uncertainty(
+    fit: GeoreferenceFit,
+    p: FloatArray,
+    q: FloatArray,
+    sh: FloatArray,
+    sv: FloatArray,
+    stamps_ns: NDArray[np.int64],
+) -> GeoreferenceFit:
+    """``fit`` with the 1-sigma uncertainty of its transform over its inlier fixes."""
+    from dataclasses import replace
+
+    uncertainty = fit_uncertainty(fit.T_enu_map, p, q, sh, sv, fit.method, stamps_ns)
+    return replace(fit, uncertainty=uncertainty)
+
+
+def _uncertainty_from_dict(data: Mapping[str, Any] | None) -> GeoreferenceUncertainty | None:
+    return None if data is None else GeoreferenceUncertainty.from_dict(data)

@@ -11,10 +11,12 @@ import numpy as np
 from numpy.typing import NDArray
 
 from standgrid._atomic import atomic_output
-from standgrid.errors import MissionConsistencyError
+from standgrid.errors import MissionConsistencyError, MissionNotFoundError, StandgridError
 from standgrid.geometry import Matrix4, invert_pose
 from standgrid.mission.clouds import read_cloud_header
+from standgrid.mission.layout import GRAPH_NAMES, POSES_CSV_NAMES
 from standgrid.mission.model import Mission, Payload, open_mission
+from standgrid.mission.posegraph import PoseGraph
 from standgrid.mission.writer import CloudToWrite, own_graph, write_canonical
 from standgrid.pointcloud import PointCloud
 
@@ -87,21 +89,79 @@ def _accumulate(
         yield CloudToWrite(scans[centre].stamp, PointCloud.concat(parts), poses[centre], layers)
 
 
+def _read_any_graph(path: Path) -> PoseGraph:
+    from standgrid.mission.model import read_pose_graph_file
+    from standgrid.mission.poses_csv import read_poses_csv
+
+    if not path.is_file():
+        raise MissionNotFoundError("graph file not found", path=path)
+    if path.suffix.lower() in (".csv", ".txt") or path.name in POSES_CSV_NAMES:
+        graph = read_poses_csv(path).to_pose_graph()
+        graph.source = graph.source or path
+        return graph
+    return read_pose_graph_file(path)
+
+
+def _graph_hint(mission: Mission, scans: list[Payload]) -> str:
+    """Name the graph files seen elsewhere in the folder and how many scans each would pose."""
+    stamps = {s.stamp for s in scans}
+    seen = []
+    for path in mission.layout.stray_graphs:
+        rel = path.relative_to(mission.path).as_posix()
+        try:
+            graph_stamps = {v.stamp for v in _read_any_graph(path).vertices.values()}
+        except StandgridError as exc:
+            seen.append(f"{rel} (unreadable: {exc.message})")
+            continue
+        seen.append(f"{rel} (its nodes match {len(stamps & graph_stamps)} of {len(stamps)} scans)")
+    if not seen:
+        return "no graph file was seen anywhere in the folder"
+    return "graph files seen elsewhere: " + "; ".join(seen) + " (pass one with --graph)"
+
+
+def _check_poseable(mission: Mission, scans: list[Payload]) -> None:
+    """Refuse scans that cannot be posed: no graph, and no VIEWPOINTs telling them apart."""
+    if mission.graph is not None:
+        return
+    viewpoints = [read_cloud_header(s.path).viewpoint for s in scans]
+    missing = sum(v is None for v in viewpoints)
+    distinct = {tuple(np.round(np.asarray(v), 9).ravel()) for v in viewpoints if v is not None}
+    if missing == 0 and (len(scans) == 1 or len(distinct) > 1):
+        return
+    why = (
+        f"{missing} of {len(scans)} scans have no VIEWPOINT"
+        if missing
+        else f"all {len(scans)} scans have the same VIEWPOINT (they would be stacked)"
+    )
+    raise MissionConsistencyError(
+        f"cannot pose the scans: no pose graph ({', '.join(GRAPH_NAMES)}) or pose table "
+        f"({', '.join(POSES_CSV_NAMES)}) at the mission root, and {why}; "
+        + _graph_hint(mission, scans),
+        path=mission.path,
+    )
+
+
 def build_payloads(
     mission_path: str | Path,
     out_path: str | Path,
     *,
     distance: float = 20.0,
     area: float | None = None,
+    graph: str | Path | None = None,
     overwrite: bool = False,
 ) -> Path:
     """Turn a mission's per-node scans into payloads; write a canonical mission at ``out_path``.
 
     Grouping is by ``distance`` travelled unless ``area`` (square tile side, metres) is given.
-    Metadata, graph, GNSS, IMU and images are carried over. Returns ``out_path``.
-    Raises :class:`MissionConsistencyError` when there are no scans or their fields differ.
+    ``graph`` poses the scans with a graph (or pose table) file from elsewhere; its nodes
+    are matched to the scans by stamp. Metadata, graph, GNSS, IMU and images are carried
+    over. Returns ``out_path``. Raises :class:`MissionConsistencyError` when there are no
+    scans, their fields differ, or they cannot be posed (no graph found and no VIEWPOINTs
+    telling them apart: the message names graph files seen elsewhere in the folder).
     """
     mission = open_mission(mission_path, strict=True)
+    if graph is not None:
+        mission = mission.with_graph(_read_any_graph(Path(graph)), whole=True)
     scans = sorted(mission.scans, key=lambda s: s.stamp)
     if not scans:
         raise MissionConsistencyError(
@@ -109,6 +169,7 @@ def build_payloads(
             "raw_data/raw_clouds/)",
             path=mission.path,
         )
+    _check_poseable(mission, scans)
     check_fields(scans)
     poses = np.stack([mission.pose_of(s) for s in scans])
     positions = poses[:, :3, 3]

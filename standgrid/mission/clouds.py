@@ -71,6 +71,25 @@ class CloudHeader:
     encoding: str | None = None
     #: LAS header bounds ``(mins, maxs)``; None otherwise.
     bounds: tuple[NDArray[np.float64], NDArray[np.float64]] | None = None
+    #: Bytes of point data the header announces (at least), from ``data_offset`` on; None
+    #: where the header cannot tell (ASCII PCD/PLY, LAZ).
+    data_bytes: int | None = None
+    data_offset: int = 0
+    #: Size of the file on disk.
+    file_bytes: int = 0
+
+    def size_problem(self) -> str | None:
+        """Why the file cannot hold what its header announces (truncated), or None."""
+        if self.data_bytes is None:
+            return None
+        present = self.file_bytes - self.data_offset
+        if present >= self.data_bytes:
+            return None
+        return (
+            f"truncated: the header announces {self.points:,} points "
+            f"({self.data_bytes:,} bytes of {self.encoding or self.format} data), "
+            f"the file holds {max(present, 0):,} bytes after its header"
+        )
 
 
 def _suffix(path: Path) -> str:
@@ -253,7 +272,27 @@ class _PcdHeader:
             dtypes=dtypes,
             viewpoint=self.viewpoint,
             encoding=self.encoding,
+            data_bytes=self.data_bytes(),
+            data_offset=self.data_offset,
+            file_bytes=self.path.stat().st_size,
         )
+
+    def data_bytes(self) -> int | None:
+        """Bytes the data section needs: binary from the header; binary_compressed from the
+        compressed size stored at its start (8 bytes of sizes + the payload); ASCII None."""
+        md = self.metadata
+        if self.encoding == "binary":
+            row = sum(int(size) * int(count) for size, count in zip(md.size, md.count, strict=True))
+            return int(md.points) * row
+        if self.encoding == "binary_compressed":
+            with self.path.open("rb") as fp:
+                fp.seek(self.data_offset)
+                sizes = fp.read(8)
+            if len(sizes) < 8:
+                return 8
+            compressed, _ = struct.unpack("<II", sizes)
+            return 8 + int(compressed)
+        return None
 
 
 def _pcd_numpy_type(t: str, size: int, header: _PcdHeader) -> np.dtype[Any]:
@@ -573,13 +612,23 @@ def _ply_vertex_element(ply: Any, path: Path) -> Any:
 def _ply_header(path: Path) -> CloudHeader:
     from plyfile import PlyData, PlyListProperty, PlyParseError
 
+    offset = 0
     try:
         with path.open("rb") as fp:
             parse = getattr(PlyData, "_parse_header", None)
             ply = parse(fp) if parse is not None else PlyData.read(fp)
+            offset = fp.tell() if parse is not None else 0
     except (PlyParseError, ValueError, UnicodeDecodeError) as exc:
         raise _ply_error(path, exc) from exc
     vertex = _ply_vertex_element(ply, path)
+    data_bytes: int | None = None
+    if not ply.text and parse is not None:  # a lower bound: elements up to the first list
+        data_bytes = 0
+        for element in ply.elements:
+            if any(isinstance(p, PlyListProperty) for p in element.properties):
+                break
+            row = sum(np.dtype(p.val_dtype).itemsize for p in element.properties)
+            data_bytes += int(element.count) * row
     dtypes = {
         p.name: np.dtype(p.val_dtype).newbyteorder("=")
         for p in vertex.properties
@@ -592,6 +641,9 @@ def _ply_header(path: Path) -> CloudHeader:
         fields=tuple(n for n in dtypes if n not in _XYZ),
         dtypes=dtypes,
         encoding="ascii" if ply.text else _PLY_BYTE_ORDER.get(ply.byte_order, "binary"),
+        data_bytes=data_bytes,
+        data_offset=offset,
+        file_bytes=path.stat().st_size,
     )
 
 
@@ -698,6 +750,9 @@ def _las_header(path: Path) -> CloudHeader:
         fields=tuple(names),
         dtypes=dtypes,
         bounds=(np.asarray(header.mins, np.float64), np.asarray(header.maxs, np.float64)),
+        data_bytes=None if header.are_points_compressed else int(header.point_count) * int(pf.size),
+        data_offset=int(header.offset_to_point_data),
+        file_bytes=path.stat().st_size,
     )
 
 

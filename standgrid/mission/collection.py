@@ -10,6 +10,7 @@ from pathlib import Path
 from standgrid.errors import MissionNotFoundError, StandgridError
 from standgrid.mission.layout import discover_layout
 from standgrid.mission.metadata import MissionMetadata, metadata_from_folder_name, read_metadata
+from standgrid.mission.sensor_models import sensor_matches
 
 #: Folders never searched for missions (ground truth of simulated missions lives in ``truth/``).
 SKIPPED_FOLDERS = frozenset({"truth"})
@@ -154,10 +155,11 @@ class MissionCollection:
         sensors: Iterable[str] | None = None,
     ) -> list[MissionRecord]:
         """Missions matching every given criterion (dates inclusive; ``site`` and ``robot``
-        case-insensitive; ``sensors``: the mission has all of them). A criterion excludes
-        missions without metadata."""
+        case-insensitive; ``sensors``: the mission has all of them, each by name, kind or make,
+        see :func:`~standgrid.mission.sensor_models.sensor_matches`: ``lidar`` finds
+        ``velodyne-vlp16``). A criterion excludes missions without metadata."""
         start, end = _as_date(date_from), _as_date(date_to)
-        wanted = {_norm(s) for s in sensors} if sensors else set()
+        wanted = [s for s in sensors if s.strip()] if sensors else []
         out = []
         for rec in self.records:
             if site is not None and (rec.site is None or _norm(rec.site) != _norm(site)):
@@ -168,7 +170,7 @@ class MissionCollection:
                 continue
             if end is not None and (rec.date is None or rec.date > end):
                 continue
-            if wanted and not wanted <= {_norm(s) for s in rec.sensors}:
+            if not all(sensor_matches(w, rec.sensors) for w in wanted):
                 continue
             out.append(rec)
         return out

@@ -68,6 +68,9 @@ class MissionLayout:
     graph: Path | None = None
     #: Further graph files that are present but not used (a less preferred name).
     other_graphs: tuple[Path, ...] = ()
+    #: Graph-like files elsewhere in the folder (``graphs/ground_truth.slam``, ``*.g2o`` of
+    #: another name): never read, named in hints when no graph is found.
+    stray_graphs: tuple[Path, ...] = ()
     poses_csv: Path | None = None
     metadata: Path | None = None
     #: Every payload cloud folder found, most preferred first.
@@ -143,6 +146,37 @@ def _first_file(root: Path, names: tuple[str, ...]) -> tuple[Path | None, tuple[
     return (present[0] if present else None), tuple(present[1:])
 
 
+#: Suffixes of pose-graph files.
+GRAPH_SUFFIXES = frozenset({".g2o", ".slam"})
+
+
+def _stray_graphs(root: Path, used: set[Path], depth: int = 2) -> tuple[Path, ...]:
+    """Graph and pose-table files under ``root`` (``depth`` folders deep) that are not used;
+    cloud, camera and sensor folders are not searched."""
+    skip = {*PAYLOAD_FOLDERS, *SCAN_FOLDERS, *LAYER_FOLDERS, "payloads", "images_rectified"}
+    found: list[Path] = []
+
+    def visit(folder: Path, left: int) -> None:
+        try:
+            children = sorted(folder.iterdir())
+        except OSError:
+            return
+        for child in children:
+            if child.name.startswith("."):
+                continue
+            if child.is_dir():
+                rel = child.relative_to(root).as_posix()
+                if left > 0 and rel not in skip and not rel.startswith("raw_data/raw_clouds"):
+                    visit(child, left - 1)
+            elif child not in used and (
+                child.suffix.lower() in GRAPH_SUFFIXES or child.name in POSES_CSV_NAMES
+            ):
+                found.append(child)
+
+    visit(root, depth)
+    return tuple(found)
+
+
 def discover_layout(path: str | Path) -> MissionLayout:
     """Look at the names in a mission folder and return its :class:`MissionLayout`.
 
@@ -181,6 +215,9 @@ def discover_layout(path: str | Path) -> MissionLayout:
         root=root,
         graph=graph,
         other_graphs=other_graphs,
+        stray_graphs=_stray_graphs(
+            root, {p for p in (graph, poses_csv, *other_graphs) if p is not None}
+        ),
         poses_csv=poses_csv,
         metadata=metadata if metadata.is_file() else None,
         payload_folders=tuple(f for f in payloads if f is not None),

@@ -1,9 +1,16 @@
-"""Mission metadata: folder-name convention, rosbag names and ``metadata.yaml``.
+"""Mission metadata: folder-name conventions, rosbag names and ``metadata.yaml``.
 
-Folder names follow ``YYYY-MM-DD-<place>-<robot>[-<unit>]`` (places may contain hyphens);
-an optional ``HH-MM-SS`` time may follow the date (``-`` or ``_`` after the date).
+Folder names (every form of docs/MISSION_FORMAT.md parses, see :func:`parse_mission_name`):
 
-How the robot token is found:
+- ``YYYY-MM-DD-<place>-<robot>[-<unit>]`` (places may contain hyphens), optionally with an
+  ``HH-MM-SS`` time after the date (``-`` or ``_`` after the date):
+  ``2023-04-21-stein-am-rhein-frontier-v15``, ``2024-03-26_13-47-27-wytham-spot``;
+- the VILENS logger's ``YYYY-MM-DD-HH-MM-SS`` (date and time only): ``2023-05-01-14-01-05``;
+- the ROS 2 VILENS / Frontier ``YYYY-MM-DD_HH-MM-SS_rec<NNN>_<site>``:
+  ``2024-03-26_13-47-27_rec004_site`` (recording ``rec004``, place ``site``, no robot);
+- a bag-like ``<robot>-YYYY-MM-DD-HH-MM-SS[-<tag>]`` (a folder named like its rosbag).
+
+How the robot token is found in the ``<place>-<robot>[-<unit>]`` part:
 
 1. The last token that names a known robot platform (:data:`KNOWN_ROBOTS`, extend it with
    :func:`register_robot`) with at least one place token before it and at most one token
@@ -14,10 +21,17 @@ How the robot token is found:
 3. Otherwise the last token is the robot and there is no unit. (A *named* unit such as
    ``coyote`` is only recognised after a known robot.)
 
-``metadata.yaml`` keys: ``name``, ``date`` (YYYY-MM-DD), ``time`` ("HH:MM:SS", optional),
-``place``, ``robot``, ``unit``, ``gnss`` (``{latitude, longitude, altitude}`` or null),
-``sensors``, ``tags``, ``notes``, ``extra``. ``date``, ``place`` and ``robot`` are required;
-``name`` defaults to the composed folder name. Unknown top-level keys are kept in ``extra``.
+A ``rec<NNN>`` token is a recording id (``MissionName.tag``). After a time or a recording
+id a single remaining token is the place; after a bare date it is an error (place or robot?).
+
+``metadata.yaml`` is read leniently (:func:`read_metadata`): the keys other tools write are
+mapped through :data:`KEY_SYNONYMS` (``robot_id`` -> robot, ``start_time`` -> date and time,
+``site`` / ``location`` -> place, ...), sensors may be a list (of names or of mappings) or a
+mapping, values that are missing are derived from the mission folder's name when it follows
+a convention, and unknown keys are kept in ``extra``. ``MissionMetadata.sources`` says where
+each value came from. Only a date that can be neither read nor derived is an error
+(:class:`MetadataError` naming the key and the file); place and robot may stay unknown
+(None).
 """
 
 from __future__ import annotations
@@ -63,21 +77,21 @@ def register_robot(name: str) -> None:
 
 @dataclass(frozen=True)
 class MissionName:
-    """The parts of a mission folder name."""
+    """The parts of a mission folder name (place and robot None where the name has none)."""
 
     date: dt.date
-    place: str
-    robot: str
+    place: str | None
+    robot: str | None
     unit: str | None = None
     time: dt.time | None = None
+    #: A recording id (``rec004``) or a bag-like name's additional tag.
+    tag: str | None = None
 
     def __str__(self) -> str:
         parts = [self.date.isoformat()]
         if self.time is not None:
             parts.append(self.time.strftime("%H-%M-%S"))
-        parts += [self.place, self.robot]
-        if self.unit:
-            parts.append(self.unit)
+        parts += [p for p in (self.tag, self.place, self.robot, self.unit) if p]
         return "-".join(parts)
 
 
@@ -88,26 +102,59 @@ def _parse_date(y: str, m: str, d: str, name: str) -> dt.date:
         raise MissionNameError(f"invalid date {y}-{m}-{d} in {name!r} ({exc})") from exc
 
 
+def _parse_clock(h: str, m: str, s: str, name: str) -> dt.time:
+    try:
+        return dt.time(int(h), int(m), int(s))
+    except ValueError as exc:
+        raise MissionNameError(f"invalid time in {name!r} ({exc})") from exc
+
+
+_REC_RE = re.compile(r"^rec\d+$", re.IGNORECASE)
+_BAG_FOLDER_RE = re.compile(
+    r"^(?P<robot>[A-Za-z][A-Za-z0-9]*)[-_](?P<y>\d{4})-(?P<mo>\d{2})-(?P<d>\d{2})[-_]"
+    r"(?P<h>\d{2})-(?P<mi>\d{2})-(?P<s>\d{2})(?:[-_](?P<tag>.+))?$"
+)
+
+
 def parse_mission_name(name: str) -> MissionName:
-    """Split ``YYYY-MM-DD[-HH-MM-SS]-<place>-<robot>[-<unit>]`` (rules in the module docstring)."""
+    """Split a mission folder name of any form of docs/MISSION_FORMAT.md (module docstring)."""
     base = Path(str(name)).name
     m = _DATE_RE.match(base)
     if m is None:
-        raise MissionNameError(f"{base!r} does not start with a YYYY-MM-DD date")
+        bag = _BAG_FOLDER_RE.match(base)
+        if bag is None:
+            raise MissionNameError(f"{base!r} does not start with a YYYY-MM-DD date")
+        return MissionName(
+            _parse_date(bag["y"], bag["mo"], bag["d"], base),
+            None,
+            bag["robot"],
+            None,
+            _parse_clock(bag["h"], bag["mi"], bag["s"], base),
+            bag["tag"],
+        )
     date = _parse_date(m[1], m[2], m[3], base)
     rest = m[4] or ""
     time: dt.time | None = None
     t = _TIME_RE.match(rest)
     if t is not None:
-        try:
-            time = dt.time(int(t[1]), int(t[2]), int(t[3]))
-        except ValueError as exc:
-            raise MissionNameError(f"invalid time in {base!r} ({exc})") from exc
+        time = _parse_clock(t[1], t[2], t[3], base)
         rest = t[4] or ""
     tokens = [tok for tok in re.split(r"[-_]", rest) if tok]
-    if len(tokens) < 2:
-        raise MissionNameError(f"{base!r} lacks a place and a robot after the date")
+    recs = [i for i, tok in enumerate(tokens) if _REC_RE.match(tok)]
+    tag = tokens.pop(recs[0]) if recs else None
+    if not tokens:
+        if rest and tag is None:
+            raise MissionNameError(f"{base!r} lacks a place and a robot after the date")
+        return MissionName(date, None, None, None, time, tag)
     lowered = [tok.lower() for tok in tokens]
+    if tag is not None:  # ROS 2 VILENS / Frontier: <date>_<time>_rec<NNN>_<site>
+        robots = [i for i, tok in enumerate(lowered) if tok in KNOWN_ROBOTS]
+        robot = tokens.pop(robots[-1]) if robots else None
+        return MissionName(date, "-".join(tokens) or None, robot, None, time, tag)
+    if len(tokens) == 1:
+        if time is None:
+            raise MissionNameError(f"{base!r} lacks a place and a robot after the date")
+        return MissionName(date, tokens[0], None, None, time)
     for k in range(len(tokens) - 1, 0, -1):
         if lowered[k] in KNOWN_ROBOTS and len(tokens) - k <= 2:
             unit = tokens[k + 1] if k + 1 < len(tokens) else None
@@ -151,12 +198,12 @@ def parse_rosbag_name(name: str) -> RosbagName:
 
 @dataclass
 class MissionMetadata:
-    """The contents of ``metadata.yaml``."""
+    """The contents of ``metadata.yaml`` (place and robot None when unknown)."""
 
     name: str
     date: dt.date
-    place: str
-    robot: str
+    place: str | None
+    robot: str | None
     unit: str | None = None
     time: dt.time | None = None
     #: ``(lat, lon, alt)`` WGS84 degrees / ellipsoidal metres, if known.
@@ -165,6 +212,9 @@ class MissionMetadata:
     tags: list[str] = field(default_factory=list)
     notes: str = ""
     extra: dict[str, Any] = field(default_factory=dict)
+    #: Where each value came from: the metadata.yaml key read (``robot_id``), or
+    #: ``folder name``. Not written to metadata.yaml and not compared.
+    sources: dict[str, str] = field(default_factory=dict, compare=False)
 
     def to_dict(self) -> dict[str, Any]:
         """Plain YAML-safe mapping (the layout of ``metadata.yaml``)."""
@@ -187,19 +237,28 @@ class MissionMetadata:
         }
 
 
-_KNOWN_KEYS = (
-    "name",
-    "date",
-    "time",
-    "place",
-    "robot",
-    "unit",
-    "gnss",
-    "sensors",
-    "tags",
-    "notes",
-    "extra",
-)
+#: metadata.yaml keys read for each field, first present wins. A synonym present but not used
+#: (``platform`` beside ``robot_id``) is kept in ``extra``. ``location`` is a place when it is
+#: text and a GNSS position when it is a mapping or a list.
+KEY_SYNONYMS: dict[str, tuple[str, ...]] = {
+    "name": ("name", "mission_name", "mission"),
+    "date": (
+        "date", "start_time", "start", "datetime", "date_time", "start_datetime",
+        "timestamp", "start_date", "recording_date", "recorded_at", "recorded",
+    ),
+    "time": ("time", "time_of_day", "start_clock"),
+    "place": ("place", "site", "location", "site_name", "place_name", "location_name"),
+    "robot": ("robot", "robot_id", "robot_name", "robot_type", "vehicle", "platform"),
+    "unit": ("unit", "unit_id", "robot_unit", "serial", "serial_number"),
+    "gnss": ("gnss", "gps", "gnss_origin", "origin", "start_position", "lla", "location"),
+    "sensors": ("sensors", "sensor", "sensor_list", "sensor_suite"),
+    "tags": ("tags", "tag", "labels", "keywords"),
+    "notes": ("notes", "note", "description", "comment", "comments", "remarks"),
+}  # fmt: skip
+FOLDER_NAME = "folder name"
+#: Keys of a sensor mapping that hold the model / the kind.
+_SENSOR_MODEL_KEYS = ("model", "name", "type", "id")
+_SENSOR_KIND_KEYS = ("kind", "type", "category")
 
 
 def _key_lines(text: str) -> dict[str, int]:
@@ -217,11 +276,9 @@ def _key_lines(text: str) -> dict[str, int]:
     }
 
 
-def read_metadata(path: str | Path) -> MissionMetadata:
-    """Read ``metadata.yaml`` (yaml.safe_load); problems raise MetadataError naming the file."""
+def _load_yaml(src: Path) -> tuple[dict[Any, Any], str]:
     import yaml
 
-    src = Path(path)
     try:
         text = src.read_text(encoding="utf-8")
     except FileNotFoundError as exc:
@@ -242,69 +299,289 @@ def read_metadata(path: str | Path) -> MissionMetadata:
         ) from exc
     except ValueError as exc:  # e.g. a date-shaped scalar that is no date (2023-13-45)
         lines = _key_lines(text)
-        raise MetadataError(f"invalid value ({exc})", path=src, line=lines.get("date")) from exc
+        key = next((k for k in KEY_SYNONYMS["date"] if k in lines), None)
+        raise MetadataError(
+            f"invalid value ({exc})", path=src, line=lines.get(key or ""), key=key
+        ) from exc
     if not isinstance(doc, dict):
         raise MetadataError("metadata must be a YAML mapping", path=src, line=1)
     if ROS2_BAG_KEY in doc:
         raise MetadataError(
             f"this is a ROS 2 bag's metadata ({ROS2_BAG_KEY}), not mission metadata", path=src
         )
+    return doc, text
+
+
+def _is_text(value: Any) -> bool:
+    return isinstance(value, str | int | float) and not isinstance(value, bool) and value != ""
+
+
+def read_metadata(path: str | Path, *, folder_name: str | None = None) -> MissionMetadata:
+    """Read ``metadata.yaml`` leniently (module docstring); errors name the key and the file.
+
+    ``folder_name`` (default: the name of the folder holding the file) supplies what the
+    file lacks when it follows a naming convention.
+    """
+    src = Path(path)
+    doc, text = _load_yaml(src)
     lines = _key_lines(text)
 
     def fail(key: str, message: str) -> MetadataError:
-        return MetadataError(f"{key}: {message}", path=src, line=lines.get(key))
+        return MetadataError(f"{key}: {message}", path=src, line=lines.get(key), key=key)
 
-    for key in ("date", "place", "robot"):
-        if doc.get(key) in (None, ""):
-            raise MetadataError(f"missing required key {key!r}", path=src)
-    date = doc["date"]
-    if isinstance(date, dt.datetime):
-        date = date.date()
-    elif isinstance(date, str):
-        try:
-            date = dt.date.fromisoformat(date)
-        except ValueError as exc:
-            raise fail("date", f"not a YYYY-MM-DD date: {date!r}") from exc
-    elif not isinstance(date, dt.date):
-        raise fail("date", f"not a YYYY-MM-DD date: {date!r}")
-    time = _parse_time(doc.get("time"), fail)
-    place, robot = str(doc["place"]), str(doc["robot"])
-    unit = doc.get("unit")
-    unit = None if unit in (None, "") else str(unit)
-    gnss = _parse_gnss(doc.get("gnss"), fail)
-    lists: dict[str, list[str]] = {}
-    for key in ("sensors", "tags"):
-        value = doc.get(key) or []
-        if not isinstance(value, list):
-            raise fail(key, "must be a list")
-        lists[key] = [str(v) for v in value]
-    notes = doc.get("notes") or ""
-    extra = doc.get("extra") or {}
-    if not isinstance(extra, dict):
+    used: set[Any] = set()
+    sources: dict[str, str] = {}
+
+    def pick(fieldname: str, accept: Any = _is_text) -> tuple[str, Any] | None:
+        for key in KEY_SYNONYMS[fieldname]:
+            value = doc.get(key)
+            if key in used or value is None or value == "" or not accept(value):
+                continue
+            used.add(key)
+            sources[fieldname] = key
+            return key, value
+        return None
+
+    date: dt.date | None = None
+    time: dt.time | None = None
+    found = pick("date", lambda v: v is not None)
+    if found is not None:
+        date, time = _parse_when(found[1], lambda m, k=found[0]: fail(k, m))
+        if date is None:  # a time of day only (YAML reads 10:33:05 as a base-60 integer)
+            sources.pop("date")
+            sources["time"] = found[0]
+    found_time = pick("time", lambda v: v is not None)
+    if found_time is not None:
+        time = _parse_time(found_time[1], lambda m, k=found_time[0]: fail(k, m))
+    robot = unit = None
+    found = pick("robot", lambda v: _is_text(v) or isinstance(v, dict))
+    if found is not None:
+        robot, unit = _robot(found[1])
+        if unit is not None:
+            sources["unit"] = found[0]
+    place = _text_of(pick("place"))
+    found = pick("unit")
+    if found is not None:
+        unit = str(found[1])
+    found = pick("gnss", lambda v: isinstance(v, dict | list | tuple))
+    gnss = None if found is None else _parse_gnss(found[1], lambda m, k=found[0]: fail(k, m))
+    found = pick("sensors", lambda v: v is not None)
+    sensors = [] if found is None else _sensors(found[1], lambda m, k=found[0]: fail(k, m))
+    found = pick("tags", lambda v: v is not None)
+    tags = [] if found is None else _tags(found[1], lambda m, k=found[0]: fail(k, m))
+    notes = _text_of(pick("notes")) or ""
+    name = _text_of(pick("name"))
+
+    folder = Path(folder_name) if folder_name is not None else src.absolute().parent
+    try:
+        parsed: MissionName | None = parse_mission_name(folder.name)
+    except MissionNameError:
+        parsed = None
+    if parsed is not None:
+
+        def derive(key: str, own: Any, from_name: Any) -> Any:
+            if own is None and from_name is not None:
+                sources[key] = FOLDER_NAME
+                return from_name
+            return own
+
+        date = derive("date", date, parsed.date)
+        time = derive("time", time, parsed.time)
+        place = derive("place", place, parsed.place)
+        robot = derive("robot", robot, parsed.robot)
+        unit = derive("unit", unit, parsed.unit)
+        if name is None:
+            name, sources["name"] = folder.name, FOLDER_NAME
+    if date is None:
+        tried = ", ".join(KEY_SYNONYMS["date"])
+        why = (
+            "carries no date"
+            if parsed is not None
+            else "does not follow a naming convention (YYYY-MM-DD-<place>-<robot>...)"
+        )
+        raise MetadataError(
+            f"missing key 'date': none of {tried} is set, and the folder name "
+            f"{folder.name!r} {why}",
+            path=src,
+            key="date",
+        )
+
+    extra = doc.get("extra") if "extra" not in used else None
+    if extra is not None and not isinstance(extra, dict):
         raise fail("extra", "must be a mapping")
-    extra = dict(extra)
+    extra = dict(extra or {})
+    synonyms = {key for keys in KEY_SYNONYMS.values() for key in keys}
     for key, value in doc.items():
-        if key not in _KNOWN_KEYS:
-            extra[key] = value
-    name = doc.get("name") or str(MissionName(date, place, robot, unit))
+        if key in used or key == "extra":
+            continue
+        if key in synonyms and value in (None, "", [], {}):
+            continue  # an empty known key (``gnss: null``) carries nothing
+        extra[key] = value
+    if name is None:
+        name = str(MissionName(date, place, robot, unit))
     return MissionMetadata(
-        name=str(name),
+        name=name,
         date=date,
         place=place,
         robot=robot,
         unit=unit,
         time=time,
         gnss=gnss,
-        sensors=lists["sensors"],
-        tags=lists["tags"],
-        notes=str(notes),
+        sensors=sensors,
+        tags=tags,
+        notes=notes,
         extra=extra,
+        sources=sources,
     )
+
+
+def _text_of(found: tuple[str, Any] | None) -> str | None:
+    return None if found is None else str(found[1])
+
+
+def _robot(value: Any) -> tuple[str | None, str | None]:
+    """A robot text, or a mapping ``{type|platform|model|name: ..., id|unit|serial: ...}``."""
+    if not isinstance(value, dict):
+        return str(value), None
+    robot = next((value[k] for k in ("type", "platform", "model", "name") if value.get(k)), None)
+    unit = next((value[k] for k in ("id", "unit", "serial", "name") if value.get(k)), None)
+    if unit == robot:
+        unit = None
+    return (None if robot is None else str(robot)), (None if unit is None else str(unit))
+
+
+_DATETIME_FORMATS = (
+    "%Y%m%d",
+    "%Y%m%dT%H%M%S",
+    "%Y%m%d_%H%M%S",
+    "%Y-%m-%d_%H-%M-%S",
+    "%Y-%m-%d-%H-%M-%S",
+    "%Y/%m/%d",
+    "%Y/%m/%d %H:%M:%S",
+    "%d.%m.%Y",
+    "%d.%m.%Y %H:%M:%S",
+)
+
+
+def _from_epoch(seconds: float) -> tuple[dt.date, dt.time]:
+    moment = dt.datetime.fromtimestamp(seconds, tz=dt.UTC)
+    return moment.date(), moment.time()
+
+
+def _epoch_seconds(number: float) -> float | None:
+    """A UNIX time in s, ms, us or ns (by magnitude) as seconds; None if not plausible."""
+    for scale in (1.0, 1e3, 1e6, 1e9):
+        seconds = number / scale
+        if 1e8 <= seconds < 1e10:  # 1973 .. 2286
+            return seconds
+    return None
+
+
+def _parse_when(value: Any, fail: Any) -> tuple[dt.date | None, dt.time | None]:
+    """A date, datetime, ISO text, common date formats or a UNIX time (UTC) -> (date, time).
+
+    Dates and times with a time zone are taken as written (no conversion); UNIX times give
+    the UTC date and time.
+    """
+    if isinstance(value, dt.datetime):
+        return value.date(), value.time().replace(tzinfo=None)
+    if isinstance(value, dt.date):
+        return value, None
+    if isinstance(value, dict):  # {sec, nsec} as ROS writes stamps
+        sec = value.get("sec", value.get("secs"))
+        nsec = value.get("nsec", value.get("nanosec", value.get("nsecs", 0)))
+        try:
+            return _from_epoch(float(sec) + float(nsec) * 1e-9)  # type: ignore[arg-type]
+        except (TypeError, ValueError):
+            raise fail(f"not a date or a {{sec, nsec}} stamp: {value!r}") from None
+    if isinstance(value, bool):
+        raise fail(f"not a date: {value!r}")
+    if isinstance(value, int) and 0 <= value < 86400:  # YAML 1.1 base-60 time of day
+        return None, _parse_time(value, fail)
+    if isinstance(value, int) and 19000101 <= value <= 21001231:
+        value = str(value)
+    if isinstance(value, int | float):
+        seconds = _epoch_seconds(float(value))
+        if seconds is None:
+            raise fail(f"not a date or a plausible UNIX time: {value!r}")
+        return _from_epoch(seconds)
+    text = str(value).strip()
+    try:
+        moment = dt.datetime.fromisoformat(text)
+    except ValueError:
+        pass
+    else:
+        if len(text) <= 10:
+            return moment.date(), None
+        return moment.date(), moment.time().replace(tzinfo=None)
+    for fmt in _DATETIME_FORMATS:
+        try:
+            moment = dt.datetime.strptime(text, fmt)
+        except ValueError:
+            continue
+        return moment.date(), (None if "%H" not in fmt else moment.time())
+    try:
+        number = float(text)
+    except ValueError:
+        raise fail(f"not a date (YYYY-MM-DD, ISO 8601 or a UNIX time): {value!r}") from None
+    seconds = _epoch_seconds(number)
+    if seconds is None:
+        raise fail(f"not a date or a plausible UNIX time: {value!r}")
+    return _from_epoch(seconds)
+
+
+def _sensors(value: Any, fail: Any) -> list[str]:
+    """Sensor names from a list (of names or of mappings), a mapping or a comma-separated text.
+
+    A mapping entry ``lidar: velodyne-vlp16`` (or ``lidar: {model: velodyne-vlp16}``) gives the
+    model; the key is kept as well when it is a sensor kind the model's name does not reveal.
+    """
+    from standgrid.mission.sensor_models import sensor_kinds
+
+    def entry(key: str | None, item: Any) -> list[str]:
+        model: Any = item
+        kind: Any = key
+        if isinstance(item, dict):
+            model = next((item[k] for k in _SENSOR_MODEL_KEYS if _is_text(item.get(k))), None)
+            kind = next((item[k] for k in _SENSOR_KIND_KEYS if _is_text(item.get(k))), key)
+        elif item is None or item is True:
+            model = key
+        elif not _is_text(item):
+            raise fail(f"cannot read a sensor from {item!r}")
+        names = [str(model)] if model is not None else []
+        if kind is not None and (model is None or str(kind) != str(model)):
+            known = sensor_kinds(str(kind))
+            if not names or not known <= sensor_kinds(names[0]):
+                names.append(str(kind))
+        return names
+
+    if isinstance(value, str):
+        return [v.strip() for v in value.split(",") if v.strip()]
+    out: list[str] = []
+    if isinstance(value, dict):
+        for key, item in value.items():
+            out += entry(str(key), item)
+    elif isinstance(value, list):
+        for item in value:
+            out += entry(None, item)
+    else:
+        raise fail("must be a list or a mapping of sensors")
+    return list(dict.fromkeys(out))
+
+
+def _tags(value: Any, fail: Any) -> list[str]:
+    if isinstance(value, str):
+        return [v.strip() for v in value.split(",") if v.strip()]
+    if isinstance(value, list):
+        return [str(v) for v in value]
+    raise fail("must be a list (or a comma-separated text)")
 
 
 def _parse_time(value: Any, fail: Any) -> dt.time | None:
     if value in (None, ""):
         return None
+    if isinstance(value, dt.datetime):
+        return value.time().replace(tzinfo=None)
     if isinstance(value, dt.time):
         return value
     if isinstance(value, int) and 0 <= value < 86400:  # YAML 1.1 reads 10:33:05 as base-60 int
@@ -312,29 +589,36 @@ def _parse_time(value: Any, fail: Any) -> dt.time | None:
     try:
         return dt.time.fromisoformat(str(value))
     except ValueError as exc:
-        raise fail("time", f"not a HH:MM:SS time: {value!r}") from exc
+        raise fail(f"not a HH:MM:SS time: {value!r}") from exc
+
+
+_LAT_KEYS = ("latitude", "lat")
+_LON_KEYS = ("longitude", "lon", "lng", "long")
+_ALT_KEYS = ("altitude", "alt", "height", "h", "ellipsoidal_height")
 
 
 def _parse_gnss(value: Any, fail: Any) -> tuple[float, float, float] | None:
     if value is None:
         return None
     if isinstance(value, dict):
-        try:
-            triple = [value["latitude"], value["longitude"], value["altitude"]]
-        except KeyError as exc:
-            raise fail("gnss", f"missing {exc.args[0]!r}") from exc
+        triple = []
+        for names in (_LAT_KEYS, _LON_KEYS, _ALT_KEYS):
+            key = next((k for k in names if k in value), None)
+            if key is None:
+                raise fail(f"missing {names[0]!r}")
+            triple.append(value[key])
     elif isinstance(value, list | tuple) and len(value) == 3:
         triple = list(value)
     else:
-        raise fail("gnss", "must be {latitude, longitude, altitude} or [lat, lon, alt]")
+        raise fail("must be {latitude, longitude, altitude} or [lat, lon, alt]")
     try:
         lat, lon, alt = (float(v) for v in triple)
     except (TypeError, ValueError) as exc:
-        raise fail("gnss", f"non-numeric value in {triple!r}") from exc
+        raise fail(f"non-numeric value in {triple!r}") from exc
     if not all(math.isfinite(v) for v in (lat, lon, alt)):
-        raise fail("gnss", f"latitude, longitude and altitude must be finite: {lat}, {lon}, {alt}")
+        raise fail(f"latitude, longitude and altitude must be finite: {lat}, {lon}, {alt}")
     if not (-90 <= lat <= 90 and -180 <= lon <= 180):
-        raise fail("gnss", f"latitude/longitude out of range: {lat}, {lon}")
+        raise fail(f"latitude/longitude out of range: {lat}, {lon}")
     return (lat, lon, alt)
 
 
@@ -374,7 +658,19 @@ def metadata_from_folder_name(
         unit=parsed.unit,
         time=parsed.time,
         sensors=list(sensors),
+        sources={k: FOLDER_NAME for k, v in _name_parts(path.name, parsed) if v is not None},
     )
+
+
+def _name_parts(name: str, parsed: MissionName) -> list[tuple[str, Any]]:
+    return [
+        ("name", name),
+        ("date", parsed.date),
+        ("time", parsed.time),
+        ("place", parsed.place),
+        ("robot", parsed.robot),
+        ("unit", parsed.unit),
+    ]
 
 
 def _sensors_in(folder: Path) -> list[str]:

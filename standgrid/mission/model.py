@@ -22,6 +22,7 @@ from standgrid.errors import (
     MissionConsistencyError,
     MissionNotFoundError,
     OrphanPayloadError,
+    PointCloudFormatError,
     StandgridError,
 )
 from standgrid.geometry import Matrix4, invert_pose
@@ -53,7 +54,9 @@ class Payload:
     """One stamped piece of mission data, attached to the graph node of the same stamp.
 
     ``node_id`` is None when no node has the stamp (reported in ``Mission.problems``).
-    ``frame`` is the frame of the file's coordinates; ``layers`` maps a layer name
+    ``frame`` is the frame of the file's coordinates (``utm``: any projected CRS, for
+    clouds in a ``*_in_utm`` folder and LAS/LAZ files carrying a projected CRS, which
+    wins over the folder's frame); ``layers`` maps a layer name
     (``ground``) to a cloud file of the same stamp. ``sensor`` names the camera of an image.
     """
 
@@ -64,6 +67,8 @@ class Payload:
     layers: dict[str, Path] = field(default_factory=dict, hash=False, compare=False)
     kind: PayloadKind = "point_cloud"
     sensor: str | None = None
+    #: The projected CRS of a ``utm``-frame cloud, when its file says (LAS/LAZ CRS VLR).
+    crs: str | None = field(default=None, hash=False, compare=False)
 
 
 class CloudCache:
@@ -209,6 +214,20 @@ class Mission:
         self._cache.put(key, cloud)
         return cloud
 
+    @property
+    def is_projected(self) -> bool:
+        """True when the payloads are clouds already in a projected CRS (frame ``utm``)."""
+        clouds = [p for p in self.payloads if p.kind == "point_cloud"]
+        return bool(clouds) and all(p.frame == "utm" for p in clouds)
+
+    def load_projected(self, payload: Payload) -> PointCloud:
+        """A ``utm``-frame payload as stored: float64 coordinates in its projected CRS."""
+        if payload.frame != "utm":
+            raise MissionConsistencyError(
+                f"a {payload.frame}-frame cloud is not in a projected CRS", path=payload.path
+            )
+        return self.read_cloud(payload.path)
+
     def load_payload(
         self,
         payload: Payload,
@@ -247,10 +266,11 @@ class Mission:
 
     # --- re-alignment --------------------------------------------------------------------
 
-    def with_graph(self, graph: PoseGraph) -> Mission:
+    def with_graph(self, graph: PoseGraph, *, whole: bool = False) -> Mission:
         """A view of this mission re-aligned on ``graph`` (re-optimised, or a merged graph
         whose vertices are matched to this mission's payloads by stamp). No cloud is re-read:
-        the base-frame cache is shared."""
+        the base-frame cache is shared. ``whole``: every vertex of ``graph`` belongs to this
+        mission (a graph file given for it), not only those matching its own stamps."""
         problems = list(self.problems)
         by_stamp = _vertices_by_stamp(graph)
         dups = graph.duplicate_stamps()
@@ -282,7 +302,10 @@ class Mission:
             warnings=list(self.warnings),
         )
         # Keep only this mission's vertices when matching (merged graphs hold others too).
-        view._by_stamp = {s: v for s, v in by_stamp.items() if s in own} if own else by_stamp
+        if own and not whole:
+            view._by_stamp = {s: v for s, v in by_stamp.items() if s in own}
+        else:
+            view._by_stamp = by_stamp
         return view
 
     # --- summary -------------------------------------------------------------------------
@@ -293,8 +316,9 @@ class Mission:
         edges: dict[str, int] = {}
         if graph is not None:
             edges = {str(kind): n for kind, n in sorted(graph.edge_counts().items())}
-        points = sum(read_cloud_header(p.path).points for p in self.payloads)
-        scan_points = sum(read_cloud_header(p.path).points for p in self.scans)
+        problems = list(self.problems)
+        points, bad_payloads = _counted_points(self.payloads, problems, self.strict)
+        scan_points, bad_scans = _counted_points(self.scans, problems, self.strict)
         stamps, positions = self.trajectory()
         all_ns = [int(s) for s in stamps]
         all_ns += [p.stamp.ns for p in self.payloads + self.scans]
@@ -321,8 +345,10 @@ class Mission:
             if self.layout.payload_source is None
             else self.layout.payload_source.name,
             "points": points,
+            "payloads_truncated": bad_payloads,
             "scans": len(self.scans),
             "scan_points": scan_points,
+            "scans_truncated": bad_scans,
             "cloud_folders": {
                 f.name: len(f.files)
                 for f in (
@@ -337,9 +363,26 @@ class Mission:
             "cameras": sorted({i.camera for i in self.images}),
             "time_span": span,
             "extent_map": extent,
-            "problems": list(self.problems),
+            "problems": problems,
             "warnings": list(self.warnings),
         }
+
+
+def _counted_points(items: list[Payload], problems: list[str], strict: bool) -> tuple[int, int]:
+    """Points the clouds' headers announce, files too short for their header left out (and
+    reported in ``problems``; a strict mission raises). Returns ``(points, truncated files)``."""
+    total = bad = 0
+    for item in items:
+        header = read_cloud_header(item.path)
+        problem = header.size_problem()
+        if problem is None:
+            total += header.points
+            continue
+        if strict:
+            raise PointCloudFormatError(problem, path=item.path)
+        bad += 1
+        problems.append(f"{item.path}: {problem}; not counted")
+    return total, bad
 
 
 def _metadata_dict(meta: MissionMetadata) -> dict[str, Any]:
@@ -421,6 +464,46 @@ def _cloud_payloads(
         Payload(f.stamp, None, f.path, folder.frame, dict(layers.get(f.stamp, {})), kind)
         for f in folder.files
     ]
+
+
+def _las_crs(path: Path) -> Any:
+    """The CRS a LAS/LAZ header carries (pyproj.CRS), or None."""
+    import laspy
+
+    try:
+        with laspy.open(path) as reader:
+            return reader.header.parse_crs()
+    except (laspy.errors.LaspyException, ValueError, OSError, EOFError) as exc:
+        raise PointCloudFormatError(f"unreadable LAS/LAZ header ({exc})", path=path) from exc
+
+
+def _crs_text(crs: Any) -> str:
+    """``EPSG:XXXX`` when the code round-trips to an equal CRS, else WKT2 (as the catalog)."""
+    import pyproj
+
+    epsg = crs.to_epsg()
+    if epsg is not None and pyproj.CRS.from_epsg(epsg) == crs:
+        return f"EPSG:{epsg}"
+    return str(crs.to_wkt("WKT2_2019"))
+
+
+def _projected_las(items: list[Payload]) -> list[Payload]:
+    """LAS/LAZ payloads whose header carries a projected CRS are in that CRS (frame ``utm``),
+    whatever their folder; a geographic or geocentric CRS is refused (x/y must be metres)."""
+    out = []
+    for p in items:
+        if p.path.suffix.lower() in (".las", ".laz"):
+            crs = _las_crs(p.path)
+            if crs is not None:
+                if not crs.is_projected:
+                    raise MissionConsistencyError(
+                        f"the cloud's CRS {crs.name!r} is not projected; standgrid reads "
+                        "clouds in a projected CRS (metres) or in the robot/map frame",
+                        path=p.path,
+                    )
+                p = replace(p, frame="utm", crs=_crs_text(crs))
+        out.append(p)
+    return out
 
 
 def _attach(
@@ -506,9 +589,13 @@ def open_mission(
         for f in folder.files:
             layers.setdefault(f.stamp, {})[layer_name(folder)] = f.path
 
-    source = layout.payload_source
+    source = layout.payload_source or next(
+        (f for f in layout.payload_folders if f.frame == "utm"), None
+    )
     payloads = _attach(
-        _check_duplicates(_cloud_payloads(source, "point_cloud", layers), strict, problems),
+        _check_duplicates(
+            _projected_las(_cloud_payloads(source, "point_cloud", layers)), strict, problems
+        ),
         by_stamp,
         graph,
         strict,

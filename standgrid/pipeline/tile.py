@@ -70,6 +70,9 @@ class TileOptions:
     #: ``None``: the catalog's setting (LAZ for a new catalog).
     laz: bool | None = None
     method: str = "yaw2d"
+    #: ``(lat, lon, alt, yaw_deg)``: place the map frame by hand, no GNSS fit
+    #: (:func:`standgrid.georeference.fit_from_anchor`); one mission per run.
+    anchor: tuple[float, float, float, float] | None = None
     epoch: str | None = None
     memory_budget: int = DEFAULT_MEMORY_BUDGET
     overwrite: bool = False
@@ -113,11 +116,16 @@ class _Ingest:
     """One mission on its way in."""
 
     mission: Mission
-    fit: GeoreferenceFit
+    #: The map -> ENU georeference; None for clouds already in a projected CRS.
+    fit: GeoreferenceFit | None
     epoch: str
     date: str
     projector: MapProjector | None = None
     number: int = 0
+    #: The projected CRS of a mission whose clouds are already in one (else None).
+    source_crs: str | None = None
+    #: source CRS -> catalog CRS for such clouds (None: the same CRS).
+    to_catalog: Any = None
 
 
 # --- entry point -------------------------------------------------------------------------
@@ -141,6 +149,8 @@ def tile_missions(
 
     if not mission_paths:
         raise CatalogError("no missions given")
+    if options.anchor is not None and len(mission_paths) > 1:
+        raise CatalogError("an anchor places one mission: tile one mission per --anchor")
     ingests: list[_Ingest] = []
     for path in mission_paths:
         mission = open_mission(path, cache_points=0)  # each payload is read once
@@ -178,7 +188,10 @@ def _ingest(
         options = _settle_settings(txn, options)
         for ingest in ingests:
             ingest.number = txn.mission_number(ingest.mission.name)
-            ingest.projector = _projector(ingest.fit, catalog.crs)
+            if ingest.fit is not None:
+                ingest.projector = _projector(ingest.fit, catalog.crs)
+            else:
+                ingest.to_catalog = _to_catalog(ingest, catalog.crs)
         renewed = [i.number for i in ingests]
         # an epoch a re-ingested mission leaves is re-tiled too (without that mission)
         left = {
@@ -212,17 +225,33 @@ def _ingest(
 
 
 def _prepare(mission: Mission, options: TileOptions) -> _Ingest:
-    from standgrid.georeference import georeference_mission
+    """How the mission gets into the catalog's CRS: clouds already projected (no fit), an
+    explicit anchor, or its own georeference (pose-graph anchor or GNSS fit)."""
+    from standgrid.georeference import fit_from_anchor, georeference_mission
 
-    try:
-        fit = georeference_mission(mission, method=options.method)
-    except GeoreferenceError as exc:
-        raise type(exc)(
-            f"{exc.message} (tiling needs a georeference: GNSS fixes or GNSS_LLA_REF/"
-            "GNSS_LLA_TO_MAP in the pose graph)",
-            path=exc.path or mission.path,
-            line=exc.line,
-        ) from exc
+    fit: GeoreferenceFit | None = None
+    source_crs = None
+    if mission.is_projected:
+        if options.anchor is not None:
+            raise CatalogError(
+                "the clouds are already in a projected CRS: an anchor would not be used",
+                path=mission.path,
+            )
+        source_crs = _projected_crs(mission, options)
+    elif options.anchor is not None:
+        fit = fit_from_anchor(*options.anchor)
+    else:
+        try:
+            fit = georeference_mission(mission, method=options.method)
+        except GeoreferenceError as exc:
+            raise type(exc)(
+                f"{exc.message} (tiling needs a georeference: GNSS fixes, GNSS_LLA_REF/"
+                "GNSS_LLA_TO_MAP in the pose graph, an explicit --anchor LAT LON ALT YAW, "
+                "or clouds already in a projected CRS: payload_clouds_in_utm/ or LAS/LAZ "
+                "with a CRS)",
+                path=exc.path or mission.path,
+                line=exc.line,
+            ) from exc
     meta = mission.metadata
     if options.epoch is not None:
         epoch = options.epoch
@@ -235,7 +264,47 @@ def _prepare(mission: Mission, options: TileOptions) -> _Ingest:
             path=mission.path,
         )
     date = meta.date.isoformat() if meta is not None else ""
-    return _Ingest(mission, fit, epoch, date)
+    return _Ingest(mission, fit, epoch, date, source_crs=source_crs)
+
+
+def _projected_crs(mission: Mission, options: TileOptions) -> str:
+    """The one projected CRS of a mission's projected clouds: their files' own (LAS/LAZ),
+    else ``options.crs`` (PCD/PLY in ``payload_clouds_in_utm/`` carry none)."""
+    from standgrid.georeference import crs_to_text, resolve_crs
+
+    clouds = _cloud_payloads(mission)
+    own = {p.crs for p in clouds if p.crs is not None}
+    if len(own) > 1:
+        raise CRSError(
+            f"the mission's clouds are in several CRSs: {sorted(own)}", path=mission.path
+        )
+    if own and len(own) == 1 and all(p.crs is not None for p in clouds):
+        return own.pop()
+    given = options.crs not in ("auto", "", None)
+    if not given:
+        folder = clouds[0].path.parent.name
+        raise CRSError(
+            f"the clouds in {folder}/ are in a projected CRS their files do not name: give it "
+            "with --crs EPSG:XXXX (it is also the catalog's CRS)",
+            path=mission.path,
+        )
+    text = crs_to_text(resolve_crs(options.crs))
+    if own and own != {text}:
+        raise CRSError(
+            f"some clouds carry the CRS {own.pop()}, --crs says {text}", path=mission.path
+        )
+    return text
+
+
+def _to_catalog(ingest: _Ingest, crs: str) -> Any:
+    """A source -> catalog CRS transformer for projected clouds (None: the same CRS).
+
+    Only x/y are transformed (2-D); heights are kept as the clouds have them."""
+    import pyproj
+
+    if ingest.source_crs == crs:
+        return None
+    return pyproj.Transformer.from_crs(ingest.source_crs, crs, always_xy=True)
 
 
 def _requested_grid(crs: str, options: TileOptions) -> dict[str, Any]:
@@ -321,8 +390,14 @@ def _create(path: Path, ingests: list[_Ingest], options: TileOptions) -> Catalog
     from standgrid.export.catalog import Catalog
     from standgrid.georeference import crs_to_text, resolve_crs
 
-    lat, lon, _ = ingests[0].fit.lla_ref
-    crs = crs_to_text(resolve_crs(options.crs, lon=lon, lat=lat))
+    first = ingests[0]
+    if first.fit is None and options.crs in ("auto", "", None):
+        assert first.source_crs is not None
+        crs = first.source_crs  # projected clouds: their own CRS
+    else:
+        fit = next((i.fit for i in ingests if i.fit is not None), None)
+        lat, lon = (fit.lla_ref[0], fit.lla_ref[1]) if fit is not None else (None, None)
+        crs = crs_to_text(resolve_crs(options.crs, lon=lon, lat=lat))
     scheme = options.scheme or "grid"
     return Catalog.create(path, _requested_grid(crs, options), crs, scheme)
 
@@ -482,7 +557,7 @@ def _tile_epoch(
             epoch=epoch,
             date=ingest.date,
             path=str(mission.path.resolve()),
-            georeference=ingest.fit.to_dict(),
+            georeference=_georeference_record(ingest),
             payload_count=len(_cloud_payloads(mission)),
             point_count=new_in[mission.name],
             tiles=sorted(tiles_of.get(mission.name, ())),
@@ -494,7 +569,7 @@ def _tile_epoch(
             "payloads": record["payload_count"],
             "points": record["point_count"],
             "tiles": len(record["tiles"]),
-            "georeference": fit_summary(ingest.fit),
+            "georeference": _georeference_summary(ingest),
         }
         layers.add_mission(ingest, epoch, catalog)
     entry = txn.state["epochs"].get(epoch)
@@ -533,7 +608,7 @@ def _schema(
     for ingest in group:
         payloads = _cloud_payloads(ingest.mission)
         if payloads:
-            samples.append(ingest.mission.load_base(payloads[0]))
+            samples.append(_load_source(ingest.mission, payloads[0]))
     schema: dict[str, np.dtype] = {}
     for cloud in samples:
         for name, values in cloud.fields.items():
@@ -593,11 +668,16 @@ def _payload_chunk(
     """One payload in the output CRS (snapped to the tiles' 1 mm lattice) with tiler fields."""
     from standgrid.export.las import snap_to_storage
 
-    assert ingest.projector is not None
-    with _MISSION_LOCK:  # the mission's reader and caches are not shared across threads
-        cloud = ingest.mission.load_base(payload)
-        pose = ingest.mission.pose_of(payload)
-    xyz = snap_to_storage(ingest.projector.fast(cloud.xyz, pose=pose), origin)
+    if ingest.fit is None:  # already in a projected CRS
+        with _MISSION_LOCK:
+            cloud = ingest.mission.load_projected(payload)
+        xyz = snap_to_storage(_reproject(ingest, cloud.xyz), origin)
+    else:
+        assert ingest.projector is not None
+        with _MISSION_LOCK:  # the mission's reader and caches are not shared across threads
+            cloud = ingest.mission.load_base(payload)
+            pose = ingest.mission.pose_of(payload)
+        xyz = snap_to_storage(ingest.projector.fast(cloud.xyz, pose=pose), origin)
     n = len(xyz)
     fields = dict(cloud.fields)
     if "gps_time" not in fields:  # per-point times of the source win over the payload stamp
@@ -607,6 +687,18 @@ def _payload_chunk(
         n, _payload_id(ingest.number, index, ingest.mission), dtype=np.uint32
     )
     return _conform(PointCloud(xyz, fields), schema, payload.path)
+
+
+def _load_source(mission: Mission, payload: Payload) -> PointCloud:
+    return mission.load_projected(payload) if payload.frame == "utm" else mission.load_base(payload)
+
+
+def _reproject(ingest: _Ingest, xyz: NDArray[np.float64]) -> NDArray[np.float64]:
+    """Projected clouds into the catalog CRS (x/y only; heights as the clouds have them)."""
+    if ingest.to_catalog is None:
+        return xyz
+    x, y = ingest.to_catalog.transform(xyz[:, 0], xyz[:, 1], errcheck=True)
+    return np.column_stack([np.asarray(x), np.asarray(y), xyz[:, 2]])
 
 
 _MISSION_LOCK = threading.Lock()
@@ -732,11 +824,15 @@ def _payload_row(ingest: _Ingest, index: int, payload: Payload, epoch: str) -> d
 
     from standgrid.export.gpkg import iso_time
 
-    assert ingest.projector is not None
-    pose = ingest.mission.pose_of(payload)
-    ends = ingest.projector.exact(np.array([pose[:3, 3], pose[:3, 3] + pose[:3, 0]]))
-    x, y, z = ends[0]
-    heading = math.degrees(math.atan2(ends[1, 1] - y, ends[1, 0] - x))
+    if ingest.fit is None:  # projected clouds: the centre of their box, no heading
+        x, y, z = _projected_centre(ingest, payload)
+        heading = math.nan
+    else:
+        assert ingest.projector is not None
+        pose = ingest.mission.pose_of(payload)
+        ends = ingest.projector.exact(np.array([pose[:3, 3], pose[:3, 3] + pose[:3, 0]]))
+        x, y, z = ends[0]
+        heading = math.degrees(math.atan2(ends[1, 1] - y, ends[1, 0] - x))
     return {
         "payload_id": _payload_id(ingest.number, index, ingest.mission),
         "mission": ingest.mission.name,
@@ -754,6 +850,37 @@ def _payload_row(ingest: _Ingest, index: int, payload: Payload, epoch: str) -> d
     }
 
 
+def _projected_centre(ingest: _Ingest, payload: Payload) -> tuple[float, float, float]:
+    """Centre of a projected cloud's bounding box, in the catalog CRS (LAS: from the header)."""
+    from standgrid.mission.clouds import read_cloud_header
+
+    header = read_cloud_header(payload.path)
+    if header.bounds is not None:
+        lo, hi = header.bounds
+    else:
+        with _MISSION_LOCK:
+            xyz = ingest.mission.load_projected(payload).xyz
+        lo = np.array([xyz[:, k].min() for k in range(3)])
+        hi = np.array([xyz[:, k].max() for k in range(3)])
+    centre = _reproject(ingest, (0.5 * (np.asarray(lo) + np.asarray(hi)))[None, :])[0]
+    return float(centre[0]), float(centre[1]), float(centre[2])
+
+
+def _georeference_record(ingest: _Ingest) -> dict[str, Any]:
+    """What the catalog stores about how the mission was placed."""
+    if ingest.fit is None:
+        return {"format": "standgrid.georeference/1", "method": "projected",
+                "source_crs": ingest.source_crs}  # fmt: skip
+    return ingest.fit.to_dict()
+
+
+def _georeference_summary(ingest: _Ingest) -> dict[str, Any]:
+    if ingest.fit is None:
+        return {"method": "projected", "source_crs": ingest.source_crs, "fixes_used": 0,
+                "fixes_rejected": 0, "rmse_horizontal_m": None, "uncertainty": None}  # fmt: skip
+    return fit_summary(ingest.fit)
+
+
 def fit_summary(fit: GeoreferenceFit) -> dict[str, Any]:
     """The headline figures of a georeference fit."""
     return {
@@ -765,6 +892,7 @@ def fit_summary(fit: GeoreferenceFit) -> dict[str, Any]:
         "rmse_vertical_m": _finite(fit.rmse_vertical_m),
         "yaw_deg": fit.yaw_deg,
         "lla_ref": list(fit.lla_ref),
+        "uncertainty": None if fit.uncertainty is None else fit.uncertainty.to_dict(),
     }
 
 
@@ -777,8 +905,8 @@ def _metadata_extra(mission: Mission) -> dict[str, Any]:
     if meta is None:
         return {"robot": "", "place": "", "unit": "", "sensors": []}
     return {
-        "robot": meta.robot,
-        "place": meta.place,
+        "robot": meta.robot or "",
+        "place": meta.place or "",
         "unit": meta.unit or "",
         "sensors": list(meta.sensors),
     }
@@ -821,9 +949,8 @@ class _IndexLayers:
     def add_mission(self, ingest: _Ingest, epoch: str, catalog: Catalog) -> None:
         import shapely
 
-        assert ingest.projector is not None
         mission, fit = ingest.mission, ingest.fit
-        if mission.graph is not None and len(mission.graph) >= 2:
+        if ingest.projector is not None and mission.graph is not None and len(mission.graph) >= 2:
             xyz = ingest.projector.exact(mission.graph.positions)
             self.trajectories.append(
                 {
@@ -832,7 +959,8 @@ class _IndexLayers:
                     "geometry": shapely.LineString(xyz[:, :2]),
                 }
             )
-        self.gnss_fixes.extend(_gnss_rows(ingest, catalog.crs))
+        if fit is not None:
+            self.gnss_fixes.extend(_gnss_rows(ingest, catalog.crs))
         meta = _metadata_extra(mission)
         self.missions.append(
             {
@@ -844,10 +972,10 @@ class _IndexLayers:
                 "place": meta["place"],
                 "unit": meta["unit"],
                 "sensors": ",".join(meta["sensors"]),
-                "fit_method": fit.method,
-                "rmse_m": _finite(fit.rmse_m),
-                "n_used": int(fit.n_used),
-                "n_rejected": int(fit.n_rejected),
+                "fit_method": "projected" if fit is None else fit.method,
+                "rmse_m": None if fit is None else _finite(fit.rmse_m),
+                "n_used": 0 if fit is None else int(fit.n_used),
+                "n_rejected": 0 if fit is None else int(fit.n_rejected),
                 "grid_fingerprint": catalog.fingerprint,
                 "crs": catalog.crs,
             }
@@ -874,6 +1002,7 @@ def _gnss_rows(ingest: _Ingest, crs: str) -> list[dict[str, Any]]:
     import shapely
 
     gnss, fit = ingest.mission.gnss, ingest.fit
+    assert fit is not None
     if gnss is None or len(gnss) == 0 or len(fit.fix_stamps_ns) == 0:
         return []
     if len(fit.fix_stamps_ns) != len(gnss) or not np.array_equal(fit.fix_stamps_ns, gnss.stamps_ns):

@@ -24,6 +24,8 @@ COMMANDS: dict[str, str] = {
     "enrich": "standgrid.cli.enrich:enrich",
     "compare": "standgrid.cli.compare:compare",
     "run": "standgrid.cli.run:run",
+    "export": "standgrid.cli.export:export",
+    "bag": "standgrid.cli.bag:bag",
 }
 
 

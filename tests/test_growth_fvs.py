@@ -4,8 +4,10 @@ standgrid's stand table in FVS units; DG/HTG from the second campaign reach FVS.
 from __future__ import annotations
 
 import math
+import os
 import sqlite3
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pandas as pd
@@ -22,7 +24,16 @@ from standgrid.growth.fvs import (
 )
 from tests.pipeline_fixtures import copy_catalog, enriched_pair
 
-pyfvs_fvs = pytest.importorskip("pyfvs.fvs")
+
+@pytest.fixture(scope="module")
+def pyfvs_fvs(tmp_path_factory: pytest.TempPathFactory) -> Any:
+    """pyfvs, imported from a scratch folder: on import it opens ./pyfvs.log for logging."""
+    here = os.getcwd()
+    os.chdir(tmp_path_factory.mktemp("pyfvs"))
+    try:
+        return pytest.importorskip("pyfvs.fvs")
+    finally:
+        os.chdir(here)
 
 
 @pytest.fixture(scope="module")
@@ -45,7 +56,7 @@ def _tables(db: Path) -> tuple[pd.DataFrame, pd.DataFrame]:
     return stands, trees
 
 
-def _run_fvs(db: Path, stand_id: str, workdir: Path) -> tuple[pd.DataFrame, str]:
+def _run_fvs(pyfvs_fvs: Any, db: Path, stand_id: str, workdir: Path) -> tuple[pd.DataFrame, str]:
     """Run one stand for two 10-year cycles; FVS's own summary table and main output."""
     out_db = workdir / f"{stand_id}_out.db"
     key = workdir / f"{stand_id}.key"
@@ -61,7 +72,11 @@ def _run_fvs(db: Path, stand_id: str, workdir: Path) -> tuple[pd.DataFrame, str]
 
 
 def test_year0_summary_matches_stand_table(
-    catalog: Path, exported: tuple[Path, dict], tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+    pyfvs_fvs: Any,
+    catalog: Path,
+    exported: tuple[Path, dict],
+    tmp_path: Path,
+    monkeypatch: pytest.MonkeyPatch,
 ) -> None:
     monkeypatch.chdir(tmp_path)  # pyfvs logs to ./pyfvs.log
     db, report = exported
@@ -87,7 +102,7 @@ def test_year0_summary_matches_stand_table(
                 np.zeros(len(tl), np.int64), tl["height_m"], tl["dbh_m"], cell_area_m2=area_m2
             ).iloc[0]
             assert stand.SG_Trees_Without_DBH == row["n_trees"] - row["n_dbh"]
-        summary, _ = _run_fvs(db, stand.Stand_ID, tmp_path)
+        summary, _ = _run_fvs(pyfvs_fvs, db, stand.Stand_ID, tmp_path)
         year0 = summary.iloc[0]
         assert int(year0["Year"]) == stand.Inv_Year
         tpa = expected["stems_ha"] * M2_PER_ACRE / 10_000.0
@@ -112,7 +127,11 @@ def test_year0_summary_matches_stand_table(
 
 
 def test_second_campaign_increments_calibrate_fvs(
-    catalog: Path, exported: tuple[Path, dict], tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+    pyfvs_fvs: Any,
+    catalog: Path,
+    exported: tuple[Path, dict],
+    tmp_path: Path,
+    monkeypatch: pytest.MonkeyPatch,
 ) -> None:
     monkeypatch.chdir(tmp_path)
     db, _ = exported
@@ -132,7 +151,7 @@ def test_second_campaign_increments_calibrate_fvs(
     np.testing.assert_allclose(mine["DG"], past, rtol=1e-12)
     htg = by_id.loc[mine["SG_Tree_ID"], "height_m_delta"].to_numpy() / M_PER_FT
     np.testing.assert_allclose(mine["HTG"], htg, rtol=1e-12)
-    _, main_output = _run_fvs(db, str(stand["Stand_ID"]), tmp_path)
+    _, main_output = _run_fvs(pyfvs_fvs, db, str(stand["Stand_ID"]), tmp_path)
     used = int(main_output.split("THE DIAMETER INCREMENT MODEL")[1].split()[0])
     assert used == len(mine) > 0  # FVS read every DG record for calibration
 

@@ -60,6 +60,10 @@ class SensorLogFormatError(FormatError):
     """A malformed GNSS or IMU text log."""
 
 
+class BagFormatError(FormatError):
+    """A ROS bag cannot be read, or a message in it cannot be decoded or used."""
+
+
 class MetadataError(FormatError):
     """An unreadable or invalid ``metadata.yaml``; ``key`` names the metadata key at fault."""
 
@@ -146,6 +150,10 @@ class CatalogNotFoundError(CatalogError, FileNotFoundError):
 
 class EpochNotFoundError(CatalogError, LookupError):
     """The catalog has no such epoch."""
+
+
+class NotEnrichedError(CatalogError, FileNotFoundError):
+    """A table an export needs (tree list, stand metrics) is missing: run ``enrich`` first."""
 
 
 class OutputExistsError(StandgridError, FileExistsError):

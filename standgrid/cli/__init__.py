@@ -25,6 +25,8 @@ COMMANDS: dict[str, str] = {
     "compare": "standgrid.cli.compare:compare",
     "run": "standgrid.cli.run:run",
     "status": "standgrid.cli.status:status",
+    "export": "standgrid.cli.export:export",
+    "bag": "standgrid.cli.bag:bag",
 }
 
 

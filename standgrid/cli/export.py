@@ -1,0 +1,160 @@
+"""``standgrid export``: a catalog's stands and trees for growth simulators."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+import click
+
+from standgrid.cli.options import emit, json_option, overwrite_option, quiet_option, status
+
+catalog_argument = click.argument(
+    "catalog", type=click.Path(exists=True, file_okay=False, path_type=Path)
+)
+epoch_option = click.option(
+    "--epoch", "epochs", multiple=True, help="Only this epoch (repeatable; default: all enriched)."
+)
+level_option = click.option(
+    "--level", type=click.IntRange(0, 1), default=1, show_default=True,
+    help="Stand level: 1 = the 1 ha stands, 0 = the tile cells.",
+)  # fmt: skip
+
+
+@click.group(name="export")
+def export() -> None:
+    """Export an enriched catalog's stands and trees for growth simulators.
+
+    \b
+    Example:
+      standgrid export fvs CATALOG -o stands.db --species DF --keywords stands.key
+      standgrid export trees CATALOG -o trees.gpkg
+    """
+
+
+def _species_table(path: Path | None) -> dict[str, str]:
+    """``stand_id,species`` CSV (a header row naming those two columns)."""
+    if path is None:
+        return {}
+    import pandas as pd
+
+    table = pd.read_csv(path, dtype=str)
+    missing = {"stand_id", "species"} - set(table.columns)
+    if missing:
+        raise click.BadParameter(f"{path}: needs the columns stand_id, species")
+    return dict(zip(table["stand_id"], table["species"], strict=True))
+
+
+@export.command(name="fvs")
+@catalog_argument
+@click.option("-o", "--output", required=True, type=click.Path(dir_okay=False, path_type=Path),
+              help="SQLite database to write (FVS_StandInit, FVS_TreeInit).")  # fmt: skip
+@click.option("--variant", default="PN", show_default=True, help="FVS variant code.")
+@click.option("--species", help="FVS species code of every tree (default DF, a placeholder).")
+@click.option("--species-table", type=click.Path(exists=True, dir_okay=False, path_type=Path),
+              help="CSV stand_id,species: a code per stand (others get --species).")  # fmt: skip
+@click.option("--no-increments", is_flag=True,
+              help="Leave DG/HTG empty even when an earlier campaign was compared.")  # fmt: skip
+@click.option("--keywords", type=click.Path(dir_okay=False, path_type=Path),
+              help="Also write an FVS keyword file running every exported stand.")  # fmt: skip
+@level_option
+@epoch_option
+@overwrite_option
+@quiet_option
+@json_option
+def fvs(
+    catalog: Path,
+    output: Path,
+    variant: str,
+    species: str | None,
+    species_table: Path | None,
+    no_increments: bool,
+    keywords: Path | None,
+    level: int,
+    epochs: tuple[str, ...],
+    overwrite: bool,
+    quiet: bool,
+    as_json: bool,
+) -> None:
+    """Write FVS database input tables for CATALOG's stands (docs/FVS.md).
+
+    One FVS stand per stand and epoch, one fixed plot of the stand's observed area, one
+    record per tree with a DBH (trees without one are counted, not exported), in FVS units
+    (inches, feet, acres). LiDAR does not tell species: give --species or --species-table.
+
+    \b
+    Example:
+      standgrid export fvs catalog -o stands.db --species DF --keywords stands.key
+      standgrid export fvs catalog -o cells.db --level 0 --epoch 2028 --overwrite --json
+    """
+    import sqlite3
+
+    from standgrid._atomic import write_text_atomic
+    from standgrid.growth.fvs import export_fvs, keyword_file
+
+    status(f"exporting FVS stands from {catalog} ...", quiet or as_json)
+    report = export_fvs(
+        catalog, output, level=level, epochs=epochs or None, variant=variant, species=species,
+        species_by_stand=_species_table(species_table), increments=not no_increments,
+        overwrite=overwrite,
+    )  # fmt: skip
+    result: dict[str, Any] = report.to_dict()
+    if keywords is not None:
+        conn = sqlite3.connect(output)
+        try:
+            ids = [r[0] for r in conn.execute("SELECT Stand_ID FROM FVS_StandInit")]
+        finally:
+            conn.close()
+        if keywords.exists() and not overwrite:
+            raise click.ClickException(f"{keywords} exists (use --overwrite to replace it)")
+        write_text_atomic(keywords, keyword_file(output.resolve(), ids))
+        result["keywords"] = str(keywords)
+    if report.species_default_used:
+        status("warning: species not given; every tree is DF (Douglas-fir), a placeholder", quiet)
+    emit(result, as_json, _fvs_human)
+
+
+def _fvs_human(r: dict[str, Any]) -> str:
+    return (
+        f"{r['stands']} stands, {r['trees']} trees ({r['trees_with_dg_htg']} with DG/HTG), "
+        f"{r['trees_without_dbh_skipped']} trees without a DBH left out -> {r['output']}"
+    )
+
+
+@export.command(name="trees")
+@catalog_argument
+@click.option("-o", "--output", required=True, type=click.Path(dir_okay=False, path_type=Path),
+              help="Tree list: .csv, .parquet, .gpkg or .sqlite/.db (table trees).")  # fmt: skip
+@click.option("--format", "fmt", type=click.Choice(["csv", "parquet", "gpkg", "sqlite"]),
+              help="Format, when the suffix does not say.")  # fmt: skip
+@level_option
+@epoch_option
+@overwrite_option
+@quiet_option
+@json_option
+def trees(
+    catalog: Path,
+    output: Path,
+    fmt: str | None,
+    level: int,
+    epochs: tuple[str, ...],
+    overwrite: bool,
+    quiet: bool,
+    as_json: bool,
+) -> None:
+    """Write CATALOG's trees as one generic tree list (columns: docs/TREES.md).
+
+    \b
+    Example:
+      standgrid export trees catalog -o trees.parquet
+      standgrid export trees catalog -o trees.gpkg --epoch 2028 --overwrite
+    """
+    from standgrid.export.catalog import Catalog
+    from standgrid.growth.treelist import generic_tree_list, summary, write_tree_list
+
+    status(f"exporting trees from {catalog} ...", quiet or as_json)
+    cat = Catalog.open(catalog)
+    table = generic_tree_list(cat, epochs or None, level=level)
+    out = write_tree_list(table, output, crs=cat.crs, fmt=fmt, overwrite=overwrite)
+    result = {"output": str(out), "trees": len(table), "epochs": summary(table)}
+    emit(result, as_json, lambda r: f"{r['trees']} trees -> {r['output']}")

@@ -1,0 +1,366 @@
+"""FVS database input: a catalog's stands and trees as ``FVS_StandInit`` and ``FVS_TreeInit``.
+
+The Forest Vegetation Simulator reads these SQLite tables with its ``DATABASE`` /
+``DSNIN`` / ``STANDSQL`` / ``TREESQL`` keywords, in imperial units. docs/FVS.md lists every
+column written, its source and unit, and the species choice (LiDAR does not know species:
+the user gives a code per stand or one default).
+"""
+
+from __future__ import annotations
+
+import datetime as dt
+import math
+import sqlite3
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pandas as pd
+
+from standgrid._atomic import atomic_output
+from standgrid.errors import FormatError
+from standgrid.export.catalog import Catalog
+from standgrid.growth.treelist import (
+    catalog_epochs,
+    read_stands,
+    read_trees,
+    stand_area,
+    stand_key,
+)
+
+M_PER_FT = 0.3048
+CM_PER_IN = 2.54
+M2_PER_ACRE = 4046.8564224
+#: 1 m²/ha in ft²/acre.
+BA_M2HA_TO_FT2AC = (1.0 / M_PER_FT**2) / (10_000.0 / M2_PER_ACRE)
+#: FVS breakpoint DBH (in) above every tree: one fixed plot size for all trees.
+ALL_TREES_BREAK_DBH = 999.0
+#: FVS stand ids are at most 26 characters.
+MAX_STAND_ID = 26
+DEFAULT_VARIANT = "PN"
+DEFAULT_SPECIES = "DF"
+
+STAND_COLUMNS = {
+    "Stand_ID": "TEXT", "Variant": "TEXT", "Inv_Year": "INTEGER", "Latitude": "REAL",
+    "Longitude": "REAL", "Slope": "REAL", "Aspect": "REAL", "ElevFt": "REAL",
+    "Basal_Area_Factor": "REAL", "Inv_Plot_Size": "REAL", "Brk_DBH": "REAL",
+    "Num_Plots": "INTEGER", "DG_Trans": "INTEGER", "DG_Measure": "REAL",
+    "HTG_Trans": "INTEGER", "HTG_Measure": "REAL",
+    "SG_Cell_ID": "TEXT", "SG_Epoch": "TEXT", "SG_Level": "INTEGER", "SG_Area_m2": "REAL",
+    "SG_Area_Source": "TEXT", "SG_Trees_Without_DBH": "INTEGER", "SG_Species_Source": "TEXT",
+}  # fmt: skip
+TREE_COLUMNS = {
+    "Stand_ID": "TEXT", "Plot_ID": "INTEGER", "Tree_ID": "INTEGER", "Tree_Count": "REAL",
+    "History": "INTEGER", "Species": "TEXT", "DBH": "REAL", "DG": "REAL", "Ht": "REAL",
+    "HTG": "REAL", "CrRatio": "INTEGER",
+    "SG_Tree_ID": "TEXT", "SG_DBH_Source": "TEXT",
+}  # fmt: skip
+
+
+@dataclass
+class FvsExport:
+    """What :func:`export_fvs` wrote, and what it left out and why."""
+
+    path: Path
+    stands: int = 0
+    trees: int = 0
+    trees_without_dbh: int = 0
+    trees_with_increments: int = 0
+    stands_skipped: dict[str, str] = field(default_factory=dict)
+    species_default_used: bool = False
+
+    def to_dict(self) -> dict[str, Any]:
+        return {
+            "output": str(self.path),
+            "stands": self.stands,
+            "trees": self.trees,
+            "trees_without_dbh_skipped": self.trees_without_dbh,
+            "trees_with_dg_htg": self.trees_with_increments,
+            "stands_skipped": dict(self.stands_skipped),
+            "species_default_used": self.species_default_used,
+        }
+
+
+def fvs_stand_id(cell_id: str, epoch: str) -> str:
+    """``<cell_id>_<epoch>``; an error beyond FVS's 26 characters."""
+    stand_id = f"{cell_id}_{epoch}"
+    if len(stand_id) > MAX_STAND_ID:
+        raise FormatError(f"FVS stand id {stand_id!r} is longer than {MAX_STAND_ID} characters")
+    return stand_id
+
+
+def slope_aspect(dtm: Path, polygon: Any) -> tuple[float, float, float]:
+    """Slope (percent), aspect (degrees clockwise from north, the downslope direction; 0
+    when flat) and mean elevation (m) of the plane fitted to the DTM pixels in ``polygon``."""
+    import rasterio
+    from rasterio.features import geometry_mask
+    from rasterio.windows import from_bounds
+
+    with rasterio.open(dtm) as src:
+        window = (
+            from_bounds(*polygon.bounds, transform=src.transform).round_offsets().round_lengths()
+        )
+        z = src.read(1, window=window, masked=True).astype(np.float64)
+        transform = src.window_transform(window)
+    inside = ~geometry_mask([polygon], out_shape=z.shape, transform=transform)
+    ok = inside & ~np.ma.getmaskarray(z) & np.isfinite(z.filled(np.nan))
+    if ok.sum() < 3:
+        return math.nan, math.nan, math.nan
+    rows, cols = np.nonzero(ok)
+    xs, ys = rasterio.transform.xy(transform, rows, cols)
+    x, y = np.asarray(xs, float), np.asarray(ys, float)
+    a = np.column_stack([x - x.mean(), y - y.mean(), np.ones_like(x)])
+    (gx, gy, _), *_ = np.linalg.lstsq(a, z.data[ok], rcond=None)
+    slope = 100.0 * math.hypot(gx, gy)
+    aspect = (math.degrees(math.atan2(-gx, -gy)) + 360.0) % 360.0 if slope >= 0.5 else 0.0
+    return slope, aspect, float(z.data[ok].mean())
+
+
+def _stand_polygons(catalog: Catalog) -> pd.DataFrame:
+    import pyogrio
+
+    frame = pyogrio.read_dataframe(catalog.path("index.gpkg"), layer="stand_metrics",
+                                   columns=["cell_id", "epoch"])  # fmt: skip
+    frame["epoch"] = frame["epoch"].astype(str)
+    return frame
+
+
+def _years_between(catalog: Catalog, first: str, last: str) -> float:
+    dates = [dt.date.fromisoformat(str(catalog.epochs[e]["date"])) for e in (first, last)]
+    return (dates[1] - dates[0]).days / 365.25
+
+
+def _increments(catalog: Catalog, epoch: str, previous: str | None) -> pd.DataFrame | None:
+    """Per tree of ``epoch``: past measured DBH (m) and height increment (m) since
+    ``previous``, from ``compare/<previous>__<epoch>/tree_changes.parquet``."""
+    if previous is None:
+        return None
+    path = catalog.path(f"compare/{previous}__{epoch}/tree_changes.parquet")
+    if not path.is_file():
+        raise FormatError(
+            f"no comparison of {previous} with {epoch}: run `standgrid compare` first", path=path
+        )
+    changes = pd.read_parquet(path)
+    matched = changes[(changes["status"] == "grown") & ~changes["suspicious"].astype(bool)]
+    before = read_trees(catalog, previous).set_index("tree_id")["dbh_source"]
+    source_from = matched["tree_id_from"].map(before)
+    past_dbh = matched["dbh_m_from"].where(source_from == "measured")
+    return pd.DataFrame(
+        {
+            "past_dbh_m": past_dbh.to_numpy(float),
+            "htg_m": matched["height_m_delta"].to_numpy(float),
+        },
+        index=matched["tree_id_to"].astype(np.int64).to_numpy(),
+    )
+
+
+def _crown_ratio(trees: pd.DataFrame) -> pd.Series:
+    """FVS crown ratio (percent of height in live crown) where the tree list measures the
+    crown base (``crown_base_m``) or gives ``crown_ratio`` (0-1); else NA (FVS imputes)."""
+    if "crown_ratio" in trees.columns:
+        ratio = trees["crown_ratio"].astype(float)
+    elif "crown_base_m" in trees.columns:
+        ratio = 1.0 - trees["crown_base_m"].astype(float) / trees["height_m"].astype(float)
+    else:
+        return pd.Series(pd.NA, index=trees.index, dtype="Int64")
+    return (100.0 * ratio.clip(0.01, 1.0)).round().astype("Int64")
+
+
+def export_fvs(
+    catalog_path: str | Path,
+    out: str | Path,
+    *,
+    level: int = 1,
+    epochs: Sequence[str] | None = None,
+    variant: str = DEFAULT_VARIANT,
+    species: str | None = None,
+    species_by_stand: Mapping[str, str] | None = None,
+    increments: bool = True,
+    overwrite: bool = False,
+) -> FvsExport:
+    """Write ``FVS_StandInit`` and ``FVS_TreeInit`` (SQLite) for the catalog's stands.
+
+    One FVS stand per stand of ``level`` (1: the 1 ha stands, 0: the tile cells) and epoch,
+    with one fixed plot: its size is the stand's observed area. Trees without a DBH are
+    left out (FVS needs one) and counted. ``species_by_stand`` maps a standgrid stand id
+    (``cell_id``) to an FVS species code; other stands get ``species`` (default
+    :data:`DEFAULT_SPECIES`). With ``increments`` and an earlier epoch compared with this
+    one, matched trees get DG (past DBH, DG_Trans 1) and HTG (height increment, HTG_Trans 0).
+    """
+    from pyproj import Transformer
+
+    catalog = Catalog.open(catalog_path)
+    key = stand_key(level)
+    wanted = catalog_epochs(catalog, epochs)
+    order = list(catalog.epochs)
+    stands = read_stands(catalog)
+    polygons = _stand_polygons(catalog)
+    to_wgs84 = Transformer.from_crs(catalog.crs, "EPSG:4326", always_xy=True)
+    report = FvsExport(Path(out), species_default_used=False)
+    species_by_stand = dict(species_by_stand or {})
+    stand_rows: list[dict[str, Any]] = []
+    tree_frames: list[pd.DataFrame] = []
+    for epoch in wanted:
+        trees = read_trees(catalog, epoch)
+        position = order.index(epoch)
+        previous = order[position - 1] if increments and position > 0 else None
+        if previous is not None and not catalog.epochs[previous].get("enriched"):
+            previous = None
+        incr = _increments(catalog, epoch, previous)
+        years = _years_between(catalog, previous, epoch) if previous is not None else None
+        year = dt.date.fromisoformat(str(catalog.epochs[epoch]["date"])).year
+        level_rows = stands[(stands["epoch"] == epoch) & (stands["level"] == level)]
+        dtm = catalog.path(f"rasters/{epoch}/dtm.tif")
+        for _, row in level_rows.sort_values("cell_id").iterrows():
+            cell_id = str(row["cell_id"])
+            mine = trees[trees[key].astype(str) == cell_id]
+            area = stand_area(row)
+            with_dbh = mine[np.isfinite(mine["dbh_m"].to_numpy(float))]
+            if not len(mine) or not area.area_m2 > 0:
+                report.stands_skipped[cell_id + "_" + epoch] = "no trees detected"
+                continue
+            if not len(with_dbh):
+                report.stands_skipped[cell_id + "_" + epoch] = "no tree with a DBH"
+                report.trees_without_dbh += len(mine)
+                continue
+            report.trees_without_dbh += len(mine) - len(with_dbh)
+            stand_id = fvs_stand_id(cell_id, epoch)
+            poly = polygons[(polygons["cell_id"] == cell_id) & (polygons["epoch"] == epoch)]
+            geom = poly.geometry.iloc[0] if len(poly) else None
+            slope, aspect, elev = (
+                slope_aspect(dtm, geom) if geom is not None and dtm.is_file() else (math.nan,) * 3
+            )
+            cx, cy = (geom.centroid.x, geom.centroid.y) if geom is not None else (
+                float(mine["x"].mean()), float(mine["y"].mean()))  # fmt: skip
+            lon, lat = to_wgs84.transform(cx, cy)
+            acres = area.area_m2 / M2_PER_ACRE
+            code = species_by_stand.get(cell_id)
+            if code is None:
+                code = species or DEFAULT_SPECIES
+                report.species_default_used = report.species_default_used or species is None
+            stand_rows.append({
+                "Stand_ID": stand_id, "Variant": variant.upper(), "Inv_Year": year,
+                "Latitude": lat, "Longitude": lon, "Slope": _opt(slope), "Aspect": _opt(aspect),
+                "ElevFt": _opt(elev / M_PER_FT), "Basal_Area_Factor": -1.0 / acres,
+                "Inv_Plot_Size": 1.0 / acres, "Brk_DBH": ALL_TREES_BREAK_DBH, "Num_Plots": 1,
+                "DG_Trans": 1 if years else None, "DG_Measure": years,
+                "HTG_Trans": 0 if years else None, "HTG_Measure": years,
+                "SG_Cell_ID": cell_id, "SG_Epoch": epoch, "SG_Level": level,
+                "SG_Area_m2": area.area_m2, "SG_Area_Source": area.source,
+                "SG_Trees_Without_DBH": len(mine) - len(with_dbh),
+                "SG_Species_Source": "per-stand" if cell_id in species_by_stand
+                else ("user default" if species else "placeholder default"),
+            })  # fmt: skip
+            tree_frames.append(
+                _tree_rows(stand_id, with_dbh.sort_values("tree_id"), code, incr, years)
+            )
+    tree_table = (
+        pd.concat(tree_frames, ignore_index=True)
+        if tree_frames
+        else pd.DataFrame(columns=list(TREE_COLUMNS))
+    )
+    report.stands = len(stand_rows)
+    report.trees = len(tree_table)
+    report.trees_with_increments = int((tree_table["DG"].notna() | tree_table["HTG"].notna()).sum())
+    _write_database(Path(out), pd.DataFrame(stand_rows, columns=list(STAND_COLUMNS)), tree_table,
+                    overwrite)  # fmt: skip
+    return report
+
+
+def _opt(value: float) -> float | None:
+    return None if not math.isfinite(value) else float(value)
+
+
+def _tree_rows(
+    stand_id: str,
+    trees: pd.DataFrame,
+    species: str,
+    incr: pd.DataFrame | None,
+    years: float | None,
+) -> pd.DataFrame:
+    dbh_in = trees["dbh_m"].to_numpy(float) * 100.0 / CM_PER_IN
+    dg = pd.Series(np.nan, index=trees.index)
+    htg = pd.Series(np.nan, index=trees.index)
+    if incr is not None and years:
+        ids = trees["tree_id"].astype(np.int64)
+        found = ids.isin(incr.index) & (trees["dbh_source"] == "measured").fillna(False)
+        matched = incr.reindex(ids[found].to_numpy())
+        dg[found] = matched["past_dbh_m"].to_numpy() * 100.0 / CM_PER_IN
+        htg[found] = matched["htg_m"].to_numpy() / M_PER_FT
+    return pd.DataFrame(
+        {
+            "Stand_ID": stand_id,
+            "Plot_ID": 1,
+            "Tree_ID": np.arange(1, len(trees) + 1),
+            "Tree_Count": 1.0,
+            "History": 1,
+            "Species": species,
+            "DBH": dbh_in,
+            "DG": dg.to_numpy(),
+            "Ht": trees["height_m"].to_numpy(float) / M_PER_FT,
+            "HTG": htg.to_numpy(),
+            "CrRatio": _crown_ratio(trees).to_numpy(),
+            "SG_Tree_ID": trees["tree_id"].astype(np.int64).astype(str).to_numpy(),
+            "SG_DBH_Source": trees["dbh_source"].astype(object).to_numpy(),
+        }
+    )
+
+
+def _sql_value(value: Any) -> Any:
+    if value is None or value is pd.NA:
+        return None
+    if isinstance(value, float) and not math.isfinite(value):
+        return None
+    if isinstance(value, np.generic):
+        return _sql_value(value.item())
+    return value
+
+
+def _write_database(out: Path, stands: pd.DataFrame, trees: pd.DataFrame, overwrite: bool) -> None:
+    with atomic_output(out, overwrite=overwrite) as tmp:
+        conn = sqlite3.connect(tmp)
+        try:
+            for name, columns, frame in (
+                ("FVS_StandInit", STAND_COLUMNS, stands),
+                ("FVS_TreeInit", TREE_COLUMNS, trees),
+            ):
+                spec = ", ".join(f"{c} {t}" for c, t in columns.items())
+                conn.execute(f"CREATE TABLE {name} ({spec})")
+                marks = ", ".join("?" for _ in columns)
+                rows = (
+                    tuple(_sql_value(v) for v in rec)
+                    for rec in frame[list(columns)].itertuples(index=False, name=None)
+                )
+                conn.executemany(f"INSERT INTO {name} VALUES ({marks})", rows)
+            conn.commit()
+        finally:
+            conn.close()
+
+
+def keyword_file(
+    database: str | Path,
+    stand_ids: Sequence[str],
+    *,
+    cycles: int = 1,
+    cycle_years: int = 10,
+    output_database: str | Path | None = None,
+) -> str:
+    """An FVS keyword file running each stand of ``database`` for ``cycles`` cycles.
+
+    With ``output_database``, FVS also writes its summary table (``FVS_Summary``) there.
+    """
+    blocks = []
+    for stand_id in stand_ids:
+        out_db = f"DSNOUT\n{output_database}\nSUMMARY\n" if output_database is not None else ""
+        blocks.append(
+            f"STDIDENT\n{stand_id}\n"
+            f"DATABASE\nDSNIN\n{database}\n{out_db}"
+            "STANDSQL\nSELECT * FROM FVS_StandInit WHERE Stand_ID = '%StandID%'\nENDSQL\n"
+            "TREESQL\nSELECT * FROM FVS_TreeInit WHERE Stand_ID = '%StandID%'\nENDSQL\nEND\n"
+            f"{'TIMEINT':<10}{0.0:>10.1f}{float(cycle_years):>10.1f}\n"
+            f"{'NUMCYCLE':<10}{float(cycles):>10.1f}\n"
+            "PROCESS\n"
+        )
+    return "".join(blocks) + "STOP\n"

@@ -1,0 +1,187 @@
+"""FVS export: stands run through the real FVS (pyfvs) and its year-0 summary matches
+standgrid's stand table in FVS units; DG/HTG from the second campaign reach FVS."""
+
+from __future__ import annotations
+
+import math
+import os
+import sqlite3
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pandas as pd
+import pytest
+
+from standgrid.enrich.metrics import tree_metrics
+from standgrid.growth.fvs import (
+    BA_M2HA_TO_FT2AC,
+    CM_PER_IN,
+    M2_PER_ACRE,
+    M_PER_FT,
+    export_fvs,
+    keyword_file,
+)
+from tests.pipeline_fixtures import copy_catalog, enriched_pair
+
+
+@pytest.fixture(scope="module")
+def pyfvs_fvs(tmp_path_factory: pytest.TempPathFactory) -> Any:
+    """pyfvs, imported from a scratch folder: on import it opens ./pyfvs.log for logging."""
+    here = os.getcwd()
+    os.chdir(tmp_path_factory.mktemp("pyfvs"))
+    try:
+        return pytest.importorskip("pyfvs.fvs")
+    finally:
+        os.chdir(here)
+
+
+@pytest.fixture(scope="module")
+def catalog(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    return enriched_pair(tmp_path_factory).path
+
+
+@pytest.fixture(scope="module")
+def exported(catalog: Path, tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, dict]:
+    out = tmp_path_factory.mktemp("fvs") / "stands.db"
+    report = export_fvs(catalog, out, species="DF")
+    return out, report.to_dict()
+
+
+def _tables(db: Path) -> tuple[pd.DataFrame, pd.DataFrame]:
+    with sqlite3.connect(db) as conn:
+        stands = pd.read_sql("SELECT * FROM FVS_StandInit", conn)
+        trees = pd.read_sql("SELECT * FROM FVS_TreeInit", conn)
+    conn.close()
+    return stands, trees
+
+
+def _run_fvs(pyfvs_fvs: Any, db: Path, stand_id: str, workdir: Path) -> tuple[pd.DataFrame, str]:
+    """Run one stand for two 10-year cycles; FVS's own summary table and main output."""
+    out_db = workdir / f"{stand_id}_out.db"
+    key = workdir / f"{stand_id}.key"
+    key.write_text(keyword_file(db, [stand_id], cycles=2, output_database=out_db))
+    fvs = pyfvs_fvs.FVS("PN", workspace=str(workdir), cleanup=False)
+    fvs.init_projection(str(key))
+    fvs.grow(0)
+    fvs.end_projection()
+    with sqlite3.connect(out_db) as conn:
+        summary = pd.read_sql("SELECT * FROM FVS_Summary ORDER BY Year", conn)
+    conn.close()
+    return summary, key.with_suffix(".out").read_text(errors="replace")
+
+
+def test_year0_summary_matches_stand_table(
+    pyfvs_fvs: Any,
+    catalog: Path,
+    exported: tuple[Path, dict],
+    tmp_path: Path,
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    monkeypatch.chdir(tmp_path)  # pyfvs logs to ./pyfvs.log
+    db, report = exported
+    stands, trees = _tables(db)
+    assert report["stands"] == len(stands) >= 2 and report["trees"] == len(trees)
+    metrics = pd.read_parquet(catalog / "tables" / "stand_metrics.parquet")
+    metrics["epoch"] = metrics["epoch"].astype(str)
+    for stand in stands.itertuples():
+        row = metrics[
+            (metrics["cell_id"] == stand.SG_Cell_ID)
+            & (metrics["epoch"] == stand.SG_Epoch)
+            & (metrics["level"] == 1)
+        ].iloc[0]
+        area_m2 = float(row.get("observed_m2", row["area_m2"]) or row["area_m2"])
+        acres = area_m2 / M2_PER_ACRE
+        assert stand.Inv_Plot_Size == pytest.approx(1.0 / acres, rel=1e-12)
+        if row["n_dbh"] == row["n_trees"]:
+            expected = row  # every tree has a DBH: the catalog's own stand row
+        else:  # FVS gets only trees with a DBH: standgrid's metrics of those same trees
+            tl = pd.read_parquet(catalog / "tables" / f"tree_list_{stand.SG_Epoch}.parquet")
+            tl = tl[(tl["stand_id"] == stand.SG_Cell_ID) & np.isfinite(tl["dbh_m"])]
+            expected = tree_metrics(
+                np.zeros(len(tl), np.int64), tl["height_m"], tl["dbh_m"], cell_area_m2=area_m2
+            ).iloc[0]
+            assert stand.SG_Trees_Without_DBH == row["n_trees"] - row["n_dbh"]
+        summary, _ = _run_fvs(pyfvs_fvs, db, stand.Stand_ID, tmp_path)
+        year0 = summary.iloc[0]
+        assert int(year0["Year"]) == stand.Inv_Year
+        tpa = expected["stems_ha"] * M2_PER_ACRE / 10_000.0
+        ba = expected["basal_area_m2_ha"] * BA_M2HA_TO_FT2AC
+        qmd = expected["qmd_cm"] / CM_PER_IN
+        top = expected["dominant_height_m"] / M_PER_FT
+        print(
+            f"{stand.Stand_ID}: TPA {year0['Tpa']} vs {tpa:.2f}, BA {year0['BA']} vs "
+            f"{ba:.2f} ft2/ac, QMD {year0['QMD']:.3f} vs {qmd:.3f} in, "
+            f"TopHt {year0['TopHt']} vs {top:.2f} ft"
+        )
+        # FVS prints TPA, BA and top height as whole numbers: equal within rounding.
+        assert abs(year0["Tpa"] - tpa) <= 0.5 + 1e-6
+        assert abs(year0["BA"] - ba) <= 0.5 + 1e-6
+        assert year0["QMD"] == pytest.approx(qmd, abs=0.005)  # FVS keeps DBH in float32
+        # FVS: the 40 largest trees per acre; standgrid: the 100 largest per ha (40.5/acre),
+        # each tree here standing for 1/acres TPA: the same trees but for the last one.
+        assert abs(year0["TopHt"] - top) <= 1.0
+        # The projection ran: two more cycles, trees still there, basal area grew.
+        assert list(summary["Year"]) == [stand.Inv_Year, stand.Inv_Year + 10, stand.Inv_Year + 20]
+        assert (summary["Tpa"] > 0).all() and summary["BA"].iloc[1] > summary["BA"].iloc[0]
+
+
+def test_second_campaign_increments_calibrate_fvs(
+    pyfvs_fvs: Any,
+    catalog: Path,
+    exported: tuple[Path, dict],
+    tmp_path: Path,
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    monkeypatch.chdir(tmp_path)
+    db, _ = exported
+    stands, trees = _tables(db)
+    later = stands[stands["DG_Trans"].notna()]
+    assert len(later) >= 1 and (stands["SG_Epoch"] == "2024").any()
+    assert stands.loc[stands["SG_Epoch"] == "2024", "DG_Measure"].isna().all()
+    stand = later.iloc[0]
+    assert stand["DG_Measure"] == pytest.approx(
+        (pd.Timestamp("2028-05-20") - pd.Timestamp("2024-05-14")).days / 365.25
+    )
+    mine = trees[(trees["Stand_ID"] == stand["Stand_ID"]) & trees["DG"].notna()]
+    # DG is the past (2024) DBH in inches: the compare table's matched trees.
+    changes = pd.read_parquet(catalog / "compare" / "2024__2028" / "tree_changes.parquet")
+    by_id = changes.set_index(changes["tree_id_to"].astype(str))
+    past = by_id.loc[mine["SG_Tree_ID"], "dbh_m_from"].to_numpy() * 100 / CM_PER_IN
+    np.testing.assert_allclose(mine["DG"], past, rtol=1e-12)
+    htg = by_id.loc[mine["SG_Tree_ID"], "height_m_delta"].to_numpy() / M_PER_FT
+    np.testing.assert_allclose(mine["HTG"], htg, rtol=1e-12)
+    _, main_output = _run_fvs(pyfvs_fvs, db, str(stand["Stand_ID"]), tmp_path)
+    used = int(main_output.split("THE DIAMETER INCREMENT MODEL")[1].split()[0])
+    assert used == len(mine) > 0  # FVS read every DG record for calibration
+
+
+def test_observed_area_and_dbh_source_are_used(catalog: Path, tmp_path: Path) -> None:
+    """With the enrich columns of a newer catalog (observed_m2, dbh_source), the plot size
+    comes from the observed area and imputed DBHs are exported but never calibrate growth."""
+    copy = copy_catalog(catalog, tmp_path / "catalog")
+    metrics_path = copy / "tables" / "stand_metrics.parquet"
+    metrics = pd.read_parquet(metrics_path)
+    metrics["observed_m2"] = metrics["area_m2"] * 0.75
+    metrics.to_parquet(metrics_path, index=False)
+    for epoch in ("2024", "2028"):
+        path = copy / "tables" / f"tree_list_{epoch}.parquet"
+        tl = pd.read_parquet(path)
+        has = np.isfinite(tl["dbh_m"])
+        tl["dbh_source"] = np.where(has, "measured", "imputed")
+        tl["dbh_m"] = tl["dbh_m"].where(has, 0.25)
+        tl.to_parquet(path, index=False)
+    report = export_fvs(copy, tmp_path / "s.db", species="WH")
+    stands, trees = _tables(tmp_path / "s.db")
+    assert report.trees_without_dbh == 0 and (stands["SG_Area_Source"] == "observed_m2").all()
+    for stand in stands.itertuples():
+        row = metrics[
+            (metrics["cell_id"] == stand.SG_Cell_ID)
+            & (metrics["epoch"].astype(str) == stand.SG_Epoch)
+            & (metrics["level"] == 1)
+        ].iloc[0]
+        assert stand.Inv_Plot_Size == pytest.approx(M2_PER_ACRE / row["observed_m2"])
+        assert (trees["Stand_ID"] == stand.Stand_ID).sum() == row["n_trees"]
+    imputed = trees[trees["SG_DBH_Source"] == "imputed"]
+    assert len(imputed) and imputed["DG"].isna().all() and (trees["Species"] == "WH").all()
+    assert math.isclose(imputed["DBH"].iloc[0], 25.0 / CM_PER_IN)

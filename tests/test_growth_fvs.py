@@ -3,7 +3,6 @@ standgrid's stand table in FVS units; DG/HTG from the second campaign reach FVS.
 
 from __future__ import annotations
 
-import math
 import os
 import sqlite3
 from pathlib import Path
@@ -13,7 +12,6 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from standgrid.enrich.metrics import tree_metrics
 from standgrid.growth.fvs import (
     BA_M2HA_TO_FT2AC,
     CM_PER_IN,
@@ -22,7 +20,7 @@ from standgrid.growth.fvs import (
     export_fvs,
     keyword_file,
 )
-from tests.pipeline_fixtures import copy_catalog, enriched_pair
+from tests.pipeline_fixtures import enriched_pair
 
 
 @pytest.fixture(scope="module")
@@ -90,18 +88,10 @@ def test_year0_summary_matches_stand_table(
             & (metrics["epoch"] == stand.SG_Epoch)
             & (metrics["level"] == 1)
         ].iloc[0]
-        area_m2 = float(row.get("observed_m2", row["area_m2"]) or row["area_m2"])
-        acres = area_m2 / M2_PER_ACRE
+        acres = row["observed_m2"] / M2_PER_ACRE
         assert stand.Inv_Plot_Size == pytest.approx(1.0 / acres, rel=1e-12)
-        if row["n_dbh"] == row["n_trees"]:
-            expected = row  # every tree has a DBH: the catalog's own stand row
-        else:  # FVS gets only trees with a DBH: standgrid's metrics of those same trees
-            tl = pd.read_parquet(catalog / "tables" / f"tree_list_{stand.SG_Epoch}.parquet")
-            tl = tl[(tl["stand_id"] == stand.SG_Cell_ID) & np.isfinite(tl["dbh_m"])]
-            expected = tree_metrics(
-                np.zeros(len(tl), np.int64), tl["height_m"], tl["dbh_m"], cell_area_m2=area_m2
-            ).iloc[0]
-            assert stand.SG_Trees_Without_DBH == row["n_trees"] - row["n_dbh"]
+        expected = row  # every counted tree has a DBH: the catalog's own stand row
+        assert stand.SG_Trees_Without_DBH == 0
         summary, _ = _run_fvs(pyfvs_fvs, db, stand.Stand_ID, tmp_path)
         year0 = summary.iloc[0]
         assert int(year0["Year"]) == stand.Inv_Year
@@ -156,32 +146,25 @@ def test_second_campaign_increments_calibrate_fvs(
     assert used == len(mine) > 0  # FVS read every DG record for calibration
 
 
-def test_observed_area_and_dbh_source_are_used(catalog: Path, tmp_path: Path) -> None:
-    """With the enrich columns of a newer catalog (observed_m2, dbh_source), the plot size
-    comes from the observed area and imputed DBHs are exported but never calibrate growth."""
-    copy = copy_catalog(catalog, tmp_path / "catalog")
-    metrics_path = copy / "tables" / "stand_metrics.parquet"
-    metrics = pd.read_parquet(metrics_path)
-    metrics["observed_m2"] = metrics["area_m2"] * 0.75
-    metrics.to_parquet(metrics_path, index=False)
-    for epoch in ("2024", "2028"):
-        path = copy / "tables" / f"tree_list_{epoch}.parquet"
-        tl = pd.read_parquet(path)
-        has = np.isfinite(tl["dbh_m"])
-        tl["dbh_source"] = np.where(has, "measured", "imputed")
-        tl["dbh_m"] = tl["dbh_m"].where(has, 0.25)
-        tl.to_parquet(path, index=False)
-    report = export_fvs(copy, tmp_path / "s.db", species="WH")
-    stands, trees = _tables(tmp_path / "s.db")
-    assert report.trees_without_dbh == 0 and (stands["SG_Area_Source"] == "observed_m2").all()
+def test_only_measured_stands_and_measured_growth_reach_fvs(
+    catalog: Path, exported: tuple[Path, dict]
+) -> None:
+    """Stands short of coverage are not exported (the report says why); imputed DBHs are
+    exported as such and never calibrate growth (DG only where both epochs measured it)."""
+    db, report = exported
+    stands, trees = _tables(db)
+    metrics = pd.read_parquet(catalog / "tables" / "stand_metrics.parquet")
+    short = metrics[(metrics["level"] == 1) & metrics["stems_ha"].isna()]
+    assert len(short) >= 1
+    for row in short.itertuples():
+        assert report["stands_skipped"][f"{row.cell_id}_{row.epoch}"] == row.null_reason
+    assert (stands["SG_Area_Source"] == "observed_m2").all()
+    imputed = trees[trees["SG_DBH_Source"] == "imputed"]
+    assert len(imputed) > 20 and imputed["DG"].isna().all()
     for stand in stands.itertuples():
         row = metrics[
             (metrics["cell_id"] == stand.SG_Cell_ID)
             & (metrics["epoch"].astype(str) == stand.SG_Epoch)
             & (metrics["level"] == 1)
         ].iloc[0]
-        assert stand.Inv_Plot_Size == pytest.approx(M2_PER_ACRE / row["observed_m2"])
         assert (trees["Stand_ID"] == stand.Stand_ID).sum() == row["n_trees"]
-    imputed = trees[trees["SG_DBH_Source"] == "imputed"]
-    assert len(imputed) and imputed["DG"].isna().all() and (trees["Species"] == "WH").all()
-    assert math.isclose(imputed["DBH"].iloc[0], 25.0 / CM_PER_IN)

@@ -38,14 +38,27 @@ def test_columns_match_the_catalog(catalog: Path) -> None:
     assert list(table.columns) == TREE_COLUMNS and len(table) == len(source)
     assert (table["tree_id"].to_numpy() == source["tree_id"].to_numpy()).all()
     np.testing.assert_array_equal(table["dbh_cm"], source["dbh_m"] * 100.0)
-    assert (table["dbh_source"].eq("measured") == np.isfinite(source["dbh_m"])).all()
+    assert (table["dbh_source"].to_numpy() == source["dbh_source"].to_numpy()).all()
     stands = pd.read_parquet(catalog / "tables" / "stand_metrics.parquet")
-    area = dict(
-        zip(stands["cell_id"] + "/" + stands["epoch"].astype(str), stands["area_m2"], strict=True)
+    stands = stands[stands["level"] == 1].assign(epoch=stands["epoch"].astype(str))
+    # summing the expansion factors of the counted trees gives the stand table's values
+    counted = table[table["counted"]]
+    assert len(counted) > 0
+    assert table.loc[~table["counted"], "trees_per_ha"].isna().all()
+    sums = (
+        counted.assign(ba=counted["basal_area_m2"] * counted["trees_per_ha"])
+        .groupby(["epoch", "stand_id"])[["trees_per_ha", "ba"]]
+        .sum()
     )
-    expect = (table["stand_id"] + "/" + table["epoch"]).map(area)
-    np.testing.assert_allclose(table["stand_area_m2"], expect)
-    np.testing.assert_allclose(table["trees_per_ha"] * table["stand_area_m2"], 10_000.0)
+    rows = stands.set_index(["epoch", "cell_id"]).loc[sums.index]
+    np.testing.assert_allclose(sums["trees_per_ha"], rows["stems_ha"], rtol=1e-9)
+    np.testing.assert_allclose(sums["ba"], rows["basal_area_m2_ha"], rtol=1e-9)
+    np.testing.assert_allclose(
+        counted["stand_area_m2"],
+        rows["observed_m2"]
+        .reindex(pd.MultiIndex.from_frame(counted[["epoch", "stand_id"]]))
+        .to_numpy(),
+    )
     back = Transformer.from_crs("EPSG:4326", cat.crs, always_xy=True)
     x, y = back.transform(table["lon"].to_numpy(), table["lat"].to_numpy())
     px = table["stem_x"].fillna(table["x"]).to_numpy()

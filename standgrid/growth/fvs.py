@@ -213,9 +213,16 @@ def export_fvs(
         year = dt.date.fromisoformat(str(catalog.epochs[epoch]["date"])).year
         level_rows = stands[(stands["epoch"] == epoch) & (stands["level"] == level)]
         dtm = catalog.path(f"rasters/{epoch}/dtm.tif")
+        # the trees a stand row counts: stems on observed ground, in the cells it measured
+        measured = stands[(stands["epoch"] == epoch) & (stands["level"] == 0)]
+        measured_cells = set(measured.loc[measured["stems_ha"].notna(), "cell_id"])
+        counted = trees[trees["observed"] & trees["cell_id"].isin(measured_cells)]
         for _, row in level_rows.sort_values("cell_id").iterrows():
             cell_id = str(row["cell_id"])
-            mine = trees[trees[key].astype(str) == cell_id]
+            if pd.isna(row["stems_ha"]):  # not measured: nothing to grow, said why
+                report.stands_skipped[cell_id + "_" + epoch] = str(row["null_reason"])
+                continue
+            mine = counted[counted[key].astype(str) == cell_id]
             area = stand_area(row)
             with_dbh = mine[np.isfinite(mine["dbh_m"].to_numpy(float))]
             if not len(mine) or not area.area_m2 > 0:

@@ -10,7 +10,6 @@ Columns the enrich stage may or may not write (``dbh_source``, a DBH uncertainty
 
 from __future__ import annotations
 
-import re
 import warnings
 from collections.abc import Sequence
 from dataclasses import dataclass
@@ -33,13 +32,12 @@ FORMATS = {
     ".db": "sqlite",
 }
 #: Column names the enrich stage may give a DBH uncertainty (metres), first match wins.
-_DBH_SD = re.compile(r"^dbh_(sd|std|se|uncertainty|sigma)(_m)?$")
 
 #: The generic tree list, in order (docs/TREES.md describes each column).
 TREE_COLUMNS = [
     "epoch", "date", "stand_id", "cell_id", "tree_id", "x", "y", "stem_x", "stem_y",
-    "lon", "lat", "z_ground", "height_m", "dbh_cm", "dbh_source", "dbh_sd_cm", "dbh_reason",
-    "basal_area_m2", "crown_area_m2", "crown_diameter_m", "n_points", "stand_area_m2",
+    "lon", "lat", "z_ground", "height_m", "dbh_cm", "dbh_source", "dbh_se_cm", "dbh_reason",
+    "basal_area_m2", "crown_area_m2", "crown_diameter_m", "n_points", "counted", "stand_area_m2",
     "trees_per_ha", "crs",
 ]  # fmt: skip
 
@@ -67,11 +65,8 @@ def catalog_epochs(catalog: Catalog, epochs: Sequence[str] | None) -> list[str]:
 
 
 def read_trees(catalog: Catalog, epoch: str) -> pd.DataFrame:
-    """The epoch's tree list, with ``dbh_source`` and ``dbh_sd_m`` always present.
-
-    Without a ``dbh_source`` column (older catalogs), a tree with a DBH is ``measured`` and
-    one without has NA. A DBH uncertainty column is renamed ``dbh_sd_m`` (NaN when absent).
-    """
+    """The epoch's tree list as ``standgrid enrich`` writes it (``dbh_source``,
+    ``dbh_se_m``, ``observed``: docs/METRICS.md)."""
     path = catalog.path(f"tables/tree_list_{epoch}.parquet")
     if not path.is_file():
         raise NotEnrichedError(
@@ -81,13 +76,13 @@ def read_trees(catalog: Catalog, epoch: str) -> pd.DataFrame:
     for column in ("tree_id", "x", "y", "height_m", "dbh_m"):
         if column not in trees.columns:
             raise FormatError(f"tree list has no column {column!r}", path=path)
-    if "dbh_source" not in trees.columns:
-        measured = np.isfinite(trees["dbh_m"].to_numpy(float))
-        trees["dbh_source"] = pd.Series(
-            ["measured" if m else None for m in measured], index=trees.index, dtype="string"
+    missing = [c for c in ("dbh_source", "dbh_se_m", "observed") if c not in trees.columns]
+    if missing:
+        raise NotEnrichedError(
+            f"tree list lacks {missing} (written by an older standgrid): run "
+            f"`standgrid enrich {catalog.root}` again",
+            path=path,
         )
-    sd = next((c for c in trees.columns if _DBH_SD.match(c)), None)
-    trees["dbh_sd_m"] = trees[sd].astype(float) if sd is not None else np.nan
     trees["epoch"] = str(epoch)
     return trees
 
@@ -103,11 +98,8 @@ def read_stands(catalog: Catalog) -> pd.DataFrame:
 
 
 def stand_area(row: pd.Series) -> StandArea:
-    """The stand's observed area when the table has one, else its measured ``area_m2``."""
-    observed = row.get("observed_m2")
-    if observed is not None and pd.notna(observed) and float(observed) > 0:
-        return StandArea(float(observed), "observed_m2")
-    return StandArea(float(row["area_m2"]), "area_m2")
+    """The ground a stand row was measured over: its observed area."""
+    return StandArea(float(row["observed_m2"]), "observed_m2")
 
 
 def stand_key(level: int) -> str:
@@ -123,7 +115,10 @@ def generic_tree_list(
     """Every tree of the epochs, one row each, in the columns of :data:`TREE_COLUMNS`.
 
     ``stand_area_m2`` and ``trees_per_ha`` refer to the stand at ``level`` (0: the 20 m cell,
-    1: the 1 ha stand): each tree stands for ``10000 / stand_area_m2`` trees per hectare.
+    1: the 1 ha stand): each tree the stand table counts (``counted``: its stem on observed
+    ground, in a measured cell of a measured stand) stands for ``10000 / stand_area_m2``
+    trees per hectare, where ``stand_area_m2`` is the stand's observed area; the others are
+    listed with null expansion (not counted, not dropped).
     """
     from pyproj import Transformer
 
@@ -135,8 +130,15 @@ def generic_tree_list(
         if key not in trees.columns:
             raise FormatError(f"tree list has no column {key!r}", path=catalog.root)
         rows = stands[(stands["epoch"] == epoch) & (stands["level"] == level)]
-        areas = {str(r["cell_id"]): stand_area(r).area_m2 for _, r in rows.iterrows()}
-        area = trees[key].astype(str).map(areas).astype(float)
+        areas = {
+            str(r["cell_id"]): stand_area(r).area_m2
+            for _, r in rows.iterrows()
+            if pd.notna(r["stems_ha"])
+        }
+        cells = stands[(stands["epoch"] == epoch) & (stands["level"] == 0)]
+        measured = set(cells.loc[cells["stems_ha"].notna(), "cell_id"])
+        counted = trees["observed"].astype(bool) & trees["cell_id"].isin(measured)
+        area = trees[key].astype(str).map(areas).astype(float).where(counted)
         dbh = trees["dbh_m"].astype(float)
         crown = trees["crown_area_m2"].astype(float) if "crown_area_m2" in trees else np.nan
         out = pd.DataFrame(
@@ -154,12 +156,13 @@ def generic_tree_list(
                 "height_m": trees["height_m"].astype(float),
                 "dbh_cm": dbh * 100.0,
                 "dbh_source": trees["dbh_source"].astype("string"),
-                "dbh_sd_cm": trees["dbh_sd_m"] * 100.0,
+                "dbh_se_cm": trees["dbh_se_m"] * 100.0,
                 "dbh_reason": trees.get("dbh_reason", pd.Series(pd.NA, index=trees.index)),
                 "basal_area_m2": np.pi * (dbh / 2.0) ** 2,
                 "crown_area_m2": crown,
                 "crown_diameter_m": 2.0 * np.sqrt(crown / np.pi),
                 "n_points": trees.get("n_points", pd.Series(pd.NA, index=trees.index)),
+                "counted": counted & area.notna(),
                 "stand_area_m2": area,
                 "trees_per_ha": 10_000.0 / area,
             }

@@ -7,7 +7,7 @@ from typing import Any
 
 import click
 
-from standgrid.cli.options import emit, json_option, quiet_option, status
+from standgrid.cli.options import emit, json_option, lock_timeout_option, quiet_option, status
 
 
 def _human(r: dict[str, Any]) -> str:
@@ -46,6 +46,7 @@ def _human(r: dict[str, Any]) -> str:
     "--max-distance", type=float, default=2.0, show_default=True,
     help="Farthest a tree may be from its position in the earlier epoch to match (m).",
 )  # fmt: skip
+@lock_timeout_option
 @json_option
 @quiet_option
 def compare(
@@ -54,6 +55,7 @@ def compare(
     epoch_to: str | None,
     other: Path | None,
     max_distance: float,
+    lock_timeout: float,
     as_json: bool,
     quiet: bool,
 ) -> None:
@@ -72,6 +74,11 @@ def compare(
 
     status(f"comparing epochs of {catalog}", quiet)
     report = compare_epochs(
-        catalog, epoch_from, epoch_to, other_catalog=other, max_distance=max_distance
+        catalog,
+        epoch_from,
+        epoch_to,
+        other_catalog=other,
+        max_distance=max_distance,
+        lock_timeout=lock_timeout,
     )
     emit(report.to_dict(), as_json, _human)

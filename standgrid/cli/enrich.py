@@ -8,7 +8,14 @@ from typing import Any
 
 import click
 
-from standgrid.cli.options import emit, json_option, progress, quiet_option, status
+from standgrid.cli.options import (
+    emit,
+    json_option,
+    lock_timeout_option,
+    progress,
+    quiet_option,
+    status,
+)
 
 
 def _human(r: dict[str, Any]) -> str:
@@ -44,6 +51,7 @@ def _human(r: dict[str, Any]) -> str:
     "--rigidness", type=click.IntRange(1, 3), default=1, show_default=True,
     help="CSF cloth rigidness: 1 steep terrain, 2 relief, 3 flat.",
 )  # fmt: skip
+@lock_timeout_option
 @json_option
 @quiet_option
 def enrich(
@@ -53,6 +61,7 @@ def enrich(
     halo: float,
     height_break: float,
     rigidness: int,
+    lock_timeout: float,
     as_json: bool,
     quiet: bool,
 ) -> None:
@@ -81,5 +90,7 @@ def enrich(
     def wrap(items: Iterable[Any], total: int, desc: str) -> Iterable[Any]:
         return progress(items, total=total or None, desc=desc, quiet=quiet)
 
-    report = enrich_catalog(catalog, options, wrap=wrap, status=lambda m: status(m, quiet))
+    report = enrich_catalog(
+        catalog, options, wrap=wrap, status=lambda m: status(m, quiet), lock_timeout=lock_timeout
+    )
     emit(report.to_dict(), as_json, _human)

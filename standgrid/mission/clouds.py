@@ -78,8 +78,15 @@ def _suffix(path: Path) -> str:
 
 
 def _check_exists(path: Path) -> None:
+    if path.is_dir():
+        raise PointCloudFormatError("is a folder, not a point-cloud file", path=path)
     if not path.is_file():
         raise MissionNotFoundError("point cloud not found", path=path)
+
+
+#: No coordinate of a real cloud (base frame, map or projected CRS) is this far from 0 (m);
+#: garbled binary data is.
+MAX_COORDINATE_M = 1e9
 
 
 def _check_coordinates(xyz: NDArray[np.float64], path: Path) -> None:
@@ -89,6 +96,15 @@ def _check_coordinates(xyz: NDArray[np.float64], path: Path) -> None:
         raise PointCloudFormatError(
             f"{int(bad.sum())} of {len(xyz)} points have NaN or infinite coordinates "
             f"(first at index {first})",
+            path=path,
+        )
+    huge = (np.abs(xyz) > MAX_COORDINATE_M).any(axis=1)
+    if huge.any():
+        first = int(np.argmax(huge))
+        raise PointCloudFormatError(
+            f"{int(huge.sum())} of {len(xyz)} points have coordinates beyond "
+            f"{MAX_COORDINATE_M:g} m (first at index {first}: {xyz[first].tolist()}); the "
+            "point data is garbled or not in metres",
             path=path,
         )
 
@@ -470,8 +486,9 @@ def _structured_to_cloud(data: NDArray[Any], md: Any, header: _PcdHeader) -> Poi
                 line=header.line_of.get("FIELDS"),
             )
     xyz = np.empty((len(data), 3), dtype=np.float64)
-    for k, axis in enumerate(_XYZ):
-        xyz[:, k] = data[axis]
+    with np.errstate(invalid="ignore", over="ignore"):  # garbage is caught by the checks
+        for k, axis in enumerate(_XYZ):
+            xyz[:, k] = data[axis]
     fields: dict[str, NDArray[Any]] = {}
     for name, count in zip(md.fields, md.count, strict=True):
         if name in _XYZ or name.startswith(_PCD_PAD_PREFIX):

@@ -335,9 +335,13 @@ def test_readers_never_see_a_half_applied_commit(tmp_path: Path) -> None:
     """A reader inside Catalog.reading() sees one generation's files while commits run."""
     catalog = make(tmp_path)
     writer = """
-import sys
+import sys, time
+from pathlib import Path
 from standgrid.export.catalog import Catalog
+while not Path(sys.argv[1], "..", "ready").exists():
+    time.sleep(0.01)
 for k in range(1, 16):
+    time.sleep(0.05)  # readers get in between commits too
     with Catalog.writing(sys.argv[1]) as catalog, catalog.transaction() as txn:
         for i in range(8):
             txn.stage(f"tiles/e1/t{i}.laz").write_bytes(str(k).encode())
@@ -347,6 +351,7 @@ for k in range(1, 16):
     env = {**os.environ, "PYTHONPATH": str(REPO)}
     proc = subprocess.Popen([sys.executable, "-c", writer, str(catalog.root)], env=env, cwd=REPO)
     seen = set()
+    (tmp_path / "ready").touch()
     try:
         while proc.poll() is None:
             with Catalog.reading(catalog.root) as snapshot:

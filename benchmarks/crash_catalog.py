@@ -202,6 +202,7 @@ def main() -> None:
     parser.add_argument("--concurrent", type=int, default=10, help="concurrent-writer trials")
     parser.add_argument("--points", default=",".join(TXN_POINTS), help="commit points to kill at")
     parser.add_argument("--seed", type=int, default=8)
+    parser.add_argument("--only", default="", help="comma-separated scenario name parts")
     parser.add_argument("--keep", action="store_true", help="keep the work folder")
     opts = parser.parse_args()
     rng = random.Random(opts.seed)
@@ -267,7 +268,10 @@ def main() -> None:
             tally[outcome] += 1
             print(f"  {outcome:7s} {label}", flush=True)
 
+        wanted = [w for w in opts.only.split(",") if w]
         for scenario in scenarios:
+            if wanted and not any(w in scenario.name for w in wanted):
+                continue
             print(f"{scenario.name}:", flush=True)
             extra = (
                 PUBLISH_POINTS if scenario.base is None or "--overwrite" in scenario.args else []

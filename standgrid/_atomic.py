@@ -1,27 +1,106 @@
-"""Write-then-rename helpers: no reader ever sees a half-written output."""
+"""Write-then-rename helpers: no reader ever sees a half-written output.
+
+Durability follows SQLite's rules: a file's data is ``fsync``-ed before it is renamed into
+place, and the folder holding the new name is ``fsync``-ed after the rename, so a power
+loss leaves the old or the new file, never a torn one.
+"""
 
 from __future__ import annotations
 
 import contextlib
+import ctypes
+import errno
 import os
 import shutil
 import uuid
 from collections.abc import Iterator
 from pathlib import Path
 
-from standgrid.errors import OutputExistsError, OutputNotWritableError
+from standgrid.errors import (
+    OutputExistsError,
+    OutputNotWritableError,
+    StandgridError,
+    out_of_space_error,
+)
 
 
-def temporary_sibling(final: Path) -> Path:
-    """A unique hidden name in the same folder as ``final`` (so the rename is atomic)."""
-    return final.with_name(f".{final.name}.{os.getpid()}-{uuid.uuid4().hex[:8]}.tmp")
+def temporary_sibling(final: Path, kind: str = "") -> Path:
+    """A unique hidden name in the same folder as ``final`` (so the rename is atomic).
+
+    ``.<name>.<kind->pid-id.tmp``: the pid tells a live builder from a dead one.
+    """
+    tag = f"{kind}-" if kind else ""
+    return final.with_name(f".{final.name}.{tag}{os.getpid()}-{uuid.uuid4().hex[:8]}.tmp")
+
+
+def fsync_path(path: str | os.PathLike[str]) -> None:
+    """``fsync`` a file or a folder (its data, or its entries) by path."""
+    fd = os.open(path, os.O_RDONLY | (os.O_DIRECTORY if Path(path).is_dir() else 0))
+    try:
+        os.fsync(fd)
+    finally:
+        os.close(fd)
+
+
+def fsync_tree(root: Path) -> None:
+    """``fsync`` every file and folder under ``root`` (a freshly written output)."""
+    if root.is_dir() and not root.is_symlink():
+        for folder, _dirs, files in os.walk(root):
+            for name in files:
+                full = Path(folder) / name
+                if not full.is_symlink():
+                    fsync_path(full)
+            fsync_path(folder)
+    elif root.exists():
+        fsync_path(root)
+
+
+_RENAME_EXCHANGE = 2
+_AT_FDCWD = -100
+
+
+def exchange(a: Path, b: Path) -> bool:
+    """Swap two paths atomically (Linux ``renameat2(RENAME_EXCHANGE)``).
+
+    Returns False where the system cannot (then nothing was changed).
+    """
+    try:
+        libc = ctypes.CDLL(None, use_errno=True)
+        renameat2 = libc.renameat2
+    except (OSError, AttributeError):
+        return False
+    renameat2.argtypes = [
+        ctypes.c_int,
+        ctypes.c_char_p,
+        ctypes.c_int,
+        ctypes.c_char_p,
+        ctypes.c_uint,
+    ]
+    result = renameat2(_AT_FDCWD, os.fsencode(a), _AT_FDCWD, os.fsencode(b), _RENAME_EXCHANGE)
+    if result == 0:
+        return True
+    code = ctypes.get_errno()
+    if code in (errno.EINVAL, errno.ENOSYS, errno.ENOTSUP, errno.EOPNOTSUPP):
+        return False
+    raise OSError(code, os.strerror(code), os.fspath(a), None, os.fspath(b))
 
 
 def _swap_folder(new: Path, final: Path) -> None:
-    """Replace the folder ``final`` by ``new``: move the old one aside, move the new one in,
-    then delete the old one. If the new one cannot be moved in, the old one is put back and
-    :class:`OutputNotWritableError` is raised (``final`` is left as it was)."""
-    old = temporary_sibling(final)
+    """Replace the folder ``final`` by ``new``, so that ``final`` always exists.
+
+    An atomic exchange where the system has one; otherwise the old folder is moved aside
+    (``.<name>.old-<pid>-<id>.tmp``, put back if the new one cannot be moved in). The old
+    folder is deleted last. Raises :class:`OutputNotWritableError` (``final`` left as it was).
+    """
+    try:
+        if exchange(new, final):
+            shutil.rmtree(new, ignore_errors=True)
+            return
+    except OSError as exc:
+        raise OutputNotWritableError(
+            f"cannot move the new output into place: {exc.strerror}", path=final
+        ) from exc
+    old = temporary_sibling(final, "old")
     try:
         os.replace(final, old)
     except OSError as exc:
@@ -42,8 +121,9 @@ def _swap_folder(new: Path, final: Path) -> None:
 def atomic_output(final: str | os.PathLike[str], *, overwrite: bool = True) -> Iterator[Path]:
     """Yield a temporary path beside ``final``; on success rename it onto ``final``.
 
-    Works for a file or a folder written at the temporary path. On error the temporary is
-    removed and ``final`` is left as it was.
+    Works for a file or a folder written at the temporary path; the data is fsynced before
+    the rename and the folder after it. On error the temporary is removed and ``final`` is
+    left as it was; running out of space raises :class:`~standgrid.errors.OutOfSpaceError`.
     """
     final_path = Path(final)
     if final_path.exists() and not overwrite:
@@ -59,19 +139,24 @@ def atomic_output(final: str | os.PathLike[str], *, overwrite: bool = True) -> I
     tmp = temporary_sibling(final_path)
     try:
         yield tmp
+        fsync_tree(tmp)
         if tmp.is_dir() and final_path.is_dir():
             _swap_folder(tmp, final_path)
         else:
             os.replace(tmp, final_path)
-    except BaseException:
+        fsync_path(final_path.parent)
+    except BaseException as exc:
         if tmp.is_dir():
             shutil.rmtree(tmp, ignore_errors=True)
         else:
             tmp.unlink(missing_ok=True)
+        full = None if isinstance(exc, StandgridError) else out_of_space_error(exc, final_path)
+        if full is not None:
+            raise full from exc
         raise
 
 
 def write_text_atomic(path: str | os.PathLike[str], text: str) -> None:
-    """Write a text file atomically (UTF-8, ``\\n`` line ends)."""
+    """Write a text file atomically and durably (UTF-8, ``\\n`` line ends)."""
     with atomic_output(path) as tmp:
         tmp.write_text(text, encoding="utf-8", newline="\n")

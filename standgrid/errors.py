@@ -164,6 +164,60 @@ class OutputNotWritableError(StandgridError, PermissionError):
     """An output location cannot be written."""
 
 
+class OutputOverlapsInputError(StandgridError, ValueError):
+    """An output folder is, holds, or lies inside an input (writing it would destroy data)."""
+
+
+class OutOfSpaceError(StandgridError, OSError):
+    """The disk (or a quota, or the file-size limit) is full; the previous state is kept."""
+
+
+class CatalogBusyError(CatalogError, TimeoutError):
+    """Another process holds the catalog's writer lock (and did not finish within the wait)."""
+
+
+class CatalogConflictError(CatalogError):
+    """The catalog changed after it was opened; a transaction on the stale view is refused."""
+
+
+class PoorGeoreferenceError(GeoreferenceError):
+    """A georeference fit whose residuals are far beyond the fixes' stated accuracy."""
+
+
+#: errno values that mean "no room left to write".
+_FULL_ERRNOS = {28, 27, 122}  # ENOSPC, EFBIG, EDQUOT
+_FULL_TEXTS = ("no space left on device", "file too large", "disk quota exceeded")
+
+
+def out_of_space_error(exc: BaseException, path: str | PathLike[str]) -> OutOfSpaceError | None:
+    """An :class:`OutOfSpaceError` naming ``path`` when ``exc`` (or its cause) means the disk
+    is full (ENOSPC/EFBIG/EDQUOT, also as the text of lazrs/GDAL errors), else None."""
+    seen: set[int] = set()
+    current: BaseException | None = exc
+    while current is not None and id(current) not in seen:
+        seen.add(id(current))
+        if isinstance(current, OutOfSpaceError):
+            return current
+        code = getattr(current, "errno", None)
+        text = str(current).lower()
+        if (isinstance(current, OSError) and code in _FULL_ERRNOS) or any(
+            t in text for t in _FULL_TEXTS
+        ):
+            where = getattr(current, "filename", None) or path
+            reason = (
+                "file-size limit reached"
+                if code == 27 or "too large" in text
+                else ("out of disk space")
+            )
+            return OutOfSpaceError(
+                f"{reason} while writing ({type(current).__name__}: {current}); "
+                "the previous state is kept",
+                path=where,
+            )
+        current = current.__cause__ or current.__context__
+    return None
+
+
 # --- enrichment --------------------------------------------------------------------------
 
 

@@ -2,13 +2,21 @@
 
 from __future__ import annotations
 
+import hashlib
 import json
 import os
+import shutil
+import signal
+import subprocess
+import sys
+import time
 from pathlib import Path
 
 import pytest
 
 from standgrid.errors import (
+    CatalogBusyError,
+    CatalogConflictError,
     CatalogError,
     CatalogNotFoundError,
     EpochNotFoundError,
@@ -116,48 +124,246 @@ def test_exception_inside_transaction_changes_nothing(tmp_path: Path) -> None:
     assert "m-b" not in Catalog.open(catalog.root).missions
 
 
-def test_crash_before_journal_is_discarded_on_open(tmp_path: Path) -> None:
-    catalog = make(tmp_path)
-    ingest(catalog, "m-a", "e1", {"tiles/e1/x.laz": b"old"})
-    txn = catalog.transaction().__enter__()
-    txn.stage("tiles/e1/x.laz").write_bytes(b"half")
-    # crash: the process stops here, no journal (its death releases the writer lock)
-    txn._lock.__exit__(None, None, None)
-    reopened = Catalog.open(catalog.root)
-    assert reopened.path("tiles/e1/x.laz").read_bytes() == b"old"
-    assert not (catalog.root / ".staging").exists()
-    # a re-run completes
-    ingest(reopened, "m-a", "e1", {"tiles/e1/x.laz": b"new"})
-    assert Catalog.open(catalog.root).path("tiles/e1/x.laz").read_bytes() == b"new"
-
-
-@pytest.mark.parametrize("renames_done", [0, 1, 2])
-def test_crash_after_journal_rolls_forward_on_open(tmp_path: Path, renames_done: int) -> None:
-    catalog = make(tmp_path)
-    ingest(catalog, "m-a", "e1", {"tiles/e1/x.laz": b"old", "tiles/e1/gone.laz": b"G"})
-    txn = catalog.transaction().__enter__()
+REPO = Path(__file__).resolve().parents[1]
+#: A second transaction, run in a child process that kills itself at a commit point.
+CHILD = """
+import sys
+from standgrid.export.catalog import Catalog
+with Catalog.writing(sys.argv[1]) as catalog, catalog.transaction() as txn:
     txn.stage("tiles/e1/x.laz").write_bytes(b"new-x")
     txn.stage("tiles/e2/y.laz").write_bytes(b"new-y")
     txn.delete("tiles/e1/gone.laz")
     txn.record_mission("m-b", epoch="e2", date="2025-01-01", tiles=["tiles/e2/y.laz"])
-    journal_path = txn.prepare()
-    journal = json.loads(journal_path.read_text())
-    assert [r[1] for r in journal["renames"]] == ["tiles/e1/x.laz", "tiles/e2/y.laz"]
-    # crash part-way through apply: some renames done, catalog.json not yet rewritten
-    for source, target in journal["renames"][:renames_done]:
-        (catalog.root / target).parent.mkdir(parents=True, exist_ok=True)
-        os.replace(catalog.root / source, catalog.root / target)
-    assert "m-b" not in json.loads((catalog.root / "catalog.json").read_text())["missions"]
-    txn._lock.__exit__(None, None, None)  # the dead process's lock is gone
+"""
 
-    reopened = Catalog.open(catalog.root)
-    assert reopened.path("tiles/e1/x.laz").read_bytes() == b"new-x"
-    assert reopened.path("tiles/e2/y.laz").read_bytes() == b"new-y"
-    assert not (catalog.root / "tiles/e1/gone.laz").exists()
-    assert reopened.missions["m-b"]["number"] == 2
-    assert reopened.epochs["e2"]["missions"] == ["m-b"]
+
+def run_child(root: Path, crash_at: str | None, code: str = CHILD) -> int:
+    env = {**os.environ, "PYTHONPATH": str(REPO)}
+    env.pop("STANDGRID_CRASH_AT", None)
+    if crash_at is not None:
+        env["STANDGRID_CRASH_AT"] = crash_at
+    done = subprocess.run([sys.executable, "-c", code, str(root)], env=env, cwd=REPO, timeout=60)
+    return done.returncode
+
+
+def two_states(tmp_path: Path) -> Catalog:
+    catalog = make(tmp_path)
+    ingest(catalog, "m-a", "e1", {"tiles/e1/x.laz": b"old", "tiles/e1/gone.laz": b"G"})
+    return catalog
+
+
+def assert_old(root: Path) -> None:
+    reader = Catalog.open(root)
+    assert sorted(reader.missions) == ["m-a"]
+    assert reader.path("tiles/e1/x.laz").read_bytes() == b"old"
+    assert reader.path("tiles/e1/gone.laz").read_bytes() == b"G"
+    assert not (root / "tiles/e2/y.laz").exists()
+
+
+def assert_new(root: Path) -> None:
+    reader = Catalog.open(root)
+    assert sorted(reader.missions) == ["m-a", "m-b"]
+    assert reader.missions["m-b"]["number"] == 2
+    assert reader.path("tiles/e1/x.laz").read_bytes() == b"new-x"
+    assert reader.path("tiles/e2/y.laz").read_bytes() == b"new-y"
+    assert not (root / "tiles/e1/gone.laz").exists()
+
+
+def test_a_kill_before_the_journal_leaves_the_old_state(tmp_path: Path) -> None:
+    catalog = two_states(tmp_path)
+    assert run_child(catalog.root, "staged") == -signal.SIGKILL
+    assert (catalog.root / ".staging").is_dir()  # the dead writer's staging
+    assert_old(catalog.root)
+    with Catalog.writing(catalog.root):  # the next writer discards it
+        assert not (catalog.root / ".staging").exists()
+    assert run_child(catalog.root, None) == 0  # and a re-run completes
+    assert_new(catalog.root)
+
+
+@pytest.mark.parametrize(
+    "point", ["journal", "rename-0", "rename-1", "before-catalog-json", "rename-2", "applied"]
+)
+def test_a_kill_after_the_journal_rolls_forward_for_readers(tmp_path: Path, point: str) -> None:
+    catalog = two_states(tmp_path)
+    assert run_child(catalog.root, point) == -signal.SIGKILL
+    assert (catalog.root / ".staging").is_dir()
+    assert_new(catalog.root)  # a reader completes the dead commit first
     assert not (catalog.root / ".staging").exists()
     assert recover(catalog.root) == []  # nothing left to do
+    assert Catalog.open(catalog.root).generation == 2
+
+
+@pytest.mark.parametrize("torn", [b"", b'{"journal": {"renames": ["tiles/e1/x.laz"'])
+def test_a_torn_or_empty_journal_is_discarded(tmp_path: Path, torn: bytes) -> None:
+    """A power loss can leave a journal torn; it is detected and the old state kept."""
+    catalog = two_states(tmp_path)
+    assert run_child(catalog.root, "journal") == -signal.SIGKILL
+    (journal,) = (catalog.root / ".staging").glob("*/journal.json")
+    journal.write_bytes(torn)
+    assert_old(catalog.root)
+    assert not (catalog.root / ".staging").exists()
+    assert run_child(catalog.root, None) == 0
+    assert_new(catalog.root)
+
+
+def test_a_planted_journal_cannot_reach_outside_the_catalog(tmp_path: Path) -> None:
+    catalog = two_states(tmp_path)
+    victim = tmp_path / "victim.txt"
+    victim.write_text("precious")
+    for target in ("../../../victim.txt", str(victim), "tiles/../../victim.txt"):
+        folder = catalog.root / ".staging" / "X"
+        (folder / "files").mkdir(parents=True, exist_ok=True)
+        body = {"renames": [target], "deletes": [], "txn": "X"}
+        digest = hashlib.sha256(json.dumps(body, sort_keys=True).encode()).hexdigest()
+        (folder / "journal.json").write_text(json.dumps({"journal": body, "sha256": digest}))
+        with pytest.raises(CatalogError, match="escapes the catalog"):
+            Catalog.open(catalog.root)
+        with pytest.raises(CatalogError, match="escapes the catalog"):
+            Catalog.writing(catalog.root).__enter__()
+        assert victim.read_text() == "precious"
+        shutil.rmtree(folder)
+    # an old-style journal naming its own sources is torn for this format: discarded
+    folder = catalog.root / ".staging" / "Y"
+    folder.mkdir(parents=True)
+    (folder / "journal.json").write_text(
+        json.dumps({"renames": [["../../victim.txt", "tiles/e1/v.txt"]], "deletes": []})
+    )
+    assert_old(catalog.root)
+    assert victim.read_text() == "precious" and not (catalog.root / "tiles/e1/v.txt").exists()
+
+
+def test_a_symlinked_folder_inside_the_catalog_is_not_written_through(tmp_path: Path) -> None:
+    catalog = two_states(tmp_path)
+    outside = tmp_path / "outside"
+    outside.mkdir()
+    (catalog.root / "tiles" / "e2").symlink_to(outside, target_is_directory=True)
+    with pytest.raises(CatalogError, match="symlink"), catalog.transaction() as txn:
+        txn.stage("tiles/e2/y.laz").write_bytes(b"new-y")
+    assert list(outside.iterdir()) == []
+    assert_old(catalog.root)
+
+
+def test_hand_edited_or_incomplete_catalog_json_is_refused(tmp_path: Path) -> None:
+    catalog = two_states(tmp_path)
+    path = catalog.root / "catalog.json"
+    state = json.loads(path.read_text())
+    path.write_text(json.dumps({**state, "fingerprint": "0" * 64}))
+    with pytest.raises(CatalogError, match="edited by hand"):
+        Catalog.open(catalog.root)
+    del state["missions"]
+    path.write_text(json.dumps(state))
+    with pytest.raises(CatalogError, match="lacks missions"):
+        Catalog.open(catalog.root)
+
+
+def test_a_leftover_temporary_catalog_json_is_removed(tmp_path: Path) -> None:
+    catalog = two_states(tmp_path)
+    leftover = catalog.root / ".catalog.json.999999-deadbeef.tmp"  # no process 999999
+    leftover.write_text("{half")
+    ingest(Catalog.open(catalog.root), "m-c", "e1", {})
+    assert not leftover.exists()
+
+
+WRITER = """
+import sys, time
+from standgrid.export.catalog import Catalog
+root, name, go = sys.argv[1], sys.argv[2], float(sys.argv[3])
+while time.time() < go:
+    time.sleep(0.001)
+catalog = Catalog.open_or_create(root, {"cell_size": 20.0}, "EPSG:32632")
+with Catalog.writing(root, lock_timeout=30) as catalog, catalog.transaction() as txn:
+    time.sleep(0.3)  # a slow writer: the other arrives meanwhile
+    txn.stage(f"tiles/e1/{name}.laz").write_bytes(name.encode())
+    txn.record_mission(name, epoch="e1", date="e1", tiles=[f"tiles/e1/{name}.laz"])
+"""
+
+
+def test_concurrent_writers_creating_one_catalog_both_land(tmp_path: Path) -> None:
+    """Two processes create and write the same new catalog at once: both missions stay."""
+    root = tmp_path / "new"
+    env = {**os.environ, "PYTHONPATH": str(REPO)}
+    go = f"{time.time() + 1.5:.3f}"
+    procs = [
+        subprocess.Popen([sys.executable, "-c", WRITER, str(root), name, go], env=env, cwd=REPO)
+        for name in ("m1", "m2", "m3")
+    ]
+    assert [p.wait(timeout=60) for p in procs] == [0, 0, 0]
+    reader = Catalog.open(root)
+    assert sorted(reader.missions) == ["m1", "m2", "m3"]
+    assert sorted(n["number"] for n in reader.missions.values()) == [1, 2, 3]
+    assert reader.generation == 3
+
+
+def test_a_second_writer_times_out_with_a_typed_error(tmp_path: Path) -> None:
+    catalog = two_states(tmp_path)
+    hold = (
+        "import sys, time\nfrom standgrid.export.catalog import Catalog\n"
+        "with Catalog.writing(sys.argv[1]):\n    print('held', flush=True); time.sleep(5)\n"
+    )
+    env = {**os.environ, "PYTHONPATH": str(REPO)}
+    holder = subprocess.Popen(
+        [sys.executable, "-c", hold, str(catalog.root)], env=env, cwd=REPO,
+        stdout=subprocess.PIPE, text=True,
+    )  # fmt: skip
+    try:
+        assert holder.stdout is not None and holder.stdout.readline().strip() == "held"
+        started = time.monotonic()
+        with pytest.raises(CatalogBusyError, match="another process is writing"):
+            Catalog.writing(catalog.root, lock_timeout=0.5).__enter__()
+        assert 0.4 < time.monotonic() - started < 4
+        stale = Catalog.open(catalog.root)
+        stale.lock_timeout = 0
+        with pytest.raises(TimeoutError):  # the builtin it also is
+            stale.transaction().__enter__()
+    finally:
+        holder.kill()
+        holder.wait()
+    ingest(Catalog.open(catalog.root), "m-c", "e1", {})  # the lock died with its holder
+
+
+def test_a_transaction_on_a_stale_view_is_refused(tmp_path: Path) -> None:
+    """State read before another writer's commit is not committed over it."""
+    catalog = two_states(tmp_path)
+    stale = Catalog.open(catalog.root)
+    assert run_child(catalog.root, None) == 0
+    with pytest.raises(CatalogConflictError, match="changed since it was opened"):
+        ingest(stale, "m-c", "e1", {})
+    assert_new(catalog.root)
+
+
+def test_readers_never_see_a_half_applied_commit(tmp_path: Path) -> None:
+    """A reader inside Catalog.reading() sees one generation's files while commits run."""
+    catalog = make(tmp_path)
+    writer = """
+import sys, time
+from pathlib import Path
+from standgrid.export.catalog import Catalog
+while not Path(sys.argv[1], "..", "ready").exists():
+    time.sleep(0.01)
+for k in range(1, 16):
+    time.sleep(0.05)  # readers get in between commits too
+    with Catalog.writing(sys.argv[1]) as catalog, catalog.transaction() as txn:
+        for i in range(8):
+            txn.stage(f"tiles/e1/t{i}.laz").write_bytes(str(k).encode())
+        txn.record_mission("m", epoch="e1", date="e1", round=k,
+                           tiles=[f"tiles/e1/t{i}.laz" for i in range(8)])
+"""
+    env = {**os.environ, "PYTHONPATH": str(REPO)}
+    proc = subprocess.Popen([sys.executable, "-c", writer, str(catalog.root)], env=env, cwd=REPO)
+    seen = set()
+    (tmp_path / "ready").touch()
+    try:
+        while proc.poll() is None:
+            with Catalog.reading(catalog.root) as snapshot:
+                record = snapshot.missions.get("m")
+                if record is None:
+                    continue
+                contents = {snapshot.path(t).read_bytes() for t in record["tiles"]}
+                assert contents == {str(record["round"]).encode()}
+                seen.add(record["round"])
+    finally:
+        proc.wait(timeout=60)
+    assert proc.returncode == 0 and len(seen) >= 2
 
 
 def test_transaction_current_and_bad_paths(tmp_path: Path) -> None:
@@ -294,6 +500,7 @@ def test_a_live_transaction_is_not_discarded_by_another_open(tmp_path: Path) -> 
         Catalog.open(catalog.root)  # e.g. `standgrid compare` reading meanwhile
         assert txn.stage("tiles/e1/x.laz").read_bytes() == b"staged"
         txn.record_mission("m-a", epoch="e1", date="2025-01-01", tiles=["tiles/e1/x.laz"])
-        with pytest.raises(CatalogError, match="another process is writing"):
+        catalog.lock_timeout = 0  # a second transaction of this process waits for the first
+        with pytest.raises(CatalogBusyError, match="another process is writing"):
             catalog.transaction().__enter__()
     assert Catalog.open(catalog.root).path("tiles/e1/x.laz").read_bytes() == b"staged"

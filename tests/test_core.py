@@ -7,7 +7,7 @@ from datetime import UTC
 import numpy as np
 import pytest
 
-from standgrid import errors
+from standgrid import _atomic, errors
 from standgrid._atomic import atomic_output
 from standgrid.geometry import (
     invert_pose,
@@ -128,6 +128,8 @@ def test_atomic_folder_replace_rolls_back_when_the_new_folder_cannot_move_in(
         real_replace(src, dst)
 
     monkeypatch.setattr(os, "replace", fail_second)
+    # the two-rename path of file systems without an atomic exchange (renameat2)
+    monkeypatch.setattr(_atomic, "exchange", lambda a, b: False)
     with (
         pytest.raises(errors.OutputNotWritableError, match="into place") as info,
         atomic_output(target) as tmp,

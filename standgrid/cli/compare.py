@@ -7,7 +7,7 @@ from typing import Any
 
 import click
 
-from standgrid.cli.options import emit, json_option, quiet_option, status
+from standgrid.cli.options import emit, json_option, lock_timeout_option, quiet_option, status
 
 
 def _human(r: dict[str, Any]) -> str:
@@ -53,6 +53,7 @@ def _human(r: dict[str, Any]) -> str:
     show_default=True,
     help="Least share of a stand observed in both epochs for its change to be reported.",
 )  # fmt: skip
+@lock_timeout_option
 @json_option
 @quiet_option
 def compare(
@@ -62,6 +63,7 @@ def compare(
     other: Path | None,
     max_distance: float,
     min_observed_fraction: float,
+    lock_timeout: float,
     as_json: bool,
     quiet: bool,
 ) -> None:
@@ -88,5 +90,6 @@ def compare(
         other_catalog=other,
         max_distance=max_distance,
         min_observed_fraction=min_observed_fraction,
+        lock_timeout=lock_timeout,
     )
     emit(report.to_dict(), as_json, _human)

@@ -8,7 +8,14 @@ from typing import Any
 
 import click
 
-from standgrid.cli.options import emit, json_option, progress, quiet_option, status
+from standgrid.cli.options import (
+    emit,
+    json_option,
+    lock_timeout_option,
+    progress,
+    quiet_option,
+    status,
+)
 
 
 def _human(r: dict[str, Any]) -> str:
@@ -56,6 +63,7 @@ def _human(r: dict[str, Any]) -> str:
     "--min-density", "min_density", type=click.FloatRange(0.0), default=2.0, show_default=True,
     help="Least points per m2 of observed ground for a stand's metrics to be reported.",
 )  # fmt: skip
+@lock_timeout_option
 @json_option
 @quiet_option
 def enrich(
@@ -67,6 +75,7 @@ def enrich(
     rigidness: int,
     min_observed_fraction: float,
     min_density: float,
+    lock_timeout: float,
     as_json: bool,
     quiet: bool,
 ) -> None:
@@ -99,5 +108,7 @@ def enrich(
     def wrap(items: Iterable[Any], total: int, desc: str) -> Iterable[Any]:
         return progress(items, total=total or None, desc=desc, quiet=quiet)
 
-    report = enrich_catalog(catalog, options, wrap=wrap, status=lambda m: status(m, quiet))
+    report = enrich_catalog(
+        catalog, options, wrap=wrap, status=lambda m: status(m, quiet), lock_timeout=lock_timeout
+    )
     emit(report.to_dict(), as_json, _human)

@@ -19,6 +19,13 @@ json_option = click.option(
 overwrite_option = click.option(
     "--overwrite", is_flag=True, help="Replace outputs that already exist."
 )
+lock_timeout_option = click.option(
+    "--lock-timeout",
+    type=click.FloatRange(min=0),
+    default=30.0,
+    show_default=True,
+    help="Seconds to wait while another process writes the catalog (then fail cleanly).",
+)
 quiet_option = click.option("-q", "--quiet", is_flag=True, help="No progress output on stderr.")
 
 

@@ -11,6 +11,7 @@ import click
 from standgrid.cli.options import (
     emit,
     json_option,
+    lock_timeout_option,
     output_option,
     overwrite_option,
     progress,
@@ -61,7 +62,12 @@ def _human(r: dict[str, Any]) -> str:
 @click.option("--grid", "cell_size", type=float, default=None, help="Cell size (default 20 m).")
 @click.option("--crs", "crs_spec", default="auto", show_default=True, help="Output CRS.")
 @click.option("--buffer", type=float, default=None, help="Tile buffer in metres (default 0).")
+@click.option(
+    "--accept-poor-georeference", is_flag=True,
+    help="Tile even when a GNSS fit's RMSE is far beyond the fixes' stated accuracy.",
+)  # fmt: skip
 @overwrite_option
+@lock_timeout_option
 @json_option
 @quiet_option
 def run(
@@ -70,7 +76,9 @@ def run(
     cell_size: float | None,
     crs_spec: str,
     buffer: float | None,
+    accept_poor_georeference: bool,
     overwrite: bool,
+    lock_timeout: float,
     as_json: bool,
     quiet: bool,
 ) -> None:
@@ -91,7 +99,14 @@ def run(
     report = run_pipeline(
         list(paths),
         output,
-        TileOptions(cell_size=cell_size, crs=crs_spec, buffer=buffer, overwrite=overwrite),
+        TileOptions(
+            cell_size=cell_size,
+            crs=crs_spec,
+            buffer=buffer,
+            overwrite=overwrite,
+            lock_timeout=lock_timeout,
+            accept_poor_georeference=accept_poor_georeference,
+        ),
         wrap=wrap,
         status=lambda m: status(m, quiet),
     )

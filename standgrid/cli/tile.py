@@ -11,6 +11,7 @@ import click
 from standgrid.cli.options import (
     emit,
     json_option,
+    lock_timeout_option,
     mission_argument,
     output_option,
     overwrite_option,
@@ -109,7 +110,12 @@ def _human(report: dict[str, Any]) -> str:
     "--memory", "memory_mb", type=click.IntRange(16), default=2048, show_default=True,
     help="Memory budget of the partition engine in MB (spills to disk beyond it).",
 )  # fmt: skip
+@click.option(
+    "--accept-poor-georeference", is_flag=True,
+    help="Tile even when a GNSS fit's RMSE is far beyond the fixes' stated accuracy.",
+)  # fmt: skip
 @overwrite_option
+@lock_timeout_option
 @json_option
 @quiet_option
 def tile(
@@ -125,7 +131,9 @@ def tile(
     anchor: tuple[float, float, float, float] | None,
     epoch: str | None,
     memory_mb: int,
+    accept_poor_georeference: bool,
     overwrite: bool,
+    lock_timeout: float,
     as_json: bool,
     quiet: bool,
 ) -> None:
@@ -162,6 +170,8 @@ def tile(
         epoch=epoch,
         memory_budget=memory_mb << 20,
         overwrite=overwrite,
+        lock_timeout=lock_timeout,
+        accept_poor_georeference=accept_poor_georeference,
     )
 
     def wrap(items: Iterable[Any], total: int, desc: str) -> Iterable[Any]:

@@ -75,6 +75,27 @@ def _parse_crs(crs: str) -> Any:
         raise CRSError(f"unusable CRS {crs!r}: {exc}") from exc
 
 
+def index_layer_names(path: str | os.PathLike[str]) -> set[str]:
+    """The layer names of a GeoPackage; a garbage file raises :class:`CatalogError` naming it."""
+    import pyogrio
+
+    try:
+        return {str(name) for name, _ in pyogrio.list_layers(path)}
+    except Exception as exc:  # pyogrio/GDAL raise their own error classes
+        raise CatalogError(f"unreadable GeoPackage index ({exc})", path=path) from exc
+
+
+def read_index_layer(path: str | os.PathLike[str], layer: str) -> Any:
+    """One layer of a GeoPackage as a GeoDataFrame (:class:`CatalogError` naming the file)."""
+    import pyogrio
+
+    try:
+        return pyogrio.read_dataframe(path, layer=layer)
+    except Exception as exc:
+        raise CatalogError(f"unreadable layer {layer!r} of the GeoPackage index ({exc})",
+                           path=path) from exc  # fmt: skip
+
+
 def cell_row(
     cell_id: str,
     info: TileInfo,

@@ -412,10 +412,14 @@ def read_tile(path: str | os.PathLike[str], *, include_withheld: bool = False) -
     """
     import laspy
 
+    from standgrid.mission.clouds import check_las_size
+
     src = Path(path)
+    check_las_size(src)
     try:
         las = laspy.read(src)
-    except (laspy.errors.LaspyException, OSError, ValueError) as exc:
+    except (laspy.errors.LaspyException, OSError, ValueError, RuntimeError) as exc:
+        # lazrs.LazrsError is a RuntimeError
         raise PointCloudFormatError(f"cannot read LAS/LAZ: {exc}", path=src) from exc
     withheld = np.asarray(las.withheld, dtype=bool)
     keep = slice(None) if include_withheld else ~withheld

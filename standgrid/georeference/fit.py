@@ -36,7 +36,7 @@ from typing import Any, Literal
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from standgrid.errors import GeoreferenceError, InsufficientGnssError
+from standgrid.errors import GeoreferenceError, InsufficientGnssError, PoorGeoreferenceError
 from standgrid.geometry import Matrix4, invert_pose, transform_points, yaw_of
 from standgrid.mission.posegraph import PoseGraph
 from standgrid.mission.sensors import FixQuality
@@ -694,3 +694,33 @@ def _with_uncertainty(
 
 def _uncertainty_from_dict(data: Mapping[str, Any] | None) -> GeoreferenceUncertainty | None:
     return None if data is None else GeoreferenceUncertainty.from_dict(data)
+
+
+#: A fit is refused when its horizontal RMSE exceeds this many times the RMSE its fixes'
+#: stated accuracy predicts (sqrt(2) x their RMS horizontal sigma, model sigma included).
+MAX_RMSE_RATIO = 10.0
+
+
+def check_fit_quality(
+    fit: GeoreferenceFit, *, max_ratio: float = MAX_RMSE_RATIO, source: Path | None = None
+) -> None:
+    """Refuse a fit whose residuals are far beyond the fixes' stated accuracy.
+
+    The expected horizontal RMSE of fixes with 1-sigma ``s_i`` (2-D Gaussian) is
+    ``sqrt(2) * rms(s_i)``; a fit whose RMSE exceeds ``max_ratio`` times that raises
+    :class:`PoorGeoreferenceError` saying both figures. Fits without fixes pass.
+    """
+    used = fit.inliers & (fit.weights > 0)
+    if not used.any() or not math.isfinite(fit.rmse_m):
+        return
+    sigma = 1.0 / np.sqrt(fit.weights[used])
+    expected = math.sqrt(2.0) * float(np.sqrt(np.mean(sigma**2)))
+    if fit.rmse_m > max_ratio * expected:
+        raise PoorGeoreferenceError(
+            f"georeference ({fit.method}) has a horizontal RMSE of {fit.rmse_m:.3f} m over "
+            f"{int(used.sum())} fixes, {fit.rmse_m / expected:.0f}x the {expected:.3f} m their "
+            f"stated accuracy allows (limit {max_ratio:g}x): the GNSS fixes do not fit the "
+            "trajectory (wrong or displaced fixes, or another mission's log); fix the log, or "
+            "accept it explicitly (--accept-poor-georeference)",
+            path=source,
+        )

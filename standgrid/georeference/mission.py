@@ -78,8 +78,11 @@ def georeference_mission(
             "GNSS_LLA_REF/GNSS_LLA_TO_MAP anchor",
             path=path,
         )
+    gnss_log = getattr(getattr(mission, "layout", None), "gnss_log", None)
     if not has_fixes:
-        raise InsufficientGnssError("the mission's GNSS log has no fixes", path=path)
+        raise InsufficientGnssError(
+            "the mission's GNSS log has no fixes", path=gnss_log if gnss_log else path
+        )
     return fit_georeference(
         gnss.stamps_ns,
         gnss.lat,
@@ -93,5 +96,5 @@ def georeference_mission(
         method=method,
         min_fixes=min_fixes,
         max_time_gap_s=max_time_gap_s,
-        source=path,
+        source=Path(gnss_log) if gnss_log is not None else path,
     )

@@ -97,8 +97,15 @@ def _suffix(path: Path) -> str:
 
 
 def _check_exists(path: Path) -> None:
+    if path.is_dir():
+        raise PointCloudFormatError("is a folder, not a point-cloud file", path=path)
     if not path.is_file():
         raise MissionNotFoundError("point cloud not found", path=path)
+
+
+#: No coordinate of a real cloud (base frame, map or projected CRS) is this far from 0 (m);
+#: garbled binary data is.
+MAX_COORDINATE_M = 1e9
 
 
 def _check_coordinates(xyz: NDArray[np.float64], path: Path) -> None:
@@ -108,6 +115,15 @@ def _check_coordinates(xyz: NDArray[np.float64], path: Path) -> None:
         raise PointCloudFormatError(
             f"{int(bad.sum())} of {len(xyz)} points have NaN or infinite coordinates "
             f"(first at index {first})",
+            path=path,
+        )
+    huge = (np.abs(xyz) > MAX_COORDINATE_M).any(axis=1)
+    if huge.any():
+        first = int(np.argmax(huge))
+        raise PointCloudFormatError(
+            f"{int(huge.sum())} of {len(xyz)} points have coordinates beyond "
+            f"{MAX_COORDINATE_M:g} m (first at index {first}: {xyz[first].tolist()}); the "
+            "point data is garbled or not in metres",
             path=path,
         )
 
@@ -214,6 +230,7 @@ def iter_cloud_chunks(path: str | Path, chunk_points: int) -> Iterator[PointClou
     if _suffix(src) in LAS_EXTENSIONS:
         import laspy
 
+        check_las_size(src)
         try:
             with laspy.open(src) as reader:
                 done = 0
@@ -227,7 +244,7 @@ def iter_cloud_chunks(path: str | Path, chunk_points: int) -> Iterator[PointClou
                         ) from None
                     done += len(cloud)
                     yield cloud
-        except (laspy.errors.LaspyException, ValueError, OSError, EOFError) as exc:
+        except (laspy.errors.LaspyException, ValueError, OSError, EOFError, RuntimeError) as exc:
             if isinstance(exc, PointCloudFormatError):
                 raise
             raise PointCloudFormatError(f"unreadable LAS/LAZ ({exc})", path=src) from exc
@@ -508,8 +525,9 @@ def _structured_to_cloud(data: NDArray[Any], md: Any, header: _PcdHeader) -> Poi
                 line=header.line_of.get("FIELDS"),
             )
     xyz = np.empty((len(data), 3), dtype=np.float64)
-    for k, axis in enumerate(_XYZ):
-        xyz[:, k] = data[axis]
+    with np.errstate(invalid="ignore", over="ignore"):  # garbage is caught by the checks
+        for k, axis in enumerate(_XYZ):
+            xyz[:, k] = data[axis]
     fields: dict[str, NDArray[Any]] = {}
     for name, count in zip(md.fields, md.count, strict=True):
         if name in _XYZ or name.startswith(_PCD_PAD_PREFIX):
@@ -647,9 +665,42 @@ def _ply_header(path: Path) -> CloudHeader:
     )
 
 
+def _check_ply_size(path: Path) -> None:
+    """Element counts of a PLY header checked against the file size before reading: every
+    row needs at least its fixed-size values (binary) or two bytes per value (ascii)."""
+    from plyfile import PlyData, PlyListProperty, PlyParseError
+
+    try:
+        with path.open("rb") as fp:
+            ply = PlyData._parse_header(fp)
+            start = fp.tell()
+    except (PlyParseError, ValueError, UnicodeDecodeError, EOFError) as exc:
+        raise _ply_error(path, exc) from exc
+    available = path.stat().st_size - start
+    need = 0
+    for element in ply.elements:
+        row = 0
+        for prop in element.properties:
+            if ply.text:
+                row += 2  # a digit and a separator at least (a list: its count)
+            elif isinstance(prop, PlyListProperty):
+                row += np.dtype(prop.len_dtype).itemsize
+            else:
+                row += np.dtype(prop.val_dtype).itemsize
+        need += int(element.count) * row
+        if need > available:
+            raise PointCloudFormatError(
+                f"header says {element.count} {element.name} rows, which need at least "
+                f"{need} bytes; the file holds {available} after its header: truncated or a "
+                "wrong header",
+                path=path,
+            )
+
+
 def _read_ply(path: Path) -> PointCloud:
     from plyfile import PlyData, PlyListProperty, PlyParseError
 
+    _check_ply_size(path)
     try:
         ply = PlyData.read(str(path), mmap=False)
     except (PlyParseError, ValueError, EOFError, UnicodeDecodeError) as exc:
@@ -713,12 +764,74 @@ def _las_points_to_cloud(points: Any) -> PointCloud:
     return PointCloud(xyz, fields)
 
 
+#: Most points one compressed LAZ byte can hold (all-zero points reach ~100; real data < 1).
+LAZ_MAX_POINTS_PER_BYTE = 1000
+
+
+def check_las_size(path: Path) -> int:
+    """The header point count of a LAS/LAZ file, checked against the file's size before
+    anything is allocated: an uncompressed file must hold ``count x record length`` bytes of
+    points; a LAZ file's chunk table must cover the count within the file, and the count may
+    not exceed :data:`LAZ_MAX_POINTS_PER_BYTE` per compressed byte."""
+    import laspy
+    import lazrs
+
+    try:
+        with laspy.open(path) as reader:
+            header = reader.header
+    except Exception as exc:  # laspy, lazrs and OS errors alike
+        raise PointCloudFormatError(f"unreadable LAS/LAZ header ({exc})", path=path) from exc
+    count = int(header.point_count)
+    size = path.stat().st_size
+    offset = int(header.offset_to_point_data)
+    record = int(header.point_format.size)
+    data = max(0, size - offset)
+    if not header.are_points_compressed:
+        if count * record > data:
+            raise PointCloudFormatError(
+                f"header says {count} points ({count * record} bytes of {record}-byte records), "
+                f"the file holds {data} bytes of point data ({data // max(record, 1)} whole "
+                "points): truncated or a wrong header",
+                path=path,
+            )
+        return count
+    if count > data * LAZ_MAX_POINTS_PER_BYTE:
+        raise PointCloudFormatError(
+            f"header says {count} points, impossible in {data} compressed bytes",
+            path=path,
+        )
+    vlr = next((v for v in header.vlrs if getattr(v, "record_id", None) == 22204), None)
+    if vlr is None or count == 0:
+        return count
+    try:
+        laz_vlr = lazrs.LazVlr(vlr.record_data)
+        with path.open("rb") as fp:
+            fp.seek(offset)
+            table = lazrs.read_chunk_table(fp, laz_vlr)
+    except Exception as exc:
+        raise PointCloudFormatError(f"unreadable LAZ chunk table ({exc})", path=path) from exc
+    if table:
+        if laz_vlr.uses_variable_size_chunks():
+            covered = sum(int(points) for points, _ in table)
+        else:
+            covered = len(table) * int(laz_vlr.chunk_size())
+        stored = sum(int(nbytes) for _, nbytes in table)
+        if covered < count or stored > data:
+            raise PointCloudFormatError(
+                f"header says {count} points; the LAZ chunk table covers {covered} points in "
+                f"{stored} bytes, the file holds {data}: truncated or a wrong header",
+                path=path,
+            )
+    return count
+
+
 def _read_las(path: Path) -> PointCloud:
     import laspy
 
+    check_las_size(path)
     try:
         las = laspy.read(path)
-    except (laspy.errors.LaspyException, ValueError, OSError, EOFError) as exc:
+    except Exception as exc:  # laspy, lazrs (a RuntimeError), OS errors
         raise PointCloudFormatError(f"unreadable LAS/LAZ ({exc})", path=path) from exc
     if len(las.points) != las.header.point_count:
         raise PointCloudFormatError(
@@ -730,6 +843,7 @@ def _read_las(path: Path) -> PointCloud:
 def _las_header(path: Path) -> CloudHeader:
     import laspy
 
+    check_las_size(path)
     try:
         with laspy.open(path) as reader:
             header = reader.header

@@ -120,9 +120,11 @@ def _stamped_files(
 ) -> tuple[StampedFile, ...]:
     found: list[StampedFile] = []
     for child in sorted(folder.iterdir()):
-        if child.name.startswith(".") or child.is_dir():
+        if child.name.startswith("."):
             continue
         parsed = stamp_from_filename(child.name)
+        if child.is_dir() and (parsed is None or parsed[2] not in extensions):
+            continue  # a folder named like a payload is kept: reading it says what is wrong
         if parsed is None or parsed[2] not in extensions:
             unrecognised.append(child)
             continue

@@ -8,7 +8,9 @@ difference, and writes ``compare/<from>__<to>/`` plus the ``stand_changes`` and
 
 from __future__ import annotations
 
+import contextlib
 import shutil
+from collections.abc import Callable
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -73,24 +75,63 @@ def compare_epochs(
     other_catalog: str | Path | None = None,
     max_distance: float = 2.0,
     min_observed_fraction: float = CoverageRule.min_observed_fraction,
+    lock_timeout: float | None = 30.0,
 ) -> CompareReport:
     """Change from ``epoch_from`` to ``epoch_to`` (default: the first and last epochs).
 
     With ``other_catalog``, ``epoch_to`` is read from that catalog, which must be on the same
-    grid (``GridMismatchError`` otherwise). Outputs go into ``catalog_path``. Tree counts,
-    basal area and harvest are compared over the ground both epochs observed only
+    grid (``GridMismatchError`` otherwise). Outputs go into ``catalog_path``, read and
+    written under its writer lock; the other catalog is read as a consistent snapshot
+    (:meth:`Catalog.reading`), released before the commit. Tree counts, basal area and
+    harvest are compared over the ground both epochs observed only
     (:mod:`standgrid.compare.coverage`); stands with less than ``min_observed_fraction`` of
     it get null changes with a reason.
     """
+    import os
+    import tempfile
+
+    from standgrid.export.catalog import Catalog
+
+    with (
+        Catalog.writing(catalog_path, lock_timeout=lock_timeout) as source,
+        tempfile.TemporaryDirectory(prefix="standgrid-compare-") as scratch,
+    ):
+        same = other_catalog is None or os.path.realpath(other_catalog) == os.path.realpath(
+            source.root
+        )
+        if same:
+            return _compare(source, source, epoch_from, epoch_to, other_catalog, max_distance,
+                            min_observed_fraction, None)  # fmt: skip
+        with contextlib.ExitStack() as reading:
+            assert other_catalog is not None
+            target = reading.enter_context(
+                Catalog.reading(other_catalog, lock_timeout=lock_timeout)
+            )
+            return _compare(
+                source, target, epoch_from, epoch_to, other_catalog, max_distance,
+                min_observed_fraction, Path(scratch), reading.close,
+            )  # fmt: skip
+
+
+def _compare(
+    source: Catalog,
+    target: Catalog,
+    epoch_from: str | None,
+    epoch_to: str | None,
+    other_catalog: str | Path | None,
+    max_distance: float,
+    min_observed_fraction: float,
+    scratch: Path | None,
+    release_target: Callable[[], None] = lambda: None,
+) -> CompareReport:
+    """The comparison; with ``scratch``, ``target`` is another catalog whose files are read
+    (or copied into ``scratch``) before this one's transaction commits."""
     import pandas as pd
 
     from standgrid.compare import chm_difference, compare_stands, match_trees
     from standgrid.compare.stands import check_same_grid
-    from standgrid.export.catalog import Catalog
     from standgrid.export.styles import raster_style_path
 
-    source = Catalog.open(catalog_path)
-    target = Catalog.open(other_catalog) if other_catalog is not None else source
     check_same_grid(source.fingerprint, target.fingerprint, label_a="from", label_b="to")
     epoch_from = epoch_from or _default_epoch(source, first=True)
     epoch_to = epoch_to or _default_epoch(target, first=False)
@@ -137,6 +178,10 @@ def compare_epochs(
         per_level.append(changes)
     changes = pd.concat(per_level, ignore_index=True)
 
+    chm_to = target.path(f"rasters/{epoch_to}/chm.tif")
+    if scratch is not None:  # the other catalog's reader lock is not held across our commit
+        chm_to = Path(shutil.copyfile(chm_to, scratch / "chm_to.tif"))
+    release_target()  # everything of the other catalog is read
     folder = pair_folder(epoch_from, epoch_to)
     outputs: dict[str, str] = {}
     with source.transaction() as txn:
@@ -146,7 +191,7 @@ def compare_epochs(
         style_rel = raster_style_path(chm_rel).as_posix()
         chm_difference(
             source.path(f"rasters/{epoch_from}/chm.tif"),
-            target.path(f"rasters/{epoch_to}/chm.tif"),
+            chm_to,
             txn.stage(chm_rel),
             extent="union",
             style=txn.stage(style_rel),
@@ -326,13 +371,13 @@ def _cell_polygons(
     """``cell_id`` + polygon of every stand (tile cells and coarser stands) of either epoch."""
     import geopandas as gpd
     import pandas as pd
-    import pyogrio
 
+    from standgrid.export.gpkg import read_index_layer
     from standgrid.pipeline.enrich import stand_polygons
 
     cells = pd.concat(
         [
-            pyogrio.read_dataframe(c.path("index.gpkg"), layer="cells")[["cell_id", "geometry"]]
+            read_index_layer(c.path("index.gpkg"), "cells")[["cell_id", "geometry"]]
             for c in {id(source): source, id(target): target}.values()
         ],
         ignore_index=True,

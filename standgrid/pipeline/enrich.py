@@ -123,13 +123,25 @@ def enrich_catalog(
     *,
     wrap: Wrap = _no_wrap,
     status: Callable[[str], None] = lambda message: None,
+    lock_timeout: float | None = 30.0,
 ) -> EnrichReport:
-    """Enrich every epoch of the catalog (or ``options.epochs``); returns what was done."""
-    from standgrid.enrich.allometry import impute_dbh
+    """Enrich every epoch of the catalog (or ``options.epochs``); returns what was done.
+
+    Everything is read and written under the catalog's writer lock (waiting up to
+    ``lock_timeout`` seconds for another writer).
+    """
     from standgrid.export.catalog import Catalog
+
+    with Catalog.writing(catalog_path, lock_timeout=lock_timeout) as catalog:
+        return _enrich(catalog, options, wrap, status)
+
+
+def _enrich(
+    catalog: Catalog, options: EnrichOptions, wrap: Wrap, status: Callable[[str], None]
+) -> EnrichReport:
+    from standgrid.enrich.allometry import impute_dbh
     from standgrid.pipeline.invalidate import clear_invalidation
 
-    catalog = Catalog.open(catalog_path)
     if not catalog.crs:
         raise EnrichError("the catalog has no CRS (not georeferenced)", path=catalog.root)
     epochs = list(options.epochs) or sorted(catalog.epochs)
@@ -186,10 +198,10 @@ class _EpochResult:
 
 
 def _epoch_cells(catalog: Catalog, epoch: str) -> list[_Cell]:
-    import pyogrio
+    from standgrid.export.gpkg import read_index_layer
 
     grid = _stand_grid(catalog)
-    cells = pyogrio.read_dataframe(catalog.path("index.gpkg"), layer="cells")
+    cells = read_index_layer(catalog.path("index.gpkg"), "cells")
     cells = cells[cells["epoch"].astype(str) == epoch].sort_values("cell_id")
     return [
         _Cell(str(r.cell_id), str(r.tile_path), r.geometry, _stand_of(grid, str(r.cell_id)))
@@ -666,24 +678,19 @@ def _write_layers(
 
     import geopandas as gpd
     import pandas as pd
-    import pyogrio
 
-    from standgrid.export.gpkg import IndexWriter
+    from standgrid.export.gpkg import IndexWriter, index_layer_names, read_index_layer
     from standgrid.export.styles import stand_metric_style
 
     index = catalog.path("index.gpkg")
     staged = txn.stage("index.gpkg")
     if not staged.exists():
         shutil.copyfile(index, staged)
-    present = {name for name, _ in pyogrio.list_layers(staged)}
-    cells = pyogrio.read_dataframe(staged, layer="cells")[["cell_id", "epoch", "geometry"]]
+    present = index_layer_names(staged)
+    cells = read_index_layer(staged, "cells")[["cell_id", "epoch", "geometry"]]
     cells["epoch"] = cells["epoch"].astype(str)
-    old_metrics = (
-        pyogrio.read_dataframe(staged, layer="stand_metrics")
-        if "stand_metrics" in present
-        else None
-    )
-    old_trees = pyogrio.read_dataframe(staged, layer="trees") if "trees" in present else None
+    old_metrics = read_index_layer(staged, "stand_metrics") if "stand_metrics" in present else None
+    old_trees = read_index_layer(staged, "trees") if "trees" in present else None
 
     new_metrics = pd.concat(metric_tables.values(), ignore_index=True)
     stands = gpd.GeoDataFrame(

@@ -58,9 +58,12 @@ def run_pipeline(
     tiled = tile_missions(
         missions, catalog, tile_options or TileOptions(), wrap=wrap, status=status
     )
-    enriched = enrich_catalog(catalog, enrich_options or EnrichOptions(), wrap=wrap, status=status)
+    timeout = (tile_options or TileOptions()).lock_timeout
+    enriched = enrich_catalog(
+        catalog, enrich_options or EnrichOptions(), wrap=wrap, status=status, lock_timeout=timeout
+    )
     compared = None
     if len(enriched.epochs) >= 2:
         status("comparing the first and the last epoch")
-        compared = compare_epochs(catalog).to_dict()
+        compared = compare_epochs(catalog, lock_timeout=timeout).to_dict()
     return RunReport(tiled.to_dict(), enriched.to_dict(), compared)

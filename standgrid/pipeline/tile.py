@@ -12,6 +12,7 @@ interrupted run leaves the previous catalog intact and a re-run completes it.
 from __future__ import annotations
 
 import math
+import shutil
 import threading
 from collections.abc import Callable, Iterable, Iterator, Sequence
 from dataclasses import dataclass, field, replace
@@ -21,18 +22,20 @@ from typing import TYPE_CHECKING, Any, Literal, TypeVar
 import numpy as np
 from numpy.typing import NDArray
 
-from standgrid._atomic import atomic_output
 from standgrid.errors import (
     CatalogError,
     CRSError,
     GeoreferenceError,
     GridMismatchError,
+    OutputNotWritableError,
+    OutputOverlapsInputError,
+    out_of_space_error,
 )
 from standgrid.pointcloud import PointCloud
 from standgrid.stamps import unix_ns_to_adjusted_gps_time
 
 if TYPE_CHECKING:
-    from standgrid.export.catalog import Catalog, Transaction
+    from standgrid.export.catalog import Catalog, FileLock, Transaction
     from standgrid.georeference import GeoreferenceFit, MapProjector
     from standgrid.mission.model import Mission, Payload
     from standgrid.partition import StandGrid
@@ -76,6 +79,10 @@ class TileOptions:
     epoch: str | None = None
     memory_budget: int = DEFAULT_MEMORY_BUDGET
     overwrite: bool = False
+    #: Seconds to wait for another writer of the catalog (None: for ever).
+    lock_timeout: float | None = 30.0
+    #: Tile even when a georeference's residuals are far beyond the fixes' stated accuracy.
+    accept_poor_georeference: bool = False
 
 
 @dataclass
@@ -162,28 +169,100 @@ def tile_missions(
             f"a mission is given twice: {sorted(n for n in names if names.count(n) > 1)}"
         )
 
-    path = Path(catalog_path)
-    if _is_catalog(path) and not options.overwrite:
-        return _ingest(_open_existing(path, options), ingests, options, wrap, status)
-    _refuse_foreign_folder(path, options)
-    _remove_stale_builds(path)
-    # A new catalog (or a replacement) is built beside its final place and renamed into
-    # place only when complete: a failure leaves nothing, or the old catalog, behind.
-    with atomic_output(path) as staging:
-        report = _ingest(_create(staging, ingests, options), ingests, options, wrap, status)
+    path = _absolute_output(catalog_path, options)
+    refuse_overlap(path, [i.mission.path for i in ingests])
+    from standgrid.export.catalog import (
+        Catalog,
+        build_folder,
+        publish,
+        remove_stale_builds,
+        writer_lock,
+    )
+
+    # One lock, beside the catalog, covers reading it, creating it and replacing it.
+    with writer_lock(path, timeout=options.lock_timeout) as lock:
+        remove_stale_builds(path)
+        if _is_catalog(path) and not options.overwrite:
+            with Catalog.writing(path, held=lock) as catalog:
+                _check_existing(catalog, options)
+                return _ingest(catalog, ingests, options, wrap, status)
+        _refuse_foreign_folder(path, options)
+        if path.is_dir() and not any(path.iterdir()):
+            # an empty folder (maybe the current one) becomes the catalog in place
+            try:
+                catalog = _create(path, path, lock, ingests, options)
+                return _ingest(catalog, ingests, options, wrap, status)
+            except BaseException:
+                for child in path.iterdir():  # back to the empty folder it was
+                    shutil.rmtree(child) if child.is_dir() else child.unlink()
+                raise
+        # A new catalog (or a replacement) is built beside its final place and swapped in
+        # only when complete: a failure or a kill leaves nothing, or the old catalog.
+        build = build_folder(path)
+        try:
+            catalog = _create(build, path, lock, ingests, options)
+            report = _ingest(catalog, ingests, options, wrap, status)
+            publish(build, path)
+        except BaseException as exc:
+            shutil.rmtree(build, ignore_errors=True)
+            full = out_of_space_error(exc, path)
+            if full is not None and full is not exc:
+                raise full from exc
+            raise
     report.catalog = path
     return report
+
+
+def _absolute_output(catalog_path: str | Path, options: TileOptions) -> Path:
+    """The catalog path made absolute ("." included); replacing the folder the process
+    works in is refused."""
+    import os
+
+    path = Path(os.path.abspath(catalog_path))
+    if not path.name:
+        raise OutputNotWritableError("a catalog cannot be the file-system root", path=path)
+    cwd = Path.cwd().resolve()
+    if options.overwrite and path.is_dir() and any(path.iterdir()):
+        real = path.resolve()
+        if cwd == real or cwd.is_relative_to(real):
+            raise OutputNotWritableError(
+                "is (or holds) the current folder; --overwrite cannot replace it (run from "
+                "another folder)",
+                path=catalog_path,
+            )
+    return path
+
+
+def refuse_overlap(output: Path, inputs: Iterable[str | Path]) -> None:
+    """Refuse an output that is, holds or lies inside an input folder (symlinks resolved)."""
+    import os
+
+    out = Path(os.path.realpath(output))
+    for given in inputs:
+        source = Path(os.path.realpath(given))
+        if out == source:
+            how = "is"
+        elif out.is_relative_to(source):
+            how = "lies inside"
+        elif source.is_relative_to(out):
+            how = "holds"
+        else:
+            continue
+        raise OutputOverlapsInputError(
+            f"the output {how} the input {given}; outputs never overlap inputs (choose another -o)",
+            path=output,
+        )
 
 
 def _ingest(
     catalog: Catalog, ingests: list[_Ingest], options: TileOptions, wrap: Wrap, status: Any
 ) -> TileReport:
-    """Tile the prepared missions into an open catalog, in one transaction."""
+    """Tile the prepared missions into a catalog opened for writing, in one transaction."""
     from standgrid.pipeline.invalidate import invalidate_epochs, retile_reason
 
     grid = _catalog_grid(catalog)
     report = TileReport(catalog.root, catalog.crs, catalog.scheme, catalog.fingerprint)
-    layers = _IndexLayers.read(catalog)
+    layers = _IndexLayers.read(catalog)  # under the writer lock: no commit can intervene
     with catalog.transaction() as txn:
         options = _settle_settings(txn, options)
         for ingest in ingests:
@@ -228,6 +307,7 @@ def _prepare(mission: Mission, options: TileOptions) -> _Ingest:
     """How the mission gets into the catalog's CRS: clouds already projected (no fit), an
     explicit anchor, or its own georeference (pose-graph anchor or GNSS fit)."""
     from standgrid.georeference import fit_from_anchor, georeference_mission
+    from standgrid.georeference.fit import check_fit_quality
 
     fit: GeoreferenceFit | None = None
     source_crs = None
@@ -263,6 +343,8 @@ def _prepare(mission: Mission, options: TileOptions) -> _Ingest:
             "(give one with --epoch)",
             path=mission.path,
         )
+    if fit is not None and not options.accept_poor_georeference:
+        check_fit_quality(fit, source=_gnss_file(mission))
     date = meta.date.isoformat() if meta is not None else ""
     return _Ingest(mission, fit, epoch, date, source_crs=source_crs)
 
@@ -307,6 +389,12 @@ def _to_catalog(ingest: _Ingest, crs: str) -> Any:
     return pyproj.Transformer.from_crs(ingest.source_crs, crs, always_xy=True)
 
 
+def _gnss_file(mission: Mission) -> Path:
+    """The file the mission's GNSS fixes came from (for messages)."""
+    gnss = mission.path / "gnss" / "fixes.txt"
+    return gnss if gnss.is_file() else mission.path
+
+
 def _requested_grid(crs: str, options: TileOptions) -> dict[str, Any]:
     from standgrid.partition import StandGrid
 
@@ -316,28 +404,6 @@ def _requested_grid(crs: str, options: TileOptions) -> dict[str, Any]:
         crs, options.cell_size or 20.0, origin=options.origin, levels=tuple(options.levels)
     )
     return grid.to_dict()
-
-
-def _remove_stale_builds(path: Path) -> None:
-    """Remove half-built catalogs (``.<name>.<pid>-<id>.tmp``) left by killed processes."""
-    import os
-    import re
-    import shutil
-
-    pattern = re.compile(rf"^\.{re.escape(path.name)}\.(\d+)-[0-9a-f]+\.tmp$")
-    if not path.parent.is_dir():
-        return
-    for sibling in path.parent.iterdir():
-        match = pattern.match(sibling.name)
-        if match is None or not sibling.is_dir():
-            continue
-        pid = int(match[1])
-        try:
-            os.kill(pid, 0)
-        except ProcessLookupError:
-            shutil.rmtree(sibling, ignore_errors=True)
-        except PermissionError:  # alive, another user's
-            continue
 
 
 def _is_catalog(path: Path) -> bool:
@@ -358,12 +424,12 @@ def _refuse_foreign_folder(path: Path, options: TileOptions) -> None:
         )
 
 
-def _open_existing(path: Path, options: TileOptions) -> Catalog:
-    """Open a catalog to add missions to, refusing another CRS, scheme or grid."""
-    from standgrid.export.catalog import CATALOG_FILE, Catalog
+def _check_existing(catalog: Catalog, options: TileOptions) -> None:
+    """Refuse adding missions in another CRS, scheme or grid than the catalog's."""
+    from standgrid.export.catalog import CATALOG_FILE
     from standgrid.georeference import crs_to_text, resolve_crs
 
-    catalog = Catalog.open(path)
+    path = catalog.root
     if options.crs not in ("auto", "", None):
         wanted = crs_to_text(resolve_crs(options.crs))
         if wanted != catalog.crs:
@@ -382,11 +448,13 @@ def _open_existing(path: Path, options: TileOptions) -> Catalog:
             # an unspecified --levels means "the catalog's", not the default levels
             options = replace(options, levels=tuple(float(v) for v in stored["levels"]))
         catalog.check_grid(_requested_grid(catalog.crs, options))
-    return catalog
 
 
-def _create(path: Path, ingests: list[_Ingest], options: TileOptions) -> Catalog:
-    """A new, empty catalog at ``path`` in the requested (or the missions' UTM) CRS."""
+def _create(
+    path: Path, final: Path, lock: FileLock, ingests: list[_Ingest], options: TileOptions
+) -> Catalog:
+    """A new, empty catalog at ``path`` (to be published at ``final``) in the requested (or
+    the missions' UTM) CRS."""
     from standgrid.export.catalog import Catalog
     from standgrid.georeference import crs_to_text, resolve_crs
 
@@ -399,7 +467,7 @@ def _create(path: Path, ingests: list[_Ingest], options: TileOptions) -> Catalog
         lat, lon = (fit.lla_ref[0], fit.lla_ref[1]) if fit is not None else (None, None)
         crs = crs_to_text(resolve_crs(options.crs, lon=lon, lat=lat))
     scheme = options.scheme or "grid"
-    return Catalog.create(path, _requested_grid(crs, options), crs, scheme)
+    return Catalog.build(path, _requested_grid(crs, options), crs, scheme, final=final, held=lock)
 
 
 def _settle_settings(txn: Transaction, options: TileOptions) -> TileOptions:
@@ -926,16 +994,16 @@ class _IndexLayers:
 
     @classmethod
     def read(cls, catalog: Catalog) -> _IndexLayers:
-        import pyogrio
+        from standgrid.export.gpkg import index_layer_names, read_index_layer
 
         layers = cls()
         path = catalog.path("index.gpkg")
         if not path.exists():
             return layers
-        present = {name for name, _ in pyogrio.list_layers(path)}
+        present = index_layer_names(path)
         for name in cls.NAMES:
             if name in present:
-                frame = pyogrio.read_dataframe(path, layer=name)
+                frame = read_index_layer(path, name)
                 setattr(layers, name, frame.to_dict("records"))
         return layers
 

@@ -20,7 +20,7 @@ from standgrid.growth.fvs import (
     export_fvs,
     keyword_file,
 )
-from tests.pipeline_fixtures import enriched_pair
+from tests.pipeline_fixtures import copy_catalog, enriched_pair
 
 
 @pytest.fixture(scope="module")
@@ -158,7 +158,6 @@ def test_only_measured_stands_and_measured_growth_reach_fvs(
     assert len(short) >= 1
     for row in short.itertuples():
         assert report["stands_skipped"][f"{row.cell_id}_{row.epoch}"] == row.null_reason
-    assert (stands["SG_Area_Source"] == "observed_m2").all()
     imputed = trees[trees["SG_DBH_Source"] == "imputed"]
     assert len(imputed) > 20 and imputed["DG"].isna().all()
     for stand in stands.itertuples():
@@ -168,3 +167,40 @@ def test_only_measured_stands_and_measured_growth_reach_fvs(
             & (metrics["level"] == 1)
         ].iloc[0]
         assert (trees["Stand_ID"] == stand.Stand_ID).sum() == row["n_trees"]
+
+
+def test_slope_aspect_of_a_stand_reaching_past_the_dtm(tmp_path: Path) -> None:
+    """A stand whose window starts west of / north of the DTM is read where it overlaps,
+    each pixel at its own place (checked against rasterio.mask on a known plane)."""
+    import rasterio
+    import rasterio.mask
+    import shapely
+
+    from standgrid.enrich.rasters import RasterGrid, write_cog
+    from standgrid.growth.fvs import slope_aspect
+
+    grid = RasterGrid(1000.0, 2000.0, 1.0, 60, 60)
+    cx, cy = grid.centers()
+    plane = 100.0 + 0.10 * (cx - 1000.0) - 0.05 * (cy - 2000.0)  # rises east, falls north
+    dtm = tmp_path / "dtm.tif"
+    write_cog(dtm, plane.astype(np.float32), grid, crs="EPSG:32630")
+    triangle = shapely.Polygon([(980, 2030), (1030, 2075), (1030, 2030)])  # past W and N edges
+    slope, aspect, elevation = slope_aspect(dtm, triangle)
+    with rasterio.open(dtm) as src:
+        inside, _ = rasterio.mask.mask(src, [triangle], crop=True, filled=False)
+    assert elevation == pytest.approx(float(inside.mean()), abs=1e-3)
+    assert slope == pytest.approx(100 * np.hypot(0.10, 0.05), rel=1e-4)
+    # downslope points west-north-west... the plane falls to the west and to the north
+    assert aspect == pytest.approx((np.degrees(np.arctan2(-0.10, 0.05)) + 360) % 360, abs=0.01)
+
+
+def test_epochs_never_compared_export_without_increments(catalog: Path, tmp_path: Path) -> None:
+    """No comparison of the two epochs: FVS gets no DG/HTG, and the report says why."""
+    import shutil
+
+    copy = copy_catalog(catalog, tmp_path / "catalog")
+    shutil.rmtree(copy / "compare")
+    report = export_fvs(copy, tmp_path / "s.db", species="DF")
+    _, trees = _tables(tmp_path / "s.db")
+    assert trees["DG"].isna().all() and trees["HTG"].isna().all()
+    assert any("not compared" in note for note in report.notes)

@@ -235,3 +235,21 @@ def test_retiling_an_unenriched_epoch_marks_nothing(
     entry = json.loads((root / "catalog.json").read_text())["epochs"]["2024"]
     assert "invalidated" not in entry and entry["enriched"] is False
     assert catalog_status(root)["epochs"]["2024"]["state"] == "not enriched"
+
+
+def test_re_enriching_an_epoch_removes_its_comparisons(pair: EnrichedPair, tmp_path: Path) -> None:
+    """Enrich again (e.g. with another coverage rule): the comparison that read the old
+    results is removed (files, change rows, catalog entry) and listed as invalidated."""
+    root = copy_catalog(pair.path, tmp_path / "catalog")
+    assert _files(root, f"compare/{PAIR}")
+    messages: list[str] = []
+    enrich_catalog(
+        root, EnrichOptions(epochs=("2028",), min_observed_fraction=0.5), status=messages.append
+    )
+    assert not _files(root, f"compare/{PAIR}")
+    assert _sql_count(root / "index.gpkg", "stand_changes") == 0
+    state = json.loads((root / "catalog.json").read_text())
+    assert PAIR not in state.get("comparisons", {})
+    assert PAIR in state["epochs"]["2028"]["comparisons_invalidated"]
+    assert any(PAIR in m and "compare again" in m for m in messages)
+    assert catalog_status(root)["comparisons"][PAIR]["state"] == "invalidated"

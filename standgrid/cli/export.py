@@ -153,8 +153,8 @@ def trees(
     from standgrid.growth.treelist import generic_tree_list, summary, write_tree_list
 
     status(f"exporting trees from {catalog} ...", quiet or as_json)
-    cat = Catalog.open(catalog)
-    table = generic_tree_list(cat, epochs or None, level=level)
+    with Catalog.reading(catalog) as cat:  # one consistent state of every file read
+        table = generic_tree_list(cat, epochs or None, level=level)
     out = write_tree_list(table, output, crs=cat.crs, fmt=fmt, overwrite=overwrite)
     result = {"output": str(out), "trees": len(table), "epochs": summary(table)}
     emit(result, as_json, lambda r: f"{r['trees']} trees -> {r['output']}")

@@ -47,6 +47,16 @@ class CoObserved:
         a, b, grid = read_aligned_pair(observed_from, observed_to, extent="union")
         return cls((a == 1) & (b == 1), grid)
 
+    def within(self, *polygon_sets: list[Any]) -> CoObserved:
+        """Only the pixels inside one polygon of every set (e.g. each epoch's measured
+        cells)."""
+        from standgrid.enrich.coverage import cells_mask
+
+        mask = self.mask.copy()
+        for polygons in polygon_sets:
+            mask &= cells_mask(self.grid, polygons)
+        return CoObserved(mask, self.grid)
+
     def at(self, x: Any, y: Any) -> NDArray[np.bool_]:
         return sample_mask(self.mask, self.grid, x, y)
 
@@ -115,14 +125,14 @@ def stand_change(
 
 
 def _per_ha(dbh_m: pd.Series, area_m2: float) -> dict[str, float]:
-    """stems/ha, basal area/ha and QMD of trees with these DBHs over ``area_m2``."""
+    """stems/ha, basal area/ha and QMD of trees with these DBHs over ``area_m2`` (the stand
+    metrics' own formulas, :func:`standgrid.enrich.metrics.tree_metrics`)."""
+    from standgrid.enrich.metrics import tree_metrics
+
     if area_m2 <= 0:
         return dict.fromkeys(CO_OBSERVED_METRICS, math.nan)
     d = dbh_m.to_numpy(dtype=np.float64)
-    complete = bool(np.isfinite(d).all())
-    ha = area_m2 / 10_000.0
-    return {
-        "stems_ha": len(d) / ha,
-        "basal_area_m2_ha": float(np.sum(np.pi * (d / 2.0) ** 2)) / ha if complete else math.nan,
-        "qmd_cm": (100.0 * float(np.sqrt(np.mean(d**2))) if complete and len(d) else math.nan),
-    }
+    row = tree_metrics(
+        np.zeros(len(d), dtype=np.int64), np.zeros(len(d)), d, cell_area_m2=area_m2, cells=[0]
+    ).iloc[0]
+    return {metric: float(row[metric]) for metric in CO_OBSERVED_METRICS}

@@ -179,6 +179,26 @@ def aggregate(
     )
 
 
+def stem_xy(trees: pd.DataFrame) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    """Where each tree's stem stands: the fitted stem centre, or its top without a fit."""
+    x = trees["x"].to_numpy(np.float64)
+    y = trees["y"].to_numpy(np.float64)
+    if "stem_x" not in trees.columns:
+        return x, y
+    sx = trees["stem_x"].to_numpy(np.float64)
+    sy = trees["stem_y"].to_numpy(np.float64)
+    fitted = np.isfinite(sx) & np.isfinite(sy)
+    return np.where(fitted, sx, x), np.where(fitted, sy, y)
+
+
+def counted_trees(trees: pd.DataFrame, metrics: pd.DataFrame) -> pd.Series:
+    """The trees an epoch's ``stand_metrics`` rows count: stem on observed ground, top in a
+    20 m cell whose metrics are reported (so also in its measured 1 ha stand)."""
+    cells = metrics[metrics["level"] == 0]
+    measured = set(cells.loc[cells["stems_ha"].notna(), "cell_id"])
+    return trees["observed"].astype(bool) & trees["cell_id"].isin(measured)
+
+
 def _text(value: Any) -> bool:
     """True for a real reason text (not None, NaN or pandas NA)."""
     return isinstance(value, str) and value != ""

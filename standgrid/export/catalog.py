@@ -464,6 +464,11 @@ class Catalog:
         return json.loads(json.dumps(self._state["missions"]))
 
     @property
+    def comparisons(self) -> dict[str, dict[str, Any]]:
+        """The comparisons made into this catalog (key ``<from>__<to>``)."""
+        return dict(self._state.get("comparisons", {}))
+
+    @property
     def epochs(self) -> dict[str, dict[str, Any]]:
         """Epoch label -> {"date", "missions"}."""
         return json.loads(json.dumps(self._state["epochs"]))

@@ -20,6 +20,7 @@ import numpy as np
 import pandas as pd
 
 from standgrid._atomic import atomic_output
+from standgrid.enrich.stands import counted_trees
 from standgrid.errors import FormatError
 from standgrid.export.catalog import Catalog
 from standgrid.growth.treelist import (
@@ -49,7 +50,7 @@ STAND_COLUMNS = {
     "Num_Plots": "INTEGER", "DG_Trans": "INTEGER", "DG_Measure": "REAL",
     "HTG_Trans": "INTEGER", "HTG_Measure": "REAL",
     "SG_Cell_ID": "TEXT", "SG_Epoch": "TEXT", "SG_Level": "INTEGER", "SG_Area_m2": "REAL",
-    "SG_Area_Source": "TEXT", "SG_Trees_Without_DBH": "INTEGER", "SG_Species_Source": "TEXT",
+    "SG_Trees_Without_DBH": "INTEGER", "SG_Species_Source": "TEXT",
 }  # fmt: skip
 TREE_COLUMNS = {
     "Stand_ID": "TEXT", "Plot_ID": "INTEGER", "Tree_ID": "INTEGER", "Tree_Count": "REAL",
@@ -70,6 +71,7 @@ class FvsExport:
     trees_with_increments: int = 0
     stands_skipped: dict[str, str] = field(default_factory=dict)
     species_default_used: bool = False
+    notes: list[str] = field(default_factory=list)
 
     def to_dict(self) -> dict[str, Any]:
         return {
@@ -80,6 +82,7 @@ class FvsExport:
             "trees_with_dg_htg": self.trees_with_increments,
             "stands_skipped": dict(self.stands_skipped),
             "species_default_used": self.species_default_used,
+            "notes": list(self.notes),
         }
 
 
@@ -96,12 +99,16 @@ def slope_aspect(dtm: Path, polygon: Any) -> tuple[float, float, float]:
     when flat) and mean elevation (m) of the plane fitted to the DTM pixels in ``polygon``."""
     import rasterio
     from rasterio.features import geometry_mask
-    from rasterio.windows import from_bounds
+    from rasterio.windows import Window, from_bounds
 
     with rasterio.open(dtm) as src:
         window = (
             from_bounds(*polygon.bounds, transform=src.transform).round_offsets().round_lengths()
         )
+        try:  # a stand reaching past the DTM: read (and place) only the overlap
+            window = window.intersection(Window(0, 0, src.width, src.height))
+        except rasterio.errors.WindowError:
+            return math.nan, math.nan, math.nan
         z = src.read(1, window=window, masked=True).astype(np.float64)
         transform = src.window_transform(window)
     inside = ~geometry_mask([polygon], out_shape=z.shape, transform=transform)
@@ -133,20 +140,19 @@ def _years_between(catalog: Catalog, first: str, last: str) -> float:
 
 
 def _increments(catalog: Catalog, epoch: str, previous: str | None) -> pd.DataFrame | None:
-    """Per tree of ``epoch``: past measured DBH (m) and height increment (m) since
-    ``previous``, from ``compare/<previous>__<epoch>/tree_changes.parquet``."""
+    """Per tree of ``epoch``: past DBH (m; where both epochs measured it) and height
+    increment (m) since ``previous``, from ``compare/<previous>__<epoch>/tree_changes``;
+    None when the two epochs were not compared."""
     if previous is None:
         return None
     path = catalog.path(f"compare/{previous}__{epoch}/tree_changes.parquet")
     if not path.is_file():
-        raise FormatError(
-            f"no comparison of {previous} with {epoch}: run `standgrid compare` first", path=path
-        )
+        return None
     changes = pd.read_parquet(path)
     matched = changes[(changes["status"] == "grown") & ~changes["suspicious"].astype(bool)]
-    before = read_trees(catalog, previous).set_index("tree_id")["dbh_source"]
-    source_from = matched["tree_id_from"].map(before)
-    past_dbh = matched["dbh_m_from"].where(source_from == "measured")
+    # a past DBH calibrates diameter growth only when both epochs measured the stem
+    both = (matched["dbh_source_from"] == "measured") & (matched["dbh_source_to"] == "measured")
+    past_dbh = matched["dbh_m_from"].where(both)
     return pd.DataFrame(
         {
             "past_dbh_m": past_dbh.to_numpy(float),
@@ -189,12 +195,30 @@ def export_fvs(
     :data:`DEFAULT_SPECIES`). With ``increments`` and an earlier epoch compared with this
     one, matched trees get DG (past DBH, DG_Trans 1) and HTG (height increment, HTG_Trans 0).
     """
+    with Catalog.reading(catalog_path) as catalog:  # one consistent state of every file
+        return _export_fvs(
+            catalog, Path(out), level=level, epochs=epochs, variant=variant, species=species,
+            species_by_stand=species_by_stand, increments=increments, overwrite=overwrite,
+        )  # fmt: skip
+
+
+def _export_fvs(
+    catalog: Catalog,
+    out: Path,
+    *,
+    level: int,
+    epochs: Sequence[str] | None,
+    variant: str,
+    species: str | None,
+    species_by_stand: Mapping[str, str] | None,
+    increments: bool,
+    overwrite: bool,
+) -> FvsExport:
     from pyproj import Transformer
 
-    catalog = Catalog.open(catalog_path)
     key = stand_key(level)
     wanted = catalog_epochs(catalog, epochs)
-    order = list(catalog.epochs)
+    order = sorted(catalog.epochs, key=lambda e: (str(catalog.epochs[e].get("date") or ""), e))
     stands = read_stands(catalog)
     polygons = _stand_polygons(catalog)
     to_wgs84 = Transformer.from_crs(catalog.crs, "EPSG:4326", always_xy=True)
@@ -209,14 +233,17 @@ def export_fvs(
         if previous is not None and not catalog.epochs[previous].get("enriched"):
             previous = None
         incr = _increments(catalog, epoch, previous)
+        if previous is not None and incr is None:
+            report.notes.append(
+                f"{epoch}: no DG/HTG (epochs {previous} and {epoch} not compared: run "
+                f"`standgrid compare {catalog.root} --from {previous} --to {epoch}`)"
+            )
+            previous = None
         years = _years_between(catalog, previous, epoch) if previous is not None else None
         year = dt.date.fromisoformat(str(catalog.epochs[epoch]["date"])).year
         level_rows = stands[(stands["epoch"] == epoch) & (stands["level"] == level)]
         dtm = catalog.path(f"rasters/{epoch}/dtm.tif")
-        # the trees a stand row counts: stems on observed ground, in the cells it measured
-        measured = stands[(stands["epoch"] == epoch) & (stands["level"] == 0)]
-        measured_cells = set(measured.loc[measured["stems_ha"].notna(), "cell_id"])
-        counted = trees[trees["observed"] & trees["cell_id"].isin(measured_cells)]
+        counted = trees[counted_trees(trees, stands[stands["epoch"] == epoch])]
         for _, row in level_rows.sort_values("cell_id").iterrows():
             cell_id = str(row["cell_id"])
             if pd.isna(row["stems_ha"]):  # not measured: nothing to grow, said why
@@ -225,7 +252,7 @@ def export_fvs(
             mine = counted[counted[key].astype(str) == cell_id]
             area = stand_area(row)
             with_dbh = mine[np.isfinite(mine["dbh_m"].to_numpy(float))]
-            if not len(mine) or not area.area_m2 > 0:
+            if not len(mine) or not area > 0:
                 report.stands_skipped[cell_id + "_" + epoch] = "no trees detected"
                 continue
             if not len(with_dbh):
@@ -242,7 +269,7 @@ def export_fvs(
             cx, cy = (geom.centroid.x, geom.centroid.y) if geom is not None else (
                 float(mine["x"].mean()), float(mine["y"].mean()))  # fmt: skip
             lon, lat = to_wgs84.transform(cx, cy)
-            acres = area.area_m2 / M2_PER_ACRE
+            acres = area / M2_PER_ACRE
             code = species_by_stand.get(cell_id)
             if code is None:
                 code = species or DEFAULT_SPECIES
@@ -255,7 +282,7 @@ def export_fvs(
                 "DG_Trans": 1 if years else None, "DG_Measure": years,
                 "HTG_Trans": 0 if years else None, "HTG_Measure": years,
                 "SG_Cell_ID": cell_id, "SG_Epoch": epoch, "SG_Level": level,
-                "SG_Area_m2": area.area_m2, "SG_Area_Source": area.source,
+                "SG_Area_m2": area,
                 "SG_Trees_Without_DBH": len(mine) - len(with_dbh),
                 "SG_Species_Source": "per-stand" if cell_id in species_by_stand
                 else ("user default" if species else "placeholder default"),
@@ -292,9 +319,9 @@ def _tree_rows(
     htg = pd.Series(np.nan, index=trees.index)
     if incr is not None and years:
         ids = trees["tree_id"].astype(np.int64)
-        found = ids.isin(incr.index) & (trees["dbh_source"] == "measured").fillna(False)
+        found = ids.isin(incr.index)
         matched = incr.reindex(ids[found].to_numpy())
-        dg[found] = matched["past_dbh_m"].to_numpy() * 100.0 / CM_PER_IN
+        dg[found] = matched["past_dbh_m"].to_numpy() * 100.0 / CM_PER_IN  # NaN: not measured
         htg[found] = matched["htg_m"].to_numpy() / M_PER_FT
     return pd.DataFrame(
         {

@@ -1,18 +1,15 @@
 """A catalog's tree lists and stand areas as growth simulators read them.
 
 Reads only the catalog's tables (``tables/tree_list_<epoch>.parquet``,
-``tables/stand_metrics.parquet``) and the ``stand_metrics`` layer of ``index.gpkg``; it
-imports nothing from enrich or compare, so it works on any catalog those stages wrote.
-Columns the enrich stage may or may not write (``dbh_source``, a DBH uncertainty,
-``observed_m2``) are used when present, with a documented fallback when absent
-(docs/TREES.md).
+``tables/stand_metrics.parquet``) and the ``stand_metrics`` layer of ``index.gpkg``, as
+``standgrid enrich`` writes them (a catalog enriched by an older standgrid is refused with
+the command that updates it). Columns: docs/TREES.md.
 """
 
 from __future__ import annotations
 
 import warnings
 from collections.abc import Sequence
-from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -20,6 +17,7 @@ import numpy as np
 import pandas as pd
 
 from standgrid._atomic import atomic_output
+from standgrid.enrich.stands import counted_trees, stem_xy
 from standgrid.errors import EpochNotFoundError, FormatError, NotEnrichedError
 from standgrid.export.catalog import Catalog
 
@@ -31,8 +29,6 @@ FORMATS = {
     ".sqlite": "sqlite",
     ".db": "sqlite",
 }
-#: Column names the enrich stage may give a DBH uncertainty (metres), first match wins.
-
 #: The generic tree list, in order (docs/TREES.md describes each column).
 TREE_COLUMNS = [
     "epoch", "date", "stand_id", "cell_id", "tree_id", "x", "y", "stem_x", "stem_y",
@@ -40,14 +36,6 @@ TREE_COLUMNS = [
     "basal_area_m2", "crown_area_m2", "crown_diameter_m", "n_points", "counted", "stand_area_m2",
     "trees_per_ha", "crs",
 ]  # fmt: skip
-
-
-@dataclass(frozen=True)
-class StandArea:
-    """The area a stand's trees were looked for in (m²) and where that figure came from."""
-
-    area_m2: float
-    source: str  # "observed_m2" or "area_m2"
 
 
 def catalog_epochs(catalog: Catalog, epochs: Sequence[str] | None) -> list[str]:
@@ -97,9 +85,9 @@ def read_stands(catalog: Catalog) -> pd.DataFrame:
     return stands
 
 
-def stand_area(row: pd.Series) -> StandArea:
-    """The ground a stand row was measured over: its observed area."""
-    return StandArea(float(row["observed_m2"]), "observed_m2")
+def stand_area(row: pd.Series) -> float:
+    """The ground a stand row was measured over (m²): its observed area."""
+    return float(row["observed_m2"])
 
 
 def stand_key(level: int) -> str:
@@ -131,13 +119,9 @@ def generic_tree_list(
             raise FormatError(f"tree list has no column {key!r}", path=catalog.root)
         rows = stands[(stands["epoch"] == epoch) & (stands["level"] == level)]
         areas = {
-            str(r["cell_id"]): stand_area(r).area_m2
-            for _, r in rows.iterrows()
-            if pd.notna(r["stems_ha"])
+            str(r["cell_id"]): stand_area(r) for _, r in rows.iterrows() if pd.notna(r["stems_ha"])
         }
-        cells = stands[(stands["epoch"] == epoch) & (stands["level"] == 0)]
-        measured = set(cells.loc[cells["stems_ha"].notna(), "cell_id"])
-        counted = trees["observed"].astype(bool) & trees["cell_id"].isin(measured)
+        counted = counted_trees(trees, stands[stands["epoch"] == epoch])
         area = trees[key].astype(str).map(areas).astype(float).where(counted)
         dbh = trees["dbh_m"].astype(float)
         crown = trees["crown_area_m2"].astype(float) if "crown_area_m2" in trees else np.nan
@@ -170,9 +154,7 @@ def generic_tree_list(
         frames.append(out)
     table = pd.concat(frames, ignore_index=True)
     to_wgs84 = Transformer.from_crs(catalog.crs, "EPSG:4326", always_xy=True)
-    px = table["stem_x"].where(table["stem_x"].notna(), table["x"]).to_numpy(float)
-    py = table["stem_y"].where(table["stem_y"].notna(), table["y"]).to_numpy(float)
-    lon, lat = to_wgs84.transform(px, py)
+    lon, lat = to_wgs84.transform(*stem_xy(table))
     table["lon"], table["lat"] = lon, lat
     table["crs"] = catalog.crs
     return table[TREE_COLUMNS]
@@ -217,9 +199,7 @@ def write_tree_list(
         elif kind == "gpkg":
             import geopandas as gpd
 
-            px = table["stem_x"].where(table["stem_x"].notna(), table["x"])
-            py = table["stem_y"].where(table["stem_y"].notna(), table["y"])
-            frame = gpd.GeoDataFrame(table, geometry=gpd.points_from_xy(px, py), crs=crs)
+            frame = gpd.GeoDataFrame(table, geometry=gpd.points_from_xy(*stem_xy(table)), crs=crs)
             with warnings.catch_warnings():  # the temporary name does not end in .gpkg
                 warnings.filterwarnings("ignore", "The filename extension should be")
                 frame.to_file(tmp, layer=layer, driver="GPKG", engine="pyogrio")

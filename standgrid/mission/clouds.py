@@ -841,14 +841,17 @@ def _read_las(path: Path) -> PointCloud:
 
 
 def _las_header(path: Path) -> CloudHeader:
+    """The header, allocating nothing: an uncompressed file's size is checked by
+    :meth:`CloudHeader.size_problem` (and before reading), a LAZ file's chunk table here."""
     import laspy
 
-    check_las_size(path)
     try:
         with laspy.open(path) as reader:
             header = reader.header
     except (laspy.errors.LaspyException, ValueError, OSError, EOFError) as exc:
         raise PointCloudFormatError(f"unreadable LAS/LAZ header ({exc})", path=path) from exc
+    if header.are_points_compressed:
+        check_las_size(path)
     pf = header.point_format
     dtypes: dict[str, np.dtype[Any]] = {a: np.dtype(np.float64) for a in _XYZ}
     names: list[str] = []

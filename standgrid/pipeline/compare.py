@@ -145,13 +145,13 @@ def _compare(
     matches = match_trees(
         trees_from, trees_to, date_from=date_from, date_to=date_to, max_distance=max_distance
     )
+    cells = _cell_polygons(source, target, metrics_from, metrics_to)
     co = CoObserved.read(
         source.path(f"rasters/{epoch_from}/observed.tif"),
         target.path(f"rasters/{epoch_to}/observed.tif"),
-    )
+    ).within(_measured_cells(cells, metrics_from), _measured_cells(cells, metrics_to))
     matches = _locate(matches, trees_from, trees_to)
     matches = replace(matches, table=mark_unobserved(matches.table, co))
-    cells = _cell_polygons(source, target, metrics_from, metrics_to)
     per_level = []
     for level in sorted(set(metrics_from["level"]) | set(metrics_to["level"])):
         a = metrics_from[metrics_from["level"] == level]
@@ -207,7 +207,11 @@ def _compare(
         comparisons[f"{epoch_from}__{epoch_to}"] = {
             "from": epoch_from,
             "to": epoch_to,
-            "other_catalog": str(Path(other_catalog).resolve()) if other_catalog else None,
+            "other_catalog": (
+                str(Path(other_catalog).resolve())
+                if other_catalog is not None and target is not source
+                else None
+            ),
             "outputs": outputs,
         }
     return CompareReport(
@@ -303,6 +307,18 @@ def _locate(matches: Any, trees_from: pd.DataFrame, trees_to: pd.DataFrame) -> A
 _NOT_COMPARED = frozenset((*SAMPLE_COLUMNS, *TREE_COUNT_COLUMNS, *CO_OBSERVED_METRICS))
 
 
+#: Shape statistics of the height distribution: their change is given, not as a yearly rate.
+_SHAPES = ("zskew", "zkurt", "zentropy", "zpcum")
+
+
+def _measured_cells(cells: gpd.GeoDataFrame, metrics: pd.DataFrame) -> list[Any]:
+    """Polygons of the 20 m cells (or Voronoi cells) whose metrics an epoch reports: ground
+    that failed its coverage rule (too few points, no terrain) is not compared either."""
+    level0 = metrics[metrics["level"] == 0]
+    measured = set(level0.loc[level0["stems_ha"].notna(), "cell_id"])
+    return list(cells.loc[cells["cell_id"].isin(measured), "geometry"])
+
+
 def _forest_metrics(metrics: pd.DataFrame) -> pd.DataFrame:
     """The metric columns whose change means something about the forest."""
     return metrics.drop(columns=[c for c in metrics.columns if c in _NOT_COMPARED])
@@ -329,7 +345,8 @@ def _with_coverage(
     out["null_reason"] = joined.where(joined != "", pd.NA)
     for column in ("trees_grown", "trees_removed", "trees_new"):
         out[column] = out[column].astype("Int64")
-    return out.drop(columns=["coverage_reason"]).copy()
+    no_rate = [c for c in out.columns if c.endswith("_per_year") and c.startswith(_SHAPES)]
+    return out.drop(columns=["coverage_reason", *no_rate]).copy()
 
 
 def _default_epoch(catalog: Catalog, *, first: bool) -> str:

@@ -30,7 +30,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from standgrid.enrich.rasters import NODATA, chm, density
-from standgrid.enrich.stands import CoverageRule, StandSample
+from standgrid.enrich.stands import CoverageRule, StandSample, stem_xy
 from standgrid.errors import EnrichError, EpochNotFoundError, StandgridError
 from standgrid.pointcloud import PointCloud
 
@@ -140,7 +140,7 @@ def _enrich(
     catalog: Catalog, options: EnrichOptions, wrap: Wrap, status: Callable[[str], None]
 ) -> EnrichReport:
     from standgrid.enrich.allometry import impute_dbh
-    from standgrid.pipeline.invalidate import clear_invalidation
+    from standgrid.pipeline.invalidate import clear_invalidation, invalidate_comparisons
 
     if not catalog.crs:
         raise EnrichError("the catalog has no CRS (not georeferenced)", path=catalog.root)
@@ -164,6 +164,9 @@ def _enrich(
             note = clear_invalidation(txn.state["epochs"][epoch])  # says if it was stale
             status(f"enriching epoch {epoch}: {note}")
             results[epoch] = _enrich_epoch(catalog, txn, epoch, options, wrap)
+        lost = invalidate_comparisons(catalog, txn, set(epochs), "re-enriched")
+        if lost:
+            status(f"comparisons {', '.join(lost)} removed (their inputs change): compare again")
         models = _height_diameter_models(catalog, {e: r.trees for e, r in results.items()})
         for epoch, result in results.items():
             trees = impute_dbh(result.trees, models[epoch])
@@ -325,9 +328,7 @@ def _enrich_epoch(
             no_ground=cell.cell_id in no_ground,
         )
     trees = _tree_table(tree_frames, epoch)
-    stem_x = trees["stem_x"].where(trees["stem_x"].notna(), trees["x"]).to_numpy(np.float64)
-    stem_y = trees["stem_y"].where(trees["stem_y"].notna(), trees["y"]).to_numpy(np.float64)
-    trees["observed"] = coverage.observed_at(stem_x, stem_y)
+    trees["observed"] = coverage.observed_at(*stem_xy(trees))
 
     unseen = ~coverage.near_ground
     for name, array, description in (

@@ -138,6 +138,28 @@ def invalidate_epochs(
     return done
 
 
+def invalidate_comparisons(
+    catalog: Catalog, txn: Transaction, epochs: set[str], reason: str
+) -> list[str]:
+    """Remove every comparison that read one of ``epochs`` (their inputs are being
+    recomputed): its files, its change-layer rows and its catalog entry; each epoch lists it
+    under ``comparisons_invalidated`` until it is compared again. Returns the keys."""
+    comparisons = _comparisons_of(txn.state, epochs)
+    now = _now()
+    for key, (epoch_from, epoch_to) in comparisons.items():
+        for rel in _files_under(catalog.root, f"compare/{key}"):
+            txn.delete(rel)
+        del txn.state["comparisons"][key]
+        for epoch in {epoch_from, epoch_to} & epochs:
+            entry = txn.state["epochs"].get(epoch)
+            if entry is not None:
+                lost = entry.setdefault("comparisons_invalidated", {})
+                lost[key] = {"at": now, "reason": f"epoch {epoch} {reason}"}
+    if comparisons:
+        _drop_layer_rows(txn, set(), comparisons)
+    return sorted(comparisons)
+
+
 def without_enrichment(fields: Mapping[str, NDArray[Any]]) -> dict[str, NDArray[Any]]:
     """Per-point fields with enrich's values reset to "not computed" (same dtypes)."""
     return {

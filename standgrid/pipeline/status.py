@@ -3,7 +3,6 @@ is enriched, stale or not enriched, and which comparisons are present or were in
 
 from __future__ import annotations
 
-import json
 from pathlib import Path
 from typing import Any
 
@@ -18,10 +17,9 @@ def catalog_status(catalog_path: str | Path) -> dict[str, Any]:
     point counts at ingest (no tile is read). A comparison is ``present``, or ``invalidated``
     (removed when one of its epochs was re-tiled, and not made again since).
     """
-    from standgrid.export.catalog import CATALOG_FILE, Catalog
+    from standgrid.export.catalog import Catalog
 
-    catalog = Catalog.open(catalog_path)  # completes an interrupted transaction first
-    stored = json.loads((catalog.root / CATALOG_FILE).read_text(encoding="utf-8"))
+    catalog = Catalog.open(catalog_path)  # one consistent read of catalog.json
     missions = catalog.missions
     epochs: dict[str, Any] = {}
     invalidated: list[dict[str, Any]] = []
@@ -47,7 +45,7 @@ def catalog_status(catalog_path: str | Path) -> dict[str, Any]:
             "other_catalog": entry.get("other_catalog"),
             "state": "present",
         }
-        for key, entry in sorted(stored.get("comparisons", {}).items())
+        for key, entry in sorted(catalog.comparisons.items())
     }
     for item in sorted(invalidated, key=lambda i: str(i["at"])):  # the latest reason wins
         key = item["comparison"]

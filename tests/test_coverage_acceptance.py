@@ -28,6 +28,8 @@ from tests.coverage_scenarios import (
 )
 
 TOLERANCE = 0.10
+#: Two simulated campaigns tiled, enriched and compared twice: minutes, not seconds.
+pytestmark = pytest.mark.slow
 
 
 def _grid(catalog: Path) -> StandGrid:

@@ -34,17 +34,4 @@ def fit_from_anchor(lat: float, lon: float, alt: float, yaw_deg: float) -> Geore
     yaw = math.radians(float(yaw_deg))
     T = np.eye(4)
     T[:2, :2] = [[math.cos(yaw), -math.sin(yaw)], [math.sin(yaw), math.cos(yaw)]]
-    return GeoreferenceFit(
-        lla_ref=(float(lat), float(lon), float(alt)),
-        T_enu_map=T,
-        method="anchor",
-        fix_stamps_ns=np.zeros(0, dtype=np.int64),
-        residuals_m=np.zeros((0, 3)),
-        inliers=np.zeros(0, dtype=bool),
-        status=np.zeros(0, dtype=np.int8),
-        weights=np.zeros(0),
-        rmse_m=math.nan,
-        rmse_vertical_m=math.nan,
-        n_used=0,
-        n_rejected=0,
-    )
+    return GeoreferenceFit.without_fixes((float(lat), float(lon), float(alt)), T, "anchor")

@@ -130,6 +130,24 @@ class GeoreferenceFit:
         """Map-frame points ``(N, 3)`` -> ENU ``(N, 3)``."""
         return transform_points(self.T_enu_map, xyz_map)
 
+    @classmethod
+    def without_fixes(cls, lla_ref: LLA, T_enu_map: Matrix4, method: str) -> GeoreferenceFit:
+        """A transform given, not fitted (pose-graph anchor, hand-given anchor): no fixes."""
+        return cls(
+            lla_ref=lla_ref,
+            T_enu_map=T_enu_map,
+            method=method,
+            fix_stamps_ns=np.zeros(0, dtype=np.int64),
+            residuals_m=np.zeros((0, 3)),
+            inliers=np.zeros(0, dtype=bool),
+            status=np.zeros(0, dtype=np.int8),
+            weights=np.zeros(0),
+            rmse_m=math.nan,
+            rmse_vertical_m=math.nan,
+            n_used=0,
+            n_rejected=0,
+        )
+
     def to_dict(self) -> dict[str, Any]:
         """A JSON-ready dict (strict JSON: NaN becomes ``None``); floats round-trip exactly."""
         return {
@@ -658,20 +676,7 @@ def fit_from_pose_graph(graph: PoseGraph) -> GeoreferenceFit | None:
     if T_map_enu.shape != (4, 4) or not np.all(np.isfinite(T_map_enu)):
         raise GeoreferenceError("GNSS_LLA_TO_MAP is not a finite 4x4 pose", path=graph.source)
     lat, lon, alt = (float(v) for v in graph.gnss_lla_ref)
-    return GeoreferenceFit(
-        lla_ref=(lat, lon, alt),
-        T_enu_map=invert_pose(T_map_enu),
-        method="pose_graph",
-        fix_stamps_ns=np.zeros(0, dtype=np.int64),
-        residuals_m=np.zeros((0, 3)),
-        inliers=np.zeros(0, dtype=bool),
-        status=np.zeros(0, dtype=np.int8),
-        weights=np.zeros(0),
-        rmse_m=math.nan,
-        rmse_vertical_m=math.nan,
-        n_used=0,
-        n_rejected=0,
-    )
+    return GeoreferenceFit.without_fixes((lat, lon, alt), invert_pose(T_map_enu), "pose_graph")
 
 
 # --- uncertainty (standgrid.georeference.uncertainty) ----------------------------------------

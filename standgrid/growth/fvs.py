@@ -20,8 +20,8 @@ import numpy as np
 import pandas as pd
 
 from standgrid._atomic import atomic_output
+from standgrid.catalog import Catalog, paths
 from standgrid.errors import FormatError
-from standgrid.export.catalog import Catalog
 from standgrid.growth.treelist import (
     catalog_epochs,
     read_stands,
@@ -121,14 +121,14 @@ def slope_aspect(dtm: Path, polygon: Any) -> tuple[float, float, float]:
 def _stand_polygons(catalog: Catalog) -> pd.DataFrame:
     import pyogrio
 
-    frame = pyogrio.read_dataframe(catalog.path("index.gpkg"), layer="stand_metrics",
+    frame = pyogrio.read_dataframe(catalog.path(paths.INDEX), layer="stand_metrics",
                                    columns=["cell_id", "epoch"])  # fmt: skip
     frame["epoch"] = frame["epoch"].astype(str)
     return frame
 
 
 def _years_between(catalog: Catalog, first: str, last: str) -> float:
-    dates = [dt.date.fromisoformat(str(catalog.epochs[e]["date"])) for e in (first, last)]
+    dates = [dt.date.fromisoformat(str(catalog.epoch(e).date)) for e in (first, last)]
     return (dates[1] - dates[0]).days / 365.25
 
 
@@ -137,7 +137,7 @@ def _increments(catalog: Catalog, epoch: str, previous: str | None) -> pd.DataFr
     ``previous``, from ``compare/<previous>__<epoch>/tree_changes.parquet``."""
     if previous is None:
         return None
-    path = catalog.path(f"compare/{previous}__{epoch}/tree_changes.parquet")
+    path = catalog.path(paths.comparison(previous, epoch, "tree_changes.parquet"))
     if not path.is_file():
         raise FormatError(
             f"no comparison of {previous} with {epoch}: run `standgrid compare` first", path=path
@@ -194,7 +194,8 @@ def export_fvs(
     catalog = Catalog.open(catalog_path)
     key = stand_key(level)
     wanted = catalog_epochs(catalog, epochs)
-    order = list(catalog.epochs)
+    records = catalog.epoch_records
+    order = list(records)
     stands = read_stands(catalog)
     polygons = _stand_polygons(catalog)
     to_wgs84 = Transformer.from_crs(catalog.crs, "EPSG:4326", always_xy=True)
@@ -206,13 +207,13 @@ def export_fvs(
         trees = read_trees(catalog, epoch)
         position = order.index(epoch)
         previous = order[position - 1] if increments and position > 0 else None
-        if previous is not None and not catalog.epochs[previous].get("enriched"):
+        if previous is not None and not records[previous].enriched:
             previous = None
         incr = _increments(catalog, epoch, previous)
         years = _years_between(catalog, previous, epoch) if previous is not None else None
-        year = dt.date.fromisoformat(str(catalog.epochs[epoch]["date"])).year
+        year = dt.date.fromisoformat(str(records[epoch].date)).year
         level_rows = stands[(stands["epoch"] == epoch) & (stands["level"] == level)]
-        dtm = catalog.path(f"rasters/{epoch}/dtm.tif")
+        dtm = catalog.path(paths.raster(epoch, "dtm"))
         # the trees a stand row counts: stems on observed ground, in the cells it measured
         measured = stands[(stands["epoch"] == epoch) & (stands["level"] == 0)]
         measured_cells = set(measured.loc[measured["stems_ha"].notna(), "cell_id"])

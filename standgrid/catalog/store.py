@@ -530,6 +530,13 @@ class Catalog:
         return Transaction(self)
 
 
+def open_catalog(
+    path: str | os.PathLike[str], *, lock_timeout: float | None = DEFAULT_LOCK_TIMEOUT
+) -> Catalog:
+    """A catalog for reading, as of its last complete commit (:meth:`Catalog.open`)."""
+    return Catalog.open(path, lock_timeout=lock_timeout)
+
+
 class Transaction:
     """Staged changes to a catalog, applied all together on commit (see module doc).
 

@@ -140,7 +140,7 @@ class _Ingest:
 
 
 def tile_missions(
-    mission_paths: Sequence[str | Path],
+    mission_paths: Sequence[str | Path | Mission],
     catalog_path: str | Path,
     options: TileOptions = TileOptions(),
     *,
@@ -149,11 +149,13 @@ def tile_missions(
 ) -> TileReport:
     """Georeference and tile missions into the catalog at ``catalog_path`` (made if absent).
 
+    ``mission_paths`` are mission folders or missions already opened (``open_mission``).
+
     ``wrap(iterable, total, description)`` may add a progress bar; ``status`` gets progress
     lines. Raises a :class:`~standgrid.errors.StandgridError` subclass on any bad input,
     leaving the catalog as it was.
     """
-    from standgrid.mission.model import open_mission
+    from standgrid.mission.model import Mission, open_mission
 
     if not mission_paths:
         raise CatalogError("no missions given")
@@ -161,7 +163,8 @@ def tile_missions(
         raise CatalogError("an anchor places one mission: tile one mission per --anchor")
     ingests: list[_Ingest] = []
     for path in mission_paths:
-        mission = open_mission(path, cache_points=0)  # each payload is read once
+        # a folder is opened without a point cache: each payload is read once
+        mission = path if isinstance(path, Mission) else open_mission(path, cache_points=0)
         status(f"georeferencing {mission.name}")
         ingests.append(_prepare(mission, options))
     names = [i.mission.name for i in ingests]

@@ -841,14 +841,18 @@ def _read_las(path: Path) -> PointCloud:
 
 
 def _las_header(path: Path) -> CloudHeader:
+    """The header of a LAS/LAZ file. An uncompressed file shorter than its header announces
+    is not an error here: :meth:`CloudHeader.size_problem` says so (readers raise); a LAZ
+    file's count is checked against its chunk table (it has no ``data_bytes``)."""
     import laspy
 
-    check_las_size(path)
     try:
         with laspy.open(path) as reader:
             header = reader.header
     except (laspy.errors.LaspyException, ValueError, OSError, EOFError) as exc:
         raise PointCloudFormatError(f"unreadable LAS/LAZ header ({exc})", path=path) from exc
+    if header.are_points_compressed:
+        check_las_size(path)
     pf = header.point_format
     dtypes: dict[str, np.dtype[Any]] = {a: np.dtype(np.float64) for a in _XYZ}
     names: list[str] = []

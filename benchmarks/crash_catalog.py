@@ -7,7 +7,7 @@ random moments, concurrent writers included, and check after each kill that
 2. the next run completes;
 3. no point is lost: afterwards every mission holds exactly its points.
 
-Commit points are named by ``$STANDGRID_CRASH_AT`` (``standgrid.export.catalog.crash_point``):
+Commit points are named by ``$STANDGRID_CRASH_AT`` (``standgrid.catalog.store.crash_point``):
 ``staged``, ``journal``, ``rename-<k>``, ``before-catalog-json``, ``applied`` inside a
 transaction, ``publish`` and ``exchanged`` when a built catalog replaces another.
 
@@ -41,7 +41,7 @@ import laspy  # noqa: E402
 import numpy as np  # noqa: E402
 import pyogrio  # noqa: E402
 
-from standgrid.export.catalog import Catalog  # noqa: E402
+from standgrid.catalog import Catalog  # noqa: E402
 
 BUNDLED = REPO / "data" / "missions"
 A_SRC = BUNDLED / "2024-05-14-wytham-anymal-coyote"

@@ -147,7 +147,7 @@ def build_small_catalog(root: Path) -> Path:
     2024: cells A, B (ground + one tree) and C (two points 20 m up, isolated: no ground);
     2028: cells A and D. So in a comparison B and C are ``from_only``, D is ``to_only``.
     """
-    from standgrid.export.catalog import Catalog
+    from standgrid.catalog import Catalog
     from standgrid.export.gpkg import cell_row, write_index
     from standgrid.export.las import write_tile
     from standgrid.partition import StandGrid

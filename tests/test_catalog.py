@@ -14,6 +14,7 @@ from pathlib import Path
 
 import pytest
 
+from standgrid.catalog import Catalog, grid_fingerprint, recover
 from standgrid.errors import (
     CatalogBusyError,
     CatalogConflictError,
@@ -24,7 +25,6 @@ from standgrid.errors import (
     OutputExistsError,
     OutputNotWritableError,
 )
-from standgrid.export.catalog import Catalog, grid_fingerprint, recover
 
 GRID = {"crs": "EPSG:32632", "cell_size": 20.0, "origin": [500000.0, 6000000.0], "levels": 3}
 
@@ -128,7 +128,7 @@ REPO = Path(__file__).resolve().parents[1]
 #: A second transaction, run in a child process that kills itself at a commit point.
 CHILD = """
 import sys
-from standgrid.export.catalog import Catalog
+from standgrid.catalog import Catalog
 with Catalog.writing(sys.argv[1]) as catalog, catalog.transaction() as txn:
     txn.stage("tiles/e1/x.laz").write_bytes(b"new-x")
     txn.stage("tiles/e2/y.laz").write_bytes(b"new-y")
@@ -266,7 +266,7 @@ def test_a_leftover_temporary_catalog_json_is_removed(tmp_path: Path) -> None:
 
 WRITER = """
 import sys, time
-from standgrid.export.catalog import Catalog
+from standgrid.catalog import Catalog
 root, name, go = sys.argv[1], sys.argv[2], float(sys.argv[3])
 while time.time() < go:
     time.sleep(0.001)
@@ -297,7 +297,7 @@ def test_concurrent_writers_creating_one_catalog_both_land(tmp_path: Path) -> No
 def test_a_second_writer_times_out_with_a_typed_error(tmp_path: Path) -> None:
     catalog = two_states(tmp_path)
     hold = (
-        "import sys, time\nfrom standgrid.export.catalog import Catalog\n"
+        "import sys, time\nfrom standgrid.catalog import Catalog\n"
         "with Catalog.writing(sys.argv[1]):\n    print('held', flush=True); time.sleep(5)\n"
     )
     env = {**os.environ, "PYTHONPATH": str(REPO)}
@@ -337,7 +337,7 @@ def test_readers_never_see_a_half_applied_commit(tmp_path: Path) -> None:
     writer = """
 import sys, time
 from pathlib import Path
-from standgrid.export.catalog import Catalog
+from standgrid.catalog import Catalog
 while not Path(sys.argv[1], "..", "ready").exists():
     time.sleep(0.01)
 for k in range(1, 16):

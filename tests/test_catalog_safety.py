@@ -20,6 +20,7 @@ import numpy as np
 import pyogrio
 import pytest
 
+from standgrid.catalog import Catalog
 from standgrid.errors import (
     CatalogError,
     InsufficientGnssError,
@@ -27,7 +28,6 @@ from standgrid.errors import (
     PointCloudFormatError,
     PoorGeoreferenceError,
 )
-from standgrid.export.catalog import Catalog
 from standgrid.mission.clouds import read_cloud, write_cloud
 from standgrid.pipeline.enrich import enrich_catalog
 from standgrid.pipeline.tile import TileOptions, tile_missions

@@ -12,9 +12,9 @@ import pyogrio
 import pytest
 from pyproj import Transformer
 
+from standgrid.catalog import Catalog
 from standgrid.cli import cli
 from standgrid.errors import FormatError
-from standgrid.export.catalog import Catalog
 from standgrid.growth.treelist import TREE_COLUMNS, generic_tree_list, write_tree_list
 from tests.pipeline_fixtures import enriched_pair
 

@@ -17,11 +17,11 @@ import pyogrio
 import pytest
 from click.testing import CliRunner
 
+from standgrid.catalog.invalidate import clear_invalidation, without_enrichment
 from standgrid.cli import cli
 from standgrid.errors import EnrichError
 from standgrid.pipeline.compare import compare_epochs
 from standgrid.pipeline.enrich import EnrichOptions, enrich_catalog
-from standgrid.pipeline.invalidate import clear_invalidation, without_enrichment
 from standgrid.pipeline.status import catalog_status
 from standgrid.pipeline.tile import tile_missions
 from tests.conftest import BUNDLED_MISSIONS

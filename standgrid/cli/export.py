@@ -149,7 +149,7 @@ def trees(
       standgrid export trees catalog -o trees.parquet
       standgrid export trees catalog -o trees.gpkg --epoch 2028 --overwrite
     """
-    from standgrid.export.catalog import Catalog
+    from standgrid.catalog import Catalog
     from standgrid.growth.treelist import generic_tree_list, summary, write_tree_list
 
     status(f"exporting trees from {catalog} ...", quiet or as_json)

@@ -135,8 +135,8 @@ def by_gnss(
     Example:
       standgrid retrieve by-gnss MISSION 51.776 -1.338 --json
     """
+    from standgrid.georeference.retrieval import retrieve_payload_by_gnss
     from standgrid.mission.model import open_mission
-    from standgrid.mission.retrieval import retrieve_payload_by_gnss
 
     opened = open_mission(mission, strict=False)
     coord = (lat, lon) if alt is None else (lat, lon, alt)

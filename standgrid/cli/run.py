@@ -30,6 +30,7 @@ Open it in QGIS:
 
 
 def _human(r: dict[str, Any]) -> str:
+    from standgrid.catalog import paths
     from standgrid.cli.compare import _human as compare_human
     from standgrid.cli.enrich import _human as enrich_human
     from standgrid.cli.tile import _human as tile_human
@@ -44,9 +45,9 @@ def _human(r: dict[str, Any]) -> str:
     )
     parts.append(
         QGIS_GUIDE.format(
-            gpkg=catalog / "index.gpkg",
-            vpcs=", ".join(str(catalog / f"tiles_{e}.vpc") for e in epochs),
-            rasters=catalog / "rasters" / "<epoch>" / "*.tif",
+            gpkg=catalog / paths.INDEX,
+            vpcs=", ".join(str(catalog / paths.vpc(e)) for e in epochs),
+            rasters=catalog / paths.raster("<epoch>", "*"),
             chm_diff=chm_diff,
         )
     )

@@ -62,7 +62,9 @@ def _human(report: dict[str, Any]) -> str:
             if rmse is not None
             else f"  {name}: #{m['number']}, {m['payloads']} payloads, {m['points']:,} points"
         )
-    lines.append(f"open {Path(report['catalog']) / 'index.gpkg'} in QGIS")
+    from standgrid.catalog import paths
+
+    lines.append(f"open {Path(report['catalog']) / paths.INDEX} in QGIS")
     return "\n".join(lines)
 
 

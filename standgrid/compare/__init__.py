@@ -32,3 +32,8 @@ __all__ = [
     "match_trees",
     "write_change_outputs",
 ]
+
+from standgrid._stage import make_callable
+
+#: ``standgrid.compare(catalog, ...)`` is the front door's alias of ``compare_epochs``.
+make_callable(__name__, "standgrid.pipeline.compare:compare_epochs")

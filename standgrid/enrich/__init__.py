@@ -77,3 +77,8 @@ __all__ = [
     "write_cog",
     "xy_from_tree_id",
 ]
+
+from standgrid._stage import make_callable
+
+#: ``standgrid.enrich(catalog, options)`` is the front door's alias of ``enrich_catalog``.
+make_callable(__name__, "standgrid.pipeline.enrich:enrich_catalog")

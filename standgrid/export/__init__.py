@@ -1,6 +1,8 @@
-"""Exporting: LAS/LAZ tiles, the GeoPackage index (+ QGIS styles), VPC, the catalog folder."""
+"""File writers: LAS/LAZ tiles, the GeoPackage index (+ QGIS styles), VPC.
 
-from standgrid.export.catalog import Catalog, Transaction, grid_fingerprint, recover
+The catalog folder they are written into is :mod:`standgrid.catalog`.
+"""
+
 from standgrid.export.gpkg import (
     LAYER_COLUMNS,
     IndexWriter,
@@ -25,10 +27,8 @@ from standgrid.export.styles import (
 
 __all__ = [
     "LAYER_COLUMNS",
-    "Catalog",
     "IndexWriter",
     "TileInfo",
-    "Transaction",
     "VpcTile",
     "add_layer_style",
     "categorized_style",
@@ -36,12 +36,10 @@ __all__ = [
     "density_style",
     "diverging_style",
     "graduated_style",
-    "grid_fingerprint",
     "iso_time",
     "layer_frame",
     "load_qml",
     "read_tile",
-    "recover",
     "single_style",
     "stand_metric_style",
     "write_index",

@@ -20,9 +20,9 @@ import numpy as np
 import pandas as pd
 
 from standgrid._atomic import atomic_output
+from standgrid.catalog import Catalog, paths
 from standgrid.enrich.stands import counted_trees
 from standgrid.errors import FormatError
-from standgrid.export.catalog import Catalog
 from standgrid.growth.treelist import (
     catalog_epochs,
     read_stands,
@@ -128,14 +128,14 @@ def slope_aspect(dtm: Path, polygon: Any) -> tuple[float, float, float]:
 def _stand_polygons(catalog: Catalog) -> pd.DataFrame:
     import pyogrio
 
-    frame = pyogrio.read_dataframe(catalog.path("index.gpkg"), layer="stand_metrics",
+    frame = pyogrio.read_dataframe(catalog.path(paths.INDEX), layer="stand_metrics",
                                    columns=["cell_id", "epoch"])  # fmt: skip
     frame["epoch"] = frame["epoch"].astype(str)
     return frame
 
 
 def _years_between(catalog: Catalog, first: str, last: str) -> float:
-    dates = [dt.date.fromisoformat(str(catalog.epochs[e]["date"])) for e in (first, last)]
+    dates = [dt.date.fromisoformat(str(catalog.epoch(e).date)) for e in (first, last)]
     return (dates[1] - dates[0]).days / 365.25
 
 
@@ -145,7 +145,7 @@ def _increments(catalog: Catalog, epoch: str, previous: str | None) -> pd.DataFr
     None when the two epochs were not compared."""
     if previous is None:
         return None
-    path = catalog.path(f"compare/{previous}__{epoch}/tree_changes.parquet")
+    path = catalog.path(paths.comparison(previous, epoch, "tree_changes.parquet"))
     if not path.is_file():
         return None
     changes = pd.read_parquet(path)
@@ -218,7 +218,8 @@ def _export_fvs(
 
     key = stand_key(level)
     wanted = catalog_epochs(catalog, epochs)
-    order = sorted(catalog.epochs, key=lambda e: (str(catalog.epochs[e].get("date") or ""), e))
+    records = catalog.epoch_records
+    order = sorted(records, key=lambda e: (records[e].date or "", e))
     stands = read_stands(catalog)
     polygons = _stand_polygons(catalog)
     to_wgs84 = Transformer.from_crs(catalog.crs, "EPSG:4326", always_xy=True)
@@ -230,7 +231,7 @@ def _export_fvs(
         trees = read_trees(catalog, epoch)
         position = order.index(epoch)
         previous = order[position - 1] if increments and position > 0 else None
-        if previous is not None and not catalog.epochs[previous].get("enriched"):
+        if previous is not None and not records[previous].enriched:
             previous = None
         incr = _increments(catalog, epoch, previous)
         if previous is not None and incr is None:
@@ -240,9 +241,9 @@ def _export_fvs(
             )
             previous = None
         years = _years_between(catalog, previous, epoch) if previous is not None else None
-        year = dt.date.fromisoformat(str(catalog.epochs[epoch]["date"])).year
+        year = dt.date.fromisoformat(str(records[epoch].date)).year
         level_rows = stands[(stands["epoch"] == epoch) & (stands["level"] == level)]
-        dtm = catalog.path(f"rasters/{epoch}/dtm.tif")
+        dtm = catalog.path(paths.raster(epoch, "dtm"))
         counted = trees[counted_trees(trees, stands[stands["epoch"] == epoch])]
         for _, row in level_rows.sort_values("cell_id").iterrows():
             cell_id = str(row["cell_id"])

@@ -17,9 +17,9 @@ import numpy as np
 import pandas as pd
 
 from standgrid._atomic import atomic_output
+from standgrid.catalog import Catalog, paths
 from standgrid.enrich.stands import counted_trees, stem_xy
 from standgrid.errors import EpochNotFoundError, FormatError, NotEnrichedError
-from standgrid.export.catalog import Catalog
 
 #: Tree-list formats by file suffix.
 FORMATS = {
@@ -40,12 +40,12 @@ TREE_COLUMNS = [
 
 def catalog_epochs(catalog: Catalog, epochs: Sequence[str] | None) -> list[str]:
     """The enriched epochs asked for (all enriched ones by default), in catalog order."""
-    known = catalog.epochs
-    wanted = list(epochs) if epochs else [e for e, rec in known.items() if rec.get("enriched")]
+    known = catalog.epoch_records
+    wanted = list(epochs) if epochs else [e for e, rec in known.items() if rec.enriched]
     for epoch in wanted:
         if epoch not in known:
             raise EpochNotFoundError(
-                f"no epoch {epoch!r} (have {sorted(known)})", path=catalog.path("catalog.json")
+                f"no epoch {epoch!r} (have {sorted(known)})", path=catalog.path(paths.CATALOG_FILE)
             )
     if not wanted:
         raise NotEnrichedError("no enriched epoch: run `standgrid enrich` first", path=catalog.root)
@@ -55,7 +55,7 @@ def catalog_epochs(catalog: Catalog, epochs: Sequence[str] | None) -> list[str]:
 def read_trees(catalog: Catalog, epoch: str) -> pd.DataFrame:
     """The epoch's tree list as ``standgrid enrich`` writes it (``dbh_source``,
     ``dbh_se_m``, ``observed``: docs/METRICS.md)."""
-    path = catalog.path(f"tables/tree_list_{epoch}.parquet")
+    path = catalog.path(paths.tree_list(epoch, "parquet"))
     if not path.is_file():
         raise NotEnrichedError(
             f"no tree list for epoch {epoch!r}: run `standgrid enrich`", path=path
@@ -77,7 +77,7 @@ def read_trees(catalog: Catalog, epoch: str) -> pd.DataFrame:
 
 def read_stands(catalog: Catalog) -> pd.DataFrame:
     """``tables/stand_metrics.parquet`` with ``epoch`` as text."""
-    path = catalog.path("tables/stand_metrics.parquet")
+    path = catalog.path(paths.stand_metrics("parquet"))
     if not path.is_file():
         raise NotEnrichedError("no stand table: run `standgrid enrich`", path=path)
     stands = pd.read_parquet(path)
@@ -128,7 +128,7 @@ def generic_tree_list(
         out = pd.DataFrame(
             {
                 "epoch": epoch,
-                "date": catalog.epochs[epoch].get("date"),
+                "date": catalog.epoch(epoch).date,
                 "stand_id": trees.get("stand_id", pd.Series(pd.NA, index=trees.index)),
                 "cell_id": trees.get("cell_id", pd.Series(pd.NA, index=trees.index)),
                 "tree_id": trees["tree_id"].astype(np.int64),

@@ -841,8 +841,9 @@ def _read_las(path: Path) -> PointCloud:
 
 
 def _las_header(path: Path) -> CloudHeader:
-    """The header, allocating nothing: an uncompressed file's size is checked by
-    :meth:`CloudHeader.size_problem` (and before reading), a LAZ file's chunk table here."""
+    """The header of a LAS/LAZ file. An uncompressed file shorter than its header announces
+    is not an error here: :meth:`CloudHeader.size_problem` says so (readers raise); a LAZ
+    file's count is checked against its chunk table (it has no ``data_bytes``)."""
     import laspy
 
     try:

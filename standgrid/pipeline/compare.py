@@ -17,6 +17,7 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
+from standgrid.catalog import paths
 from standgrid.compare.coverage import (
     CO_OBSERVED_METRICS,
     UNOBSERVED,
@@ -31,7 +32,7 @@ if TYPE_CHECKING:
     import geopandas as gpd
     import pandas as pd
 
-    from standgrid.export.catalog import Catalog
+    from standgrid.catalog import Catalog
 
 
 @dataclass
@@ -64,7 +65,7 @@ class CompareReport:
 
 def pair_folder(epoch_from: str, epoch_to: str) -> str:
     """Catalog-relative folder of one comparison."""
-    return f"compare/{epoch_from}__{epoch_to}"
+    return paths.comparison(epoch_from, epoch_to)
 
 
 def compare_epochs(
@@ -90,7 +91,7 @@ def compare_epochs(
     import os
     import tempfile
 
-    from standgrid.export.catalog import Catalog
+    from standgrid.catalog import Catalog
 
     with (
         Catalog.writing(catalog_path, lock_timeout=lock_timeout) as source,
@@ -140,15 +141,15 @@ def _compare(
 
     metrics_from = _epoch_metrics(source, epoch_from)
     metrics_to = _epoch_metrics(target, epoch_to)
-    trees_from = _read_table(source, f"tables/tree_list_{epoch_from}.parquet")
-    trees_to = _read_table(target, f"tables/tree_list_{epoch_to}.parquet")
+    trees_from = _read_table(source, paths.tree_list(epoch_from, "parquet"))
+    trees_to = _read_table(target, paths.tree_list(epoch_to, "parquet"))
     matches = match_trees(
         trees_from, trees_to, date_from=date_from, date_to=date_to, max_distance=max_distance
     )
     cells = _cell_polygons(source, target, metrics_from, metrics_to)
     co = CoObserved.read(
-        source.path(f"rasters/{epoch_from}/observed.tif"),
-        target.path(f"rasters/{epoch_to}/observed.tif"),
+        source.path(paths.raster(epoch_from, "observed")),
+        target.path(paths.raster(epoch_to, "observed")),
     ).within(_measured_cells(cells, metrics_from), _measured_cells(cells, metrics_to))
     matches = _locate(matches, trees_from, trees_to)
     matches = replace(matches, table=mark_unobserved(matches.table, co))
@@ -178,19 +179,19 @@ def _compare(
         per_level.append(changes)
     changes = pd.concat(per_level, ignore_index=True)
 
-    chm_to = target.path(f"rasters/{epoch_to}/chm.tif")
+    chm_to = target.path(paths.raster(epoch_to, "chm"))
     if scratch is not None:  # the other catalog's reader lock is not held across our commit
         chm_to = Path(shutil.copyfile(chm_to, scratch / "chm_to.tif"))
     release_target()  # everything of the other catalog is read
     folder = pair_folder(epoch_from, epoch_to)
     outputs: dict[str, str] = {}
     with source.transaction() as txn:
-        index = txn.stage("index.gpkg")
-        shutil.copyfile(source.path("index.gpkg"), index)
-        chm_rel = f"{folder}/chm_diff.tif"
+        index = txn.stage(paths.INDEX)
+        shutil.copyfile(source.path(paths.INDEX), index)
+        chm_rel = paths.comparison(epoch_from, epoch_to, "chm_diff.tif")
         style_rel = raster_style_path(chm_rel).as_posix()
         chm_difference(
-            source.path(f"rasters/{epoch_from}/chm.tif"),
+            source.path(paths.raster(epoch_from, "chm")),
             chm_to,
             txn.stage(chm_rel),
             extent="union",
@@ -201,10 +202,10 @@ def _compare(
         )
         outputs = {
             "chm_difference": chm_rel, "chm_difference_style": style_rel, **written,
-            "gpkg": "index.gpkg",
+            "gpkg": paths.INDEX,
         }  # fmt: skip
         comparisons = txn.state.setdefault("comparisons", {})
-        comparisons[f"{epoch_from}__{epoch_to}"] = {
+        comparisons[paths.comparison_key(epoch_from, epoch_to)] = {
             "from": epoch_from,
             "to": epoch_to,
             "other_catalog": (
@@ -244,7 +245,7 @@ def _write_outputs(
     """Write the change tables into the staging folder and register every file."""
     from standgrid.compare import write_change_outputs
 
-    out_dir = txn.stage(f"{folder}/stand_changes.csv").parent
+    out_dir = txn.stage(paths.comparison(epoch_from, epoch_to, "stand_changes.csv")).parent
     result = write_change_outputs(
         out_dir,
         index,
@@ -350,7 +351,8 @@ def _with_coverage(
 
 
 def _default_epoch(catalog: Catalog, *, first: bool) -> str:
-    epochs = sorted(catalog.epochs, key=lambda e: (catalog.epochs[e].get("date") or "", e))
+    records = catalog.epoch_records
+    epochs = sorted(records, key=lambda e: (records[e].date or "", e))
     if len(epochs) < (2 if first else 1):
         raise EpochNotFoundError(
             f"comparing needs two epochs; the catalog has {epochs or 'none'}",
@@ -361,24 +363,20 @@ def _default_epoch(catalog: Catalog, *, first: bool) -> str:
 
 def _enriched_epoch(catalog: Catalog, epoch: str) -> str:
     """The epoch's date; raises unless the epoch exists and is enriched."""
-    entry = catalog.epochs.get(epoch)
-    if entry is None:
-        raise EpochNotFoundError(
-            f"no epoch {epoch!r} (epochs: {sorted(catalog.epochs)})", path=catalog.root
-        )
-    if not entry.get("enriched"):
+    entry = catalog.epoch(epoch)  # EpochNotFoundError naming the epochs
+    if not entry.enriched:
         raise EnrichError(
             f"epoch {epoch!r} is not enriched (run `standgrid enrich {catalog.root}` first)",
             path=catalog.root,
         )
-    if not entry.get("date"):
+    if not entry.date:
         raise EnrichError(f"epoch {epoch!r} has no date to annualise with", path=catalog.root)
-    return str(entry["date"])
+    return entry.date
 
 
 def _epoch_metrics(catalog: Catalog, epoch: str) -> pd.DataFrame:
 
-    table = _read_table(catalog, "tables/stand_metrics.parquet")
+    table = _read_table(catalog, paths.stand_metrics("parquet"))
     return table[table["epoch"].astype(str) == epoch].drop(columns=["epoch"]).reset_index(drop=True)
 
 
@@ -394,7 +392,7 @@ def _cell_polygons(
 
     cells = pd.concat(
         [
-            read_index_layer(c.path("index.gpkg"), "cells")[["cell_id", "geometry"]]
+            read_index_layer(c.path(paths.INDEX), "cells")[["cell_id", "geometry"]]
             for c in {id(source): source, id(target): target}.values()
         ],
         ignore_index=True,

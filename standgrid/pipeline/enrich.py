@@ -29,6 +29,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 from numpy.typing import NDArray
 
+from standgrid.catalog import paths
 from standgrid.enrich.rasters import NODATA, chm, density
 from standgrid.enrich.stands import CoverageRule, StandSample, stem_xy
 from standgrid.errors import EnrichError, EpochNotFoundError, StandgridError
@@ -37,10 +38,10 @@ from standgrid.pointcloud import PointCloud
 if TYPE_CHECKING:
     import pandas as pd
 
+    from standgrid.catalog import Catalog, Transaction
     from standgrid.enrich.allometry import HeightDiameterModel
     from standgrid.enrich.coverage import Coverage
     from standgrid.enrich.rasters import RasterGrid
-    from standgrid.export.catalog import Catalog, Transaction
 
 Wrap = Callable[[Iterable[Any], int, str], Iterable[Any]]
 
@@ -130,7 +131,7 @@ def enrich_catalog(
     Everything is read and written under the catalog's writer lock (waiting up to
     ``lock_timeout`` seconds for another writer).
     """
-    from standgrid.export.catalog import Catalog
+    from standgrid.catalog import Catalog
 
     with Catalog.writing(catalog_path, lock_timeout=lock_timeout) as catalog:
         return _enrich(catalog, options, wrap, status)
@@ -139,8 +140,8 @@ def enrich_catalog(
 def _enrich(
     catalog: Catalog, options: EnrichOptions, wrap: Wrap, status: Callable[[str], None]
 ) -> EnrichReport:
+    from standgrid.catalog.invalidate import clear_invalidation, invalidate_comparisons
     from standgrid.enrich.allometry import impute_dbh
-    from standgrid.pipeline.invalidate import clear_invalidation, invalidate_comparisons
 
     if not catalog.crs:
         raise EnrichError("the catalog has no CRS (not georeferenced)", path=catalog.root)
@@ -204,7 +205,7 @@ def _epoch_cells(catalog: Catalog, epoch: str) -> list[_Cell]:
     from standgrid.export.gpkg import read_index_layer
 
     grid = _stand_grid(catalog)
-    cells = read_index_layer(catalog.path("index.gpkg"), "cells")
+    cells = read_index_layer(catalog.path(paths.INDEX), "cells")
     cells = cells[cells["epoch"].astype(str) == epoch].sort_values("cell_id")
     return [
         _Cell(str(r.cell_id), str(r.tile_path), r.geometry, _stand_of(grid, str(r.cell_id)))
@@ -336,12 +337,12 @@ def _enrich_epoch(
         ("chm", chm_raster, "canopy height model: height above ground (m)"),
     ):
         array[unseen] = np.nan  # terrain (and heights over it) extrapolated there
-        _write_raster(txn, f"rasters/{epoch}/{name}.tif", array, grid, catalog.crs, description)
+        _write_raster(txn, paths.raster(epoch, name), array, grid, catalog.crs, description)
     _write_raster(
-        txn, f"rasters/{epoch}/density.tif", density_raster, grid, catalog.crs,
+        txn, paths.raster(epoch, "density"), density_raster, grid, catalog.crs,
         "points per square metre",
     )  # fmt: skip
-    _write_coverage(txn, f"rasters/{epoch}/observed.tif", coverage, catalog.crs)
+    _write_coverage(txn, paths.raster(epoch, "observed"), coverage, catalog.crs)
     observed_m2 = float(coverage.observed.sum()) * grid.pixel_size**2
     summary = {
         "cells": len(cells),
@@ -363,7 +364,7 @@ def _height_diameter_models(
 
     measured = {e: t[np.isfinite(t["dbh_m"].to_numpy(np.float64))] for e, t in trees.items()}
     for epoch in catalog.epochs:  # measured trees of epochs enriched before
-        path = catalog.path(f"tables/tree_list_{epoch}.parquet")
+        path = catalog.path(paths.tree_list(epoch, "parquet"))
         if epoch not in measured and path.exists():
             old = pd.read_parquet(path)
             if "dbh_source" in old.columns:
@@ -648,17 +649,17 @@ def _write_tables(
     """``tables/stand_metrics`` (all epochs; replaced rows of re-enriched epochs) and tree lists."""
     import pandas as pd
 
-    existing = catalog.path("tables/stand_metrics.parquet")
+    existing = catalog.path(paths.stand_metrics("parquet"))
     frames = []
     if existing.exists():
         old = pd.read_parquet(existing)
         frames.append(old[~old["epoch"].astype(str).isin(metric_tables)])
     frames.extend(metric_tables.values())
     metrics = pd.concat(frames, ignore_index=True).sort_values(["epoch", "cell_id"])
-    _write_table(txn, "tables/stand_metrics", metrics)
+    _write_table(txn, paths.METRICS_TABLE, metrics)
     for epoch, trees in tree_tables.items():
         _write_table(
-            txn, f"tables/tree_list_{epoch}", trees.drop(columns=["crown"], errors="ignore")
+            txn, paths.tree_list_stem(epoch), trees.drop(columns=["crown"], errors="ignore")
         )
 
 
@@ -683,8 +684,8 @@ def _write_layers(
     from standgrid.export.gpkg import IndexWriter, index_layer_names, read_index_layer
     from standgrid.export.styles import stand_metric_style
 
-    index = catalog.path("index.gpkg")
-    staged = txn.stage("index.gpkg")
+    index = catalog.path(paths.INDEX)
+    staged = txn.stage(paths.INDEX)
     if not staged.exists():
         shutil.copyfile(index, staged)
     present = index_layer_names(staged)

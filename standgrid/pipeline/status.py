@@ -6,7 +6,9 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Any
 
-ENRICHED, STALE, NOT_ENRICHED = "enriched", "stale", "not enriched"
+from standgrid.catalog.records import ENRICHED, NOT_ENRICHED, STALE
+
+__all__ = ["ENRICHED", "NOT_ENRICHED", "STALE", "catalog_status"]
 
 
 def catalog_status(catalog_path: str | Path) -> dict[str, Any]:
@@ -17,26 +19,24 @@ def catalog_status(catalog_path: str | Path) -> dict[str, Any]:
     point counts at ingest (no tile is read). A comparison is ``present``, or ``invalidated``
     (removed when one of its epochs was re-tiled, and not made again since).
     """
-    from standgrid.export.catalog import Catalog
+    from standgrid.catalog import Catalog
 
     catalog = Catalog.open(catalog_path)  # one consistent read of catalog.json
-    missions = catalog.missions
+    missions = catalog.mission_records
     epochs: dict[str, Any] = {}
     invalidated: list[dict[str, Any]] = []
-    for epoch, entry in sorted(catalog.epochs.items()):
-        names = list(entry.get("missions", []))
-        stale = entry.get("invalidated")
-        state = ENRICHED if entry.get("enriched") else STALE if stale else NOT_ENRICHED
+    for epoch, record in sorted(catalog.epoch_records.items()):
+        state = record.state
         epochs[epoch] = {
-            "date": entry.get("date") or None,
-            "missions": names,
+            "date": record.date,
+            "missions": list(record.missions),
             "tiles": len(catalog.tiles(epoch)),
-            "points": sum(int(missions[n].get("point_count", 0)) for n in names if n in missions),
+            "points": sum(missions[n].point_count for n in record.missions if n in missions),
             "state": state,
-            "invalidated": stale if state == STALE else None,
-            "enrichment": entry.get("enrichment") if state == ENRICHED else None,
+            "invalidated": dict(record.invalidated or {}) if state == STALE else None,
+            "enrichment": dict(record.enrichment or {}) if state == ENRICHED else None,
         }
-        for key, lost in entry.get("comparisons_invalidated", {}).items():
+        for key, lost in record.comparisons_invalidated.items():
             invalidated.append({"comparison": key, **lost})
     comparisons = {
         key: {

@@ -22,6 +22,7 @@ from typing import TYPE_CHECKING, Any, Literal, TypeVar
 import numpy as np
 from numpy.typing import NDArray
 
+from standgrid.catalog import paths
 from standgrid.errors import (
     CatalogError,
     CRSError,
@@ -35,7 +36,7 @@ from standgrid.pointcloud import PointCloud
 from standgrid.stamps import unix_ns_to_adjusted_gps_time
 
 if TYPE_CHECKING:
-    from standgrid.export.catalog import Catalog, FileLock, Transaction
+    from standgrid.catalog import Catalog, FileLock, Transaction
     from standgrid.georeference import GeoreferenceFit, MapProjector
     from standgrid.mission.model import Mission, Payload
     from standgrid.partition import StandGrid
@@ -139,7 +140,7 @@ class _Ingest:
 
 
 def tile_missions(
-    mission_paths: Sequence[str | Path],
+    mission_paths: Sequence[str | Path | Mission],
     catalog_path: str | Path,
     options: TileOptions = TileOptions(),
     *,
@@ -148,11 +149,13 @@ def tile_missions(
 ) -> TileReport:
     """Georeference and tile missions into the catalog at ``catalog_path`` (made if absent).
 
+    ``mission_paths`` are mission folders or missions already opened (``open_mission``).
+
     ``wrap(iterable, total, description)`` may add a progress bar; ``status`` gets progress
     lines. Raises a :class:`~standgrid.errors.StandgridError` subclass on any bad input,
     leaving the catalog as it was.
     """
-    from standgrid.mission.model import open_mission
+    from standgrid.mission.model import Mission, open_mission
 
     if not mission_paths:
         raise CatalogError("no missions given")
@@ -160,7 +163,8 @@ def tile_missions(
         raise CatalogError("an anchor places one mission: tile one mission per --anchor")
     ingests: list[_Ingest] = []
     for path in mission_paths:
-        mission = open_mission(path, cache_points=0)  # each payload is read once
+        # a folder is opened without a point cache: each payload is read once
+        mission = path if isinstance(path, Mission) else open_mission(path, cache_points=0)
         status(f"georeferencing {mission.name}")
         ingests.append(_prepare(mission, options))
     names = [i.mission.name for i in ingests]
@@ -171,7 +175,7 @@ def tile_missions(
 
     path = _absolute_output(catalog_path, options)
     refuse_overlap(path, [i.mission.path for i in ingests])
-    from standgrid.export.catalog import (
+    from standgrid.catalog import (
         Catalog,
         build_folder,
         publish,
@@ -258,7 +262,7 @@ def _ingest(
     catalog: Catalog, ingests: list[_Ingest], options: TileOptions, wrap: Wrap, status: Any
 ) -> TileReport:
     """Tile the prepared missions into a catalog opened for writing, in one transaction."""
-    from standgrid.pipeline.invalidate import invalidate_epochs, retile_reason
+    from standgrid.catalog.invalidate import invalidate_epochs, retile_reason
 
     grid = _catalog_grid(catalog)
     report = TileReport(catalog.root, catalog.crs, catalog.scheme, catalog.fingerprint)
@@ -273,11 +277,8 @@ def _ingest(
                 ingest.to_catalog = _to_catalog(ingest, catalog.crs)
         renewed = [i.number for i in ingests]
         # an epoch a re-ingested mission leaves is re-tiled too (without that mission)
-        left = {
-            catalog.missions[i.mission.name]["epoch"]
-            for i in ingests
-            if i.mission.name in catalog.missions
-        }
+        known = catalog.mission_records
+        left = {known[i.mission.name].epoch for i in ingests if i.mission.name in known}
         reasons = {}
         for epoch in sorted({i.epoch for i in ingests} | left):
             group = [i for i in ingests if i.epoch == epoch]
@@ -288,7 +289,8 @@ def _ingest(
                 i.mission.name
                 for i in ingests
                 if i.epoch != epoch
-                and catalog.missions.get(i.mission.name, {}).get("epoch") == epoch
+                and i.mission.name in known
+                and known[i.mission.name].epoch == epoch
             ]
             reasons[epoch] = retile_reason([i.mission.name for i in group], moved)
         layers.write(txn, catalog)
@@ -407,7 +409,7 @@ def _requested_grid(crs: str, options: TileOptions) -> dict[str, Any]:
 
 
 def _is_catalog(path: Path) -> bool:
-    from standgrid.export.catalog import CATALOG_FILE
+    from standgrid.catalog import CATALOG_FILE
 
     return (path / CATALOG_FILE).is_file()
 
@@ -426,7 +428,7 @@ def _refuse_foreign_folder(path: Path, options: TileOptions) -> None:
 
 def _check_existing(catalog: Catalog, options: TileOptions) -> None:
     """Refuse adding missions in another CRS, scheme or grid than the catalog's."""
-    from standgrid.export.catalog import CATALOG_FILE
+    from standgrid.catalog import CATALOG_FILE
     from standgrid.georeference import crs_to_text, resolve_crs
 
     path = catalog.root
@@ -455,7 +457,7 @@ def _create(
 ) -> Catalog:
     """A new, empty catalog at ``path`` (to be published at ``final``) in the requested (or
     the missions' UTM) CRS."""
-    from standgrid.export.catalog import Catalog
+    from standgrid.catalog import Catalog
     from standgrid.georeference import crs_to_text, resolve_crs
 
     first = ingests[0]
@@ -522,10 +524,10 @@ def _tile_epoch(
 ) -> None:
     """(Re)tile one epoch: its kept points plus the payloads of ``group``; the points of every
     mission in ``renewed`` (this run's missions) are taken out of the old tiles first."""
+    from standgrid.catalog.invalidate import without_enrichment
     from standgrid.errors import ConservationError
     from standgrid.export.las import read_tile, snap_to_storage
     from standgrid.partition import GridBuffer, PartitionEngine
-    from standgrid.pipeline.invalidate import without_enrichment
 
     origin = grid.origin if grid is not None else (0.0, 0.0)
     group_names = {i.mission.name for i in group}
@@ -597,7 +599,7 @@ def _tile_epoch(
             polygons = final.polygons()
         for cell in wrap(engine.finalise(), 0, f"{epoch}: tiles"):
             cell_id, polygon, size = _cell_geometry(cell.key, grid, voronoi, polygons)
-            rel = f"tiles/{epoch}/{cell_id}.{'laz' if options.laz else 'las'}"
+            rel = paths.tile(epoch, cell_id, laz=bool(options.laz))
             info = _write_cell(txn, rel, cell, catalog.crs, polygon, origin)
             names = sorted(number_to_name[n] for n in info.points_per_source)
             for name in names:
@@ -997,7 +999,7 @@ class _IndexLayers:
         from standgrid.export.gpkg import index_layer_names, read_index_layer
 
         layers = cls()
-        path = catalog.path("index.gpkg")
+        path = catalog.path(paths.INDEX)
         if not path.exists():
             return layers
         present = index_layer_names(path)
@@ -1053,9 +1055,9 @@ class _IndexLayers:
         from standgrid.export.gpkg import write_index
 
         write_index(
-            txn.stage("index.gpkg"),
+            txn.stage(paths.INDEX),
             crs=catalog.crs,
-            base=txn.current("index.gpkg") if (catalog.root / "index.gpkg").exists() else None,
+            base=txn.current(paths.INDEX) if (catalog.root / paths.INDEX).exists() else None,
             cells=self.cells,
             payloads=self.payloads,
             trajectories=self.trajectories,
@@ -1134,7 +1136,7 @@ def _write_vpcs(txn: Transaction, catalog: Catalog, layers: _IndexLayers) -> Non
         )
     for epoch, tiles in by_epoch.items():
         tiles.sort(key=lambda tile: str(tile.path))
-        write_vpc(txn.stage(f"tiles_{epoch}.vpc"), tiles)
+        write_vpc(txn.stage(paths.vpc(epoch)), tiles)
     for epoch in catalog.epochs:
-        if epoch not in by_epoch and (catalog.root / f"tiles_{epoch}.vpc").exists():
-            txn.delete(f"tiles_{epoch}.vpc")
+        if epoch not in by_epoch and (catalog.root / paths.vpc(epoch)).exists():
+            txn.delete(paths.vpc(epoch))

@@ -1,0 +1,86 @@
+"""Catalog-relative paths: the one module that spells where things live in a catalog folder.
+
+::
+
+    catalog.json                              CATALOG_FILE
+    index.gpkg                                INDEX
+    tiles_<epoch>.vpc                         vpc(epoch)
+    tiles/<epoch>/<cell_id>.{laz,las}         tile(epoch, cell_id, laz=)
+    rasters/<epoch>/<name>.{tif,qml}          raster(epoch, name), raster_style(epoch, name)
+    tables/stand_metrics.{csv,parquet}        stand_metrics(ext)
+    tables/tree_list_<epoch>.{csv,parquet}    tree_list(epoch, ext)
+    compare/<from>__<to>/<file>               comparison(epoch_from, epoch_to, file)
+
+Every function returns a POSIX relative path (``str``), the form :class:`Transaction` stages,
+deletes and journals; ``Catalog.path(rel)`` makes it absolute.
+"""
+
+from __future__ import annotations
+
+CATALOG_FILE = "catalog.json"
+INDEX = "index.gpkg"
+TABLES = "tables"
+#: The stand metrics table without its extension (``.csv`` and ``.parquet`` are written).
+METRICS_TABLE = f"{TABLES}/stand_metrics"
+TABLE_FORMATS = ("csv", "parquet")
+
+
+def vpc(epoch: str) -> str:
+    """The virtual point cloud (STAC ItemCollection) over one epoch's tiles."""
+    return f"tiles_{epoch}.vpc"
+
+
+def tiles_folder(epoch: str) -> str:
+    """The folder of one epoch's tiles."""
+    return f"tiles/{epoch}"
+
+
+def tile(epoch: str, cell_id: str, *, laz: bool = True) -> str:
+    """One cell's tile in one epoch."""
+    return f"{tiles_folder(epoch)}/{cell_id}.{'laz' if laz else 'las'}"
+
+
+def rasters_folder(epoch: str) -> str:
+    """The folder of one epoch's rasters (DTM, CHM, density, observed) and their styles."""
+    return f"rasters/{epoch}"
+
+
+def raster(epoch: str, name: str) -> str:
+    """One epoch's raster ``name`` (``dtm``, ``chm``, ``density``, ``observed``)."""
+    return f"{rasters_folder(epoch)}/{name}.tif"
+
+
+def raster_style(epoch: str, name: str) -> str:
+    """The QGIS style sidecar of :func:`raster` (QGIS loads it with the raster)."""
+    return f"{rasters_folder(epoch)}/{name}.qml"
+
+
+def stand_metrics(ext: str) -> str:
+    """The stand metrics table of every epoch (``ext``: ``csv`` or ``parquet``)."""
+    return f"{METRICS_TABLE}.{ext}"
+
+
+def tree_list_stem(epoch: str) -> str:
+    """One epoch's tree list without its extension."""
+    return f"{TABLES}/tree_list_{epoch}"
+
+
+def tree_list(epoch: str, ext: str) -> str:
+    """One epoch's tree list (``ext``: ``csv`` or ``parquet``)."""
+    return f"{tree_list_stem(epoch)}.{ext}"
+
+
+def comparison_key(epoch_from: str, epoch_to: str) -> str:
+    """The key of a comparison in catalog.json's ``comparisons`` and its folder name."""
+    return f"{epoch_from}__{epoch_to}"
+
+
+def comparison_folder(key: str) -> str:
+    """The folder of the comparison ``key`` (see :func:`comparison_key`)."""
+    return f"compare/{key}"
+
+
+def comparison(epoch_from: str, epoch_to: str, file: str = "") -> str:
+    """A comparison's folder, or the file ``file`` in it."""
+    folder = comparison_folder(comparison_key(epoch_from, epoch_to))
+    return f"{folder}/{file}" if file else folder

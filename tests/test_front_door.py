@@ -1,0 +1,125 @@
+"""The front door: ``import standgrid`` is light, and a script uses nothing but its names."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from tests.conftest import BUNDLED_MISSIONS
+from tests.pipeline_fixtures import BUFFER_M, CRS, MISSIONS, EnrichedPair, enriched_pair
+
+HEAVY = ("numpy", "scipy", "pandas", "geopandas", "pyogrio", "laspy", "rasterio", "pyproj")
+
+
+def test_import_standgrid_imports_no_heavy_library() -> None:
+    code = (
+        "import sys, standgrid\n"
+        "assert callable(standgrid.__getattr__)\n"
+        f"print(','.join(m for m in {HEAVY!r} if m in sys.modules))"
+    )
+    out = subprocess.run(
+        [sys.executable, "-c", code], capture_output=True, text=True, check=True
+    ).stdout.strip()
+    assert out == ""
+
+
+def test_every_front_door_name_resolves() -> None:
+    import standgrid
+    from standgrid.pipeline.compare import compare_epochs
+    from standgrid.pipeline.enrich import enrich_catalog
+    from standgrid.pipeline.run import run_pipeline
+    from standgrid.pipeline.tile import tile_missions
+
+    for name in standgrid.__all__:
+        assert getattr(standgrid, name) is not None, name
+    assert standgrid.tile is tile_missions and standgrid.run is run_pipeline
+    # enrich and compare are also the stage packages: importing one keeps the alias callable
+    import standgrid.compare.trees
+    import standgrid.enrich.ground
+
+    assert callable(standgrid.enrich) and callable(standgrid.compare)
+    assert standgrid.enrich.__entry__.endswith(enrich_catalog.__name__)  # type: ignore[attr-defined]
+    assert standgrid.compare.__entry__.endswith(compare_epochs.__name__)  # type: ignore[attr-defined]
+    with pytest.raises(AttributeError, match="no attribute 'tile_missions'"):
+        _ = standgrid.tile_missions  # type: ignore[attr-defined]
+
+
+def test_mission_does_not_import_georeference() -> None:
+    root = Path(__file__).resolve().parents[1] / "standgrid" / "mission"
+    offenders = [
+        f"{path.name}:{number}"
+        for path in sorted(root.glob("*.py"))
+        for number, line in enumerate(path.read_text(encoding="utf-8").splitlines(), 1)
+        if "import" in line and "standgrid.georeference" in line
+    ]
+    assert offenders == []
+
+
+@pytest.fixture(scope="module")
+def pair(tmp_path_factory: pytest.TempPathFactory) -> EnrichedPair:
+    """The same missions through the pipeline modules (shared with the acceptance tests)."""
+    return enriched_pair(tmp_path_factory)
+
+
+@pytest.mark.slow
+def test_a_script_through_the_front_door(tmp_path: Path, pair: EnrichedPair) -> None:
+    """open_mission -> tile (opened missions) -> enrich -> compare -> open_catalog, and the
+    three retrievals, give the reports the pipeline modules give for the same missions."""
+    import pyogrio
+    from pyproj import Transformer
+
+    import standgrid
+
+    missions = [standgrid.open_mission(BUNDLED_MISSIONS / name) for name in MISSIONS.values()]
+    out = tmp_path / "catalog"
+    tiled = standgrid.tile(missions, out, standgrid.TileOptions(buffer=BUFFER_M))
+    enriched = standgrid.enrich(out, standgrid.EnrichOptions())
+    compared = standgrid.compare(out)
+
+    # the reports: conserved points, the same numbers as the pipeline modules' run
+    ref = pair.report
+    assert tiled.points_in == tiled.points_out == ref["tile"]["points_in"] > 0
+    assert tiled.crs == CRS and tiled.grid_fingerprint == ref["tile"]["grid_fingerprint"]
+    for epoch, summary in ref["tile"]["epochs"].items():
+        assert tiled.epochs[epoch]["points_out"] == summary["points_out"]
+    assert sorted(enriched.epochs) == sorted(MISSIONS)
+    for epoch, summary in ref["enrich"]["epochs"].items():
+        assert enriched.epochs[epoch]["trees"] == summary["trees"] > 150
+        assert enriched.epochs[epoch]["cells"] == summary["cells"]
+    assert (compared.epoch_from, compared.epoch_to) == ("2024", "2028")
+    assert compared.trees == ref["compare"]["trees"]
+    assert compared.trees["removed"] >= 27  # the simulated harvest
+    assert (out / compared.outputs["chm_difference"]).is_file()
+
+    # the catalog, opened for reading, as typed records
+    catalog = standgrid.open_catalog(out)
+    assert isinstance(catalog, standgrid.Catalog)
+    epochs = catalog.epoch_records
+    assert sorted(epochs) == sorted(MISSIONS)
+    assert all(record.enriched and record.state == "enriched" for record in epochs.values())
+    records = catalog.mission_records
+    for epoch, name in MISSIONS.items():
+        assert records[name].epoch == epoch
+        assert records[name].point_count == tiled.missions[name]["points"]
+        assert set(records[name].tiles) <= set(catalog.tiles(epoch))
+    grid = standgrid.StandGrid.from_dict(catalog.grid_definition)
+    assert grid.cell_size == 20.0
+
+    # retrieval: by type, by pose, and by GNSS from a payload's position in the catalog
+    mission = missions[0]
+    clouds = standgrid.retrieve_payload_by_type(mission, "point_cloud")
+    assert len(clouds) == tiled.missions[mission.name]["payloads"]
+    payloads = pyogrio.read_dataframe(out / "index.gpkg", layer="payloads")
+    rows = payloads[payloads["mission"] == mission.name].sort_values("stamp_sec")
+    to_lla = Transformer.from_crs(CRS, "EPSG:4326", always_xy=True)
+    for _, row in rows.iloc[:: max(1, len(rows) // 4)].iterrows():
+        lon, lat = to_lla.transform(row["x"], row["y"])
+        (hit,) = standgrid.retrieve_payload_by_gnss(mission, (lat, lon))
+        assert (hit.stamp.sec, hit.stamp.nsec) == (row["stamp_sec"], row["stamp_nsec"])
+        (same,) = standgrid.retrieve_payload_by_pose(mission, mission.pose_of(hit)[:3, 3])
+        assert same.stamp == hit.stamp
+    assert np.isfinite(rows[["x", "y"]].to_numpy()).all()

@@ -26,7 +26,8 @@ Open it in QGIS:
      stand_changes (growth per year, red-blue ramp), tree_changes (grown/new/removed),
      payloads, trajectories, gnss_fixes. Each layer opens with its own default style.
   2. Point clouds: drag {vpcs} into QGIS (3.32+), one layer per epoch.
-  3. Rasters: drag {rasters} (DTM, CHM, density) and {chm_diff} (CHM change)."""
+  3. Rasters: drag {rasters} (DTM, CHM, density, observed ground) and {chm_diff}
+     (CHM change); each opens with its own style (the .qml beside it)."""
 
 
 def _human(r: dict[str, Any]) -> str:

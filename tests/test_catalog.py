@@ -232,6 +232,24 @@ def test_a_planted_journal_cannot_reach_outside_the_catalog(tmp_path: Path) -> N
     assert victim.read_text() == "precious" and not (catalog.root / "tiles/e1/v.txt").exists()
 
 
+def test_a_journal_older_than_the_catalog_is_discarded_not_replayed(tmp_path: Path) -> None:
+    """A finished commit's journal that comes back (its removal never reached the disk)
+    after later commits must not delete their files again."""
+    catalog = two_states(tmp_path)
+    assert run_child(catalog.root, None) == 0  # generation 2: tiles/e1/gone.laz deleted
+    with Catalog.writing(catalog.root) as writer, writer.transaction() as txn:
+        txn.stage("tiles/e1/gone.laz").write_bytes(b"back")  # generation 3 writes it again
+    folder = catalog.root / ".staging" / "old"
+    (folder / "files").mkdir(parents=True)
+    body = {"txn": "old", "generation": 2, "renames": [], "deletes": ["tiles/e1/gone.laz"]}
+    digest = hashlib.sha256(json.dumps(body, sort_keys=True).encode()).hexdigest()
+    (folder / "journal.json").write_text(json.dumps({"journal": body, "sha256": digest}))
+    reader = Catalog.open(catalog.root)
+    assert reader.generation == 3
+    assert reader.path("tiles/e1/gone.laz").read_bytes() == b"back"
+    assert not folder.exists()
+
+
 def test_a_symlinked_folder_inside_the_catalog_is_not_written_through(tmp_path: Path) -> None:
     catalog = two_states(tmp_path)
     outside = tmp_path / "outside"

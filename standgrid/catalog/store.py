@@ -877,6 +877,10 @@ def apply_journal(root: Path, journal_path: Path) -> None:
     if body is None:
         raise CatalogError("torn or tampered journal (checksum mismatch)", path=journal_path)
     renames, deletes = _journal_targets(root, body, journal_path)
+    if _is_superseded(root, body):  # replaying its deletes would hit newer files
+        shutil.rmtree(journal_path.parent, ignore_errors=True)
+        fsync_path(journal_path.parent.parent)
+        return
     files = journal_path.parent / "files"
     if (files / CATALOG_FILE).exists():
         _read_state(files / CATALOG_FILE)  # a journal never installs a broken catalog.json
@@ -903,10 +907,26 @@ def apply_journal(root: Path, journal_path: Path) -> None:
         fsync_path(folder)
     for rel in deletes:
         (root / rel).unlink(missing_ok=True)
-    fsync_path(root)
+    for folder in sorted({(root / rel).parent for rel in deletes} | {root}):
+        if folder.is_dir():  # each unlink is durable, not only the catalog root's
+            fsync_path(folder)
     crash_point("applied")
     shutil.rmtree(journal_path.parent, ignore_errors=True)
+    fsync_path(journal_path.parent.parent)  # a finished journal does not come back
     _drop_empty_staging(root)
+
+
+def _is_superseded(root: Path, body: Mapping[str, Any]) -> bool:
+    """A journal older than the catalog's state: a later commit already happened (the
+    journal survived its own removal, e.g. a power loss before that was on disk)."""
+    current = root / CATALOG_FILE
+    if not current.is_file():
+        return False
+    try:
+        generation = int(json.loads(current.read_text(encoding="utf-8")).get("generation", 0))
+        return int(body.get("generation", 0)) < generation
+    except (ValueError, TypeError, OSError, AttributeError):
+        return False  # an unreadable catalog.json: leave the decision to the journal
 
 
 def _drop_empty_staging(root: Path) -> None:

@@ -117,6 +117,26 @@ def _swap_folder(new: Path, final: Path) -> None:
     shutil.rmtree(old, ignore_errors=True)
 
 
+def _place_new(tmp: Path, final: Path) -> None:
+    """Put ``tmp`` at ``final`` only if nothing is there, in one step (another writer that
+    created ``final`` after the first check is never overwritten)."""
+    import errno
+
+    try:
+        if tmp.is_dir():
+            os.rename(tmp, final)  # fails onto a file or a non-empty folder
+        else:
+            os.link(tmp, final)  # fails when final exists
+            tmp.unlink()
+    except OSError as exc:
+        if exc.errno in (errno.EEXIST, errno.ENOTEMPTY, errno.ENOTDIR, errno.EISDIR):
+            raise OutputExistsError(
+                "exists (written by another process meanwhile; use overwrite to replace it)",
+                path=final,
+            ) from exc
+        raise
+
+
 @contextlib.contextmanager
 def atomic_output(final: str | os.PathLike[str], *, overwrite: bool = True) -> Iterator[Path]:
     """Yield a temporary path beside ``final``; on success rename it onto ``final``.
@@ -140,7 +160,9 @@ def atomic_output(final: str | os.PathLike[str], *, overwrite: bool = True) -> I
     try:
         yield tmp
         fsync_tree(tmp)
-        if tmp.is_dir() and final_path.is_dir():
+        if not overwrite:
+            _place_new(tmp, final_path)
+        elif tmp.is_dir() and final_path.is_dir():
             _swap_folder(tmp, final_path)
         else:
             os.replace(tmp, final_path)

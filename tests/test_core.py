@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 from datetime import UTC
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -108,6 +109,31 @@ def test_adjusted_gps_time_uses_the_leap_seconds_of_its_date() -> None:
         assert got == pytest.approx(sec - GPS_EPOCH_UNIX + leap - 1e9 + 0.25, abs=1e-6)
     assert GPS_LEAP_SECONDS == 18
     assert float(unix_ns_to_adjusted_gps_time(ns[1])) == pytest.approx(gps[1])
+
+
+@pytest.mark.parametrize("kind", ["file", "folder"])
+def test_no_overwrite_never_replaces_what_another_writer_made_meanwhile(
+    tmp_path: Path, kind: str
+) -> None:
+    """overwrite=False is checked when the output is put in place, not only at the start:
+    a file or folder another process created meanwhile is kept, this writer refused."""
+    target = tmp_path / "out"
+    with pytest.raises(errors.OutputExistsError), atomic_output(target, overwrite=False) as tmp:
+        if kind == "file":
+            tmp.write_text("mine")
+            target.write_text("theirs")  # the other writer lands first
+        else:
+            tmp.mkdir()
+            (tmp / "a.txt").write_text("mine")
+            target.mkdir()
+            (target / "a.txt").write_text("theirs")
+    kept = target if kind == "file" else target / "a.txt"
+    assert kept.read_text() == "theirs"
+    assert [p.name for p in tmp_path.iterdir()] == ["out"]  # no temporary left behind
+    fresh = tmp_path / "fresh"
+    with atomic_output(fresh, overwrite=False) as tmp:
+        tmp.write_text("new")
+    assert fresh.read_text() == "new"
 
 
 def test_atomic_folder_replace_rolls_back_when_the_new_folder_cannot_move_in(

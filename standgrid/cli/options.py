@@ -29,6 +29,21 @@ lock_timeout_option = click.option(
 quiet_option = click.option("-q", "--quiet", is_flag=True, help="No progress output on stderr.")
 
 
+def cluster_options(command: F) -> F:
+    """``--workers N`` (a local dask cluster) and ``--scheduler ADDRESS`` (an existing one)."""
+    command = click.option(
+        "--scheduler",
+        metavar="ADDRESS",
+        help="Run on an existing dask.distributed cluster (tcp://host:port); every worker must "
+        "reach the catalog folder at the same path. The catalog is written only from here.",
+    )(command)
+    return click.option(
+        "--workers",
+        type=click.IntRange(min=1),
+        help="Run on a local dask cluster of N worker processes (default: this process).",
+    )(command)
+
+
 def mission_argument(nargs: int = 1) -> Callable[[F], F]:
     """A mission folder argument (one, or several with ``nargs=-1``)."""
     return click.argument(
@@ -83,6 +98,19 @@ def progress(
 
     disable = quiet or not sys.stderr.isatty()
     yield from tqdm(items, total=total, desc=desc, disable=disable, file=sys.stderr, leave=False)
+
+
+class TerminalProgress:
+    """The CLI's rendering of :class:`standgrid.engine.Progress`: bars and lines on stderr."""
+
+    def __init__(self, quiet: bool = False) -> None:
+        self.quiet = quiet
+
+    def track(self, items: Iterable[T], total: int, desc: str) -> Iterable[T]:
+        return progress(items, total=total or None, desc=desc, quiet=self.quiet)
+
+    def status(self, message: str) -> None:
+        status(message, self.quiet)
 
 
 def status(message: str, quiet: bool = False) -> None:

@@ -1,0 +1,141 @@
+"""Run a pure function over many work items: in this process, or on a dask.distributed cluster.
+
+The function and its items must be picklable (module-level function, plain data), because a
+cluster ships them to worker processes; the caller alone writes shared state (the catalog),
+from the results. Results come back as ``(index, result)`` in completion order with a bounded
+number of items in flight, so the caller merges them in a deterministic order of its own and
+its memory stays bounded.
+"""
+
+from __future__ import annotations
+
+import contextlib
+from collections.abc import Callable, Iterator, Sequence
+from typing import Any, Protocol, TypeVar
+
+from standgrid.engine.budget import DEFAULT_MEMORY_BUDGET
+from standgrid.errors import StandgridError
+
+T = TypeVar("T")
+R = TypeVar("R")
+
+
+class ClusterError(StandgridError, RuntimeError):
+    """The dask cluster could not be started or reached."""
+
+
+class Executor(Protocol):
+    """Maps a pure function over items; ``workers`` processes compute at once."""
+
+    workers: int
+
+    def map(self, func: Callable[[T], R], items: Sequence[T]) -> Iterator[tuple[int, R]]:
+        """Yield ``(index, func(items[index]))`` for every item, in completion order."""
+        ...
+
+
+def run_limited(func: Callable[[T], R], item: T) -> R:
+    """``func(item)`` with BLAS/OpenMP pools limited to one thread (one task per core)."""
+    from threadpoolctl import threadpool_limits
+
+    with threadpool_limits(1):
+        return func(item)
+
+
+class SerialExecutor:
+    """Everything in this process, one item after the other."""
+
+    workers = 1
+
+    def map(self, func: Callable[[T], R], items: Sequence[T]) -> Iterator[tuple[int, R]]:
+        for index, item in enumerate(items):
+            yield index, run_limited(func, item)
+
+
+class DaskExecutor:
+    """Items as tasks on a dask.distributed cluster, at most ``2 x workers`` in flight."""
+
+    def __init__(self, client: Any) -> None:
+        self.client = client
+        self.workers = max(1, len(client.scheduler_info().get("workers", {})))
+
+    def map(self, func: Callable[[T], R], items: Sequence[T]) -> Iterator[tuple[int, R]]:
+        from distributed import as_completed
+
+        pending = iter(enumerate(items))
+        in_flight = as_completed()
+        index_of: dict[str, int] = {}
+
+        def submit_next() -> bool:
+            for index, item in pending:
+                future = self.client.submit(run_limited, func, item, pure=False)
+                index_of[future.key] = index
+                in_flight.add(future)
+                return True
+            return False
+
+        for _ in range(2 * self.workers):
+            if not submit_next():
+                break
+        for future in in_flight:
+            result = future.result()  # re-raises the task's own exception here
+            index = index_of.pop(future.key)
+            future.release()
+            submit_next()
+            yield index, result
+
+
+@contextlib.contextmanager
+def open_executor(
+    workers: int | None = None,
+    scheduler: str | None = None,
+    *,
+    memory_budget: int = DEFAULT_MEMORY_BUDGET,
+) -> Iterator[Executor]:
+    """The executor a stage runs on.
+
+    - neither: this process (:class:`SerialExecutor`);
+    - ``workers=N``: a dask ``LocalCluster`` of N single-threaded worker processes, each
+      limited to ``memory_budget`` plus the interpreter's own ~1 GiB;
+    - ``scheduler="tcp://host:port"``: an existing cluster (every worker must reach the
+      catalog's folder at the same path).
+    """
+    if workers is not None and scheduler is not None:
+        raise ClusterError("give either a number of local workers or a scheduler address")
+    if scheduler is None and not workers:
+        yield SerialExecutor()
+        return
+    try:
+        from distributed import Client, LocalCluster
+    except ImportError as exc:  # pragma: no cover - dask is a dependency
+        raise ClusterError("dask.distributed is not installed") from exc
+    if scheduler is not None:
+        try:
+            client = Client(scheduler, timeout="20s")
+        except (OSError, TimeoutError) as exc:
+            raise ClusterError(f"cannot reach the dask scheduler at {scheduler}: {exc}") from exc
+        try:
+            client.wait_for_workers(1, timeout=60)
+        except TimeoutError as exc:
+            client.close()
+            raise ClusterError(f"the dask scheduler at {scheduler} has no workers") from exc
+        try:
+            yield DaskExecutor(client)
+        finally:
+            client.close()
+        return
+    # the nanny starts each worker with OMP/MKL/OPENBLAS_NUM_THREADS=1 (dask's default
+    # distributed.nanny.pre-spawn-environ); run_limited() also limits every task's pools
+    cluster = LocalCluster(
+        n_workers=workers,
+        threads_per_worker=1,
+        processes=True,
+        memory_limit=memory_budget + (1 << 30),
+        dashboard_address=None,
+        host="127.0.0.1",
+    )
+    try:
+        with Client(cluster) as client:
+            yield DaskExecutor(client)
+    finally:
+        cluster.close()

@@ -19,6 +19,7 @@ from click.testing import CliRunner
 
 from standgrid.catalog.invalidate import clear_invalidation, without_enrichment
 from standgrid.cli import cli
+from standgrid.engine import CallbackProgress
 from standgrid.errors import EnrichError
 from standgrid.pipeline.compare import compare_epochs
 from standgrid.pipeline.enrich import EnrichOptions, enrich_catalog
@@ -203,7 +204,9 @@ def test_enrich_refreshes_the_stale_epoch(
 ) -> None:
     root = copy_catalog(retiled["root"], tmp_path_factory.mktemp("refresh") / "catalog")
     messages: list[str] = []
-    enrich_catalog(root, EnrichOptions(epochs=("2028",)), status=messages.append)
+    enrich_catalog(
+        root, EnrichOptions(epochs=("2028",)), progress=CallbackProgress(on_status=messages.append)
+    )
     assert any("2028" in m and "refreshing stale epoch" in m and PAIR in m for m in messages)
     entry = json.loads((root / "catalog.json").read_text())["epochs"]["2028"]
     assert entry["enriched"] is True and "invalidated" not in entry
@@ -244,7 +247,9 @@ def test_re_enriching_an_epoch_removes_its_comparisons(pair: EnrichedPair, tmp_p
     assert _files(root, f"compare/{PAIR}")
     messages: list[str] = []
     enrich_catalog(
-        root, EnrichOptions(epochs=("2028",), min_observed_fraction=0.5), status=messages.append
+        root,
+        EnrichOptions(epochs=("2028",), min_observed_fraction=0.5),
+        progress=CallbackProgress(on_status=messages.append),
     )
     assert not _files(root, f"compare/{PAIR}")
     assert _sql_count(root / "index.gpkg", "stand_changes") == 0

@@ -2,19 +2,19 @@
 
 from __future__ import annotations
 
-from collections.abc import Iterable
 from pathlib import Path
 from typing import Any
 
 import click
 
 from standgrid.cli.options import (
+    TerminalProgress,
+    cluster_options,
     emit,
     json_option,
     lock_timeout_option,
-    progress,
+    memory_option,
     quiet_option,
-    status,
 )
 
 
@@ -63,6 +63,8 @@ def _human(r: dict[str, Any]) -> str:
     "--min-density", "min_density", type=click.FloatRange(0.0), default=2.0, show_default=True,
     help="Least points per m2 of observed ground for a stand's metrics to be reported.",
 )  # fmt: skip
+@cluster_options
+@memory_option
 @lock_timeout_option
 @json_option
 @quiet_option
@@ -75,6 +77,9 @@ def enrich(
     rigidness: int,
     min_observed_fraction: float,
     min_density: float,
+    workers: int | None,
+    scheduler: str | None,
+    memory_mb: int,
     lock_timeout: float,
     as_json: bool,
     quiet: bool,
@@ -92,6 +97,7 @@ def enrich(
     Example:
       standgrid enrich catalog
       standgrid enrich catalog --epoch 2028 --pixel 0.5 --json
+      standgrid enrich catalog --workers 2 --memory 4096
     """
     from standgrid.pipeline.enrich import EnrichOptions, enrich_catalog
 
@@ -103,12 +109,14 @@ def enrich(
         min_observed_fraction=min_observed_fraction,
         min_density_pts_m2=min_density,
         epochs=epochs,
+        memory_budget=memory_mb << 20,
     )
-
-    def wrap(items: Iterable[Any], total: int, desc: str) -> Iterable[Any]:
-        return progress(items, total=total or None, desc=desc, quiet=quiet)
-
     report = enrich_catalog(
-        catalog, options, wrap=wrap, status=lambda m: status(m, quiet), lock_timeout=lock_timeout
+        catalog,
+        options,
+        progress=TerminalProgress(quiet),
+        workers=workers,
+        scheduler=scheduler,
+        lock_timeout=lock_timeout,
     )
     emit(report.to_dict(), as_json, _human)

@@ -29,6 +29,17 @@ lock_timeout_option = click.option(
 quiet_option = click.option("-q", "--quiet", is_flag=True, help="No progress output on stderr.")
 
 
+memory_option = click.option(
+    "--memory",
+    "memory_mb",
+    type=click.IntRange(min=16),
+    default=2048,
+    show_default=True,
+    help="Memory budget in MB of this process (and of each dask worker): chunks are sized, "
+    "and the partition engine spills to disk, to stay within it.",
+)
+
+
 def cluster_options(command: F) -> F:
     """``--workers N`` (a local dask cluster) and ``--scheduler ADDRESS`` (an existing one)."""
     command = click.option(

@@ -2,21 +2,20 @@
 
 from __future__ import annotations
 
-from collections.abc import Iterable
 from pathlib import Path
 from typing import Any
 
 import click
 
 from standgrid.cli.options import (
+    TerminalProgress,
+    cluster_options,
     emit,
     json_option,
     lock_timeout_option,
     output_option,
     overwrite_option,
-    progress,
     quiet_option,
-    status,
 )
 
 QGIS_GUIDE = """\
@@ -69,6 +68,7 @@ def _human(r: dict[str, Any]) -> str:
     help="Tile even when a GNSS fit's RMSE is far beyond the fixes' stated accuracy.",
 )  # fmt: skip
 @overwrite_option
+@cluster_options
 @lock_timeout_option
 @json_option
 @quiet_option
@@ -80,6 +80,8 @@ def run(
     buffer: float | None,
     accept_poor_georeference: bool,
     overwrite: bool,
+    workers: int | None,
+    scheduler: str | None,
     lock_timeout: float,
     as_json: bool,
     quiet: bool,
@@ -95,9 +97,6 @@ def run(
     from standgrid.pipeline.run import run_pipeline
     from standgrid.pipeline.tile import TileOptions
 
-    def wrap(items: Iterable[Any], total: int, desc: str) -> Iterable[Any]:
-        return progress(items, total=total or None, desc=desc, quiet=quiet)
-
     report = run_pipeline(
         list(paths),
         output,
@@ -109,7 +108,8 @@ def run(
             lock_timeout=lock_timeout,
             accept_poor_georeference=accept_poor_georeference,
         ),
-        wrap=wrap,
-        status=lambda m: status(m, quiet),
+        progress=TerminalProgress(quiet),
+        workers=workers,
+        scheduler=scheduler,
     )
     emit(report.to_dict(), as_json, _human)

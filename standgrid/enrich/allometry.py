@@ -19,10 +19,15 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
+
+if TYPE_CHECKING:
+    import pandas as pd
+
+    from standgrid.catalog import Catalog
 
 BREAST_HEIGHT_M = 1.3
 #: Measured trees needed to fit the model.
@@ -145,3 +150,45 @@ def impute_dbh(trees: Any, model: HeightDiameterModel | None) -> Any:
     table["dbh_se_m"] = se
     table["dbh_reason"] = pd.array(reason, dtype="string")
     return table
+
+
+def height_diameter_models(
+    catalog: Catalog, trees: dict[str, pd.DataFrame]
+) -> dict[str, HeightDiameterModel | None]:
+    """Per epoch: its own height-diameter model, or one pooled over the catalog's epochs
+    (the measured trees of ``trees`` and of the tree lists of epochs enriched before)."""
+    import pandas as pd
+
+    from standgrid.catalog import paths
+
+    measured = {e: t[np.isfinite(t["dbh_m"].to_numpy(np.float64))] for e, t in trees.items()}
+    for epoch in catalog.epochs:  # measured trees of epochs enriched before
+        path = catalog.path(paths.tree_list(epoch, "parquet"))
+        if epoch not in measured and path.exists():
+            old = pd.read_parquet(path)
+            if "dbh_source" in old.columns:
+                measured[epoch] = old[old["dbh_source"] == "measured"]
+    frames = [m[["height_m", "dbh_m"]] for m in measured.values() if len(m)]
+    pooled_trees = pd.concat(frames, ignore_index=True) if frames else None
+    pooled = None
+    if pooled_trees is not None:
+        pooled = fit_height_diameter(
+            pooled_trees["height_m"], pooled_trees["dbh_m"], source="catalog (all epochs)"
+        )
+    models: dict[str, HeightDiameterModel | None] = {}
+    for epoch in trees:
+        own = measured[epoch]
+        model = fit_height_diameter(own["height_m"], own["dbh_m"], source=f"epoch {epoch}")
+        models[epoch] = model or pooled
+    return models
+
+
+def tree_summary(trees: pd.DataFrame, model: HeightDiameterModel | None) -> dict[str, Any]:
+    source = trees["dbh_source"] if len(trees) else None
+    return {
+        "trees": len(trees),
+        "trees_on_observed_ground": int(trees["observed"].sum()) if len(trees) else 0,
+        "trees_dbh_measured": int((source == "measured").sum()) if source is not None else 0,
+        "trees_dbh_imputed": int((source == "imputed").sum()) if source is not None else 0,
+        "height_diameter_model": model.to_dict() if model is not None else None,
+    }

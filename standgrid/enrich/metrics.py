@@ -288,7 +288,7 @@ def tree_metrics(
     height_m: ArrayLike,
     dbh_m: ArrayLike,
     *,
-    cell_area_m2: float,
+    cell_area_m2: float | ArrayLike,
     cells: ArrayLike | None = None,
     dominant_per_ha: float = 100.0,
     dbh_measured: ArrayLike | None = None,
@@ -303,22 +303,32 @@ def tree_metrics(
     height of the k = max(1, round(dominant_per_ha * area_ha)) largest-DBH trees of the
     cell, or of the k tallest when any tree of the cell lacks a DBH. ``cells`` lists cells
     that were measured (they get a row with 0 stems and a ``null_reason`` when they hold
-    no tree).
+    no tree). ``cell_area_m2`` is one area for every cell, or one per entry of ``cells``
+    (sorted unique keys, which must then be given).
     """
     keys = np.asarray(cell, dtype=np.int64)
     height = np.asarray(height_m, dtype=np.float64)
     dbh = np.asarray(dbh_m, dtype=np.float64)
     if not (keys.shape == height.shape == dbh.shape) or keys.ndim != 1:
         raise EnrichError("cell, height_m and dbh_m must be 1-D arrays of one length")
-    if cell_area_m2 <= 0:
+    areas = np.asarray(cell_area_m2, dtype=np.float64)
+    if areas.ndim == 1:
+        if cells is None or len(np.unique(np.asarray(cells))) != len(areas):
+            raise EnrichError("one cell area per cell needs the cells (sorted unique keys)")
+        area_of = pd.Series(areas, index=np.unique(np.asarray(cells, dtype=np.int64)))
+        if not set(np.unique(keys)) <= set(area_of.index):
+            raise EnrichError("trees in cells without an area")
+    elif areas.ndim == 0:
+        area_of = None
+    else:
+        raise EnrichError(f"cell areas must be a number or 1-D, got shape {areas.shape}")
+    if (areas <= 0).any():
         raise EnrichError(f"cell area must be > 0, got {cell_area_m2}")
     has_dbh = np.isfinite(dbh)
     measured = has_dbh if dbh_measured is None else np.asarray(dbh_measured, dtype=bool)
     if measured.shape != dbh.shape:
         raise EnrichError("dbh_measured must have one entry per tree")
     measured = measured & has_dbh
-    area_ha = cell_area_m2 / 10_000.0
-    k_dominant = max(1, round(dominant_per_ha * area_ha))
     trees = pd.DataFrame({"cell": keys, "h": height, "dbh": dbh})
     trees["has_dbh"] = has_dbh
     trees["measured"] = measured
@@ -338,17 +348,22 @@ def tree_metrics(
     all_dbh = grouped["has_dbh"].all()
     rank_key = np.where(all_dbh.reindex(trees["cell"]).to_numpy(), trees["dbh"], trees["h"])
     trees["rank_key"] = rank_key
-    top = (
-        trees.sort_values(["cell", "rank_key"], ascending=[True, False])
-        .groupby("cell")
-        .head(k_dominant)
-    )
-    out["dominant_height_m"] = top.groupby("cell")["h"].mean()
-    out["dominant_by"] = np.where(all_dbh.reindex(out.index), "dbh", "height")
     index = out.index.to_numpy(dtype=np.int64)
     if cells is not None:
         index = np.union1d(index, np.asarray(cells, dtype=np.int64))
+    if area_of is None:
+        area_ha_of = pd.Series(float(areas) / 10_000.0, index=index)
+    else:
+        area_ha_of = area_of.reindex(index) / 10_000.0
+    # the k = max(1, round(dominant_per_ha * area_ha)) largest (by DBH, else height) per cell
+    k_dominant = np.maximum(1, np.round(dominant_per_ha * area_ha_of)).astype(np.int64)
+    ranked = trees.sort_values(["cell", "rank_key"], ascending=[True, False], kind="stable")
+    rank = ranked.groupby("cell").cumcount().to_numpy()
+    top = ranked[rank < k_dominant.reindex(ranked["cell"]).to_numpy()]
+    out["dominant_height_m"] = top.groupby("cell")["h"].mean()
+    out["dominant_by"] = np.where(all_dbh.reindex(out.index), "dbh", "height")
     out = out.reindex(pd.Index(index, name="cell"))
+    area_ha = area_ha_of.reindex(index).to_numpy(dtype=np.float64)
     n_trees = out["n_trees"].fillna(0).astype(np.int64)
     n_dbh = out["n_dbh"].fillna(0).astype(np.int64)
     n_measured = out["n_measured"].fillna(0).astype(np.int64)

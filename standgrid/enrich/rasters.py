@@ -193,7 +193,10 @@ def chm(
 
     ``heights`` are the points' heights above ground (e.g. :func:`height_above_ground`).
     Pit-free options: ``subcircle`` > 0 replaces each point by 8 points on a circle of that
-    radius (lidR ``p2r(subcircle)``); ``fill_empty`` fills an empty pixel that has at least
+    radius (lidR ``p2r(subcircle)``; only the highest point of each of the
+    :data:`SUBPIXELS` x :data:`SUBPIXELS` sub-pixels is inflated, so the pixel maxima stay
+    exact and a disc moves by at most a fifth of a pixel); ``fill_empty`` fills an empty
+    pixel that has at least
     ``fill_min_neighbours`` (default :data:`FILL_MIN_NEIGHBOURS` = 6) of its 8 neighbours
     non-empty with their median (one pass, neighbours outside the raster count as empty): by
     default pits of one or two pixels are filled; larger canopy gaps (every pixel of a 2x2 or
@@ -206,6 +209,8 @@ def chm(
         raise EnrichError(f"{h.shape} heights for {len(xyz)} points")
     xy = xyz[:, :2]
     if subcircle > 0 and len(xy):
+        xy, h = _highest_per_subpixel(xy, h, grid, SUBPIXELS)
+        n_real = len(xy)
         angles = np.arange(8) * (np.pi / 4)
         ring = subcircle * np.column_stack([np.cos(angles), np.sin(angles)])
         inflated = (xy[:, None, :] + ring[None, :, :]).reshape(-1, 2)
@@ -213,7 +218,7 @@ def chm(
         h = np.concatenate([h, np.repeat(h, 8)])
         row, col = grid.pixel_of(xy[:, 0], xy[:, 1])
         inside = (row >= 0) & (row < grid.nrows) & (col >= 0) & (col < grid.ncols)
-        inside[: len(xyz)] = True  # the real points must be inside (checked below)
+        inside[:n_real] = True  # the real points must be inside (checked below)
         xy, h = xy[inside], h[inside]
     index = grid._flat_index(np.column_stack([xy, np.zeros(len(xy))]))
     top = np.full(grid.nrows * grid.ncols, -np.inf)
@@ -225,6 +230,25 @@ def chm(
     if fill_empty:
         out = _fill_isolated(out, fill_min_neighbours)
     return out.astype(np.float32)
+
+
+#: Sub-pixels per pixel side among which only the highest point is inflated (``subcircle``).
+SUBPIXELS = 5
+
+
+def _highest_per_subpixel(
+    xy: NDArray[np.float64], h: NDArray[np.float64], grid: RasterGrid, n: int
+) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    """The points that are highest in their sub-pixel (``n`` x ``n`` per pixel of ``grid``)."""
+    step = grid.pixel_size / n
+    cols, rows = grid.ncols * n, grid.nrows * n
+    col = np.clip(np.floor((xy[:, 0] - grid.x0) / step).astype(np.int64), 0, cols - 1)
+    row = np.clip(np.floor((xy[:, 1] - grid.y0) / step).astype(np.int64), 0, rows - 1)
+    index = row * cols + col
+    top = np.full(rows * cols, -np.inf)
+    np.maximum.at(top, index, h)
+    keep = h >= top[index]
+    return xy[keep], h[keep]
 
 
 def _fill_isolated(raster: NDArray[np.float64], min_neighbours: int) -> NDArray[np.float64]:

@@ -96,8 +96,50 @@ def stand_row(
     sample: StandSample, rule: CoverageRule, *, height_break: float = 2.0
 ) -> dict[str, Any]:
     """One ``stand_metrics`` row (columns: docs/METRICS.md)."""
+    return stand_rows_of([sample], rule, height_break=height_break)[0]
+
+
+def stand_rows_of(
+    samples: list[StandSample], rule: CoverageRule, *, height_break: float = 2.0
+) -> list[dict[str, Any]]:
+    """The ``stand_metrics`` row of each sample (metrics computed for all at once)."""
     from standgrid.enrich.metrics import area_metrics, tree_metrics
 
+    if not samples:
+        return []
+    keys = np.arange(len(samples), dtype=np.int64)
+    area_table = area_metrics(
+        np.repeat(keys, [len(s.heights) for s in samples]),
+        np.concatenate([np.asarray(s.heights, dtype=np.float64) for s in samples]),
+        cells=keys,
+        height_break=height_break,
+    )
+    with_trees = [(k, s.trees) for k, s in enumerate(samples) if len(s.trees)]
+    trees = (
+        pd.concat([t.assign(_key=k) for k, t in with_trees], ignore_index=True)
+        if with_trees
+        else samples[0].trees.assign(_key=np.zeros(0, dtype=np.int64))
+    )
+    source = trees["dbh_source"] if "dbh_source" in trees.columns else None
+    tree_table = tree_metrics(
+        trees["_key"].to_numpy(dtype=np.int64),
+        trees["height_m"].to_numpy(dtype=np.float64),
+        trees["dbh_m"].to_numpy(dtype=np.float64),
+        cell_area_m2=np.array([max(s.observed_m2, 1e-9) for s in samples]),
+        cells=keys,
+        dbh_measured=None if source is None else (source == "measured").to_numpy(dtype=bool),
+    )
+    area_rows = area_table.to_dict("records")
+    tree_rows = tree_table.to_dict("records")
+    return [
+        _row(sample, area_row, tree_row, rule)
+        for sample, area_row, tree_row in zip(samples, area_rows, tree_rows, strict=True)
+    ]
+
+
+def _row(
+    sample: StandSample, area_row: dict[str, Any], tree_row: dict[str, Any], rule: CoverageRule
+) -> dict[str, Any]:
     observed = sample.observed_m2
     n_on_observed = len(sample.heights)
     density = n_on_observed / observed if observed > 0 else math.nan
@@ -111,23 +153,6 @@ def stand_row(
         "n_points": sample.n_points,
         "n_outside_observed": sample.n_points - n_on_observed,
     }
-    area_row = area_metrics(
-        np.zeros(n_on_observed, dtype=np.int64),
-        sample.heights,
-        cell_area_m2=observed if observed > 0 else None,
-        cells=[0],
-        height_break=height_break,
-    ).iloc[0]
-    trees = sample.trees
-    source = trees["dbh_source"] if "dbh_source" in trees.columns else None
-    tree_row = tree_metrics(
-        np.zeros(len(trees), dtype=np.int64),
-        trees["height_m"].to_numpy(dtype=np.float64),
-        trees["dbh_m"].to_numpy(dtype=np.float64),
-        cell_area_m2=max(observed, 1e-9),
-        cells=[0],
-        dbh_measured=None if source is None else (source == "measured").to_numpy(dtype=bool),
-    ).iloc[0]
     row.update({k: v for k, v in area_row.items() if k not in ("null_reason", "n_points")})
     row["density_pts_m2"] = density
     row.update({k: v for k, v in tree_row.items() if k != "null_reason"})
@@ -142,7 +167,7 @@ def stand_row(
             r for r in (area_row.get("null_reason"), tree_row.get("null_reason")) if _text(r)
         ]
     if sample.no_ground or shortfall:  # unknown, not zero
-        for name in (*area_row.index, *tree_row.index):
+        for name in (*area_row, *tree_row):
             if name in row and name not in SAMPLE_COLUMNS and name != "null_reason":
                 row[name] = None if name == "dominant_by" else math.nan
     row["null_reason"] = "; ".join(dict.fromkeys(str(r) for r in reasons)) or None
@@ -202,3 +227,35 @@ def counted_trees(trees: pd.DataFrame, metrics: pd.DataFrame) -> pd.Series:
 def _text(value: Any) -> bool:
     """True for a real reason text (not None, NaN or pandas NA)."""
     return isinstance(value, str) and value != ""
+
+
+def stand_rows(
+    samples: list[StandSample],
+    stand_of: dict[str, str | None],
+    trees: pd.DataFrame,
+    rule: CoverageRule,
+    *,
+    height_break: float,
+    stand_size: float | None,
+) -> list[dict[str, Any]]:
+    """Every cell's row, then every coarser stand's (``stand_size``, the grid's next level)
+    over its measured cells: a stand aggregates the observed ground, points and trees of its
+    cells that pass the coverage rule; its area is the whole stand's."""
+    on_ground = trees[trees["observed"]] if len(trees) else trees
+    by_cell = dict(tuple(on_ground.groupby("cell_id"))) if len(on_ground) else {}
+    for sample in samples:
+        sample.trees = by_cell.get(sample.stand_id, trees.iloc[0:0])
+    rows = stand_rows_of(samples, rule, height_break=height_break)
+    if stand_size is None:
+        return rows
+    measured = [s for s, row in zip(samples, rows, strict=True) if passes(row)]
+    stands = [
+        aggregate(
+            stand_id,
+            stand_size,
+            stand_size * stand_size,
+            [m for m in measured if stand_of[m.stand_id] == stand_id],
+        )
+        for stand_id in sorted({s for s in stand_of.values() if s is not None})
+    ]
+    return rows + stand_rows_of(stands, rule, height_break=height_break)

@@ -17,7 +17,7 @@ that contains its top (``keep_bounds``; half-open, like the stand cells).
 
 DBH: points 1.3 +- 0.15 m above ground are linked into clusters (``link_distance``); each
 cluster gets a RANSAC circle (3-point samples) refined by robust geometric least squares
-(``scipy.optimize.least_squares``, soft-L1 loss) seeded by the algebraic (Kasa) fit, and is
+(soft-L1 loss, iteratively reweighted Gauss-Newton) seeded by the algebraic (Kasa) fit, and is
 rejected with a reason when it has too few inliers, a large residual, a short arc or an
 implausible radius. Accepted stems are matched to the nearest tree top in whose crown
 they stand (or within ``max_stem_offset``).
@@ -360,8 +360,6 @@ def fit_circle(
     """Robust circle: RANSAC over 3-point circles scored by MSAC (truncated squared residual),
     then geometric least squares (soft-L1) on the inliers of the best circle, started from
     their algebraic fit. ``None`` when fewer than 3 points."""
-    from scipy.optimize import least_squares
-
     pts = np.asarray(xy, dtype=np.float64)
     if len(pts) < 3:
         return None
@@ -401,13 +399,7 @@ def fit_circle(
     if inliers.sum() >= 3:
         # Kasa on the inliers is a good start for the geometric fit
         start = np.array(kasa_circle(local[inliers]))
-
-        def residuals(p: NDArray[np.float64]) -> NDArray[np.float64]:
-            return np.hypot(local[inliers, 0] - p[0], local[inliers, 1] - p[1]) - p[2]
-
-        fit = least_squares(residuals, start, loss="soft_l1", f_scale=inlier_tolerance / 2.0)
-        cx, cy, r = (float(v) for v in fit.x)
-        r = abs(r)
+        cx, cy, r = _geometric_circle(local[inliers], start, inlier_tolerance / 2.0)
     dist = np.hypot(local[:, 0] - cx, local[:, 1] - cy) - r
     inliers = np.abs(dist) < inlier_tolerance
     n_in = int(inliers.sum())
@@ -415,6 +407,31 @@ def fit_circle(
     angles = np.arctan2(local[inliers, 1] - cy, local[inliers, 0] - cx)
     sectors = np.unique(np.floor((angles + np.pi) / (2 * np.pi) * 36).astype(np.int64) % 36)
     return CircleFit(cx + mean[0], cy + mean[1], r, rmse, n_in, 10.0 * len(sectors))
+
+
+def _geometric_circle(
+    xy: NDArray[np.float64], start: NDArray[np.float64], scale: float, iterations: int = 50
+) -> tuple[float, float, float]:
+    """Geometric circle fit with the soft-L1 loss of scale ``scale`` (the minimiser of
+    ``sum(2 * scale^2 * (sqrt(1 + (d_i / scale)^2) - 1))``, d_i = distance to the circle, as
+    ``scipy.optimize.least_squares(loss="soft_l1")``), by iteratively reweighted
+    Gauss-Newton from ``start`` = (x, y, r)."""
+    p = np.asarray(start, dtype=np.float64).copy()
+    for _ in range(iterations):
+        dx, dy = xy[:, 0] - p[0], xy[:, 1] - p[1]
+        dist = np.maximum(np.hypot(dx, dy), 1e-12)
+        resid = dist - p[2]
+        weight = 1.0 / np.sqrt(1.0 + (resid / scale) ** 2)
+        jac = np.column_stack([-dx / dist, -dy / dist, -np.ones(len(xy))])
+        jtw = jac.T * weight
+        try:
+            step = np.linalg.solve(jtw @ jac, -(jtw @ resid))
+        except np.linalg.LinAlgError:
+            break
+        p += step
+        if np.abs(step).max() < 1e-10:
+            break
+    return float(p[0]), float(p[1]), abs(float(p[2]))
 
 
 def _circles_through(tri: NDArray[np.float64]) -> tuple[NDArray[np.float64], NDArray[np.float64]]:

@@ -150,9 +150,11 @@ def _increments(catalog: Catalog, epoch: str, previous: str | None) -> pd.DataFr
         return None
     changes = pd.read_parquet(path)
     matched = changes[(changes["status"] == "grown") & ~changes["suspicious"].astype(bool)]
-    # a past DBH calibrates diameter growth only when both epochs measured the stem
+    # a past DBH calibrates diameter growth only when both epochs measured the stem, and
+    # the stem did not shrink (measurement noise: FVS would drop the record unsaid)
     both = (matched["dbh_source_from"] == "measured") & (matched["dbh_source_to"] == "measured")
-    past_dbh = matched["dbh_m_from"].where(both)
+    grew = matched["dbh_m_to"] >= matched["dbh_m_from"]
+    past_dbh = matched["dbh_m_from"].where(both & grew)
     return pd.DataFrame(
         {
             "past_dbh_m": past_dbh.to_numpy(float),

@@ -387,8 +387,8 @@ def _cell_polygons(
     import geopandas as gpd
     import pandas as pd
 
+    from standgrid.enrich.outputs import stand_polygons
     from standgrid.export.gpkg import read_index_layer
-    from standgrid.pipeline.enrich import stand_polygons
 
     cells = pd.concat(
         [

@@ -1,0 +1,164 @@
+"""``enrich_catalog`` throughput against a plain laspy read + write of the same tiles, same run.
+
+Usage::
+
+    python benchmarks/bench_enrich.py [--points 20000000] [--area 200] [--workdir DIR]
+                                      [--workers 0,1,2] [--memory MB]
+
+1. Simulates one mission of about ``--points`` points (``standgrid.simulate``) and tiles it
+   into a LAZ catalog (20 m grid); both are reused from ``--workdir`` when present.
+2. Baseline: every tile read with ``laspy.read`` and written again with ``LasData.write``
+   (LAZ, lazrs, one thread), one process.
+3. Enrichment of a fresh copy of the catalog, once per entry of ``--workers``: 0 = this
+   process; N = a dask LocalCluster of N single-threaded worker processes.
+
+Every measurement runs in its own subprocess (its peak RSS is its own; with a cluster the
+workers' peaks are reported too). Prints points/s, the ratio enrich / baseline (target
+>= 0.3 in one process) and, with several worker counts, the speed-up over 1 worker.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import resource
+import shutil
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+from typing import Any
+
+REPO = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(REPO))
+sys.path.insert(0, str(REPO / "benchmarks"))
+
+
+def _peak_mb() -> float:
+    for line in Path("/proc/self/status").read_text().splitlines():
+        if line.startswith("VmHWM:"):
+            return int(line.split()[1]) / 1024
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
+
+
+def measure_tile(mission: Path, catalog: Path) -> dict[str, Any]:
+    from standgrid.pipeline.tile import TileOptions, tile_missions
+
+    t0 = time.perf_counter()
+    report = tile_missions([mission], catalog, TileOptions(overwrite=True))
+    return {"seconds": time.perf_counter() - t0, "points": report.points_out}
+
+
+def measure_copy(catalog: Path, out: Path) -> dict[str, Any]:
+    import laspy
+
+    out.mkdir(parents=True, exist_ok=True)
+    tiles = sorted(catalog.glob("tiles/*/*.la[sz]"))
+    points = 0
+    t0 = time.perf_counter()
+    for tile in tiles:
+        las = laspy.read(tile)
+        las.write(out / tile.name)
+        points += len(las.points)
+    return {"seconds": time.perf_counter() - t0, "points": points, "tiles": len(tiles)}
+
+
+def measure_enrich(catalog: Path, workers: int, memory_mb: int) -> dict[str, Any]:
+    import pyogrio
+
+    from standgrid.pipeline.enrich import EnrichOptions, enrich_catalog
+
+    cells = pyogrio.read_dataframe(catalog / "index.gpkg", layer="cells", read_geometry=False)
+    points = int(cells["point_count"].sum())
+    t0 = time.perf_counter()
+    report = enrich_catalog(
+        catalog, EnrichOptions(memory_budget=memory_mb << 20), workers=workers or None
+    )
+    seconds = time.perf_counter() - t0
+    epoch = next(iter(report.epochs.values()))
+    return {
+        "seconds": seconds,
+        "points": points,
+        "cells": epoch["cells"],
+        "chunks": epoch["chunks"],
+        "trees": epoch["trees"],
+        "cpu_seconds": resource.getrusage(resource.RUSAGE_SELF).ru_utime,
+    }
+
+
+def _child(args: list[str]) -> None:
+    kind, *rest = args
+    if kind == "simulate":
+        from bench_tile import measure_simulate
+
+        result = measure_simulate(Path(rest[0]), int(rest[1]), float(rest[2]))
+    elif kind == "tile":
+        result = measure_tile(Path(rest[0]), Path(rest[1]))
+    elif kind == "copy":
+        result = measure_copy(Path(rest[0]), Path(rest[1]))
+    else:
+        result = measure_enrich(Path(rest[0]), int(rest[1]), int(rest[2]))
+    result["peak_mb"] = _peak_mb()
+    print(json.dumps(result))
+
+
+def run_child(*args: str) -> dict[str, Any]:
+    out = subprocess.run(
+        [sys.executable, __file__, "--child", *args], check=True, capture_output=True, text=True
+    )
+    result: dict[str, Any] = json.loads(out.stdout.strip().splitlines()[-1])
+    return result
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--points", type=int, default=20_000_000)
+    parser.add_argument("--area", type=float, default=200.0)
+    parser.add_argument("--workdir", type=Path, default=None)
+    parser.add_argument("--workers", default="0", help="comma-separated, 0 = this process")
+    parser.add_argument("--memory", type=int, default=2048, help="budget per process, MB")
+    opts = parser.parse_args()
+    work = opts.workdir or Path(tempfile.mkdtemp(prefix="standgrid-bench-enrich-"))
+    work.mkdir(parents=True, exist_ok=True)
+    missions = work / "sim"
+    catalog = work / "catalog"
+    if not (catalog / "catalog.json").exists():
+        if not (missions / "missions").exists():
+            sim = run_child("simulate", str(missions), str(opts.points), str(opts.area))
+            print(f"simulated {sim['points']:,} points in {sim['seconds']:.0f} s")
+        mission = next((missions / "missions").iterdir())
+        tiled = run_child("tile", str(mission), str(catalog))
+        print(f"tiled {tiled['points']:,} points in {tiled['seconds']:.1f} s")
+    copy = run_child("copy", str(catalog), str(work / "copy"))
+    shutil.rmtree(work / "copy")
+    base_pps = copy["points"] / copy["seconds"]
+    print(
+        f"baseline laspy read+write of {copy['tiles']} LAZ tiles: {copy['seconds']:.1f} s, "
+        f"{base_pps / 1e6:.2f} M points/s, peak {copy['peak_mb']:.0f} MB"
+    )
+    by_workers = {}
+    for workers in (int(w) for w in opts.workers.split(",")):
+        run = work / f"enrich-{workers}"
+        shutil.rmtree(run, ignore_errors=True)
+        shutil.copytree(catalog, run)
+        result = run_child("enrich", str(run), str(workers), str(opts.memory))
+        shutil.rmtree(run)
+        pps = result["points"] / result["seconds"]
+        by_workers[workers] = result["seconds"]
+        where = "this process" if workers == 0 else f"LocalCluster of {workers} worker(s)"
+        print(
+            f"enrich ({where}): {result['points']:,} points, {result['cells']} cells in "
+            f"{result['chunks']} chunks, {result['trees']} trees: {result['seconds']:.1f} s, "
+            f"{pps / 1e6:.2f} M points/s, ratio to baseline {pps / base_pps:.2f} "
+            f"(target >= 0.3 in one process), client peak {result['peak_mb']:.0f} MB"
+        )
+    if 1 in by_workers and 2 in by_workers:
+        print(f"2 workers vs 1 worker: {by_workers[1] / by_workers[2]:.2f}x (target >= 1.7)")
+
+
+if __name__ == "__main__":
+    if len(sys.argv) > 1 and sys.argv[1] == "--child":
+        _child(sys.argv[2:])
+    else:
+        main()

@@ -1,0 +1,251 @@
+"""The catalog as buffered chunks (lidR's ``catalog_apply`` layout): plan, read, rewrite.
+
+A *chunk* owns a block of cells (a square of ``side`` metres of the stand grid, or the
+Voronoi cells whose centre falls in it) and sees, besides their tiles, every neighbour's
+core points within ``buffer`` metres: what a computation needs to be right at the chunk's
+edges. Each tile is decoded once for its chunk (neighbours are re-read only for their points
+in the buffer). A per-chunk function receives :class:`ChunkPoints` and returns per-point
+fields over the block's rows; :func:`write_chunk_tiles` maps them back onto the owned tiles
+(their buffer copies included) and writes the new tiles where the transaction staged them.
+
+Everything here is plain, picklable data, so chunks run on dask workers as well as here.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+
+from standgrid.pointcloud import PointCloud
+
+#: Bytes a chunk's computation holds per point of its block (the decoded tiles, the block's
+#: coordinates and every per-point array a pass keeps), used to size chunks to the budget.
+BYTES_PER_POINT = 700
+
+
+@dataclass(frozen=True)
+class ChunkCell:
+    """One cell of the catalog: its id, tile (catalog-relative), polygon and stand."""
+
+    cell_id: str
+    tile: str
+    bounds: tuple[float, float, float, float]
+    polygon_wkb: bytes
+    n_points: int
+    #: the id of the coarser (1 ha) stand holding the cell, when the grid has one
+    stand_id: str | None = None
+
+    @property
+    def polygon(self) -> Any:
+        import shapely
+
+        return shapely.from_wkb(self.polygon_wkb)
+
+
+@dataclass(frozen=True)
+class Chunk:
+    """The cells a chunk owns and the neighbours whose points within ``buffer`` it sees."""
+
+    index: int
+    cells: tuple[ChunkCell, ...]
+    neighbours: tuple[ChunkCell, ...]
+    buffer: float
+
+    @property
+    def bounds(self) -> tuple[float, float, float, float]:
+        """The bounding box of the owned cells."""
+        b = np.array([c.bounds for c in self.cells], dtype=np.float64)
+        lo, hi = b[:, :2].min(axis=0), b[:, 2:].max(axis=0)
+        return float(lo[0]), float(lo[1]), float(hi[0]), float(hi[1])
+
+    @property
+    def buffered_bounds(self) -> tuple[float, float, float, float]:
+        xmin, ymin, xmax, ymax = self.bounds
+        h = self.buffer
+        return xmin - h, ymin - h, xmax + h, ymax + h
+
+    @property
+    def n_points(self) -> int:
+        return sum(c.n_points for c in self.cells)
+
+
+def chunk_side(
+    cells: Sequence[ChunkCell], cell_size: float, buffer: float, points_budget: int
+) -> float:
+    """The largest chunk side (a multiple of ``cell_size``, at most 10 cells) whose buffered
+    block holds about ``points_budget`` points at the cells' mean density."""
+    area = sum((c.bounds[2] - c.bounds[0]) * (c.bounds[3] - c.bounds[1]) for c in cells)
+    points = sum(c.n_points for c in cells)
+    density = points / area if area > 0 else 0.0
+    side = 10 * cell_size
+    while side > cell_size and density * (side + 2 * buffer) ** 2 > points_budget:
+        side -= cell_size
+    return side
+
+
+def plan_chunks(
+    cells: Sequence[ChunkCell],
+    *,
+    side: float,
+    origin: tuple[float, float],
+    buffer: float,
+) -> list[Chunk]:
+    """Group ``cells`` into square chunks of ``side`` metres (by the cell's centre, on the
+    lattice of ``origin``), each with the neighbours within ``buffer`` of its cells."""
+    import shapely
+
+    if not cells:
+        return []
+    ordered = sorted(cells, key=lambda c: c.cell_id)
+    centres = np.array(
+        [((c.bounds[0] + c.bounds[2]) / 2, (c.bounds[1] + c.bounds[3]) / 2) for c in ordered]
+    )
+    keys = np.floor((centres - np.asarray(origin, dtype=np.float64)) / side).astype(np.int64)
+    groups: dict[tuple[int, int], list[ChunkCell]] = {}
+    for key, cell in zip(map(tuple, keys.tolist()), ordered, strict=True):
+        groups.setdefault(key, []).append(cell)
+    boxes = shapely.box(*np.array([c.bounds for c in ordered]).T)
+    tree = shapely.STRtree(boxes)
+    chunks = []
+    for index, key in enumerate(sorted(groups, key=lambda k: (-k[1], k[0]))):  # north first
+        own = tuple(groups[key])
+        owned_ids = {c.cell_id for c in own}
+        probe = Chunk(index, own, (), buffer)
+        near = tree.query(shapely.box(*probe.buffered_bounds))
+        neighbours = tuple(
+            ordered[j] for j in sorted(int(j) for j in near) if ordered[j].cell_id not in owned_ids
+        )
+        chunks.append(Chunk(index, own, neighbours, buffer))
+    return chunks
+
+
+@dataclass
+class ChunkPoints:
+    """A chunk's points: the owned tiles' core points first (in ``chunk.cells`` order), then
+    the neighbours' core points inside the buffered bounds.
+
+    ``cell_rows[k]`` is the slice of ``xyz`` holding owned cell k's core points; ``tiles``
+    the owned tiles as read (withheld buffer copies included, flagged by ``withheld``).
+    """
+
+    chunk: Chunk
+    xyz: NDArray[np.float64]
+    cell_rows: list[slice]
+    tiles: list[PointCloud]
+
+    @property
+    def n_core(self) -> int:
+        return self.cell_rows[-1].stop if self.cell_rows else 0
+
+
+def read_chunk(
+    root: str | Path, chunk: Chunk, lattice_origin: tuple[float, float]
+) -> ChunkPoints:
+    """Decode the chunk's own tiles and its neighbours' points in the buffer."""
+    from standgrid.export.las import read_tile, snap_to_storage
+
+    def read(cell: ChunkCell) -> PointCloud:
+        cloud = read_tile(Path(root) / cell.tile, include_withheld=True)
+        return PointCloud(snap_to_storage(cloud.xyz, lattice_origin), cloud.fields)
+
+    tiles = [read(cell) for cell in chunk.cells]
+    parts, rows, start = [], [], 0
+    for cloud in tiles:
+        core = cloud.xyz[~cloud.fields["withheld"].astype(bool)]
+        parts.append(core)
+        rows.append(slice(start, start + len(core)))
+        start += len(core)
+    xmin, ymin, xmax, ymax = chunk.buffered_bounds
+    for cell in chunk.neighbours:
+        cloud = read(cell)
+        xyz = cloud.xyz[~cloud.fields["withheld"].astype(bool)]
+        x, y = xyz[:, 0], xyz[:, 1]
+        parts.append(xyz[(x >= xmin) & (x < xmax) & (y >= ymin) & (y < ymax)])
+    xyz = np.concatenate(parts) if parts else np.zeros((0, 3))
+    return ChunkPoints(chunk, xyz, rows, tiles)
+
+
+def tile_rows(points: ChunkPoints, k: int) -> NDArray[np.int64]:
+    """For every point of owned tile ``k`` (withheld included), its row in the block, or -1
+    for a buffer copy whose original lies outside the block."""
+    from scipy.spatial import cKDTree
+
+    cloud = points.tiles[k]
+    withheld = cloud.fields["withheld"].astype(bool)
+    rows = np.empty(len(cloud), dtype=np.int64)
+    span = points.cell_rows[k]
+    rows[~withheld] = np.arange(span.start, span.stop)
+    if withheld.any():
+        wanted = cloud.xyz[withheld]
+        lo, hi = wanted.min(axis=0) - 1e-3, wanted.max(axis=0) + 1e-3
+        inside = np.flatnonzero(((points.xyz >= lo) & (points.xyz <= hi)).all(axis=1))
+        rows[withheld] = -1
+        if len(inside):
+            dist, nearest = cKDTree(points.xyz[inside]).query(wanted)
+            rows[withheld] = np.where(dist < 1e-6, inside[np.minimum(nearest, len(inside) - 1)], -1)
+    return rows
+
+
+def write_chunk_tiles(
+    points: ChunkPoints,
+    fields: Mapping[str, NDArray[Any]],
+    missing: Mapping[str, Any],
+    targets: Sequence[str],
+    *,
+    crs: str,
+    lattice_origin: tuple[float, float],
+) -> None:
+    """Write every owned tile again with ``fields`` (per block row) set on its points.
+
+    A buffer copy whose original is outside the block gets ``missing[name]``. ``targets[k]``
+    is where tile k goes (the transaction's staged path). Other fields are kept as read.
+    """
+    from standgrid.export.las import write_tile
+
+    for k, (cell, cloud, target) in enumerate(
+        zip(points.chunk.cells, points.tiles, targets, strict=True)
+    ):
+        rows = tile_rows(points, k)
+        found = rows >= 0
+        new = {name: v for name, v in cloud.fields.items() if name != "withheld"}
+        for name, values in fields.items():
+            out = np.full(len(cloud), missing[name], dtype=values.dtype)
+            out[found] = values[rows[found]]
+            new[name] = out
+        withheld = cloud.fields["withheld"].astype(bool)
+        core = ~withheld
+        write_tile(
+            target,
+            PointCloud(cloud.xyz[core], {n: v[core] for n, v in new.items()}),
+            crs=crs,
+            buffer=PointCloud(cloud.xyz[withheld], {n: v[withheld] for n, v in new.items()}),
+            core_bounds=cell.polygon,
+            lattice_origin=lattice_origin,
+        )
+
+
+def cells_of(records: Any, stand_of: Any = None) -> list[ChunkCell]:
+    """:class:`ChunkCell` records from rows of the index's ``cells`` layer (a GeoDataFrame
+    with ``cell_id``, ``tile_path``, ``point_count`` and polygons); ``stand_of(cell_id)`` names
+    a cell's coarser stand."""
+    import shapely
+
+    out = []
+    for row in records.itertuples():
+        polygon = row.geometry
+        out.append(
+            ChunkCell(
+                cell_id=str(row.cell_id),
+                tile=str(row.tile_path),
+                bounds=tuple(float(v) for v in polygon.bounds),  # type: ignore[arg-type]
+                polygon_wkb=shapely.to_wkb(polygon),
+                n_points=int(row.point_count),
+                stand_id=stand_of(str(row.cell_id)) if stand_of is not None else None,
+            )
+        )
+    return out

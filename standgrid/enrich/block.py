@@ -1,0 +1,284 @@
+"""Enrich one buffered chunk: a pure function of its points (no files, no catalog).
+
+Over the whole block (the owned cells plus the neighbours' points in the buffer): ground
+(CSF), a terrain model (TIN of the thinned ground), heights above it, where the ground was
+observed, and tree crowns, tops and stems. Kept for the owned cells only: their points'
+classification, height and tree id, their raster pixels (DTM, CHM, density, observed, near
+ground), the trees whose top stands in them and one :class:`StandSample` per cell. The
+buffer must be wider than a crown and than twice the coverage closing radius, so that the
+owned part equals what one computation over the whole epoch would give.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from typing import TYPE_CHECKING, Any
+
+import numpy as np
+from numpy.typing import NDArray
+
+from standgrid.enrich.rasters import RasterGrid
+from standgrid.enrich.stands import StandSample, stem_xy
+from standgrid.errors import EnrichError, StandgridError
+
+if TYPE_CHECKING:
+    import pandas as pd
+
+    from standgrid.catalog.chunks import ChunkPoints
+    from standgrid.enrich.options import EnrichOptions
+
+GROUND = 2
+OTHER = 1
+#: Ground points this far outside a DTM window still shape its triangulation (m).
+DTM_MARGIN_M = 3.0
+#: Ground is classified in squares of this side (m), on the raster lattice ...
+GROUND_SQUARE_M = 40.0
+#: ... each seen with this much around it (m).
+GROUND_HALO_M = 10.0
+#: The rasters a block returns, and their value where nothing was computed.
+RASTERS = {"dtm": np.nan, "chm": np.nan, "density": 0.0, "observed": False, "near_ground": False}
+
+
+@dataclass(frozen=True)
+class BlockContext:
+    """What a block needs besides its points: the epoch's raster lattice and the scheme."""
+
+    grid: RasterGrid
+    options: EnrichOptions
+    #: grid cells are half-open squares (a top on an edge has one owner); Voronoi polygons
+    #: are closed (a top on a shared edge goes to the first cell)
+    half_open: bool
+    cell_size: float
+
+
+@dataclass
+class BlockResult:
+    """What one chunk gives back: fields per block row (written into its tiles by the
+    engine, not shipped), raster windows on ``window``, trees, and per-cell samples."""
+
+    window: RasterGrid
+    rasters: dict[str, NDArray[Any]]
+    trees: pd.DataFrame
+    samples: list[StandSample]
+    fields: dict[str, NDArray[Any]] = field(default_factory=dict)
+
+
+def enrich_block(points: ChunkPoints, context: BlockContext) -> BlockResult:
+    """Ground, heights, coverage, trees and rasters of one chunk (see the module doc)."""
+    from standgrid.enrich.coverage import cells_mask, coverage_from_hits, ground_hits
+    from standgrid.enrich.rasters import chm, density, height_above_ground
+
+    chunk, xyz, options = points.chunk, points.xyz, context.options
+    buffered = _window(context.grid, chunk.buffered_bounds)
+    core = _window(context.grid, chunk.bounds)
+    ground = _classify(xyz, options, context.grid, chunk.cells[0].tile)
+    polygons = [c.polygon for c in (*chunk.cells, *chunk.neighbours)]
+    hits = ground_hits(buffered, xyz[ground, :2])
+    # a cell without ground in it or within the buffer has no terrain to measure from
+    no_ground = [not hits[_slices(buffered, c.bounds, chunk.buffer)].any() for c in chunk.cells]
+    coverage = coverage_from_hits(
+        hits, buffered, cells_mask(buffered, polygons), closing_radius=options.coverage_closing_m
+    )
+    hag = np.full(len(xyz), np.nan, dtype=np.float32)
+    dtm = np.full(buffered.shape, np.nan, dtype=np.float32)
+    if ground.any():
+        dtm = _dtm(xyz[ground], buffered)
+        hag = height_above_ground(xyz, dtm, buffered)
+    for rows, empty in zip(points.cell_rows, no_ground, strict=True):
+        if empty:  # heights there would come from a distant terrain
+            hag[rows] = np.nan
+
+    trees, tree_ids = _trees(points, hag, no_ground, context)
+    if len(trees):
+        trees["observed"] = coverage.observed_at(*stem_xy(trees))
+
+    # rasters of the owned cells, on the chunk's core window
+    core_xyz = xyz[: points.n_core]
+    with_height = np.isfinite(hag[: points.n_core])
+    rasters = {
+        "dtm": _crop(dtm, buffered, core),
+        "chm": chm(core_xyz[with_height], hag[: points.n_core][with_height], core),
+        "density": density(core_xyz, core),
+        "observed": _crop(coverage.observed, buffered, core),
+        "near_ground": _crop(coverage.near_ground, buffered, core),
+    }
+    samples = []
+    for cell, rows, empty in zip(chunk.cells, points.cell_rows, no_ground, strict=True):
+        polygon = cell.polygon
+        on_observed = coverage.observed_at(xyz[rows, 0], xyz[rows, 1])
+        samples.append(
+            StandSample(
+                stand_id=cell.cell_id,
+                level=0,
+                cell_size=context.cell_size,
+                area_m2=float(polygon.area),
+                observed_m2=coverage.observed_m2(polygon),
+                n_points=rows.stop - rows.start,
+                heights=hag[rows][on_observed],
+                trees=trees.iloc[0:0],
+                no_ground=empty,
+            )
+        )
+    fields: dict[str, NDArray[Any]] = {
+        "classification": np.where(ground, GROUND, OTHER).astype(np.uint8),
+        "height_above_ground": hag,
+        "tree_id": tree_ids,
+    }
+    return BlockResult(core, rasters, trees, samples, fields)
+
+
+def _trees(
+    points: ChunkPoints, hag: NDArray[np.float32], no_ground: list[bool], context: BlockContext
+) -> tuple[pd.DataFrame, NDArray[np.int64]]:
+    """Trees whose top stands in an owned cell with ground (tagged with its cell and stand),
+    and every block point's tree id."""
+    import shapely
+
+    from standgrid.enrich.trees import segment_trees
+
+    chunk, options = points.chunk, context.options
+    segmentation = segment_trees(
+        points.xyz,
+        hag.astype(np.float64),
+        pixel_size=options.tree_pixel_size,
+        min_height=options.tree_min_height,
+        keep_bounds=chunk.bounds,
+    )
+    tree_ids = segmentation.point_tree_ids()
+    for rows, empty in zip(points.cell_rows, no_ground, strict=True):
+        if empty:
+            tree_ids[rows] = 0
+    table = segmentation.table
+    tx, ty = table["x"].to_numpy(), table["y"].to_numpy()
+    owner = np.full(len(table), -1, dtype=np.int64)
+    for k, (cell, empty) in enumerate(zip(chunk.cells, no_ground, strict=True)):
+        if context.half_open:
+            xmin, ymin, xmax, ymax = cell.bounds
+            inside = (tx >= xmin) & (tx < xmax) & (ty >= ymin) & (ty < ymax)
+        else:
+            inside = shapely.intersects_xy(cell.polygon, tx, ty)
+        hit = inside & (owner == -1)
+        owner[hit] = k if not empty else -2  # -2: in a cell without ground, claimed by none
+    keep = owner >= 0
+    owned = table[keep].reset_index(drop=True)
+    owned.insert(0, "cell_id", [chunk.cells[k].cell_id for k in owner[keep]])
+    stands = [chunk.cells[k].stand_id for k in owner[keep]]
+    if chunk.cells and chunk.cells[0].stand_id is not None:
+        owned.insert(1, "stand_id", stands)
+    return owned, tree_ids.astype(np.int64)
+
+
+def _classify(
+    xyz: NDArray[np.float64], options: EnrichOptions, grid: RasterGrid, tile: str
+) -> NDArray[np.bool_]:
+    """Ground mask of the block, CSF run square by square (:data:`GROUND_SQUARE_M` on the
+    raster lattice, each with :data:`GROUND_HALO_M` around it): the cloth over a wide area
+    with relief misses ground that it finds over a smaller one, so the square, not the
+    chunk, sets the scale (the same in every chunk)."""
+    ground = np.zeros(len(xyz), dtype=bool)
+    if len(xyz) < 3:
+        return ground
+    x, y = xyz[:, 0], xyz[:, 1]
+    kx = np.floor((x - grid.x0) / GROUND_SQUARE_M).astype(np.int64)
+    ky = np.floor((y - grid.y0) / GROUND_SQUARE_M).astype(np.int64)
+    h = GROUND_HALO_M
+    for ix, iy in sorted(set(zip(kx.tolist(), ky.tolist(), strict=True))):
+        x0 = grid.x0 + ix * GROUND_SQUARE_M
+        y0 = grid.y0 + iy * GROUND_SQUARE_M
+        x1, y1 = x0 + GROUND_SQUARE_M, y0 + GROUND_SQUARE_M
+        near = np.flatnonzero((x >= x0 - h) & (x < x1 + h) & (y >= y0 - h) & (y < y1 + h))
+        own = (kx[near] == ix) & (ky[near] == iy)
+        ground[near[own]] = _csf(xyz[near], options, tile)[own]
+    return ground
+
+
+def _csf(xyz: NDArray[np.float64], options: EnrichOptions, tile: str) -> NDArray[np.bool_]:
+    from standgrid.enrich.ground import classify_ground
+
+    if len(xyz) < 3:
+        return np.zeros(len(xyz), dtype=bool)
+    try:
+        return classify_ground(
+            xyz, cloth_resolution=options.cloth_resolution, rigidness=options.rigidness
+        )
+    except StandgridError:
+        raise
+    except Exception as exc:  # CSF is a C++ extension: name the chunk it failed on
+        raise EnrichError(f"ground classification failed: {exc}", path=tile) from exc
+
+
+def _dtm(ground: NDArray[np.float64], window: RasterGrid) -> NDArray[np.float32]:
+    """The window's DTM from the ground points near it, thinned to half a pixel."""
+    from standgrid.enrich.rasters import dtm_from_ground
+
+    xmin, ymin, xmax, ymax = window.bounds
+    m = DTM_MARGIN_M
+    x, y = ground[:, 0], ground[:, 1]
+    near = (x >= xmin - m) & (x <= xmax + m) & (y >= ymin - m) & (y <= ymax + m)
+    chosen = ground[near] if near.sum() >= 3 else ground
+    return dtm_from_ground(thin(chosen, window.pixel_size / 2), window)
+
+
+def thin(points: NDArray[np.float64], spacing: float) -> NDArray[np.float64]:
+    """At most one point per ``spacing`` square (the first in file order, so unbiased in z):
+    a terrain model at pixel size p needs no more than ~4 ground points per p^2."""
+    if len(points) < 1000:
+        return points
+    bins = np.floor((points[:, :2] - points[:, :2].min(axis=0)) / spacing).astype(np.int64)
+    keys = bins[:, 0] * (int(bins[:, 1].max()) + 1) + bins[:, 1]
+    _, first = np.unique(keys, return_index=True)
+    return points[np.sort(first)]
+
+
+def _window(grid: RasterGrid, bounds: tuple[float, float, float, float]) -> RasterGrid:
+    """The pixels of ``grid``'s lattice covering ``bounds`` (may reach beyond ``grid``)."""
+    ps = grid.pixel_size
+    xmin, ymin, xmax, ymax = bounds
+    i0 = math.floor((xmin - grid.x0) / ps + 1e-9)
+    j0 = math.floor((ymin - grid.y0) / ps + 1e-9)
+    i1 = max(math.ceil((xmax - grid.x0) / ps - 1e-9), i0 + 1)
+    j1 = max(math.ceil((ymax - grid.y0) / ps - 1e-9), j0 + 1)
+    return RasterGrid(grid.x0 + i0 * ps, grid.y0 + j0 * ps, ps, i1 - i0, j1 - j0)
+
+
+def _slices(
+    grid: RasterGrid, bounds: tuple[float, float, float, float], margin: float
+) -> tuple[slice, slice]:
+    """The array slices of ``grid`` covering ``bounds`` grown by ``margin``, clipped."""
+    xmin, ymin, xmax, ymax = bounds
+    sub = _window(grid, (xmin - margin, ymin - margin, xmax + margin, ymax + margin))
+    ps = grid.pixel_size
+    i0 = round((sub.x0 - grid.x0) / ps)
+    j0 = round((sub.y0 - grid.y0) / ps)
+    top = grid.nrows - (j0 + sub.nrows)
+    rows = slice(max(top, 0), max(top + sub.nrows, 0))
+    return rows, slice(max(i0, 0), max(i0 + sub.ncols, 0))
+
+
+def _crop(array: NDArray[Any], outer: RasterGrid, inner: RasterGrid) -> NDArray[Any]:
+    """The part of ``array`` (on ``outer``) that ``inner`` covers (inner lies within outer)."""
+    ps = outer.pixel_size
+    i0 = round((inner.x0 - outer.x0) / ps)
+    j0 = round((inner.y0 - outer.y0) / ps)
+    top = outer.nrows - (j0 + inner.nrows)
+    return array[top : top + inner.nrows, i0 : i0 + inner.ncols].copy()
+
+
+def paste(
+    target: NDArray[Any], grid: RasterGrid, window: RasterGrid, values: NDArray[Any], mask: Any
+) -> None:
+    """Copy ``values`` (on ``window``) into ``target`` (on ``grid``) where ``mask`` is set,
+    clipped to ``grid``."""
+    ps = grid.pixel_size
+    i0 = round((window.x0 - grid.x0) / ps)
+    j0 = round((window.y0 - grid.y0) / ps)
+    top = grid.nrows - (j0 + window.nrows)
+    r0, c0 = max(top, 0), max(i0, 0)
+    r1, c1 = min(top + window.nrows, grid.nrows), min(i0 + window.ncols, grid.ncols)
+    if r1 <= r0 or c1 <= c0:
+        return
+    src = (slice(r0 - top, r1 - top), slice(c0 - i0, c1 - i0))
+    dst = target[r0:r1, c0:c1]
+    keep = mask[src]
+    dst[keep] = values[src][keep]

@@ -323,7 +323,7 @@ def tree_metrics(
     else:
         raise EnrichError(f"cell areas must be a number or 1-D, got shape {areas.shape}")
     if (areas <= 0).any():
-        raise EnrichError(f"cell area must be > 0, got {cell_area_m2}")
+        raise EnrichError(f"cell area must be > 0, got {areas.min()}")
     has_dbh = np.isfinite(dbh)
     measured = has_dbh if dbh_measured is None else np.asarray(dbh_measured, dtype=bool)
     if measured.shape != dbh.shape:

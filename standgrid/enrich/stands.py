@@ -164,7 +164,7 @@ def _row(
         reasons = [shortfall]
     else:
         reasons = [
-            r for r in (area_row.get("null_reason"), tree_row.get("null_reason")) if _text(r)
+            str(r) for r in (area_row.get("null_reason"), tree_row.get("null_reason")) if _text(r)
         ]
     if sample.no_ground or shortfall:  # unknown, not zero
         for name in (*area_row, *tree_row):

@@ -12,13 +12,16 @@ and ``standgrid --help`` stay instant)::
 
     mission = standgrid.open_mission("missions/2024-05-14-wytham-anymal-coyote")
     tiled = standgrid.tile([mission], "catalog", standgrid.TileOptions(buffer=2.0))
-    enriched = standgrid.enrich("catalog")
-    change = standgrid.compare("catalog")           # first epoch -> last epoch
+    enriched = standgrid.enrich("catalog", workers=2)  # chunks on a local dask cluster
+    change = standgrid.compare("catalog", standgrid.CompareOptions("2024", "2028"))
     catalog = standgrid.open_catalog("catalog")     # catalog.epoch_records, .mission_records
 
 ``tile``, ``enrich``, ``compare`` and ``run`` are ``pipeline.tile_missions``,
 ``enrich_catalog``, ``compare_epochs`` and ``run_pipeline``. ``standgrid.enrich`` and
 ``standgrid.compare`` are also the stage packages (callable, see :mod:`standgrid._stage`).
+Every stage has one shape: ``stage(input, options, *, progress=...)`` returning a report;
+``progress`` is any :class:`standgrid.Progress` (``track(items, total, desc)``,
+``status(text)``).
 """
 
 from __future__ import annotations
@@ -29,11 +32,13 @@ from standgrid.errors import StandgridError
 
 if TYPE_CHECKING:
     from standgrid.catalog.store import Catalog, open_catalog
+    from standgrid.compare.options import CompareOptions
+    from standgrid.engine.progress import Progress
     from standgrid.georeference.retrieval import retrieve_payload_by_gnss
     from standgrid.mission.model import open_mission
     from standgrid.mission.retrieval import retrieve_payload_by_pose, retrieve_payload_by_type
     from standgrid.partition.grid import StandGrid
-    from standgrid.pipeline.enrich import EnrichOptions
+    from standgrid.enrich.options import EnrichOptions
     from standgrid.pipeline.run import run_pipeline as run
     from standgrid.pipeline.tile import TileOptions
     from standgrid.pipeline.tile import tile_missions as tile
@@ -43,8 +48,10 @@ if TYPE_CHECKING:
 __version__ = "0.1.0"
 __all__ = [
     "Catalog",
+    "CompareOptions",
     "EnrichOptions",
     "PointCloud",
+    "Progress",
     "Stamp",
     "StandGrid",
     "StandgridError",
@@ -70,7 +77,9 @@ _LAZY: dict[str, tuple[str, str | None]] = {
     "open_mission": ("standgrid.mission.model", "open_mission"),
     "StandGrid": ("standgrid.partition.grid", "StandGrid"),
     "TileOptions": ("standgrid.pipeline.tile", "TileOptions"),
-    "EnrichOptions": ("standgrid.pipeline.enrich", "EnrichOptions"),
+    "EnrichOptions": ("standgrid.enrich.options", "EnrichOptions"),
+    "CompareOptions": ("standgrid.compare.options", "CompareOptions"),
+    "Progress": ("standgrid.engine.progress", "Progress"),
     "tile": ("standgrid.pipeline.tile", "tile_missions"),
     "run": ("standgrid.pipeline.run", "run_pipeline"),
     "enrich": ("standgrid.enrich", None),

@@ -16,6 +16,7 @@ import pyogrio
 import pytest
 import rasterio
 
+from standgrid.compare.options import CompareOptions
 from standgrid.errors import EnrichError, EpochNotFoundError, GridMismatchError
 from standgrid.partition import StandGrid
 from standgrid.pipeline.compare import compare_epochs
@@ -334,16 +335,16 @@ def test_compare_before_enrich_names_the_enrich_command(
 ) -> None:
     catalog = tiled_grid25(tmp_path_factory)
     with pytest.raises(EnrichError, match="standgrid enrich"):
-        compare_epochs(catalog, "2024", "2028")
+        compare_epochs(catalog, CompareOptions("2024", "2028"))
     assert not (catalog / FOLDER).exists()
 
 
 def test_unknown_epoch(pair: EnrichedPair) -> None:
     before = (pair.path / "catalog.json").read_bytes()
     with pytest.raises(EpochNotFoundError, match="1999"):
-        compare_epochs(pair.path, "1999", "2028")
+        compare_epochs(pair.path, CompareOptions("1999", "2028"))
     with pytest.raises(EpochNotFoundError, match="2031"):
-        compare_epochs(pair.path, "2024", "2031")
+        compare_epochs(pair.path, CompareOptions("2024", "2031"))
     assert (pair.path / "catalog.json").read_bytes() == before
 
 
@@ -355,7 +356,7 @@ def test_catalogs_on_different_grids_are_refused(
     enrich_catalog(other)
     assert compare_epochs(other).stands["in_both"] > 0  # the 25 m catalog itself compares
     with pytest.raises(GridMismatchError, match="different stand grids"):
-        compare_epochs(pair.path, "2024", "2028", other_catalog=other)
+        compare_epochs(pair.path, CompareOptions("2024", "2028", other_catalog=other))
 
 
 def test_stands_of_one_epoch_only_are_listed_with_a_reason(tmp_path: Path) -> None:

@@ -19,6 +19,7 @@ from click.testing import CliRunner
 
 from standgrid.catalog.invalidate import clear_invalidation, without_enrichment
 from standgrid.cli import cli
+from standgrid.compare.options import CompareOptions
 from standgrid.engine import CallbackProgress
 from standgrid.errors import EnrichError
 from standgrid.pipeline.compare import compare_epochs
@@ -195,7 +196,7 @@ def test_status_reports_stale_epoch_and_invalidated_comparison(retiled: dict[str
 
 def test_compare_refuses_the_stale_epoch(retiled: dict[str, Any]) -> None:
     with pytest.raises(EnrichError, match="not enriched"):
-        compare_epochs(retiled["root"], "2024", "2028")
+        compare_epochs(retiled["root"], CompareOptions("2024", "2028"))
 
 
 @pytest.mark.slow
@@ -215,7 +216,7 @@ def test_enrich_refreshes_the_stale_epoch(
     status = catalog_status(root)
     assert status["epochs"]["2028"]["state"] == "enriched"
     assert status["comparisons"][PAIR]["state"] == "invalidated"  # until compared again
-    compare_epochs(root, "2024", "2028")
+    compare_epochs(root, CompareOptions("2024", "2028"))
     assert catalog_status(root)["comparisons"][PAIR]["state"] == "present"
 
 

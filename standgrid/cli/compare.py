@@ -7,7 +7,13 @@ from typing import Any
 
 import click
 
-from standgrid.cli.options import emit, json_option, lock_timeout_option, quiet_option, status
+from standgrid.cli.options import (
+    TerminalProgress,
+    emit,
+    json_option,
+    lock_timeout_option,
+    quiet_option,
+)
 
 
 def _human(r: dict[str, Any]) -> str:
@@ -80,16 +86,17 @@ def compare(
       standgrid compare catalog --from 2024 --to 2028
       standgrid compare catalog-2024 --other catalog-2028 --json
     """
+    from standgrid.compare.options import CompareOptions
     from standgrid.pipeline.compare import compare_epochs
 
-    status(f"comparing epochs of {catalog}", quiet)
-    report = compare_epochs(
-        catalog,
-        epoch_from,
-        epoch_to,
+    options = CompareOptions(
+        epoch_from=epoch_from,
+        epoch_to=epoch_to,
         other_catalog=other,
         max_distance=max_distance,
         min_observed_fraction=min_observed_fraction,
-        lock_timeout=lock_timeout,
+    )
+    report = compare_epochs(
+        catalog, options, progress=TerminalProgress(quiet), lock_timeout=lock_timeout
     )
     emit(report.to_dict(), as_json, _human)

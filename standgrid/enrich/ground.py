@@ -104,10 +104,15 @@ def classify_ground(
     # get different labels from run to run with two threads).
     with _quiet_stdout(), threadpool_limits(1, user_api="openmp"):
         csf.do_filtering(ground, off_ground, False)  # False: do not write cloth_nodes.txt
-    mask = np.zeros(len(xyz), dtype=bool)
-    mask[np.asarray(ground, dtype=np.int64)] = True
     if len(ground) + len(off_ground) != len(xyz):
         raise EnrichError(
             f"CSF returned {len(ground) + len(off_ground)} labels for {len(xyz)} points"
         )
+    # the labels come back one by one through SWIG: read the shorter of the two lists
+    if len(ground) <= len(off_ground):
+        mask = np.zeros(len(xyz), dtype=bool)
+        mask[np.fromiter(ground, dtype=np.int64, count=len(ground))] = True
+    else:
+        mask = np.ones(len(xyz), dtype=bool)
+        mask[np.fromiter(off_ground, dtype=np.int64, count=len(off_ground))] = False
     return mask

@@ -182,8 +182,12 @@ def segment_trees(
     if not in_tree.any():
         return TreeSegmentation(_empty_table(), labels)
     idx = np.flatnonzero(in_tree)
-    # highest point per crown; ties broken by x then y (deterministic across blocks)
-    order = idx[np.lexsort((xyz[idx, 1], xyz[idx, 0], -h[idx], pixel_label[idx]))]
+    # highest point per crown; ties broken by x then y (deterministic across blocks): only
+    # the points as high as their crown's highest are sorted
+    highest = np.full(n_seeds + 1, -np.inf)
+    np.maximum.at(highest, pixel_label[idx], h[idx])
+    idx = idx[h[idx] >= highest[pixel_label[idx]]]
+    order = idx[np.lexsort((xyz[idx, 1], xyz[idx, 0], pixel_label[idx]))]
     seg = pixel_label[order]
     first = np.concatenate([[True], seg[1:] != seg[:-1]])
     tops = order[first]

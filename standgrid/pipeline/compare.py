@@ -25,7 +25,9 @@ from standgrid.compare.coverage import (
     mark_unobserved,
     stand_change,
 )
-from standgrid.enrich.stands import SAMPLE_COLUMNS, TREE_COUNT_COLUMNS, CoverageRule
+from standgrid.compare.options import CompareOptions
+from standgrid.engine import SILENT, Progress
+from standgrid.enrich.stands import SAMPLE_COLUMNS, TREE_COUNT_COLUMNS
 from standgrid.errors import EnrichError, EpochNotFoundError
 
 if TYPE_CHECKING:
@@ -70,29 +72,32 @@ def pair_folder(epoch_from: str, epoch_to: str) -> str:
 
 def compare_epochs(
     catalog_path: str | Path,
-    epoch_from: str | None = None,
-    epoch_to: str | None = None,
+    options: CompareOptions | None = None,
     *,
-    other_catalog: str | Path | None = None,
-    max_distance: float = 2.0,
-    min_observed_fraction: float = CoverageRule.min_observed_fraction,
+    progress: Progress = SILENT,
     lock_timeout: float | None = 30.0,
 ) -> CompareReport:
-    """Change from ``epoch_from`` to ``epoch_to`` (default: the first and last epochs).
+    """Change from ``options.epoch_from`` to ``options.epoch_to`` (default: the first and
+    last epochs).
 
-    With ``other_catalog``, ``epoch_to`` is read from that catalog, which must be on the same
-    grid (``GridMismatchError`` otherwise). Outputs go into ``catalog_path``, read and
-    written under its writer lock; the other catalog is read as a consistent snapshot
+    With ``options.other_catalog``, ``epoch_to`` is read from that catalog, which must be on
+    the same grid (``GridMismatchError`` otherwise). Outputs go into ``catalog_path``, read
+    and written under its writer lock; the other catalog is read as a consistent snapshot
     (:meth:`Catalog.reading`), released before the commit. Tree counts, basal area and
     harvest are compared over the ground both epochs observed only
-    (:mod:`standgrid.compare.coverage`); stands with less than ``min_observed_fraction`` of
-    it get null changes with a reason.
+    (:mod:`standgrid.compare.coverage`); stands with less than
+    ``options.min_observed_fraction`` of it get null changes with a reason.
     """
     import os
     import tempfile
 
     from standgrid.catalog import Catalog
 
+    options = options or CompareOptions()
+    epoch_from, epoch_to = options.epoch_from, options.epoch_to
+    other_catalog = options.other_catalog
+    max_distance, min_observed_fraction = options.max_distance, options.min_observed_fraction
+    progress.status(f"comparing epochs of {catalog_path}")
     with (
         Catalog.writing(catalog_path, lock_timeout=lock_timeout) as source,
         tempfile.TemporaryDirectory(prefix="standgrid-compare-") as scratch,

@@ -76,6 +76,5 @@ def run_pipeline(
     )
     compared = None
     if len(enriched.epochs) >= 2:
-        progress.status("comparing the first and the last epoch")
-        compared = compare_epochs(catalog, lock_timeout=timeout).to_dict()
+        compared = compare_epochs(catalog, progress=progress, lock_timeout=timeout).to_dict()
     return RunReport(tiled.to_dict(), enriched.to_dict(), compared)

@@ -34,11 +34,11 @@ if TYPE_CHECKING:
     from standgrid.catalog.store import Catalog, open_catalog
     from standgrid.compare.options import CompareOptions
     from standgrid.engine.progress import Progress
+    from standgrid.enrich.options import EnrichOptions
     from standgrid.georeference.retrieval import retrieve_payload_by_gnss
     from standgrid.mission.model import open_mission
     from standgrid.mission.retrieval import retrieve_payload_by_pose, retrieve_payload_by_type
     from standgrid.partition.grid import StandGrid
-    from standgrid.enrich.options import EnrichOptions
     from standgrid.pipeline.run import run_pipeline as run
     from standgrid.pipeline.tile import TileOptions
     from standgrid.pipeline.tile import tile_missions as tile

@@ -162,12 +162,33 @@ def read_chunk(
         start += len(core)
     xmin, ymin, xmax, ymax = chunk.buffered_bounds
     for cell in chunk.neighbours:
-        cloud = read(cell)
-        xyz = cloud.xyz[~cloud.fields["withheld"].astype(bool)]
+        xyz = snap_to_storage(_core_xyz(Path(root) / cell.tile), lattice_origin)
         x, y = xyz[:, 0], xyz[:, 1]
         parts.append(xyz[(x >= xmin) & (x < xmax) & (y >= ymin) & (y < ymax)])
     xyz = np.concatenate(parts) if parts else np.zeros((0, 3))
     return ChunkPoints(chunk, xyz, rows, tiles)
+
+
+def _core_xyz(path: Path) -> NDArray[np.float64]:
+    """A tile's core (not withheld) coordinates, decompressing only the coordinate and flag
+    layers of a LAZ 1.4 tile (a neighbour lends its points to the buffer, nothing else)."""
+    import laspy
+
+    from standgrid.errors import PointCloudFormatError
+    from standgrid.mission.clouds import check_las_size
+
+    check_las_size(path)
+    layers = (
+        laspy.DecompressionSelection.XY_RETURNS_CHANNEL
+        | laspy.DecompressionSelection.Z
+        | laspy.DecompressionSelection.FLAGS
+    )
+    try:
+        las = laspy.read(path, decompression_selection=layers)
+    except (laspy.errors.LaspyException, OSError, ValueError, RuntimeError) as exc:
+        raise PointCloudFormatError(f"cannot read LAS/LAZ: {exc}", path=path) from exc
+    core = ~np.asarray(las.withheld, dtype=bool)
+    return np.column_stack([np.asarray(las.x), np.asarray(las.y), np.asarray(las.z)])[core]
 
 
 def tile_rows(points: ChunkPoints, k: int) -> NDArray[np.int64]:

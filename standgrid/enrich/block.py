@@ -32,6 +32,8 @@ GROUND = 2
 OTHER = 1
 #: Ground points this far outside a DTM window still shape its triangulation (m).
 DTM_MARGIN_M = 3.0
+#: A return this close to the terrain (m) is ground (CSF's class threshold).
+CLASS_THRESHOLD_M = 0.5
 #: Ground is classified in squares of this side (m), on the raster lattice ...
 GROUND_SQUARE_M = 40.0
 #: ... each seen with this much around it (m).
@@ -72,7 +74,17 @@ def enrich_block(points: ChunkPoints, context: BlockContext) -> BlockResult:
     chunk, xyz, options = points.chunk, points.xyz, context.options
     buffered = _window(context.grid, chunk.buffered_bounds)
     core = _window(context.grid, chunk.bounds)
-    ground = _classify(xyz, options, context.grid, chunk.cells[0].tile)
+    # ground: CSF over the lowest return of each quarter cloth cell (the cloth rests on
+    # those), the terrain from its ground, then every return near that terrain
+    lowest = _lowest(xyz, options.cloth_resolution / 2)
+    cloth_ground = lowest[_classify(xyz[lowest], options, context.grid, chunk.cells[0].tile)]
+    hag = np.full(len(xyz), np.nan, dtype=np.float32)
+    dtm = np.full(buffered.shape, np.nan, dtype=np.float32)
+    ground = np.zeros(len(xyz), dtype=bool)
+    if len(cloth_ground):
+        dtm = _dtm(xyz[cloth_ground], buffered)
+        hag = height_above_ground(xyz, dtm, buffered)
+        ground = np.abs(hag) <= CLASS_THRESHOLD_M
     polygons = [c.polygon for c in (*chunk.cells, *chunk.neighbours)]
     hits = ground_hits(buffered, xyz[ground, :2])
     # a cell without ground in it or within the buffer has no terrain to measure from
@@ -80,11 +92,6 @@ def enrich_block(points: ChunkPoints, context: BlockContext) -> BlockResult:
     coverage = coverage_from_hits(
         hits, buffered, cells_mask(buffered, polygons), closing_radius=options.coverage_closing_m
     )
-    hag = np.full(len(xyz), np.nan, dtype=np.float32)
-    dtm = np.full(buffered.shape, np.nan, dtype=np.float32)
-    if ground.any():
-        dtm = _dtm(xyz[ground], buffered)
-        hag = height_above_ground(xyz, dtm, buffered)
     for rows, empty in zip(points.cell_rows, no_ground, strict=True):
         if empty:  # heights there would come from a distant terrain
             hag[rows] = np.nan
@@ -191,6 +198,17 @@ def _classify(
         own = (kx[near] == ix) & (ky[near] == iy)
         ground[near[own]] = _csf(xyz[near], options, tile)[own]
     return ground
+
+
+def _lowest(xyz: NDArray[np.float64], size: float) -> NDArray[np.int64]:
+    """Rows of the lowest point of each ``size`` square (ties: every tied point), sorted."""
+    if len(xyz) == 0:
+        return np.zeros(0, dtype=np.int64)
+    cell = np.floor((xyz[:, :2] - xyz[:, :2].min(axis=0)) / size).astype(np.int64)
+    key = cell[:, 0] * (int(cell[:, 1].max()) + 1) + cell[:, 1]
+    low = np.full(int(key.max()) + 1, np.inf)
+    np.minimum.at(low, key, xyz[:, 2])
+    return np.flatnonzero(xyz[:, 2] <= low[key])
 
 
 def _csf(xyz: NDArray[np.float64], options: EnrichOptions, tile: str) -> NDArray[np.bool_]:

@@ -13,6 +13,7 @@ Everything here is plain, picklable data, so chunks run on dask workers as well 
 
 from __future__ import annotations
 
+from collections import OrderedDict
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -144,9 +145,15 @@ class ChunkPoints:
 
 
 def read_chunk(
-    root: str | Path, chunk: Chunk, lattice_origin: tuple[float, float]
+    root: str | Path,
+    chunk: Chunk,
+    lattice_origin: tuple[float, float],
+    *,
+    cache_bytes: int = 0,
 ) -> ChunkPoints:
-    """Decode the chunk's own tiles and its neighbours' points in the buffer."""
+    """Decode the chunk's own tiles and its neighbours' points in the buffer; tiles' core
+    coordinates stay in this process's cache (up to ``cache_bytes``) for later chunks."""
+    _CORES.max_points = cache_bytes // CACHED_BYTES_PER_POINT
     from standgrid.export.las import read_tile, snap_to_storage
 
     def read(cell: ChunkCell) -> PointCloud:
@@ -155,18 +162,62 @@ def read_chunk(
 
     tiles = [read(cell) for cell in chunk.cells]
     parts, rows, start = [], [], 0
-    for cloud in tiles:
+    for cell, cloud in zip(chunk.cells, tiles, strict=True):
         core = cloud.xyz[~cloud.fields["withheld"].astype(bool)]
+        _CORES.put(Path(root) / cell.tile, core)  # a later chunk's neighbour
         parts.append(core)
         rows.append(slice(start, start + len(core)))
         start += len(core)
     xmin, ymin, xmax, ymax = chunk.buffered_bounds
     for cell in chunk.neighbours:
-        xyz = snap_to_storage(_core_xyz(Path(root) / cell.tile), lattice_origin)
+        path = Path(root) / cell.tile
+        xyz = _CORES.get(path)
+        if xyz is None:
+            xyz = snap_to_storage(_core_xyz(path), lattice_origin)
+            _CORES.put(path, xyz)
         x, y = xyz[:, 0], xyz[:, 1]
         parts.append(xyz[(x >= xmin) & (x < xmax) & (y >= ymin) & (y < ymax)])
     xyz = np.concatenate(parts) if parts else np.zeros((0, 3))
     return ChunkPoints(chunk, xyz, rows, tiles)
+
+
+class _CoreCache:
+    """Tiles' core coordinates, most recent first, up to ``max_points``: chunks planned north
+    first, row by row, meet again the tiles of the chunks before them as neighbours. Keyed by
+    path, inode, size and mtime, so a rewritten tile is never served stale."""
+
+    def __init__(self, max_points: int) -> None:
+        self.max_points = max_points
+        self._items: OrderedDict[tuple[Any, ...], NDArray[np.float64]] = OrderedDict()
+        self._points = 0
+
+    @staticmethod
+    def _key(path: Path) -> tuple[Any, ...]:
+        st = path.stat()
+        return (str(path), st.st_ino, st.st_size, st.st_mtime_ns)
+
+    def get(self, path: Path) -> NDArray[np.float64] | None:
+        key = self._key(path)
+        found = self._items.get(key)
+        if found is not None:
+            self._items.move_to_end(key)
+        return found
+
+    def put(self, path: Path, xyz: NDArray[np.float64]) -> None:
+        key = self._key(path)
+        if key in self._items or len(xyz) > self.max_points:
+            return
+        self._items[key] = xyz
+        self._points += len(xyz)
+        while self._points > self.max_points:
+            _, dropped = self._items.popitem(last=False)
+            self._points -= len(dropped)
+
+
+#: Bytes a cached point takes (x, y, z as float64).
+CACHED_BYTES_PER_POINT = 24
+#: This process's cache of tiles' core coordinates (sized by each read_chunk call).
+_CORES = _CoreCache(0)
 
 
 def _core_xyz(path: Path) -> NDArray[np.float64]:

@@ -34,13 +34,15 @@ class BlockJob:
     context: BlockContext
     crs: str
     lattice_origin: tuple[float, float]
+    #: bytes of this process's budget that keep tiles' coordinates for later chunks
+    cache_bytes: int = 0
 
 
 def run_block(job: BlockJob) -> BlockResult:
     """Read, enrich and rewrite one chunk's tiles (runs on a worker)."""
     from standgrid.catalog.chunks import read_chunk, write_chunk_tiles
 
-    points = read_chunk(job.root, job.chunk, job.lattice_origin)
+    points = read_chunk(job.root, job.chunk, job.lattice_origin, cache_bytes=job.cache_bytes)
     result = enrich_block(points, job.context)
     write_chunk_tiles(
         points,

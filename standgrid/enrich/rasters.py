@@ -156,8 +156,6 @@ def height_above_ground(
 ) -> NDArray[np.float32]:
     """Height of each point above the DTM, bilinear between pixel centres (clamped at the edge
     half-pixel). Points outside the raster raise :class:`EnrichError`."""
-    from scipy.interpolate import RegularGridInterpolator
-
     xyz = as_xyz(points)
     if dtm.shape != grid.shape:
         raise EnrichError(f"DTM shape {dtm.shape} does not match the raster grid {grid.shape}")
@@ -168,15 +166,18 @@ def height_above_ground(
     # axis 0 = column index (x), axis 1 = row index counted from the south (y), in pixel units
     u = np.clip((xyz[:, 0] - grid.x0) / ps - 0.5, 0, grid.ncols - 1)
     v = np.clip((xyz[:, 1] - grid.y0) / ps - 0.5, 0, grid.nrows - 1)
-    table = np.asarray(dtm, dtype=np.float64)[::-1, :].T  # (ncols, nrows), south row first
+    table = np.ascontiguousarray(np.asarray(dtm, dtype=np.float64)[::-1, :].T)  # south first
     if not np.isfinite(table).all():
         raise EnrichError("the DTM has empty (non-finite) pixels")
     if grid.ncols == 1 or grid.nrows == 1:  # degenerate axis: interpolate along the other only
         table = np.pad(table, ((0, grid.ncols == 1), (0, grid.nrows == 1)), mode="edge")
-    interp = RegularGridInterpolator(
-        (np.arange(table.shape[0], dtype=float), np.arange(table.shape[1], dtype=float)), table
+    # bilinear between the four pixel centres around each point
+    i = np.minimum(np.floor(u).astype(np.int64), table.shape[0] - 2)
+    j = np.minimum(np.floor(v).astype(np.int64), table.shape[1] - 2)
+    fu, fv = u - i, v - j
+    ground_z = (1.0 - fv) * ((1.0 - fu) * table[i, j] + fu * table[i + 1, j]) + fv * (
+        (1.0 - fu) * table[i, j + 1] + fu * table[i + 1, j + 1]
     )
-    ground_z = interp(np.column_stack([u, v]))
     return (xyz[:, 2] - ground_z).astype(np.float32)
 
 

@@ -176,8 +176,9 @@ def _enrich_epoch(
     # be wider than the coverage closing (2 x radius), so chunks agree with the whole epoch
     tiling_buffer = float(txn.state.get("tiling", {}).get("buffer", 0.0))
     halo = max(options.halo, tiling_buffer, 2 * options.coverage_closing_m + 2 * grid.pixel_size)
-    budget = MemoryBudget(options.memory_budget).points(BYTES_PER_POINT)
-    side = chunk_side(cells, cell_size, halo, budget)
+    # 7/8 of the budget for a chunk's block, 1/8 for the tiles kept for later chunks
+    budget = MemoryBudget(options.memory_budget)
+    side = chunk_side(cells, cell_size, halo, budget.bytes * 7 // 8 // BYTES_PER_POINT)
     chunks = plan_chunks(cells, side=side, origin=origin, buffer=halo)
     size = _cell_size(catalog)
     context = BlockContext(grid, options, half_open=catalog.scheme == "grid", cell_size=size)
@@ -189,6 +190,7 @@ def _enrich_epoch(
             context,
             catalog.crs,
             origin,
+            cache_bytes=budget.bytes // 8,
         )
         for chunk in chunks
     ]

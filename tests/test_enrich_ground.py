@@ -118,3 +118,49 @@ def test_a_las_file_read_as_a_point_cloud_gives_the_same_ground() -> None:
     # CSF's OpenMP loops may break ties differently run to run: near-identical masks
     assert (from_cloud != from_array).mean() < 0.001
     assert np.array_equal(np.asarray(cloud.fields["classification"]), cls)
+
+
+@pytest.mark.realdata
+def test_terrain_from_the_lowest_returns_finds_the_ground_of_the_real_steep_scan() -> None:
+    """What enrichment runs: CSF over the lowest return of each quarter cloth cell, in 40 m
+    squares, then every return within 0.5 m of the TIN terrain is ground."""
+    from standgrid.enrich.rasters import RasterGrid
+    from standgrid.enrich.terrain import classify_terrain
+
+    xyz, cls = read_chablais()
+    window = RasterGrid.covering(
+        (xyz[:, 0].min(), xyz[:, 1].min(), xyz[:, 0].max(), xyz[:, 1].max()),
+        origin=(0.0, 0.0),
+        cell_size=20.0,
+    )
+    terrain = classify_terrain(xyz, window)
+    file_ground = cls == 2
+    recall = (terrain.ground & file_ground).sum() / file_ground.sum()
+    print(f"\nrecall of the producer's ground {recall:.4f}")
+    assert recall > 0.95
+    hag = height_above_file_ground(xyz, cls)
+    vegetation = (cls != 2) & (hag > 1.0)
+    wrong = (terrain.ground & vegetation).sum() / vegetation.sum()
+    print(f"vegetation > 1 m called ground {wrong:.5f}")
+    assert wrong < 0.005
+    # the producer's ground lies on our terrain model
+    residual = np.abs(terrain.heights[file_ground])
+    print(f"|producer ground - terrain| median {np.median(residual):.3f} m, "
+          f"p95 {np.percentile(residual, 95):.3f} m")
+    assert np.median(residual) < 0.1 and np.percentile(residual, 95) < 0.5
+
+
+def test_terrain_on_a_generated_slope() -> None:
+    from standgrid.enrich.rasters import RasterGrid
+    from standgrid.enrich.terrain import classify_terrain
+
+    xyz, truth = generated_slope()
+    window = RasterGrid.covering(
+        (xyz[:, 0].min(), xyz[:, 1].min(), xyz[:, 0].max(), xyz[:, 1].max()),
+        origin=(0.0, 0.0),
+        cell_size=20.0,
+    )
+    terrain = classify_terrain(xyz, window)
+    assert (terrain.ground & truth).sum() / truth.sum() > 0.95
+    assert (terrain.ground & ~truth).sum() / (~truth).sum() < 0.01
+    assert np.nanmedian(np.abs(terrain.heights[truth])) < 0.1

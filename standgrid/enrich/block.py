@@ -20,7 +20,6 @@ from numpy.typing import NDArray
 
 from standgrid.enrich.rasters import RasterGrid
 from standgrid.enrich.stands import StandSample, stem_xy
-from standgrid.errors import EnrichError, StandgridError
 
 if TYPE_CHECKING:
     import pandas as pd
@@ -30,14 +29,6 @@ if TYPE_CHECKING:
 
 GROUND = 2
 OTHER = 1
-#: Ground points this far outside a DTM window still shape its triangulation (m).
-DTM_MARGIN_M = 3.0
-#: A return this close to the terrain (m) is ground (CSF's class threshold).
-CLASS_THRESHOLD_M = 0.5
-#: Ground is classified in squares of this side (m), on the raster lattice ...
-GROUND_SQUARE_M = 40.0
-#: ... each seen with this much around it (m).
-GROUND_HALO_M = 10.0
 #: The rasters a block returns, and their value where nothing was computed.
 RASTERS = {"dtm": np.nan, "chm": np.nan, "density": 0.0, "observed": False, "near_ground": False}
 
@@ -69,22 +60,21 @@ class BlockResult:
 def enrich_block(points: ChunkPoints, context: BlockContext) -> BlockResult:
     """Ground, heights, coverage, trees and rasters of one chunk (see the module doc)."""
     from standgrid.enrich.coverage import cells_mask, coverage_from_hits, ground_hits
-    from standgrid.enrich.rasters import chm, density, height_above_ground
+    from standgrid.enrich.rasters import chm, density
+    from standgrid.enrich.terrain import classify_terrain
 
     chunk, xyz, options = points.chunk, points.xyz, context.options
     buffered = _window(context.grid, chunk.buffered_bounds)
     core = _window(context.grid, chunk.bounds)
-    # ground: CSF over the lowest return of each quarter cloth cell (the cloth rests on
-    # those), the terrain from its ground, then every return near that terrain
-    lowest = _lowest(xyz, options.cloth_resolution / 2)
-    cloth_ground = lowest[_classify(xyz[lowest], options, context.grid, chunk.cells[0].tile)]
-    hag = np.full(len(xyz), np.nan, dtype=np.float32)
-    dtm = np.full(buffered.shape, np.nan, dtype=np.float32)
-    ground = np.zeros(len(xyz), dtype=bool)
-    if len(cloth_ground):
-        dtm = _dtm(xyz[cloth_ground], buffered)
-        hag = height_above_ground(xyz, dtm, buffered)
-        ground = np.abs(hag) <= CLASS_THRESHOLD_M
+    terrain = classify_terrain(
+        xyz,
+        buffered,
+        lattice=(context.grid.x0, context.grid.y0),
+        cloth_resolution=options.cloth_resolution,
+        rigidness=options.rigidness,
+        source=chunk.cells[0].tile,
+    )
+    ground, dtm, hag = terrain.ground, terrain.dtm, terrain.heights
     polygons = [c.polygon for c in (*chunk.cells, *chunk.neighbours)]
     hits = ground_hits(buffered, xyz[ground, :2])
     # a cell without ground in it or within the buffer has no terrain to measure from
@@ -174,79 +164,6 @@ def _trees(
     if chunk.cells and chunk.cells[0].stand_id is not None:
         owned.insert(1, "stand_id", stands)
     return owned, tree_ids.astype(np.int64)
-
-
-def _classify(
-    xyz: NDArray[np.float64], options: EnrichOptions, grid: RasterGrid, tile: str
-) -> NDArray[np.bool_]:
-    """Ground mask of the block, CSF run square by square (:data:`GROUND_SQUARE_M` on the
-    raster lattice, each with :data:`GROUND_HALO_M` around it): the cloth over a wide area
-    with relief misses ground that it finds over a smaller one, so the square, not the
-    chunk, sets the scale (the same in every chunk)."""
-    ground = np.zeros(len(xyz), dtype=bool)
-    if len(xyz) < 3:
-        return ground
-    x, y = xyz[:, 0], xyz[:, 1]
-    kx = np.floor((x - grid.x0) / GROUND_SQUARE_M).astype(np.int64)
-    ky = np.floor((y - grid.y0) / GROUND_SQUARE_M).astype(np.int64)
-    h = GROUND_HALO_M
-    for ix, iy in sorted(set(zip(kx.tolist(), ky.tolist(), strict=True))):
-        x0 = grid.x0 + ix * GROUND_SQUARE_M
-        y0 = grid.y0 + iy * GROUND_SQUARE_M
-        x1, y1 = x0 + GROUND_SQUARE_M, y0 + GROUND_SQUARE_M
-        near = np.flatnonzero((x >= x0 - h) & (x < x1 + h) & (y >= y0 - h) & (y < y1 + h))
-        own = (kx[near] == ix) & (ky[near] == iy)
-        ground[near[own]] = _csf(xyz[near], options, tile)[own]
-    return ground
-
-
-def _lowest(xyz: NDArray[np.float64], size: float) -> NDArray[np.int64]:
-    """Rows of the lowest point of each ``size`` square (ties: every tied point), sorted."""
-    if len(xyz) == 0:
-        return np.zeros(0, dtype=np.int64)
-    cell = np.floor((xyz[:, :2] - xyz[:, :2].min(axis=0)) / size).astype(np.int64)
-    key = cell[:, 0] * (int(cell[:, 1].max()) + 1) + cell[:, 1]
-    low = np.full(int(key.max()) + 1, np.inf)
-    np.minimum.at(low, key, xyz[:, 2])
-    return np.flatnonzero(xyz[:, 2] <= low[key])
-
-
-def _csf(xyz: NDArray[np.float64], options: EnrichOptions, tile: str) -> NDArray[np.bool_]:
-    from standgrid.enrich.ground import classify_ground
-
-    if len(xyz) < 3:
-        return np.zeros(len(xyz), dtype=bool)
-    try:
-        return classify_ground(
-            xyz, cloth_resolution=options.cloth_resolution, rigidness=options.rigidness
-        )
-    except StandgridError:
-        raise
-    except Exception as exc:  # CSF is a C++ extension: name the chunk it failed on
-        raise EnrichError(f"ground classification failed: {exc}", path=tile) from exc
-
-
-def _dtm(ground: NDArray[np.float64], window: RasterGrid) -> NDArray[np.float32]:
-    """The window's DTM from the ground points near it, thinned to half a pixel."""
-    from standgrid.enrich.rasters import dtm_from_ground
-
-    xmin, ymin, xmax, ymax = window.bounds
-    m = DTM_MARGIN_M
-    x, y = ground[:, 0], ground[:, 1]
-    near = (x >= xmin - m) & (x <= xmax + m) & (y >= ymin - m) & (y <= ymax + m)
-    chosen = ground[near] if near.sum() >= 3 else ground
-    return dtm_from_ground(thin(chosen, window.pixel_size / 2), window)
-
-
-def thin(points: NDArray[np.float64], spacing: float) -> NDArray[np.float64]:
-    """At most one point per ``spacing`` square (the first in file order, so unbiased in z):
-    a terrain model at pixel size p needs no more than ~4 ground points per p^2."""
-    if len(points) < 1000:
-        return points
-    bins = np.floor((points[:, :2] - points[:, :2].min(axis=0)) / spacing).astype(np.int64)
-    keys = bins[:, 0] * (int(bins[:, 1].max()) + 1) + bins[:, 1]
-    _, first = np.unique(keys, return_index=True)
-    return points[np.sort(first)]
 
 
 def _window(grid: RasterGrid, bounds: tuple[float, float, float, float]) -> RasterGrid:

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from typing import Any
+
 import numpy as np
 import pytest
 
@@ -120,19 +122,22 @@ def test_a_las_file_read_as_a_point_cloud_gives_the_same_ground() -> None:
     assert np.array_equal(np.asarray(cloud.fields["classification"]), cls)
 
 
+def _window_over(xyz: np.ndarray) -> Any:
+    """The 1 m raster (on the 20 m lattice) covering the points."""
+    from standgrid.enrich.rasters import RasterGrid
+
+    bounds = (xyz[:, 0].min(), xyz[:, 1].min(), xyz[:, 0].max(), xyz[:, 1].max())
+    return RasterGrid.covering(bounds, origin=(0.0, 0.0), cell_size=20.0)
+
+
 @pytest.mark.realdata
 def test_terrain_from_the_lowest_returns_finds_the_ground_of_the_real_steep_scan() -> None:
     """What enrichment runs: CSF over the lowest return of each quarter cloth cell, in 40 m
     squares, then every return within 0.5 m of the TIN terrain is ground."""
-    from standgrid.enrich.rasters import RasterGrid
     from standgrid.enrich.terrain import classify_terrain
 
     xyz, cls = read_chablais()
-    window = RasterGrid.covering(
-        (xyz[:, 0].min(), xyz[:, 1].min(), xyz[:, 0].max(), xyz[:, 1].max()),
-        origin=(0.0, 0.0),
-        cell_size=20.0,
-    )
+    window = _window_over(xyz)
     terrain = classify_terrain(xyz, window)
     file_ground = cls == 2
     recall = (terrain.ground & file_ground).sum() / file_ground.sum()
@@ -151,15 +156,10 @@ def test_terrain_from_the_lowest_returns_finds_the_ground_of_the_real_steep_scan
 
 
 def test_terrain_on_a_generated_slope() -> None:
-    from standgrid.enrich.rasters import RasterGrid
     from standgrid.enrich.terrain import classify_terrain
 
     xyz, truth = generated_slope()
-    window = RasterGrid.covering(
-        (xyz[:, 0].min(), xyz[:, 1].min(), xyz[:, 0].max(), xyz[:, 1].max()),
-        origin=(0.0, 0.0),
-        cell_size=20.0,
-    )
+    window = _window_over(xyz)
     terrain = classify_terrain(xyz, window)
     assert (terrain.ground & truth).sum() / truth.sum() > 0.95
     assert (terrain.ground & ~truth).sum() / (~truth).sum() < 0.01

@@ -127,8 +127,11 @@ class _OpenFileResponse(FileResponse):
         import os
 
         self._handle = handle
-        super().__init__(f"/proc/self/fd/{handle.fileno()}", stat_result=os.fstat(
-            handle.fileno()), filename=None, **kwargs)  # fmt: skip
+        # Linux: the descriptor's own path, so the bytes sent are those of the opened inode;
+        # elsewhere the path itself (a commit in between could then change the file).
+        fd_path = f"/proc/self/fd/{handle.fileno()}"
+        source = fd_path if os.path.exists(fd_path) else str(path)
+        super().__init__(source, stat_result=os.fstat(handle.fileno()), **kwargs)
         self.headers.setdefault("content-disposition", f'inline; filename="{path.name}"')
 
     async def __call__(self, scope: Any, receive: Any, send: Any) -> None:

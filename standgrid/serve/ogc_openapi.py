@@ -74,6 +74,7 @@ def openapi_document(base: str, layers: Mapping[str, Layer], crs: list[str]) -> 
         properties = [
             _param(c.name, {"type": c.type}, f"features whose {c.name} equals this value")
             for c in layer.columns
+            if c.name not in {p["name"] for p in common}
         ]
         prefix = f"/collections/{name}"
         paths[prefix] = _get(f"Collection {name}", _JSON, operation_id=f"describe_{name}")

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import contextlib
 import json
 from pathlib import Path
 
@@ -59,10 +60,8 @@ def serve(catalog: Path, host: str, port: int, token_file: Path | None, max_body
             click.echo("Ctrl-C stops it.", err=True)
 
     server = Server(config(app, host, port), on_started=started)
-    try:
-        server.run()  # uvicorn stops on SIGINT/SIGTERM, then re-raises the signal
-    except KeyboardInterrupt:
-        pass
+    with contextlib.suppress(KeyboardInterrupt):  # uvicorn stops, then re-raises SIGINT
+        server.run()
     if server.base_url is None:
         raise click.ClickException(f"could not listen on {host}:{port}")
     click.echo("stopped", err=True)

@@ -206,8 +206,9 @@ def _query(request: Request, snap: Snapshot, layer: Layer) -> Query:
         limit=_int(request, "limit", DEFAULT_LIMIT, 1, MAX_LIMIT),
         offset=_int(request, "offset", 0, 0, None),
         # a property named like a parameter (missions.crs) cannot be filtered by name
-        equals={k: v for k, v in params.items()
-                if k in layer.column_types and k not in ITEMS_PARAMETERS},  # fmt: skip
+        equals={
+            k: v for k, v in params.items() if k in layer.column_types and k not in ITEMS_PARAMETERS
+        },
     )
     if params.get("bbox"):
         bbox_crs = crs_mod.check(params.get("bbox-crs"), snap.catalog.crs, "bbox-crs")

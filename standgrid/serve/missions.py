@@ -200,15 +200,17 @@ def by_gnss(
 
 @router.get(
     "/{name}/payloads/{stamp}/cloud.laz",
-    summary="A payload's cloud as LAZ (map frame, or its node's base frame)",
+    summary="A payload's cloud as LAZ: in the catalog CRS (default), the map frame or its "
+    "node's base frame",
     response_class=Response,
     responses={200: {"content": {"application/vnd.laszip": {}}}},
 )
 def cloud(
-    request: Request, name: str, stamp: str, frame: Literal["map", "base"] = "map"
+    request: Request, name: str, stamp: str, frame: Literal["crs", "map", "base"] = "crs"
 ) -> Response:
-    from standgrid.mission.clouds import write_cloud
-
+    """``crs``: georeferenced (the mission's fit, exact pyproj chain) as a tile is, with the
+    CRS in the header; ``map`` / ``base``: SLAM frames, no CRS. A non-LAS intensity (float
+    reflectivity) is kept exactly, in the ``intensity_raw`` extra dimension."""
     match = _STAMP.match(stamp)
     if match is None:
         raise Problem(400, f"stamp {stamp!r} is not <sec>_<nsec, 9 digits>")
@@ -218,13 +220,48 @@ def cloud(
     payload = next((p for p in mission.payloads if p.stamp.ns == wanted), None)
     if payload is None:
         raise Problem(404, f"mission {name!r} has no payload cloud stamped {stamp}")
-    points = mission.load_payload(payload, frame=frame)
+    points = mission.load_payload(payload, frame="base" if frame == "base" else "map")
     with tempfile.TemporaryDirectory(prefix="standgrid-serve-") as folder:
         path = Path(folder) / f"cloud_{stamp}.laz"
-        write_cloud(points, path)
+        if frame == "crs":
+            _write_georeferenced(request, record, points, path)
+        else:
+            _write_local(points, path)
         data = path.read_bytes()
     return Response(
         data,
         media_type="application/vnd.laszip",
         headers={"Content-Disposition": f'inline; filename="{record.name}_{stamp}.laz"'},
     )
+
+
+def _write_georeferenced(request: Request, record: MissionRecord, points: Any, path: Path) -> None:
+    from standgrid.export.las import write_tile
+    from standgrid.georeference.fit import GeoreferenceFit
+    from standgrid.georeference.project import MapProjector
+
+    if not record.georeference:
+        raise Problem(
+            409,
+            f"mission {record.name!r} has no georeference fit in the catalog "
+            "(its clouds were tiled as they came): ask for frame=map or base",
+        )
+    with snapshot(request.app.state.catalog_root, with_index=False) as snap:
+        crs = snap.catalog.crs
+    projector = MapProjector(GeoreferenceFit.from_dict(record.georeference), crs)
+    fields = {k: v for k, v in points.fields.items() if k != "withheld"}
+    write_tile(path, type(points)(projector.exact(points.xyz), fields), crs=crs, laz=True)
+
+
+def _write_local(points: Any, path: Path) -> None:
+    import numpy as np
+
+    from standgrid.mission.clouds import write_cloud
+
+    fields = dict(points.fields)
+    intensity = fields.get("intensity")
+    if intensity is not None and not (
+        np.issubdtype(intensity.dtype, np.unsignedinteger) and intensity.dtype.itemsize <= 2
+    ):
+        fields["intensity_raw"] = fields.pop("intensity")
+    write_cloud(type(points)(points.xyz, fields), path)

@@ -78,6 +78,8 @@ def test_range_requests_return_exactly_the_bytes_asked(base: str, catalog: Path)
     assert bad.headers["content-type"] == "application/problem+json"
     assert httpx.get(url, headers={"Range": "bytes=9-3"}).status_code == 400
     assert httpx.get(url, headers={"Range": "lines=1-2"}).status_code == 400
+    many = ",".join(f"{i}-{i}" for i in range(17))
+    assert httpx.get(url, headers={"Range": f"bytes={many}"}).status_code == 400
 
 
 @pytest.mark.parametrize(

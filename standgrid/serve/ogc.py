@@ -4,11 +4,13 @@ reference). One collection per layer of the catalog's ``index.gpkg``."""
 from __future__ import annotations
 
 import datetime as dt
+import json
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
 from fastapi import APIRouter, Request
-from fastapi.responses import JSONResponse
+from fastapi.responses import JSONResponse, Response
 
 from standgrid.serve import crs as crs_mod
 from standgrid.serve import features
@@ -221,27 +223,36 @@ def _query(request: Request, snap: Snapshot, layer: Layer) -> Query:
 
 
 def _features(
-    page: Page, layer: Layer, source_crs: str, out_crs: str, base: str
-) -> list[dict[str, Any]]:
+    page: Page,
+    source_crs: str,
+    out_crs: str,
+    links: Callable[[int], list[dict[str, str]]],
+) -> list[str]:
+    """The page's features as GeoJSON text (geometries written by GEOS: exact doubles)."""
     import shapely
 
     geoms = page.geometries
-    present = [g is not None for g in geoms]
-    if any(present):
-        geoms = geoms.copy()
-        mask = [i for i, p in enumerate(present) if p]
-        geoms[mask] = crs_mod.geometries_to(geoms[mask], source_crs, out_crs)
+    present = [i for i, g in enumerate(geoms) if g is not None]
+    texts: list[str | None] = [None] * len(geoms)
+    if present:
+        moved = crs_mod.geometries_to(geoms[present], source_crs, out_crs)
+        for i, text in zip(present, shapely.to_geojson(moved).tolist(), strict=True):
+            texts[i] = text
     out = []
-    for fid, props, geom in zip(page.fids, page.properties, geoms, strict=True):
-        out.append({
-            "type": "Feature",
-            "id": fid,
-            "geometry": None if geom is None else shapely.geometry.mapping(geom),
-            "properties": props,
-            "links": [{"rel": "self", "type": GEOJSON,
-                       "href": f"{base}/collections/{layer.name}/items/{fid}"}],
-        })  # fmt: skip
+    for fid, props, geometry in zip(page.fids, page.properties, texts, strict=True):
+        out.append(
+            f'{{"type":"Feature","id":{fid},"geometry":{geometry or "null"},'
+            f'"properties":{_dumps(props)},"links":{_dumps(links(fid))}}}'
+        )
     return out
+
+
+def _dumps(value: Any) -> str:
+    return json.dumps(value, separators=(",", ":"), allow_nan=False)
+
+
+def _geojson(text: str, out_crs: str) -> Response:
+    return Response(text, media_type=GEOJSON, headers={"Content-Crs": f"<{out_crs}>"})
 
 
 def _with_params(request: Request, **changes: Any) -> str:
@@ -254,14 +265,18 @@ def _with_params(request: Request, **changes: Any) -> str:
     "/collections/{collection_id}/items",
     summary="Features of a collection: bbox, datetime, property filters, limit/offset paging",
 )
-def items(request: Request, collection_id: str) -> JSONResponse:
+def items(request: Request, collection_id: str) -> Response:
     with snapshot(_root(request)) as snap:
         layer = snap.layer(collection_id)
         query = _query(request, snap, layer)
         out_crs = crs_mod.check(request.query_params.get("crs"), snap.catalog.crs, "crs")
         assert snap.index is not None
         page = features.page(snap.index, layer, query, snap.epoch_dates)
-        body_features = _features(page, layer, snap.catalog.crs, out_crs, _base(request))
+        items_url = f"{_base(request)}/collections/{layer.name}/items"
+        body_features = _features(
+            page, snap.catalog.crs, out_crs,
+            lambda fid: [{"rel": "self", "type": GEOJSON, "href": f"{items_url}/{fid}"}],
+        )  # fmt: skip
     links = [
         {"rel": "self", "type": GEOJSON, "href": str(request.url)},
         {"rel": "collection", "type": "application/json",
@@ -275,19 +290,18 @@ def items(request: Request, collection_id: str) -> JSONResponse:
         links.append({"rel": "prev", "type": GEOJSON,
                       "href": _with_params(request, offset=max(0, query.offset - query.limit),
                                            limit=query.limit)})  # fmt: skip
-    body = {
-        "type": "FeatureCollection",
-        "features": body_features,
+    rest = _dumps({
         "numberMatched": page.number_matched,
         "numberReturned": len(page.fids),
         "timeStamp": dt.datetime.now(dt.UTC).strftime("%Y-%m-%dT%H:%M:%SZ"),
         "links": links,
-    }
-    return _json(body, GEOJSON, **{"Content-Crs": f"<{out_crs}>"})
+    })  # fmt: skip
+    head = '{"type":"FeatureCollection","features":['
+    return _geojson(f"{head}{','.join(body_features)}],{rest[1:]}", out_crs)
 
 
 @router.get("/collections/{collection_id}/items/{feature_id}", summary="One feature")
-def item(request: Request, collection_id: str, feature_id: str) -> JSONResponse:
+def item(request: Request, collection_id: str, feature_id: str) -> Response:
     try:
         fid = int(feature_id)
     except ValueError as exc:
@@ -302,10 +316,10 @@ def item(request: Request, collection_id: str, feature_id: str) -> JSONResponse:
         page = features.feature(snap.index, layer, fid)
         if not page.fids:
             raise Problem(404, f"collection {layer.name!r} has no feature {fid}")
-        body = _features(page, layer, snap.catalog.crs, out_crs, _base(request))[0]
-    body["links"] = [
-        {"rel": "self", "type": GEOJSON, "href": str(request.url)},
-        {"rel": "collection", "type": "application/json",
-         "href": f"{_base(request)}/collections/{layer.name}"},
-    ]  # fmt: skip
-    return _json(body, GEOJSON, **{"Content-Crs": f"<{out_crs}>"})
+        links = [
+            {"rel": "self", "type": GEOJSON, "href": str(request.url)},
+            {"rel": "collection", "type": "application/json",
+             "href": f"{_base(request)}/collections/{layer.name}"},
+        ]  # fmt: skip
+        text = _features(page, snap.catalog.crs, out_crs, lambda fid: links)[0]
+    return _geojson(text, out_crs)

@@ -240,8 +240,9 @@ def test_writes_need_the_token_and_change_nothing(base: str, catalog: Path) -> N
             assert r.headers["www-authenticate"] == "Bearer"
             assert r.headers["content-type"] == "application/problem+json"
     ok = httpx.post(f"{base}/missions", headers={"Authorization": f"Bearer {TOKEN}"})
-    assert ok.status_code == 405  # past the guard: no write route is offered yet
+    assert ok.status_code == 400  # past the guard, refused by the route: no mission given
     assert _state(catalog) == before
+    assert not catalog.with_name(f"{catalog.name}-missions").exists()
 
 
 def test_bodies_over_the_limit_are_refused(base: str) -> None:
@@ -249,6 +250,14 @@ def test_bodies_over_the_limit_are_refused(base: str) -> None:
     r = httpx.post(f"{base}/missions", headers=auth, content=b"x" * (MAX_BODY + 1))
     assert r.status_code == 413 and r.json()["status"] == 413
     assert r.headers["content-type"] == "application/problem+json"
+
+    def chunks() -> Iterator[bytes]:  # no Content-Length: counted as the route reads it
+        for _ in range(8):
+            yield b"y" * 1024
+
+    streamed = httpx.post(f"{base}/missions/{COYOTE}/payloads", params={"stamp": "1_000000001"},
+                          headers=auth, content=chunks())  # fmt: skip
+    assert streamed.status_code == 413
 
 
 def test_token_sources(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:

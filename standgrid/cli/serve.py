@@ -20,17 +20,20 @@ from standgrid.cli.options import json_option
 @click.option("--token-file", type=click.Path(exists=True, dir_okay=False, path_type=Path),
               help="File holding the bearer token writes need (else $STANDGRID_TOKEN; "
                    "without either the service is read-only).")
+@click.option("--missions", "missions_folder", type=click.Path(file_okay=False, path_type=Path),
+              help="Folder for missions robots send (default: CATALOG-missions beside it).")
 @click.option("--max-body", type=click.IntRange(1), default=64 * 1024 * 1024,
               show_default=True, help="Largest request body accepted, in bytes.")
 @json_option
-def serve(catalog: Path, host: str, port: int, token_file: Path | None, max_body: int,
-          as_json: bool) -> None:  # fmt: skip
+def serve(catalog: Path, host: str, port: int, token_file: Path | None,
+          missions_folder: Path | None, max_body: int, as_json: bool) -> None:  # fmt: skip
     """Serve CATALOG over HTTP until Ctrl-C.
 
     \b
     /ogc       OGC API - Features (QGIS: "WFS / OGC API - Features"), CRS84 + catalog CRS
     /files     tiles, rasters, VPCs, tables, index (HTTP range requests: GDAL /vsicurl/)
-    /missions  retrieval API: search, summary, payloads by type / pose / GNSS, clouds
+    /missions  retrieval API: search, summary, payloads by type / pose / GNSS, clouds;
+               online ingest (token): create, payloads, graph, gnss, tile
     /docs      the OpenAPI documentation of every endpoint
 
     Reads are open; a write needs 'Authorization: Bearer <token>'. The URLs are printed on
@@ -46,7 +49,7 @@ def serve(catalog: Path, host: str, port: int, token_file: Path | None, max_body
     from standgrid.serve.server import Server, config, service_urls
 
     token = load_token(token_file)
-    app = create_app(catalog, token=token, max_body=max_body)
+    app = create_app(catalog, token=token, max_body=max_body, missions=missions_folder)
 
     def started(base: str) -> None:
         urls = service_urls(base)

@@ -15,15 +15,19 @@ def create_app(
     *,
     token: str | None = None,
     max_body: int = DEFAULT_MAX_BODY,
+    missions: str | os.PathLike[str] | None = None,
 ) -> Any:
     """The FastAPI app serving ``catalog``: ``/ogc`` (OGC API - Features), ``/files``
-    (catalog files with range requests), ``/missions`` (retrieval API). Reads are open;
-    a write needs ``Authorization: Bearer <token>`` (none is accepted when ``token`` is None).
+    (catalog files with range requests), ``/missions`` (retrieval API and online ingest).
+    Reads are open; a write needs ``Authorization: Bearer <token>`` (none is accepted when
+    ``token`` is None). Missions sent by robots are written under ``missions`` (default:
+    ``<catalog>-missions`` beside the catalog).
     Raises :class:`~standgrid.errors.CatalogNotFoundError` when ``catalog`` is not one."""
     from fastapi import FastAPI
     from fastapi.responses import JSONResponse
 
-    from standgrid.serve import files, missions, ogc, problems
+    from standgrid.serve import files, ingest, ogc, problems
+    from standgrid.serve import missions as retrieval
     from standgrid.serve.auth import WriteGuard
     from standgrid.serve.limits import BodyLimit
 
@@ -35,10 +39,13 @@ def create_app(
         version="0.1.0",
     )
     app.state.catalog_root = root
+    default_missions = root.with_name(f"{root.name}-missions")
+    app.state.missions_root = Path(missions).absolute() if missions else default_missions
     problems.install(app)
     app.include_router(ogc.router)
     app.include_router(files.router)
-    app.include_router(missions.router)
+    app.include_router(retrieval.router)
+    app.include_router(ingest.router)
 
     @app.get("/", tags=["Service"], summary="What this service offers")
     def index() -> JSONResponse:

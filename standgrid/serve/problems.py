@@ -15,10 +15,13 @@ from typing import Any
 
 from standgrid.errors import (
     CatalogBusyError,
+    CatalogConflictError,
     EpochNotFoundError,
+    OutputExistsError,
     PayloadNotFoundError,
     StandgridError,
 )
+from standgrid.mission.live import LiveMissionConflictError
 
 PROBLEM_JSON = "application/problem+json"
 _log = logging.getLogger("standgrid.serve")
@@ -43,6 +46,8 @@ def status_of(exc: StandgridError) -> int:
         return exc.status
     if isinstance(exc, CatalogBusyError):
         return 503
+    if isinstance(exc, LiveMissionConflictError | CatalogConflictError | OutputExistsError):
+        return 409
     if isinstance(exc, EpochNotFoundError | PayloadNotFoundError | LookupError | FileNotFoundError):
         return 404
     if isinstance(exc, ValueError):

@@ -173,3 +173,70 @@ def test_a_payload_pose_adds_its_node(tmp_path: Path) -> None:
     with pytest.raises(StandgridError, match="unknown cloud format"):
         live.add_payload(Stamp(1, 2), b"data", "xyz")
     assert not list(live.path.glob("payload_clouds/cloud_1_*"))
+
+
+def _start(catalog: Path, missions: Path, token_file: Path, env: dict[str, str]) -> tuple:
+    import json
+    import os
+    import subprocess
+    import sys
+
+    from tests.conftest import REPO_ROOT
+
+    command = [sys.executable, "-c", "from standgrid.cli import main; main()", "serve",
+               str(catalog), "--port", "0", "--json", "--missions", str(missions),
+               "--token-file", str(token_file)]  # fmt: skip
+    proc = subprocess.Popen(command, cwd=REPO_ROOT, env={**os.environ, **env},
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)  # fmt: skip
+    assert proc.stdout is not None
+    return proc, json.loads(proc.stdout.readline())["service"].rstrip("/")
+
+
+def test_a_server_killed_while_committing_restarts_consistent(tmp_path: Path) -> None:
+    """SIGKILL in the middle of the tile commit's renames (after its journal): the restarted
+    server rolls the commit forward and serves the whole mission, every tile complete."""
+    import shutil
+    import signal
+
+    from standgrid.catalog import Catalog
+    from standgrid.catalog.store import CRASH_ENV
+    from standgrid.mission.metadata import read_metadata
+    from standgrid.partition import StandGrid
+
+    catalog = tmp_path / "catalog"
+    Catalog.create(catalog, StandGrid(CRS, 20.0).to_dict(), CRS, "grid")
+    missions = tmp_path / "inbox"
+    missions.mkdir()
+    live = LiveMission(missions / NAME)
+    live.create(read_metadata(SOURCE / "metadata.yaml"))
+    live.set_graph((SOURCE / "slam_pose_graph.g2o").read_bytes())
+    live.add_gnss((SOURCE / "gnss/fixes.txt").read_bytes())
+    for cloud in sorted((SOURCE / "payload_clouds").iterdir()):
+        shutil.copy(cloud, live.path / "payload_clouds" / cloud.name)
+    token_file = tmp_path / "token"
+    token_file.write_text(TOKEN)
+
+    proc, base = _start(catalog, missions, token_file, {CRASH_ENV: "rename-1"})
+    try:
+        with pytest.raises(httpx.HTTPError):
+            httpx.post(f"{base}/missions/{NAME}/tile", headers=AUTH, timeout=300)
+        proc.wait(timeout=60)
+        assert proc.returncode == -signal.SIGKILL
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
+    proc, base = _start(catalog, missions, token_file, {})
+    try:
+        summary = httpx.get(f"{base}/missions/{NAME}")
+        assert summary.status_code == 200, summary.text
+        opened = Catalog.open(catalog)
+        record = opened.mission_records[NAME]
+        points = sum(laspy.read(opened.path(t)).header.point_count for t in record.tiles)
+        assert record.tiles and points >= record.point_count > 0
+        cells = httpx.get(f"{base}/ogc/collections/cells/items", params={"limit": 1000}).json()
+        assert sorted(f["properties"]["tile_path"] for f in cells["features"]) \
+            == sorted(record.tiles)  # fmt: skip
+    finally:
+        proc.send_signal(signal.SIGINT)
+        proc.communicate(timeout=30)

@@ -295,3 +295,21 @@ def test_serve_command_prints_urls_and_stops_on_ctrl_c(catalog: Path) -> None:
         _, err = proc.communicate(timeout=20)
     assert proc.returncode == 0, err
     assert "stopped" in err
+
+
+def test_a_reused_catalog_is_given_again_only_until_a_commit(tmp_path: Path) -> None:
+    from standgrid.catalog import Catalog
+    from tests.pipeline_fixtures import build_small_catalog
+
+    root = build_small_catalog(tmp_path / "small")
+    with Catalog.reading(root) as first:
+        pass
+    with Catalog.reading(root, reuse=first) as again:
+        assert again is first
+    with Catalog.writing(root) as catalog, catalog.transaction() as txn:
+        txn.record_mission("2030-01-01-test-robot-r9", epoch="2030", date="2030-01-01",
+                           tiles=[], point_count=0, payload_count=0)  # fmt: skip
+    with Catalog.reading(root, reuse=first) as after:
+        assert after is not first
+        assert "2030-01-01-test-robot-r9" in after.mission_records
+        assert "2030-01-01-test-robot-r9" not in first.mission_records

@@ -2,7 +2,8 @@
 
 Taken under the catalog's readers lock (:meth:`Catalog.reading`), so no commit is half
 visible; the SQLite connection is opened inside it and keeps reading that index file even
-when a later commit renames a new one into place.
+when a later commit renames a new one into place. The parsed catalog.json is reused while
+the file is unchanged (``reading(reuse=)``): the service only reads it.
 """
 
 from __future__ import annotations
@@ -20,6 +21,8 @@ from standgrid.serve.features import Layer
 from standgrid.serve.problems import Problem
 
 _layers_cache: dict[tuple[str, int, int], dict[str, Layer]] = {}
+#: The last catalog read per root: reused while its catalog.json is unchanged.
+_catalogs: dict[Path, Catalog] = {}
 _cache_lock = threading.Lock()
 
 
@@ -47,7 +50,12 @@ def snapshot(root: Path, *, with_index: bool = True) -> Iterator[Snapshot]:
     """The catalog at ``root`` as of its last commit (and its index, when it has one)."""
     conn: sqlite3.Connection | None = None
     layers: dict[str, Layer] = {}
-    with Catalog.reading(root) as catalog:
+    with _cache_lock:
+        previous = _catalogs.get(root)
+    with Catalog.reading(root, reuse=previous) as catalog:
+        if catalog is not previous:
+            with _cache_lock:
+                _catalogs[root] = catalog
         index = catalog.path(paths.INDEX)
         if with_index and index.is_file():
             conn = features.connect(index)

@@ -131,6 +131,32 @@ def test_streamed_mission_tiles_like_the_folder(
     summary = httpx.get(f"{url}/{NAME}").json()
     assert summary["payload_count"] == len(mission.payloads)
 
+    # a pose-graph update moving one payload's node 2 m re-aligns that payload at the next tile
+    moved = mission.payloads[5]
+    lines = []
+    for line in graph.decode().splitlines():
+        parts = line.split()
+        if parts and parts[0] == "VERTEX_SE3:QUAT_TIME" and (int(parts[-2]), int(parts[-1])) \
+                == (moved.stamp.sec, moved.stamp.nsec):  # fmt: skip
+            parts[2] = repr(float(parts[2]) + 2.0)
+            line = " ".join(parts)
+        lines.append(line)
+    before = _payload_centres(got, len(mission.payloads))
+    r = httpx.put(f"{url}/{NAME}/graph", content="\n".join(lines) + "\n", headers=AUTH)
+    assert r.json()["outcome"] == "stored"
+    assert httpx.post(f"{url}/{NAME}/tile", headers=AUTH, timeout=300).status_code == 200
+    after = _payload_centres(_tiles(catalog), len(mission.payloads))
+    shift = np.hypot(*(after - before)[:, :2].T)
+    assert shift[5] == pytest.approx(2.0, abs=0.05)
+    assert np.delete(shift, 5).max() < 0.05
+
+
+def _payload_centres(tiles: dict[str, laspy.LasData], count: int) -> np.ndarray:
+    """Mean x, y of each payload's points over the tiles (payload index = payload_id & 0xFFFF)."""
+    xyz = np.concatenate([np.column_stack([t.x, t.y]) for t in tiles.values()])
+    index = np.concatenate([np.asarray(t["payload_id"]) & 0xFFFF for t in tiles.values()])
+    return np.array([xyz[index == k].mean(axis=0) for k in range(count)])
+
 
 def test_write_names_and_bodies_are_checked(served: tuple[str, Path, Path]) -> None:
     base, _, missions = served

@@ -266,3 +266,30 @@ def test_a_server_killed_while_committing_restarts_consistent(tmp_path: Path) ->
     finally:
         proc.send_signal(signal.SIGINT)
         proc.communicate(timeout=30)
+
+
+def test_concurrent_senders_are_serialised(tmp_path: Path) -> None:
+    """Eight threads send the same payload (stored once) and eight send different payloads
+    with their node poses (every node lands in the graph: no lost update)."""
+    from concurrent.futures import ThreadPoolExecutor
+
+    from standgrid.mission.metadata import read_metadata
+    from standgrid.mission.model import open_mission
+    from standgrid.mission.posegraph import read_pose_graph
+
+    live = LiveMission(tmp_path / NAME)
+    live.create(read_metadata(SOURCE / "metadata.yaml"))
+    source = open_mission(SOURCE, strict=False)
+    first = source.payloads[0]
+    data = first.path.read_bytes()
+    with ThreadPoolExecutor(8) as pool:
+        outcomes = list(pool.map(lambda _: live.add_payload(first.stamp, data, "pcd"), range(8)))
+    assert sorted(outcomes) == ["stored", *["unchanged"] * 7]
+    others = source.payloads[1:9]
+    with ThreadPoolExecutor(8) as pool:
+        outcomes = list(pool.map(
+            lambda p: live.add_payload(p.stamp, p.path.read_bytes(), "pcd", source.pose_of(p)),
+            others))  # fmt: skip
+    assert outcomes == ["stored"] * len(others)
+    graph = read_pose_graph(live.path / "slam_pose_graph.g2o")
+    assert sorted(v.stamp for v in graph.vertices.values()) == sorted(p.stamp for p in others)

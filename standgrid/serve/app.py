@@ -61,7 +61,8 @@ def create_app(
             ],
         })  # fmt: skip
 
-    # Outermost first: the write guard answers before a body is read or a route is found.
+    # The middleware added last runs first: the write guard answers before the body limit
+    # reads anything or a route is found.
     app.add_middleware(BodyLimit, max_bytes=max_body)
     app.add_middleware(WriteGuard, token=token)
     return app

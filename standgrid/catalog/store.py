@@ -241,6 +241,8 @@ class Catalog:
         self._writer: FileLock | None = None
         #: Where the locks are (the final place of a catalog being built beside it).
         self._lock_root: Path = root
+        #: (inode, mtime ns, size) of the catalog.json ``reading`` parsed, for ``reuse``.
+        self._read_from: tuple[int, int, int] | None = None
 
     # --- making and opening --------------------------------------------------------------
 
@@ -367,11 +369,18 @@ class Catalog:
     @classmethod
     @contextlib.contextmanager
     def reading(
-        cls, path: str | os.PathLike[str], *, lock_timeout: float | None = DEFAULT_LOCK_TIMEOUT
+        cls,
+        path: str | os.PathLike[str],
+        *,
+        lock_timeout: float | None = DEFAULT_LOCK_TIMEOUT,
+        reuse: Catalog | None = None,
     ) -> Iterator[Catalog]:
         """A consistent snapshot: inside the block no commit changes any file of the catalog.
 
         Holds the readers lock (shared; commits wait for it, writers may still stage).
+        ``reuse``: a catalog an earlier ``reading`` gave; it is given again, without parsing
+        catalog.json, when that file is still the one it was read from (same inode, mtime
+        and size: every commit renames a new one in). Callers must treat it as read-only.
         """
         root = Path(path)
         if not (root / CATALOG_FILE).is_file():
@@ -384,7 +393,14 @@ class Catalog:
                 with _readers_excluded(root):
                     _roll_forward(root)
                 readers.acquire(lock_timeout, what="committing to")
-            yield cls(root, _read_state(root / CATALOG_FILE))
+            state_file = root / CATALOG_FILE
+            seen = _file_identity(state_file)
+            if reuse is not None and reuse.root == root and reuse._read_from == seen:
+                yield reuse
+            else:
+                catalog = cls(root, _read_state(state_file))
+                catalog._read_from = seen
+                yield catalog
         finally:
             readers.release()
 
@@ -808,6 +824,14 @@ def _read_state(path: Path) -> dict[str, Any]:
             path=path,
         )
     return state
+
+
+def _file_identity(path: Path) -> tuple[int, int, int] | None:
+    try:
+        stat = path.stat()
+    except OSError:
+        return None
+    return (stat.st_ino, stat.st_mtime_ns, stat.st_size)
 
 
 def _refuse_symlinks(root: Path, rel: str) -> None:

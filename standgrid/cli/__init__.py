@@ -27,6 +27,7 @@ COMMANDS: dict[str, str] = {
     "status": "standgrid.cli.status:status",
     "export": "standgrid.cli.export:export",
     "bag": "standgrid.cli.bag:bag",
+    "serve": "standgrid.cli.serve:serve",
 }
 
 

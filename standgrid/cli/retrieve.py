@@ -14,33 +14,6 @@ _NEGATIVE_NUMBERS = {"ignore_unknown_options": True}
 _MISSION = click.argument("mission", type=click.Path(exists=True, file_okay=False, path_type=Path))
 
 
-def _records(
-    payloads: list[Any], query: tuple[float, ...] | None = None, mission: Any = None
-) -> list[dict[str, Any]]:
-    from standgrid.mission.retrieval import query_distances
-
-    rows = []
-    for p in payloads:
-        row: dict[str, Any] = {
-            "kind": p.kind,
-            "stamp": str(p.stamp),
-            "stamp_ns": p.stamp.ns,
-            "node_id": p.node_id,
-            "path": str(p.path),
-            "frame": p.frame,
-        }
-        if p.sensor is not None:
-            row["sensor"] = p.sensor
-        if p.layers:
-            row["layers"] = {k: str(v) for k, v in p.layers.items()}
-        if query is not None and mission is not None:
-            position = mission.pose_of(p)[:3, 3]
-            row["position_map"] = position.tolist()
-            row["distance_m"] = float(query_distances(query, position.reshape(1, 3))[0])
-        rows.append(row)
-    return rows
-
-
 def _human(rows: list[dict[str, Any]]) -> str:
     if not rows:
         return "no payloads"
@@ -76,9 +49,9 @@ def by_type(mission: Path, data_type: str, as_json: bool) -> None:
     Example:
       standgrid retrieve by-type MISSION image --json
     """
-    from standgrid.mission.retrieval import retrieve_payload_by_type
+    from standgrid.mission.retrieval import payload_records, retrieve_payload_by_type
 
-    emit(_records(retrieve_payload_by_type(mission, data_type)), as_json, _human)
+    emit(payload_records(retrieve_payload_by_type(mission, data_type)), as_json, _human)
 
 
 @retrieve.command(name="by-pose", context_settings=_NEGATIVE_NUMBERS)
@@ -111,12 +84,12 @@ def by_pose(
       standgrid retrieve by-pose MISSION 12.5 -3.0 --covering --json
     """
     from standgrid.mission.model import open_mission
-    from standgrid.mission.retrieval import retrieve_payload_by_pose
+    from standgrid.mission.retrieval import payload_records, retrieve_payload_by_pose
 
     opened = open_mission(mission, strict=False)
     query = (x, y) if z is None else (x, y, z)
     found = retrieve_payload_by_pose(opened, query, k=k, radius=radius, covering=covering)
-    emit(_records(found, query, opened), as_json, _human)
+    emit(payload_records(found, query, opened), as_json, _human)
 
 
 @retrieve.command(name="by-gnss", context_settings=_NEGATIVE_NUMBERS)
@@ -137,7 +110,8 @@ def by_gnss(
     """
     from standgrid.georeference.retrieval import retrieve_payload_by_gnss
     from standgrid.mission.model import open_mission
+    from standgrid.mission.retrieval import payload_records
 
     opened = open_mission(mission, strict=False)
     coord = (lat, lon) if alt is None else (lat, lon, alt)
-    emit(_records(retrieve_payload_by_gnss(opened, coord, k=k)), as_json, _human)
+    emit(payload_records(retrieve_payload_by_gnss(opened, coord, k=k)), as_json, _human)

@@ -158,19 +158,39 @@ class MissionCollection:
         case-insensitive; ``sensors``: the mission has all of them, each by name, kind or make,
         see :func:`~standgrid.mission.sensor_models.sensor_matches`: ``lidar`` finds
         ``velodyne-vlp16``). A criterion excludes missions without metadata."""
-        start, end = _as_date(date_from), _as_date(date_to)
-        wanted = [s for s in sensors if s.strip()] if sensors else []
-        out = []
-        for rec in self.records:
-            if site is not None and (rec.site is None or _norm(rec.site) != _norm(site)):
-                continue
-            if robot is not None and (rec.robot is None or _norm(rec.robot) != _norm(robot)):
-                continue
-            if start is not None and (rec.date is None or rec.date < start):
-                continue
-            if end is not None and (rec.date is None or rec.date > end):
-                continue
-            if not all(sensor_matches(w, rec.sensors) for w in wanted):
-                continue
-            out.append(rec)
-        return out
+        return [
+            rec
+            for rec in self.records
+            if metadata_matches(
+                rec.site, rec.robot, rec.date, rec.sensors, site=site,
+                date_from=date_from, date_to=date_to, robot=robot, sensors=sensors,
+            )
+        ]  # fmt: skip
+
+
+def metadata_matches(
+    mission_site: str | None,
+    mission_robot: str | None,
+    mission_date: dt.date | str | None,
+    mission_sensors: Iterable[str],
+    *,
+    site: str | None = None,
+    date_from: dt.date | str | None = None,
+    date_to: dt.date | str | None = None,
+    robot: str | None = None,
+    sensors: Iterable[str] | None = None,
+) -> bool:
+    """Whether one mission's metadata meets every given criterion of
+    :meth:`MissionCollection.search` (the one place that rule is written)."""
+    start, end = _as_date(date_from), _as_date(date_to)
+    date = _as_date(mission_date or None)
+    wanted = [s for s in sensors if s.strip()] if sensors else []
+    if site is not None and (not mission_site or _norm(mission_site) != _norm(site)):
+        return False
+    if robot is not None and (not mission_robot or _norm(mission_robot) != _norm(robot)):
+        return False
+    if start is not None and (date is None or date < start):
+        return False
+    if end is not None and (date is None or date > end):
+        return False
+    return all(sensor_matches(w, tuple(mission_sensors)) for w in wanted)

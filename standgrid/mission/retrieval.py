@@ -7,6 +7,7 @@ Retrieval by GNSS coordinate needs a georeference: it is
 from __future__ import annotations
 
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
@@ -172,3 +173,32 @@ def retrieve_payload_by_pose(
         how = "covers" if covering else f"lies within {radius} m of"
         raise PayloadNotFoundError(f"no payload {how} the pose {query.tolist()}", path=mission.path)
     return [payloads[i] for i in hits]
+
+
+def payload_records(
+    payloads: list[Payload],
+    query: ArrayLike | None = None,
+    mission: Mission | None = None,
+) -> list[dict[str, Any]]:
+    """Payloads as JSON-ready records (kind, stamp, node, path, frame, sensor, layers); with
+    a ``query`` and its ``mission``, also each payload's map position and distance."""
+    rows = []
+    for p in payloads:
+        row: dict[str, Any] = {
+            "kind": p.kind,
+            "stamp": str(p.stamp),
+            "stamp_ns": p.stamp.ns,
+            "node_id": p.node_id,
+            "path": str(p.path),
+            "frame": p.frame,
+        }
+        if p.sensor is not None:
+            row["sensor"] = p.sensor
+        if p.layers:
+            row["layers"] = {k: str(v) for k, v in p.layers.items()}
+        if query is not None and mission is not None:
+            position = mission.pose_of(p)[:3, 3]
+            row["position_map"] = position.tolist()
+            row["distance_m"] = float(query_distances(query, position.reshape(1, 3))[0])
+        rows.append(row)
+    return rows

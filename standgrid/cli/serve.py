@@ -1,0 +1,70 @@
+"""``standgrid serve``: the catalog as a live service (OGC API - Features, files, retrieval)."""
+
+from __future__ import annotations
+
+import contextlib
+import json
+from pathlib import Path
+
+import click
+
+from standgrid.cli.options import json_option
+
+
+@click.command(name="serve")
+@click.argument("catalog", type=click.Path(exists=True, file_okay=False, path_type=Path))
+@click.option("--host", default="127.0.0.1", show_default=True,
+              help="Address to listen on (0.0.0.0: every interface).")
+@click.option("--port", type=click.IntRange(0, 65535), default=8000, show_default=True,
+              help="Port to listen on (0: any free port).")
+@click.option("--token-file", type=click.Path(exists=True, dir_okay=False, path_type=Path),
+              help="File holding the bearer token writes need (else $STANDGRID_TOKEN; "
+                   "without either the service is read-only).")
+@click.option("--missions", "missions_folder", type=click.Path(file_okay=False, path_type=Path),
+              help="Folder for missions robots send (default: CATALOG-missions beside it).")
+@click.option("--max-body", type=click.IntRange(1), default=64 * 1024 * 1024,
+              show_default=True, help="Largest request body accepted, in bytes.")
+@json_option
+def serve(catalog: Path, host: str, port: int, token_file: Path | None,
+          missions_folder: Path | None, max_body: int, as_json: bool) -> None:  # fmt: skip
+    """Serve CATALOG over HTTP until Ctrl-C.
+
+    \b
+    /ogc       OGC API - Features (QGIS: "WFS / OGC API - Features"), CRS84 + catalog CRS
+    /files     tiles, rasters, VPCs, tables, index (HTTP range requests: GDAL /vsicurl/)
+    /missions  retrieval API: search, summary, payloads by type / pose / GNSS, clouds;
+               online ingest (token): create, payloads, graph, gnss, tile
+    /docs      the OpenAPI documentation of every endpoint
+
+    Reads are open; a write needs 'Authorization: Bearer <token>'. The URLs are printed on
+    stdout once the server listens (--json: one JSON line).
+
+    \b
+    Example:
+      standgrid serve standgrid-demo --port 8000
+      curl 'http://127.0.0.1:8000/ogc/collections/cells/items?limit=5'
+    """
+    from standgrid.serve.app import create_app
+    from standgrid.serve.auth import load_token
+    from standgrid.serve.server import Server, config, service_urls
+
+    token = load_token(token_file)
+    app = create_app(catalog, token=token, max_body=max_body, missions=missions_folder)
+
+    def started(base: str) -> None:
+        urls = service_urls(base)
+        if as_json:
+            click.echo(json.dumps({"catalog": str(catalog), "writes": token is not None,
+                                   **urls}))  # fmt: skip
+        else:
+            click.echo(f"serving {catalog} ({'read-write' if token else 'read-only'})")
+            for name, url in urls.items():
+                click.echo(f"  {name:9} {url}")
+            click.echo("Ctrl-C stops it.", err=True)
+
+    server = Server(config(app, host, port), on_started=started)
+    with contextlib.suppress(KeyboardInterrupt):  # uvicorn stops, then re-raises SIGINT
+        server.run()
+    if server.base_url is None:
+        raise click.ClickException(f"could not listen on {host}:{port}")
+    click.echo("stopped", err=True)

@@ -1,0 +1,68 @@
+"""The application factory: one ASGI app over one catalog."""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+from typing import Any
+
+from standgrid.catalog import Catalog
+from standgrid.serve.limits import DEFAULT_MAX_BODY
+
+
+def create_app(
+    catalog: str | os.PathLike[str],
+    *,
+    token: str | None = None,
+    max_body: int = DEFAULT_MAX_BODY,
+    missions: str | os.PathLike[str] | None = None,
+) -> Any:
+    """The FastAPI app serving ``catalog``: ``/ogc`` (OGC API - Features), ``/files``
+    (catalog files with range requests), ``/missions`` (retrieval API and online ingest).
+    Reads are open; a write needs ``Authorization: Bearer <token>`` (none is accepted when
+    ``token`` is None). Missions sent by robots are written under ``missions`` (default:
+    ``<catalog>-missions`` beside the catalog).
+    Raises :class:`~standgrid.errors.CatalogNotFoundError` when ``catalog`` is not one."""
+    from fastapi import FastAPI
+    from fastapi.responses import JSONResponse
+
+    from standgrid.serve import files, ingest, ogc, problems
+    from standgrid.serve import missions as retrieval
+    from standgrid.serve.auth import WriteGuard
+    from standgrid.serve.limits import BodyLimit
+
+    root = Path(catalog).absolute()
+    Catalog.open(root)  # refuse a folder that is not a catalog now, not per request
+    app = FastAPI(
+        title="standgrid",
+        summary="A stand-grid catalog as a service: OGC API - Features, files, retrieval",
+        version="0.1.0",
+    )
+    app.state.catalog_root = root
+    default_missions = root.with_name(f"{root.name}-missions")
+    app.state.missions_root = Path(missions).absolute() if missions else default_missions
+    problems.install(app)
+    app.include_router(ogc.router)
+    app.include_router(files.router)
+    app.include_router(retrieval.router)
+    app.include_router(ingest.router)
+
+    @app.get("/", tags=["Service"], summary="What this service offers")
+    def index() -> JSONResponse:
+        return JSONResponse({
+            "title": "standgrid",
+            "catalog": root.name,
+            "links": [
+                {"rel": "ogc", "href": "/ogc", "title": "OGC API - Features"},
+                {"rel": "files", "href": "/files", "title": "catalog files (range requests)"},
+                {"rel": "missions", "href": "/missions", "title": "retrieval API"},
+                {"rel": "service-desc", "href": "/openapi.json", "title": "OpenAPI 3.1"},
+                {"rel": "service-doc", "href": "/docs", "title": "API documentation"},
+            ],
+        })  # fmt: skip
+
+    # The middleware added last runs first: the write guard answers before the body limit
+    # reads anything or a route is found.
+    app.add_middleware(BodyLimit, max_bytes=max_body)
+    app.add_middleware(WriteGuard, token=token)
+    return app

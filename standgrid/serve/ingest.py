@@ -1,0 +1,194 @@
+"""Online ingest: robots create a mission, then send payloads, pose-graph updates and GNSS
+fixes as they produce them, and ask for the mission to be tiled into the catalog.
+
+Every route here is a write: the write guard (:mod:`standgrid.serve.auth`) has already
+checked the bearer token. Files go into a canonical mission folder under the server's
+missions folder through :class:`~standgrid.mission.live.LiveMission` (atomic, locked,
+idempotent); tiling is :func:`~standgrid.pipeline.tile.tile_missions`, one catalog
+transaction under the catalog's writer lock. A mission name from the request becomes a
+folder name only after :func:`check_name`.
+"""
+
+from __future__ import annotations
+
+import datetime as dt
+import json
+import re
+from pathlib import Path
+from typing import Annotated, Any
+
+from fastapi import APIRouter, Query, Request
+from fastapi.responses import JSONResponse
+from pydantic import BaseModel, Field
+from starlette.concurrency import run_in_threadpool
+
+from standgrid.serve.problems import Problem
+from standgrid.serve.snapshot import snapshot
+
+router = APIRouter(prefix="/missions", tags=["Ingest (bearer token)"])
+_NAME = re.compile(r"^[A-Za-z0-9][A-Za-z0-9._-]{0,127}$")
+_STAMP = re.compile(r"^(\d{1,12})_(\d{9})$")
+_BINARY = {"application/octet-stream": {"schema": {"type": "string", "format": "binary"}}}
+_TEXT = {"text/plain": {"schema": {"type": "string"}}}
+
+
+def _body(content: dict[str, Any], description: str) -> dict[str, Any]:
+    return {"requestBody": {"required": True, "description": description, "content": content},
+            "security": [{"bearer": []}]}  # fmt: skip
+
+
+class GnssOrigin(BaseModel):
+    latitude: float = Field(ge=-90, le=90)
+    longitude: float = Field(ge=-180, le=180)
+    altitude: float = 0.0
+
+
+class NewMission(BaseModel):
+    """A mission as a robot announces it (the fields of ``metadata.yaml``)."""
+
+    name: str = Field(description="folder name, e.g. 2024-05-14-wytham-anymal-coyote")
+    date: dt.date
+    time: dt.time | None = None
+    place: str | None = None
+    robot: str | None = None
+    unit: str | None = None
+    sensors: list[str] = Field(default_factory=list)
+    tags: list[str] = Field(default_factory=list)
+    notes: str = ""
+    gnss: GnssOrigin | None = None
+
+
+def check_name(name: str) -> str:
+    """A mission name that is safe as one folder name (letters, digits, ``.``, ``_``, ``-``;
+    no leading dot), else a 400 problem."""
+    if not _NAME.match(name) or ".." in name:
+        raise Problem(400, f"mission name {name!r}: use letters, digits, '.', '_', '-' "
+                      "(at most 128, not starting with '.' or '-')")  # fmt: skip
+    return name
+
+
+def _live(request: Request, name: str) -> Any:
+    from standgrid.mission.live import LiveMission
+
+    root: Path = request.app.state.missions_root
+    return LiveMission(root / check_name(name))
+
+
+def _answer(outcome: str, status_created: int = 201, **extra: Any) -> JSONResponse:
+    return JSONResponse({"outcome": outcome, **extra},
+                        status_code=200 if outcome == "unchanged" else status_created)  # fmt: skip
+
+
+@router.post(
+    "",
+    summary="Create a mission (idempotent: the same metadata again is 200, other metadata 409)",
+    status_code=201,
+    openapi_extra={"security": [{"bearer": []}]},
+)
+async def create(request: Request, mission: NewMission) -> JSONResponse:
+    from standgrid.mission.metadata import MissionMetadata
+
+    live = _live(request, mission.name)
+    metadata = MissionMetadata(
+        name=mission.name, date=mission.date, place=mission.place, robot=mission.robot,
+        unit=mission.unit, time=mission.time, sensors=list(mission.sensors),
+        tags=list(mission.tags), notes=mission.notes,
+        gnss=None if mission.gnss is None else (
+            mission.gnss.latitude, mission.gnss.longitude, mission.gnss.altitude),
+    )  # fmt: skip
+    live.path.parent.mkdir(parents=True, exist_ok=True)
+    outcome = await run_in_threadpool(live.create, metadata)
+    return _answer(outcome, name=mission.name)
+
+
+def _pose(text: str | None) -> Any:
+    if text is None:
+        return None
+    from standgrid.geometry import pose_matrix
+
+    try:
+        values = [float(v) for v in text.split(",")]
+    except ValueError as exc:
+        raise Problem(400, f"pose: {text!r} is not 7 numbers x,y,z,qx,qy,qz,qw") from exc
+    if len(values) != 7 or not all(abs(v) < float("inf") for v in values):
+        raise Problem(400, f"pose: {text!r} is not 7 finite numbers x,y,z,qx,qy,qz,qw")
+    if abs(sum(v * v for v in values[3:]) - 1.0) > 1e-6:
+        raise Problem(400, "pose: the quaternion qx,qy,qz,qw is not of unit length")
+    return pose_matrix(values[:3], values[3:])
+
+
+@router.post(
+    "/{name}/payloads",
+    summary="Send one payload cloud in its node's base frame, with its stamp and node pose",
+    status_code=201,
+    openapi_extra=_body(_BINARY, "the cloud file: PCD, PLY, LAS or LAZ (see format)"),
+)
+async def payload(
+    request: Request,
+    name: str,
+    stamp: Annotated[str, Query(description="<sec>_<nsec, 9 digits>")],
+    format: Annotated[str, Query(description="pcd, ply, las or laz")] = "pcd",
+    pose: Annotated[str | None, Query(description="node pose T_map_base: x,y,z,qx,qy,qz,qw "
+                                      "(adds the node when the graph lacks it)")] = None,
+) -> JSONResponse:  # fmt: skip
+    from standgrid.stamps import Stamp
+
+    match = _STAMP.match(stamp)
+    if match is None:
+        raise Problem(400, f"stamp {stamp!r} is not <sec>_<nsec, 9 digits>")
+    live = _live(request, name)
+    data = await request.body()
+    if not data:
+        raise Problem(400, "empty body: send the cloud file")
+    at = Stamp(int(match[1]), int(match[2]))
+    outcome = await run_in_threadpool(live.add_payload, at, data, format, _pose(pose))
+    return _answer(outcome, stamp=stamp, bytes=len(data))
+
+
+@router.put(
+    "/{name}/graph",
+    summary="Replace the mission's pose graph (g2o); payloads follow their nodes",
+    openapi_extra=_body(_TEXT, "the pose graph, g2o text (VERTEX_SE3:QUAT_TIME ...)"),
+)
+async def graph(request: Request, name: str) -> JSONResponse:
+    live = _live(request, name)
+    outcome = await run_in_threadpool(live.set_graph, await request.body())
+    return _answer(outcome, status_created=200)
+
+
+@router.post(
+    "/{name}/gnss",
+    summary="Send GNSS fixes (the canonical text log); fixes already stored are kept once",
+    openapi_extra=_body(_TEXT, "# sec, nsec, latitude, longitude, altitude, quality, h_std, "
+                        "v_std"),
+)  # fmt: skip
+async def gnss(request: Request, name: str) -> JSONResponse:
+    live = _live(request, name)
+    outcome, new = await run_in_threadpool(live.add_gnss, await request.body())
+    return _answer(outcome, status_created=200, new_fixes=new)
+
+
+@router.post(
+    "/{name}/tile",
+    summary="Tile the mission into the catalog (one transaction under the writer lock)",
+    openapi_extra={"security": [{"bearer": []}]},
+)
+async def tile(request: Request, name: str) -> JSONResponse:
+    live = _live(request, name)
+    if not (live.path / "metadata.yaml").is_file():
+        raise Problem(404, f"no mission {name!r} was created on this server")
+    root: Path = request.app.state.catalog_root
+    with snapshot(root, with_index=False) as snap:
+        record = snap.catalog.mission_records.get(name)
+    if record is not None and record.path and Path(record.path) != live.path.absolute():
+        raise Problem(409, f"the catalog holds a mission {name!r} tiled from another folder")
+
+    def run() -> dict[str, Any]:
+        from standgrid.pipeline.tile import TileOptions, tile_missions
+
+        with live.locked():  # no payload lands half-way through the tiling
+            report = tile_missions([live.path.absolute()], root, TileOptions())
+        result: dict[str, Any] = json.loads(json.dumps(report.to_dict(), default=str))
+        return result
+
+    return JSONResponse(await run_in_threadpool(run))

@@ -1,0 +1,267 @@
+"""The retrieval API over HTTP: the catalog's missions, searched by site, date range, robot
+and sensors; a mission's summary; its payloads by type, by SLAM pose and by GNSS position;
+a payload's cloud as LAZ.
+
+The logic is the library's (:func:`~standgrid.mission.collection.metadata_matches`,
+:func:`~standgrid.mission.retrieval.retrieve_payload_by_type` / ``_by_pose``,
+:func:`~standgrid.georeference.retrieval.retrieve_payload_by_gnss`); this module parses
+requests and shapes answers. A mission is found by its name in catalog.json, never by a path
+from the request; its folder is the source path the catalog recorded.
+"""
+
+from __future__ import annotations
+
+import datetime as dt
+import re
+import tempfile
+import threading
+from collections import OrderedDict
+from pathlib import Path
+from typing import Annotated, Any, Literal
+
+from fastapi import APIRouter, Query, Request
+from fastapi.responses import JSONResponse, Response
+
+from standgrid.catalog import MissionRecord
+from standgrid.serve.problems import Problem
+from standgrid.serve.snapshot import snapshot
+
+router = APIRouter(prefix="/missions", tags=["Retrieval"])
+_STAMP = re.compile(r"^(\d{1,12})_(\d{9})$")
+#: Missions kept open (their clouds cached) between requests.
+_OPEN_MISSIONS = 4
+_missions: OrderedDict[tuple[str, int], Any] = OrderedDict()
+_missions_lock = threading.Lock()
+
+
+def _record(request: Request, name: str) -> MissionRecord:
+    with snapshot(request.app.state.catalog_root, with_index=False) as snap:
+        record = snap.catalog.mission_records.get(name)
+        names = sorted(snap.catalog.mission_records)
+    if record is None:
+        raise Problem(404, f"no mission {name!r} in the catalog; missions: {names}")
+    return record
+
+
+def _opened(record: MissionRecord) -> Any:
+    """The mission's folder, opened once and kept (keyed by path and folder mtime)."""
+    from standgrid.mission.model import open_mission
+
+    if not record.path or not Path(record.path).is_dir():
+        raise Problem(404, f"mission {record.name!r}: its folder is not available to this server")
+    folder = Path(record.path)
+    key = (str(folder), folder.stat().st_mtime_ns)
+    with _missions_lock:
+        mission = _missions.get(key)
+        if mission is not None:
+            _missions.move_to_end(key)
+            return mission
+    mission = open_mission(folder, strict=False)
+    with _missions_lock:
+        _missions[key] = mission
+        while len(_missions) > _OPEN_MISSIONS:
+            _missions.popitem(last=False)
+    return mission
+
+
+def _base(request: Request) -> str:
+    return str(request.base_url).rstrip("/")
+
+
+def _summary(request: Request, record: MissionRecord) -> dict[str, Any]:
+    base = _base(request)
+    fit = record.georeference or {}
+    fit_summary = {k: fit[k] for k in ("method", "rmse_m", "n_used", "n_rejected") if k in fit}
+    return {
+        "name": record.name,
+        "number": record.number,
+        "epoch": record.epoch,
+        "date": record.date,
+        "site": record.place or None,
+        "robot": record.robot or None,
+        "unit": record.unit or None,
+        "sensors": list(record.sensors),
+        "payload_count": record.payload_count,
+        "point_count": record.point_count,
+        "ingested": record.ingested,
+        "georeference": fit_summary or None,
+        "tiles": [f"{base}/files/{t}" for t in record.tiles],
+        "links": [
+            {"rel": "self", "href": f"{base}/missions/{record.name}"},
+            {"rel": "payloads", "href": f"{base}/missions/{record.name}/payloads"},
+        ],
+    }
+
+
+def _payloads(
+    request: Request, record: MissionRecord, rows: list[dict[str, Any]]
+) -> JSONResponse:
+    """Payload records for the outside: server paths replaced by URLs."""
+    base = f"{_base(request)}/missions/{record.name}/payloads"
+    out = []
+    for row in rows:
+        row = {k: v for k, v in row.items() if k not in ("path", "layers")}
+        sec, nsec = divmod(int(row["stamp_ns"]), 1_000_000_000)
+        if row["kind"] == "point_cloud":
+            row["cloud"] = f"{base}/{sec}_{nsec:09d}/cloud.laz"
+        out.append(row)
+    return JSONResponse({"mission": record.name, "payloads": out, "count": len(out)})
+
+
+def _date(text: str | None, name: str) -> dt.date | None:
+    if text is None:
+        return None
+    try:
+        return dt.date.fromisoformat(text[:10])
+    except ValueError as exc:
+        raise Problem(400, f"{name}: {text!r} is not a date (YYYY-MM-DD)") from exc
+
+
+@router.get("", summary="Missions of the catalog, searched by site, date range, robot, sensors")
+def search(
+    request: Request,
+    site: str | None = None,
+    date_from: Annotated[str | None, Query(alias="from")] = None,
+    date_to: Annotated[str | None, Query(alias="to")] = None,
+    robot: str | None = None,
+    sensor: Annotated[list[str] | None, Query(description="repeat for several")] = None,
+) -> JSONResponse:
+    from standgrid.mission.collection import metadata_matches
+
+    start, end = _date(date_from, "from"), _date(date_to, "to")
+    with snapshot(request.app.state.catalog_root, with_index=False) as snap:
+        records = list(snap.catalog.mission_records.values())
+    found = [
+        _summary(request, r)
+        for r in sorted(records, key=lambda r: (r.date, r.name))
+        if metadata_matches(
+            r.place, r.robot, r.date or None, r.sensors, site=site, date_from=start,
+            date_to=end, robot=robot, sensors=sensor,
+        )
+    ]  # fmt: skip
+    return JSONResponse({"missions": found, "count": len(found)})
+
+
+@router.get("/{name}", summary="A mission's summary")
+def summary(request: Request, name: str) -> JSONResponse:
+    return JSONResponse(_summary(request, _record(request, name)))
+
+
+@router.get("/{name}/payloads", summary="A mission's payloads of one type")
+def by_type(
+    request: Request,
+    name: str,
+    type: Annotated[str, Query(description="point_cloud, scan, gnss, imu, image")] = "point_cloud",
+) -> JSONResponse:
+    from standgrid.mission.retrieval import payload_records, retrieve_payload_by_type
+
+    record = _record(request, name)
+    found = retrieve_payload_by_type(_opened(record), type)
+    return _payloads(request, record, payload_records(found))
+
+
+@router.get("/{name}/payloads/by-pose", summary="Payloads nearest a map-frame point")
+def by_pose(
+    request: Request,
+    name: str,
+    x: float,
+    y: float,
+    z: float | None = None,
+    k: Annotated[int, Query(ge=1, le=10_000)] = 1,
+    radius: Annotated[float | None, Query(gt=0)] = None,
+    covering: bool = False,
+) -> JSONResponse:
+    from standgrid.mission.retrieval import payload_records, retrieve_payload_by_pose
+
+    record = _record(request, name)
+    mission = _opened(record)
+    query = (x, y) if z is None else (x, y, z)
+    found = retrieve_payload_by_pose(mission, query, k=k, radius=radius, covering=covering)
+    return _payloads(request, record, payload_records(found, query, mission))
+
+
+@router.get("/{name}/payloads/by-gnss", summary="Payloads nearest a WGS 84 coordinate")
+def by_gnss(
+    request: Request,
+    name: str,
+    lat: Annotated[float, Query(ge=-90, le=90)],
+    lon: Annotated[float, Query(ge=-180, le=180)],
+    alt: float | None = None,
+    k: Annotated[int, Query(ge=1, le=10_000)] = 1,
+) -> JSONResponse:
+    from standgrid.georeference.retrieval import retrieve_payload_by_gnss
+    from standgrid.mission.retrieval import payload_records
+
+    record = _record(request, name)
+    coord = (lat, lon) if alt is None else (lat, lon, alt)
+    found = retrieve_payload_by_gnss(_opened(record), coord, k=k)
+    return _payloads(request, record, payload_records(found))
+
+
+@router.get(
+    "/{name}/payloads/{stamp}/cloud.laz",
+    summary="A payload's cloud as LAZ: in the catalog CRS (default), the map frame or its "
+    "node's base frame",
+    response_class=Response,
+    responses={200: {"content": {"application/vnd.laszip": {}}}},
+)
+def cloud(
+    request: Request, name: str, stamp: str, frame: Literal["crs", "map", "base"] = "crs"
+) -> Response:
+    """``crs``: georeferenced (the mission's fit, exact pyproj chain) as a tile is, with the
+    CRS in the header; ``map`` / ``base``: SLAM frames, no CRS. A non-LAS intensity (float
+    reflectivity) is kept exactly, in the ``intensity_raw`` extra dimension."""
+    match = _STAMP.match(stamp)
+    if match is None:
+        raise Problem(400, f"stamp {stamp!r} is not <sec>_<nsec, 9 digits>")
+    record = _record(request, name)
+    mission = _opened(record)
+    wanted = int(match[1]) * 1_000_000_000 + int(match[2])
+    payload = next((p for p in mission.payloads if p.stamp.ns == wanted), None)
+    if payload is None:
+        raise Problem(404, f"mission {name!r} has no payload cloud stamped {stamp}")
+    points = mission.load_payload(payload, frame="base" if frame == "base" else "map")
+    with tempfile.TemporaryDirectory(prefix="standgrid-serve-") as folder:
+        path = Path(folder) / f"cloud_{stamp}.laz"
+        if frame == "crs":
+            _write_georeferenced(request, record, points, path)
+        else:
+            _write_local(points, path)
+        data = path.read_bytes()
+    return Response(
+        data,
+        media_type="application/vnd.laszip",
+        headers={"Content-Disposition": f'inline; filename="{record.name}_{stamp}.laz"'},
+    )
+
+
+def _write_georeferenced(request: Request, record: MissionRecord, points: Any, path: Path) -> None:
+    from standgrid.export.las import write_tile
+    from standgrid.georeference.fit import GeoreferenceFit
+    from standgrid.georeference.project import MapProjector
+
+    if not record.georeference:
+        raise Problem(
+            409,
+            f"mission {record.name!r} has no georeference fit in the catalog "
+            "(its clouds were tiled as they came): ask for frame=map or base",
+        )
+    with snapshot(request.app.state.catalog_root, with_index=False) as snap:
+        crs = snap.catalog.crs
+    projector = MapProjector(GeoreferenceFit.from_dict(record.georeference), crs)
+    fields = {k: v for k, v in points.fields.items() if k != "withheld"}
+    write_tile(path, type(points)(projector.exact(points.xyz), fields), crs=crs, laz=True)
+
+
+def _write_local(points: Any, path: Path) -> None:
+    import numpy as np
+
+    from standgrid.mission.clouds import write_cloud
+
+    fields = dict(points.fields)
+    intensity = fields.get("intensity")
+    if intensity is not None and not (
+        np.issubdtype(intensity.dtype, np.unsignedinteger) and intensity.dtype.itemsize <= 2
+    ):
+        fields["intensity_raw"] = fields.pop("intensity")
+    write_cloud(type(points)(points.xyz, fields), path)

@@ -1,0 +1,325 @@
+"""OGC API - Features at ``/ogc``: Part 1 Core (GeoJSON, OpenAPI 3.0) and Part 2 (CRS by
+reference). One collection per layer of the catalog's ``index.gpkg``."""
+
+from __future__ import annotations
+
+import datetime as dt
+import json
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+from fastapi import APIRouter, Request
+from fastapi.responses import JSONResponse, Response
+
+from standgrid.serve import crs as crs_mod
+from standgrid.serve import features
+from standgrid.serve.features import Layer, Page, Query
+from standgrid.serve.ogc_openapi import openapi_document
+from standgrid.serve.problems import Problem
+from standgrid.serve.snapshot import Snapshot, snapshot
+
+GEOJSON = "application/geo+json"
+OPENAPI_JSON = "application/vnd.oai.openapi+json;version=3.0"
+CONFORMANCE = [
+    "http://www.opengis.net/spec/ogcapi-features-1/1.0/conf/core",
+    "http://www.opengis.net/spec/ogcapi-features-1/1.0/conf/oas30",
+    "http://www.opengis.net/spec/ogcapi-features-1/1.0/conf/geojson",
+    "http://www.opengis.net/spec/ogcapi-features-2/1.0/conf/crs",
+]
+DEFAULT_LIMIT = 100
+MAX_LIMIT = 10_000
+#: Query parameters of an items request that are not property filters.
+ITEMS_PARAMETERS = frozenset({"bbox", "bbox-crs", "crs", "datetime", "limit", "offset", "f"})
+TITLES = {
+    "cells": "Stand-grid cells with their tiles (one row per cell and epoch)",
+    "payloads": "Payload footprints (one per payload cloud)",
+    "trajectories": "Robot trajectories (one line per mission)",
+    "gnss_fixes": "GNSS fixes with their georeference residuals",
+    "missions": "Missions and their georeference fit",
+    "stand_metrics": "Cell (level 0) and stand (level 1) metrics per epoch",
+    "trees": "Trees found per epoch (crown polygons)",
+    "stand_changes": "Change of stand metrics between two epochs",
+    "tree_changes": "Matched, removed and new trees between two epochs",
+}
+
+
+def _root(request: Request) -> Path:
+    root: Path = request.app.state.catalog_root
+    return root
+
+
+def _base(request: Request) -> str:
+    return str(request.base_url).rstrip("/") + "/ogc"
+
+
+def _json(body: Any, media_type: str = "application/json", **headers: str) -> JSONResponse:
+    return JSONResponse(body, media_type=media_type, headers=headers or None)
+
+
+router = APIRouter(prefix="/ogc", tags=["OGC API - Features"])
+
+
+@router.get("", summary="Landing page")
+@router.get("/", include_in_schema=False)
+def landing(request: Request) -> JSONResponse:
+    base = _base(request)
+    return _json({
+        "title": "standgrid catalog",
+        "description": "The stand-grid catalog's index layers as OGC API - Features",
+        "links": [
+            {"rel": "self", "type": "application/json", "href": base},
+            {"rel": "service-desc", "type": OPENAPI_JSON, "href": f"{base}/api"},
+            {"rel": "service-doc", "type": "text/html",
+             "href": str(request.base_url).rstrip("/") + "/docs"},
+            {"rel": "conformance", "type": "application/json", "href": f"{base}/conformance"},
+            {"rel": "data", "type": "application/json", "href": f"{base}/collections"},
+        ],
+    })  # fmt: skip
+
+
+@router.get("/conformance", summary="Conformance classes")
+def conformance() -> JSONResponse:
+    return _json({"conformsTo": CONFORMANCE})
+
+
+@router.get("/api", summary="OpenAPI 3.0 definition of the OGC API")
+def api(request: Request) -> JSONResponse:
+    with snapshot(_root(request)) as snap:
+        document = openapi_document(_base(request), snap.layers, _offered(snap))
+    return _json(document, OPENAPI_JSON)
+
+
+def _offered(snap: Snapshot) -> list[str]:
+    return crs_mod.supported(snap.catalog.crs)
+
+
+def _temporal_extent(snap: Snapshot, layer: Layer) -> list[str | None] | None:
+    if layer.temporal is None:
+        return None
+    dates = sorted(d for d in snap.epoch_dates.values() if d)
+    if not dates:
+        return None
+    return [f"{dates[0][:10]}T00:00:00Z", f"{dates[-1][:10]}T23:59:59Z"]
+
+
+def _collection(request: Request, snap: Snapshot, layer: Layer) -> dict[str, Any]:
+    base = f"{_base(request)}/collections/{layer.name}"
+    extent: dict[str, Any] = {}
+    if layer.bounds is not None:
+        extent["spatial"] = {
+            "bbox": [crs_mod.bounds_to_crs84(layer.bounds, snap.catalog.crs)],
+            "crs": crs_mod.CRS84,
+        }
+    interval = _temporal_extent(snap, layer)
+    if interval is not None:
+        extent["temporal"] = {
+            "interval": [interval],
+            "trs": "http://www.opengis.net/def/uom/ISO-8601/0/Gregorian",
+        }
+    body: dict[str, Any] = {
+        "id": layer.name,
+        "title": TITLES.get(layer.name, layer.name),
+        "description": layer.description or TITLES.get(layer.name, layer.name),
+        "itemType": "feature",
+        "crs": _offered(snap),
+        "links": [
+            {"rel": "self", "type": "application/json", "href": base},
+            {"rel": "items", "type": GEOJSON, "href": f"{base}/items"},
+            {"rel": "http://www.opengis.net/def/rel/ogc/1.0/queryables",
+             "type": "application/schema+json", "href": f"{base}/queryables"},
+        ],
+    }  # fmt: skip
+    own = crs_mod.catalog_crs_uri(snap.catalog.crs)
+    if own is not None:
+        body["storageCrs"] = own
+    if extent:
+        body["extent"] = extent
+    return body
+
+
+@router.get("/collections", summary="The collections (one per index layer)")
+def collections(request: Request) -> JSONResponse:
+    with snapshot(_root(request)) as snap:
+        items = [_collection(request, snap, layer) for layer in snap.layers.values()]
+        offered = _offered(snap)
+    base = _base(request)
+    return _json({
+        "links": [{"rel": "self", "type": "application/json", "href": f"{base}/collections"}],
+        "collections": items,
+        "crs": offered,
+    })  # fmt: skip
+
+
+@router.get("/collections/{collection_id}", summary="One collection")
+def collection(request: Request, collection_id: str) -> JSONResponse:
+    with snapshot(_root(request)) as snap:
+        return _json(_collection(request, snap, snap.layer(collection_id)))
+
+
+@router.get("/collections/{collection_id}/queryables", summary="Properties to filter by")
+def queryables(request: Request, collection_id: str) -> JSONResponse:
+    with snapshot(_root(request)) as snap:
+        layer = snap.layer(collection_id)
+    base = f"{_base(request)}/collections/{layer.name}/queryables"
+    return _json({
+        "$schema": "https://json-schema.org/draft/2020-12/schema",
+        "$id": base,
+        "type": "object",
+        "title": layer.name,
+        "properties": {c.name: {"type": c.type} for c in layer.columns},
+    }, "application/schema+json")  # fmt: skip
+
+
+def _int(request: Request, name: str, default: int, low: int, high: int | None) -> int:
+    text = request.query_params.get(name)
+    if text is None or text == "":
+        return default
+    try:
+        value = int(text)
+    except ValueError as exc:
+        raise Problem(400, f"{name}: {text!r} is not an integer") from exc
+    if value < low:
+        raise Problem(400, f"{name}: must be at least {low}, got {value}")
+    return min(value, high) if high is not None else value
+
+
+def _bbox(text: str) -> list[float]:
+    try:
+        values = [float(v) for v in text.split(",")]
+    except ValueError as exc:
+        raise Problem(400, f"bbox: {text!r} is not four or six numbers") from exc
+    if len(values) not in (4, 6) or not all(abs(v) < float("inf") for v in values):
+        raise Problem(400, f"bbox: {text!r} is not four or six finite numbers")
+    return values
+
+
+def _query(request: Request, snap: Snapshot, layer: Layer) -> Query:
+    params = request.query_params
+    unknown = [k for k in params if k not in ITEMS_PARAMETERS and k not in layer.column_types]
+    if unknown:
+        raise Problem(400, f"unknown parameters {unknown}; properties of {layer.name!r}: "
+                      f"{[c.name for c in layer.columns]}")  # fmt: skip
+    if len(set(params.keys())) != len(params.multi_items()):
+        raise Problem(400, "a parameter is given more than once")
+    if params.get("f") not in (None, "json", "geojson"):
+        raise Problem(400, f"f: only json is offered, not {params.get('f')!r}")
+    query = Query(
+        limit=_int(request, "limit", DEFAULT_LIMIT, 1, MAX_LIMIT),
+        offset=_int(request, "offset", 0, 0, None),
+        # a property named like a parameter (missions.crs) cannot be filtered by name
+        equals={
+            k: v for k, v in params.items() if k in layer.column_types and k not in ITEMS_PARAMETERS
+        },
+    )
+    if params.get("bbox"):
+        bbox_crs = crs_mod.check(params.get("bbox-crs"), snap.catalog.crs, "bbox-crs")
+        query.area = crs_mod.bbox_polygon(_bbox(params["bbox"]), bbox_crs, snap.catalog.crs)
+    elif params.get("bbox-crs"):
+        raise Problem(400, "bbox-crs without bbox")
+    if params.get("datetime"):
+        query.time = features.parse_datetime(params["datetime"])
+    return query
+
+
+def _features(
+    page: Page,
+    source_crs: str,
+    out_crs: str,
+    links: Callable[[int], list[dict[str, str]]],
+) -> list[str]:
+    """The page's features as GeoJSON text (geometries written by GEOS: exact doubles)."""
+    import shapely
+
+    geoms = page.geometries
+    present = [i for i, g in enumerate(geoms) if g is not None]
+    texts: list[str | None] = [None] * len(geoms)
+    if present:
+        moved = crs_mod.geometries_to(geoms[present], source_crs, out_crs)
+        for i, text in zip(present, shapely.to_geojson(moved).tolist(), strict=True):
+            texts[i] = text
+    out = []
+    for fid, props, geometry in zip(page.fids, page.properties, texts, strict=True):
+        out.append(
+            f'{{"type":"Feature","id":{fid},"geometry":{geometry or "null"},'
+            f'"properties":{_dumps(props)},"links":{_dumps(links(fid))}}}'
+        )
+    return out
+
+
+def _dumps(value: Any) -> str:
+    return json.dumps(value, separators=(",", ":"), allow_nan=False)
+
+
+def _geojson(text: str, out_crs: str) -> Response:
+    return Response(text, media_type=GEOJSON, headers={"Content-Crs": f"<{out_crs}>"})
+
+
+def _with_params(request: Request, **changes: Any) -> str:
+    params = dict(request.query_params)
+    params.update({k: str(v) for k, v in changes.items()})
+    return str(request.url.replace_query_params(**params))
+
+
+@router.get(
+    "/collections/{collection_id}/items",
+    summary="Features of a collection: bbox, datetime, property filters, limit/offset paging",
+)
+def items(request: Request, collection_id: str) -> Response:
+    with snapshot(_root(request)) as snap:
+        layer = snap.layer(collection_id)
+        query = _query(request, snap, layer)
+        out_crs = crs_mod.check(request.query_params.get("crs"), snap.catalog.crs, "crs")
+        assert snap.index is not None
+        page = features.page(snap.index, layer, query, snap.epoch_dates)
+        items_url = f"{_base(request)}/collections/{layer.name}/items"
+        body_features = _features(
+            page, snap.catalog.crs, out_crs,
+            lambda fid: [{"rel": "self", "type": GEOJSON, "href": f"{items_url}/{fid}"}],
+        )  # fmt: skip
+    links = [
+        {"rel": "self", "type": GEOJSON, "href": str(request.url)},
+        {"rel": "collection", "type": "application/json",
+         "href": f"{_base(request)}/collections/{layer.name}"},
+    ]  # fmt: skip
+    if query.offset + len(page.fids) < page.number_matched:
+        links.append({"rel": "next", "type": GEOJSON,
+                      "href": _with_params(request, offset=query.offset + query.limit,
+                                           limit=query.limit)})  # fmt: skip
+    if query.offset > 0:
+        links.append({"rel": "prev", "type": GEOJSON,
+                      "href": _with_params(request, offset=max(0, query.offset - query.limit),
+                                           limit=query.limit)})  # fmt: skip
+    rest = _dumps({
+        "numberMatched": page.number_matched,
+        "numberReturned": len(page.fids),
+        "timeStamp": dt.datetime.now(dt.UTC).strftime("%Y-%m-%dT%H:%M:%SZ"),
+        "links": links,
+    })  # fmt: skip
+    head = '{"type":"FeatureCollection","features":['
+    return _geojson(f"{head}{','.join(body_features)}],{rest[1:]}", out_crs)
+
+
+@router.get("/collections/{collection_id}/items/{feature_id}", summary="One feature")
+def item(request: Request, collection_id: str, feature_id: str) -> Response:
+    try:
+        fid = int(feature_id)
+    except ValueError as exc:
+        raise Problem(404, f"no feature {feature_id!r}: feature ids are integers") from exc
+    unknown = [k for k in request.query_params if k not in ("crs", "f")]
+    if unknown:
+        raise Problem(400, f"unknown parameters {unknown}; a feature takes crs and f")
+    with snapshot(_root(request)) as snap:
+        layer = snap.layer(collection_id)
+        out_crs = crs_mod.check(request.query_params.get("crs"), snap.catalog.crs, "crs")
+        assert snap.index is not None
+        page = features.feature(snap.index, layer, fid)
+        if not page.fids:
+            raise Problem(404, f"collection {layer.name!r} has no feature {fid}")
+        links = [
+            {"rel": "self", "type": GEOJSON, "href": str(request.url)},
+            {"rel": "collection", "type": "application/json",
+             "href": f"{_base(request)}/collections/{layer.name}"},
+        ]  # fmt: skip
+        text = _features(page, snap.catalog.crs, out_crs, lambda fid: links)[0]
+    return _geojson(text, out_crs)

@@ -1,0 +1,73 @@
+"""uvicorn around the app: the URLs it really listens on, and a server in a thread (tests,
+benchmarks)."""
+
+from __future__ import annotations
+
+import contextlib
+import threading
+import time
+from collections.abc import Callable, Iterator
+from typing import Any
+
+import uvicorn
+
+from standgrid.errors import StandgridError
+
+
+def service_urls(base: str) -> dict[str, str]:
+    """The entry points of a service listening at ``base`` (``http://host:port``)."""
+    return {
+        "service": f"{base}/",
+        "ogc": f"{base}/ogc",
+        "files": f"{base}/files",
+        "missions": f"{base}/missions",
+        "docs": f"{base}/docs",
+    }
+
+
+class Server(uvicorn.Server):
+    """A uvicorn server that knows its bound address once started (port 0 = any free port)
+    and calls ``on_started(base_url)`` then."""
+
+    def __init__(self, config: uvicorn.Config,
+                 on_started: Callable[[str], None] | None = None) -> None:  # fmt: skip
+        super().__init__(config)
+        self.base_url: str | None = None
+        self._on_started = on_started
+
+    async def startup(self, sockets: Any = None) -> None:
+        await super().startup(sockets)
+        if self.servers and self.servers[0].sockets:
+            host, port = self.servers[0].sockets[0].getsockname()[:2]
+            shown = f"[{host}]" if ":" in str(host) else host
+            self.base_url = f"http://{shown}:{port}"
+            if self._on_started is not None:
+                self._on_started(self.base_url)
+
+
+def config(app: Any, host: str, port: int, **options: Any) -> uvicorn.Config:
+    """uvicorn settings of the service (no access log by default: stderr is for progress)."""
+    options.setdefault("log_level", "warning")
+    options.setdefault("access_log", False)
+    return uvicorn.Config(app, host=host, port=port, **options)
+
+
+@contextlib.contextmanager
+def running(app: Any, host: str = "127.0.0.1", port: int = 0,
+            timeout: float = 20.0, **options: Any) -> Iterator[Server]:  # fmt: skip
+    """The app served by a real uvicorn server in a thread, on a free port by default;
+    stopped (and joined) on exit."""
+    server = Server(config(app, host, port, **options))
+    thread = threading.Thread(target=server.run, name="standgrid-serve", daemon=True)
+    thread.start()
+    deadline = time.monotonic() + timeout
+    while server.base_url is None:
+        if not thread.is_alive() or time.monotonic() > deadline:
+            server.should_exit = True
+            raise StandgridError(f"the server did not start on {host}:{port}")
+        time.sleep(0.01)
+    try:
+        yield server
+    finally:
+        server.should_exit = True
+        thread.join(timeout)

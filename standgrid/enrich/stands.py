@@ -102,11 +102,29 @@ def stand_row(
 def stand_rows_of(
     samples: list[StandSample], rule: CoverageRule, *, height_break: float = 2.0
 ) -> list[dict[str, Any]]:
-    """The ``stand_metrics`` row of each sample (metrics computed for all at once)."""
+    """The ``stand_metrics`` row of each sample (metrics computed for many at once, in
+    batches of at most :data:`BATCH_HEIGHTS` heights, so memory stays bounded)."""
+    rows: list[dict[str, Any]] = []
+    batch: list[StandSample] = []
+    size = 0
+    for sample in samples:
+        if batch and size + len(sample.heights) > BATCH_HEIGHTS:
+            rows += _batch_rows(batch, rule, height_break)
+            batch, size = [], 0
+        batch.append(sample)
+        size += len(sample.heights)
+    return rows + _batch_rows(batch, rule, height_break) if batch else rows
+
+
+#: Heights of one batch of stand rows (~100 MB of working arrays).
+BATCH_HEIGHTS = 2_000_000
+
+
+def _batch_rows(
+    samples: list[StandSample], rule: CoverageRule, height_break: float
+) -> list[dict[str, Any]]:
     from standgrid.enrich.metrics import area_metrics, tree_metrics
 
-    if not samples:
-        return []
     keys = np.arange(len(samples), dtype=np.int64)
     area_table = area_metrics(
         np.repeat(keys, [len(s.heights) for s in samples]),

@@ -43,6 +43,8 @@ RDBU = (
 )  # fmt: skip
 #: viridis, 5 stops (canopy height and other stand metrics).
 VIRIDIS = ("#440154", "#3b528b", "#21918c", "#5ec962", "#fde725")
+#: ColorBrewer YlGn (5 classes), for stocking (basal area) of the cells.
+YLGN = ("#ffffcc", "#c2e699", "#78c679", "#31a354", "#006837")
 #: ColorBrewer YlOrRd (5 classes), for point density.
 YLORRD = ("#ffffb2", "#fecc5c", "#fd8d3c", "#f03b20", "#bd0026")
 #: Terrain: green lowland through tan to brown and pale high ground (DTM).
@@ -226,11 +228,14 @@ def _renderer(kind: str, **attrs: str) -> ET.Element:
     return ET.Element("renderer-v2", {**base, **attrs})
 
 
-def _labeling(field: str, geometry: str, size: float = 8.0) -> ET.Element:
+def _labeling(
+    field: str, geometry: str, size: float = 8.0, *, expression: bool = False
+) -> ET.Element:
     labeling = ET.Element("labeling", type="simple")
     settings = ET.SubElement(labeling, "settings", calloutType="simple")
     ET.SubElement(
-        settings, "text-style", fieldName=field, isExpression="0", fontFamily="Sans Serif",
+        settings, "text-style", fieldName=field, isExpression="1" if expression else "0",
+        fontFamily="Sans Serif",
         fontSize=f"{size:g}", fontSizeUnit="Point", textColor="0,0,0,255", textOpacity="1",
         fontWeight="50", fontItalic="0", namedStyle="Regular",
     )  # fmt: skip
@@ -245,6 +250,19 @@ def _labeling(field: str, geometry: str, size: float = 8.0) -> ET.Element:
         displayAll="0", labelPerPart="0",
     )  # fmt: skip
     return labeling
+
+
+def with_labels(qml: str, expression: str, *, geometry: str, size: float = 8.0) -> str:
+    """A vector style (QML) with labels: the text of the QGIS ``expression`` per feature."""
+    head, body = qml.split("\n", 1) if qml.startswith("<!DOCTYPE") else ("", qml)
+    root = ET.fromstring(body)
+    for old in root.findall("labeling"):
+        root.remove(old)
+    root.insert(1, _labeling(expression, geometry, size, expression=True))
+    root.set("labelsEnabled", "1")
+    ET.indent(root)
+    text = ET.tostring(root, encoding="unicode")
+    return f"{head}\n{text}\n" if head else text + "\n"
 
 
 def single_style(
@@ -320,10 +338,14 @@ def graduated_style(
     ramp: Sequence[str] = VIRIDIS,
     alpha: int = 255,
     precision: int = 2,
+    outline: str = "#606060",
+    outline_only: bool = False,
+    width: float = 0.26,
 ) -> str:
     """Equal-interval classes of ``field`` between ``vmin`` and ``vmax`` on ``ramp``.
 
     The lowest class starts at -inf and the highest ends at +inf, so no feature goes unstyled.
+    ``outline_only`` draws polygons as unfilled outlines in the class colour (``width`` mm).
     """
     if not vmax > vmin:
         vmax = vmin + 1.0
@@ -340,7 +362,9 @@ def graduated_style(
             label=label, render="true", uuid=f"range-{i}",
         )  # fmt: skip
         colour = _interpolate(ramp, (i + 0.5) / classes)
-        symbols.append(_symbol(geometry, colour, name=str(i), alpha=alpha, outline="#606060"))
+        symbols.append(_symbol(geometry, colour, name=str(i), alpha=alpha,
+                               outline=colour if outline_only else outline,
+                               no_fill=outline_only, width=width))  # fmt: skip
     source = ET.SubElement(renderer, "source-symbol")
     source.append(_symbol(geometry, ramp[0], name="0", alpha=alpha))
     renderer.append(_colour_ramp(ramp))

@@ -92,7 +92,7 @@ def test_groups_order_and_visibility(pair: EnrichedPair) -> None:
     change = [n.get("name") for n in groups[CHANGE].findall("layer-tree-layer")]
     assert change == [
         "Tree changes (grown, new, removed)",
-        "Tree height growth (m/yr), 20 m cells",
+        "Basal area change (m²/ha), 20 m cells",
         "CHM change (m)",
     ]
 
@@ -149,14 +149,17 @@ def test_styles_are_the_catalogs_own(pair: EnrichedPair) -> None:
         assert canonical(layer.find("pipe/rasterrenderer")) == canonical(expected)
     with sqlite3.connect(pair.path / "index.gpkg") as db:
         qml = db.execute(
-            "SELECT styleQML FROM layer_styles WHERE f_table_name = 'stand_changes' "
-            "AND useAsDefault"
+            "SELECT styleQML FROM layer_styles WHERE f_table_name = 'tree_changes' AND useAsDefault"
         ).fetchone()[0]
-    (changes,) = [
-        m for m in layers.values() if "layername=stand_changes" in m.findtext("datasource", "")
-    ]
+    (changes,) = [m for m in layers.values() if "=tree_changes" in m.findtext("datasource", "")]
     expected = ET.fromstring(qml.split("\n", 1)[1]).find("renderer-v2")
     assert canonical(changes.find("renderer-v2")) == canonical(expected)
+    (stands,) = [m for m in layers.values() if "=stand_changes" in m.findtext("datasource", "")]
+    renderer = stands.find("renderer-v2")
+    assert renderer is not None and renderer.get("attr") == "basal_area_m2_ha_delta"
+    bounds = [float(r.get("lower")) for r in renderer.iter("range")][1:]
+    bounds += [float(r.get("upper")) for r in renderer.iter("range")][:-1]
+    assert min(bounds) == pytest.approx(-max(bounds))  # diverging: symmetric around 0
     trees = [m for m in layers.values() if "layername=trees" in m.findtext("datasource", "")]
     for layer in trees:  # crowns by height, labelled with DBH in cm
         assert layer.find("renderer-v2").get("attr") == "height_m"

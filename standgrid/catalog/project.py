@@ -33,7 +33,9 @@ if TYPE_CHECKING:
 
 #: The cell metric of the choropleth: column, legend text.
 CHOROPLETH = ("basal_area_m2_ha", "Basal area (m²/ha)")
-#: Legend text of the change columns ``stand_changes`` may be styled by (else the column).
+#: The change choropleth of the cells (diverging around 0): column, legend text.
+CHANGE_CHOROPLETH = ("basal_area_m2_ha_delta", "Basal area change (m²/ha)")
+#: Legend text of the columns the default ``stand_changes`` style may use (else the column).
 CHANGE_LABELS = {
     "tree_height_growth_m_per_year": "Tree height growth (m/yr)",
     "zq95_per_year": "Canopy height p95 change (m/yr)",
@@ -73,6 +75,10 @@ class _Index:
         return str(found[0][0]) if found else None
 
     def range(self, table: str, column: str, where: str) -> tuple[float, float] | None:
+        if not self.has(table) or column not in {
+            row[1] for row in self._query(f'PRAGMA table_info("{table}")')
+        }:
+            return None
         lo, hi = self._query(
             f'SELECT min("{column}"), max("{column}") FROM "{table}" WHERE {where}'
         )[0]
@@ -173,7 +179,11 @@ def _epoch_group(
             "polygon", "#000000", no_fill=True, outline="#000000", width=0.8
         )
         outline = styles.with_labels(
-            outline, f"format_number(\"{metric}\", 1) || ' m²/ha'", geometry="polygon", size=9
+            outline,
+            f"format_number(\"{metric}\", 1) || ' m²/ha'",
+            geometry="polygon",
+            size=10,
+            priority=10,
         )
         layers.vector(
             f"Stands {stand_words}: {metric_words.lower()}",
@@ -210,27 +220,27 @@ def _epoch_group(
 
 
 def _change_group(txn: Transaction, index: _Index, epoch_from: str, epoch_to: str) -> ProjectGroup:
+    from xml.etree import ElementTree as ET
+
+    from standgrid.export import styles
     from standgrid.export.qgis_project import ProjectGroup
 
     cells_words, _ = _grid_words(txn.state)
     pair = f'"epoch_from" = {_quote(epoch_from)} AND "epoch_to" = {_quote(epoch_to)}'
     layers = _Layers(txn, index)
     layers.vector("Tree changes (grown, new, removed)", "tree_changes", "point", pair, True)
-    style = index.default_style("stand_changes")
-    if style is not None:
-        from xml.etree import ElementTree as ET
-
-        renderer = ET.fromstring(style.split("\n", 1)[1]).find("renderer-v2")
-        field = renderer.get("attr", "") if renderer is not None else ""
-        label = CHANGE_LABELS.get(field, field)
-        layers.vector(
-            f"{label}, {cells_words}",
-            "stand_changes",
-            "polygon",
-            f'{pair} AND "level" = 0',
-            True,
-            style,
-        )
+    where = f'{pair} AND "level" = 0'
+    column, words = CHANGE_CHOROPLETH
+    found = index.range("stand_changes", column, where)
+    if found is not None:  # loss red, gain blue, one colour strength either side
+        style = styles.diverging_style(column, *found, alpha=170, precision=1)
+    else:  # the layer's default style (its own column)
+        style = index.default_style("stand_changes") or ""
+        renderer = ET.fromstring(style.split("\n", 1)[1]).find("renderer-v2") if style else None
+        column = renderer.get("attr", "") if renderer is not None else ""
+        words = CHANGE_LABELS.get(column, column)
+    if style:
+        layers.vector(f"{words}, {cells_words}", "stand_changes", "polygon", where, True, style)
     layers.raster(
         "CHM change (m)",
         paths.comparison(epoch_from, epoch_to, "chm_diff.tif"),

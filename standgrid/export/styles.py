@@ -229,7 +229,7 @@ def _renderer(kind: str, **attrs: str) -> ET.Element:
 
 
 def _labeling(
-    field: str, geometry: str, size: float = 8.0, *, expression: bool = False
+    field: str, geometry: str, size: float = 8.0, *, expression: bool = False, priority: int = 5
 ) -> ET.Element:
     labeling = ET.Element("labeling", type="simple")
     settings = ET.SubElement(labeling, "settings", calloutType="simple")
@@ -244,7 +244,7 @@ def _labeling(
         bufferColor="255,255,255,255", bufferOpacity="0.8", bufferJoinStyle="128",
     )  # fmt: skip
     placement = {"polygon": "1", "line": "2", "point": "0"}[geometry]
-    ET.SubElement(settings, "placement", placement=placement, dist="0", priority="5")
+    ET.SubElement(settings, "placement", placement=placement, dist="0", priority=str(priority))
     ET.SubElement(
         settings, "rendering", obstacle="1", scaleVisibility="0", fontLimitPixelSize="0",
         displayAll="0", labelPerPart="0",
@@ -252,13 +252,16 @@ def _labeling(
     return labeling
 
 
-def with_labels(qml: str, expression: str, *, geometry: str, size: float = 8.0) -> str:
-    """A vector style (QML) with labels: the text of the QGIS ``expression`` per feature."""
+def with_labels(
+    qml: str, expression: str, *, geometry: str, size: float = 8.0, priority: int = 5
+) -> str:
+    """A vector style (QML) with labels: the text of the QGIS ``expression`` per feature
+    (``priority`` 0..10: which labels QGIS keeps where they collide)."""
     head, body = qml.split("\n", 1) if qml.startswith("<!DOCTYPE") else ("", qml)
     root = ET.fromstring(body)
     for old in root.findall("labeling"):
         root.remove(old)
-    root.insert(1, _labeling(expression, geometry, size, expression=True))
+    root.insert(1, _labeling(expression, geometry, size, expression=True, priority=priority))
     root.set("labelsEnabled", "1")
     ET.indent(root)
     text = ET.tostring(root, encoding="unicode")

@@ -1,13 +1,14 @@
 """Open a QGIS project with real PyQGIS and render it (run by Debian's /usr/bin/python3).
 
-    QT_QPA_PLATFORM=offscreen /usr/bin/python3 tests/qgis_check.py PROJECT OUT.png [GROUP]
+    QT_QPA_PLATFORM=offscreen /usr/bin/python3 tests/qgis_check.py PROJECT OUT.png [GROUP [PAGE]]
 
 Prints one JSON object: ``read`` (QgsProject.read's result), ``layers`` (name -> valid,
 provider, feature count or raster size), ``bad_layers`` (layers QGIS could not load),
 ``messages`` (message-log entries of level warning or worse), ``groups`` (name -> checked,
 layer names top first) and ``image`` (non-transparent pixels and distinct colours of the
 PNG). With ``GROUP``, only that group is checked before rendering; else the project's own
-visibility is used. Needs no standgrid import (the system Python has no standgrid).
+visibility is used. With ``PAGE.png``, also a printable page (map, legend, scale bar) for
+people to look at. Needs no standgrid import (the system Python has no standgrid).
 """
 
 from __future__ import annotations
@@ -16,7 +17,9 @@ import json
 import sys
 
 
-def main(project_path: str, png: str, group: str | None = None) -> dict[str, object]:
+def main(
+    project_path: str, png: str, group: str | None = None, layout_png: str | None = None
+) -> dict[str, object]:
     from qgis.core import (
         Qgis,
         QgsApplication,
@@ -111,10 +114,67 @@ def main(project_path: str, png: str, group: str | None = None) -> dict[str, obj
             "colours": len(colours),
         },
     }
+    if layout_png:
+        result["layout"] = export_layout(project, settings, layout_png)
     project.clear()
     app.exitQgis()
     return result
 
 
+def export_layout(project: object, settings: object, png: str) -> bool:
+    """A printable page: the map with its legend (visible layers) and a scale bar."""
+    from qgis.core import (
+        QgsLayoutExporter,
+        QgsLayoutItemLegend,
+        QgsLayoutItemMap,
+        QgsLayoutItemScaleBar,
+        QgsLayoutPoint,
+        QgsLayoutSize,
+        QgsLegendStyle,
+        QgsPrintLayout,
+        QgsUnitTypes,
+    )
+    from qgis.PyQt.QtGui import QFont
+
+    layout = QgsPrintLayout(project)
+    layout.initializeDefaults()  # A4 landscape, 297 x 210 mm
+    mm = QgsUnitTypes.LayoutMillimeters
+    page = QgsLayoutItemMap(layout)
+    page.setLayers(settings.layers())
+    page.attemptMove(QgsLayoutPoint(5, 5, mm))
+    page.attemptResize(QgsLayoutSize(175, 200, mm))
+    page.setExtent(settings.extent())
+    page.setFrameEnabled(True)
+    layout.addLayoutItem(page)
+    legend = QgsLayoutItemLegend(layout)
+    legend.setLinkedMap(page)
+    legend.setLegendFilterByMapEnabled(True)
+    model = legend.model().rootGroup()
+    for node in list(model.findLayers()):
+        if node.layer() not in settings.layers():
+            node.parent().removeChildNode(node)
+    for group in list(model.findGroups()):
+        if not group.findLayers():
+            group.parent().removeChildNode(group)
+    legend.setAutoUpdateModel(False)
+    legend.setStyleFont(QgsLegendStyle.Title, QFont("Sans Serif", 10))
+    legend.setTitle(project.title())
+    legend.attemptMove(QgsLayoutPoint(185, 5, mm))
+    layout.addLayoutItem(legend)
+    bar = QgsLayoutItemScaleBar(layout)
+    bar.setStyle("Single Box")
+    bar.setLinkedMap(page)
+    bar.applyDefaultSize()
+    bar.setUnitLabel("m")
+    bar.attemptMove(QgsLayoutPoint(185, 190, mm))
+    layout.addLayoutItem(bar)
+    exporter = QgsLayoutExporter(layout)
+    options = QgsLayoutExporter.ImageExportSettings()
+    options.dpi = 110
+    options.generateWorldFile = False
+    options.exportMetadata = False
+    return bool(exporter.exportToImage(png, options) == QgsLayoutExporter.Success)
+
+
 if __name__ == "__main__":
-    print(json.dumps(main(*sys.argv[1:4])))
+    print(json.dumps(main(*sys.argv[1:5])))

@@ -164,7 +164,13 @@ def _epoch_group(
     height = index.range("trees", "height_m", "1") if index.has("trees") else None
     if height is not None:
         crowns = styles.graduated_style(
-            "height_m", *height, ramp=styles.VIRIDIS, precision=1, outline_only=True, width=0.6
+            "height_m",
+            *height,
+            ramp=styles.VIRIDIS,
+            precision=1,
+            outline_only=True,
+            width=0.6,
+            unit="m",
         )
         labelled = styles.with_labels(
             crowns, "round(\"dbh_m\" * 100) || ' cm'", geometry="polygon", size=7
@@ -233,7 +239,7 @@ def _change_group(txn: Transaction, index: _Index, epoch_from: str, epoch_to: st
     column, words = CHANGE_CHOROPLETH
     found = index.range("stand_changes", column, where)
     if found is not None:  # loss red, gain blue, one colour strength either side
-        style = styles.diverging_style(column, *found, alpha=170, precision=1)
+        style = styles.diverging_style(column, *found, alpha=170, precision=1, unit="m²/ha")
     else:  # the layer's default style (its own column)
         style = index.default_style("stand_changes") or ""
         renderer = ET.fromstring(style.split("\n", 1)[1]).find("renderer-v2") if style else None
@@ -269,7 +275,9 @@ def project_groups(txn: Transaction, index_path: Path) -> list[ProjectGroup]:
         found = index.range("stand_metrics", metric, level0)
         if found is None:
             return None
-        return styles.graduated_style(metric, *found, ramp=styles.YLGN, alpha=190, precision=1)
+        return styles.graduated_style(
+            metric, *found, ramp=styles.YLGN, alpha=190, precision=1, unit="m²/ha"
+        )
 
     groups = [
         _change_group(txn, index, str(c["from"]), str(c["to"]))

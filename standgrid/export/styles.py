@@ -344,11 +344,13 @@ def graduated_style(
     outline: str = "#606060",
     outline_only: bool = False,
     width: float = 0.26,
+    unit: str = "",
 ) -> str:
     """Equal-interval classes of ``field`` between ``vmin`` and ``vmax`` on ``ramp``.
 
     The lowest class starts at -inf and the highest ends at +inf, so no feature goes unstyled.
-    ``outline_only`` draws polygons as unfilled outlines in the class colour (``width`` mm).
+    ``outline_only`` draws polygons as unfilled outlines in the class colour (``width`` mm);
+    ``unit`` ends each legend label (``12.0 - 16.0 m``).
     """
     if not vmax > vmin:
         vmax = vmin + 1.0
@@ -359,7 +361,7 @@ def graduated_style(
     for i in range(classes):
         lower = -1e300 if i == 0 else edges[i]
         upper = 1e300 if i == classes - 1 else edges[i + 1]
-        label = f"{edges[i]:.{precision}f} - {edges[i + 1]:.{precision}f}"
+        label = f"{edges[i]:.{precision}f} - {edges[i + 1]:.{precision}f} {unit}".rstrip()
         ET.SubElement(
             ranges, "range", lower=f"{lower:.15g}", upper=f"{upper:.15g}", symbol=str(i),
             label=label, render="true", uuid=f"range-{i}",
@@ -386,6 +388,7 @@ def diverging_style(
     ramp: Sequence[str] = RDBU,
     alpha: int = 255,
     precision: int = 2,
+    unit: str = "",
 ) -> str:
     """Classes symmetric around ``centre`` on the RdBu ramp (loss red, gain blue).
 
@@ -396,7 +399,7 @@ def diverging_style(
     classes = classes if classes % 2 else classes + 1
     return graduated_style(
         field, centre - half, centre + half, classes=classes, geometry=geometry, ramp=ramp,
-        alpha=alpha, precision=precision,
+        alpha=alpha, precision=precision, unit=unit,
     )  # fmt: skip
 
 
@@ -552,6 +555,11 @@ def pseudocolor_raster_style(
         minimumValue=f"{vmin:.10g}", maximumValue=f"{vmax:.10g}", labelPrecision=str(precision),
     )  # fmt: skip
     shader.append(_colour_ramp(ramp))
+    # the legend lists the labelled stops ("12.0 m"), not a bare continuous bar
+    ET.SubElement(
+        shader, "rampLegendSettings", useContinuousLegend="0", minimumLabel="",
+        maximumLabel="", prefix="", suffix="", direction="0", orientation="2",
+    )  # fmt: skip
     for i, colour in enumerate(ramp):
         t = i / (len(ramp) - 1)
         value = vmin * (1 - t) + vmax * t  # exact ends, and exactly 0 mid-way on -h..h

@@ -41,7 +41,6 @@ def main(
     QgsApplication.messageLog().messageReceived.connect(log)
     project = QgsProject.instance()
     bad: list[str] = []
-    project.readMapLayer.connect(lambda layer, node: None)
     ok = project.read(project_path)
     for layer in project.mapLayers().values():
         if not layer.isValid():
@@ -49,7 +48,7 @@ def main(
     root = project.layerTreeRoot()
     groups = {}
     for node in root.findGroups():
-        if group is not None:
+        if group:  # "" or None: the project's own visibility
             node.setItemVisibilityChecked(node.name() == group)
         groups[node.name()] = {
             "checked": node.itemVisibilityChecked(),
@@ -106,6 +105,7 @@ def main(
         "groups": groups,
         "layers": layers,
         "bad_layers": bad,
+        "project_error": project.error(),
         "messages": messages,
         "render_errors": [f"{e.layerID}: {e.message}" for e in job.errors()],
         "image": {

@@ -201,6 +201,7 @@ def test_qgis_opens_and_renders_the_project(
     assert result["read"] is True
     assert result["crs"] == CRS
     assert result["bad_layers"] == [] and result["messages"] == []
+    assert result["project_error"] == ""
     assert result["render_errors"] == []
     layers = result["layers"]
     assert isinstance(layers, dict) and len(layers) >= 20

@@ -60,9 +60,13 @@ class _Index:
         return bool(self._query("SELECT 1 FROM gpkg_contents WHERE table_name = ?", table))
 
     def rows(self, table: str, where: str) -> int:
+        """Rows the filter selects; 0 when the layer lacks a column it names (older layer)."""
         if not self.has(table):
             return 0
-        return int(self._query(f'SELECT count(*) FROM "{table}" WHERE {where}')[0][0])
+        try:
+            return int(self._query(f'SELECT count(*) FROM "{table}" WHERE {where}')[0][0])
+        except sqlite3.OperationalError:  # "no such column"
+            return 0
 
     def default_style(self, table: str) -> str | None:
         if not self.has("layer_styles"):

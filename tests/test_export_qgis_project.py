@@ -236,3 +236,24 @@ def test_the_qgis_check_sees_a_broken_layer(pair: EnrichedPair, tmp_path: Path) 
     assert result["bad_layers"] == ["CHM (m)"]
     assert any("gone.tif" in m for m in result["messages"])  # the log hook hears QGIS
     assert result["image"] == {"sampled": 75000, "opaque": 0, "colours": 0}
+
+
+def test_writer_escapes_names_and_filters(tmp_path: Path) -> None:
+    """A quote or ampersand in a name or filter survives the XML (read back with ElementTree)."""
+    subset = "\"mission\" IN ('a&b', 'it''s')"
+    layer = ProjectLayer("GNSS <fixes> & more", "index.gpkg", "<qgis/>", table="gnss_fixes",
+                         geometry="point", subset=subset, visible=False)  # fmt: skip
+    out = write_qgis_project(
+        tmp_path / "p.qgz", [ProjectGroup("it's", (layer,), visible=False)], crs=CRS,
+        extent=(0.0, 0.0, 10.0, 20.0),
+    )  # fmt: skip
+    with zipfile.ZipFile(out) as archive:
+        project = ET.fromstring(archive.read("p.qgs").decode("utf-8").split("\n", 1)[1])
+    (group,) = project.findall("layer-tree-group/layer-tree-group")
+    assert group.get("name") == "it's" and group.get("checked") == "Qt::Unchecked"
+    (node,) = group.findall("layer-tree-layer")
+    assert node.get("name") == "GNSS <fixes> & more" and node.get("checked") == "Qt::Unchecked"
+    assert node.get("source") == f"./index.gpkg|layername=gnss_fixes|subset={subset}"
+    assert project.find("projectlayers/maplayer").get("geometry") == "Point"
+    view = project.find("ProjectViewSettings/DefaultViewExtent")
+    assert [float(view.get(k)) for k in ("xmin", "ymin", "xmax", "ymax")] == [0, 0, 10, 20]

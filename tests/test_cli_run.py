@@ -51,6 +51,7 @@ def test_run_the_bundled_pair_and_print_the_qgis_guide(tmp_path: Path) -> None:
     text = result.output
     assert "Open it in QGIS" in text
     assert str(out / "index.gpkg") in text
+    assert str(out / "catalog.qgz") in text and (out / "catalog.qgz").is_file()
     for epoch in MISSIONS:
         assert str(out / f"tiles_{epoch}.vpc") in text
         assert (out / f"tiles_{epoch}.vpc").is_file()

@@ -106,6 +106,31 @@ def test_retile_removes_the_epochs_files_and_comparison(retiled: dict[str, Any])
     assert (np.asarray(points["tree_id"]) == 0).all()
 
 
+def test_retile_rewrites_the_qgis_project(retiled: dict[str, Any]) -> None:
+    """catalog.qgz names no removed file: 2028 keeps its tiled layers only, no change group."""
+    from tests.test_export_qgis_project import read_project, split_source, tree_groups
+
+    root = retiled["root"]
+    project = read_project(root)
+    for layer in project.findall("projectlayers/maplayer"):
+        path, options = split_source(layer.findtext("datasource", ""))
+        assert (root / path).is_file(), path
+        if "subset" in options:
+            rows = pyogrio.read_dataframe(
+                root / path, layer=options["layername"], where=options["subset"],
+                read_geometry=False,
+            )  # fmt: skip
+            assert len(rows) > 0, layer.findtext("layername")
+    groups = tree_groups(project)
+    assert list(groups) == ["2028", "2024"]
+    names = [n.get("name") for n in groups["2028"].findall("layer-tree-layer")]
+    assert names == ["Trajectories", "GNSS fixes", "Payload footprints",
+                     "Tiles (20 m cells, points)"]  # fmt: skip
+    tiles = groups["2028"].find("layer-tree-layer[@name='Tiles (20 m cells, points)']")
+    assert tiles is not None and tiles.get("checked") == "Qt::Checked"  # not enriched: on
+    assert len(groups["2024"].findall("layer-tree-layer")) == 11
+
+
 def test_kept_points_lose_their_enrichment() -> None:
     fields = {
         "height_above_ground": np.array([1.5, 20.0], dtype=np.float32),

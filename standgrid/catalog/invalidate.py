@@ -134,6 +134,10 @@ def invalidate_epochs(
             f"{sum(what['rows'].values())} table and layer rows) and comparisons ({compared}) "
             "are removed; run `standgrid enrich` again"
         )
+    if done and txn.current(paths.QGIS_PROJECT) is not None:
+        from standgrid.catalog.project import write_catalog_project
+
+        write_catalog_project(txn)  # so no layer of catalog.qgz names a removed file
     return done
 
 

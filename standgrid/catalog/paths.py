@@ -4,6 +4,7 @@
 
     catalog.json                              CATALOG_FILE
     index.gpkg                                INDEX
+    catalog.qgz                               QGIS_PROJECT
     tiles_<epoch>.vpc                         vpc(epoch)
     tiles/<epoch>/<cell_id>.{laz,las}         tile(epoch, cell_id, laz=)
     rasters/<epoch>/<name>.{tif,qml}          raster(epoch, name), raster_style(epoch, name)
@@ -19,6 +20,8 @@ from __future__ import annotations
 
 CATALOG_FILE = "catalog.json"
 INDEX = "index.gpkg"
+#: The QGIS project showing the catalog (rewritten by enrich and compare).
+QGIS_PROJECT = "catalog.qgz"
 TABLES = "tables"
 #: The stand metrics table without its extension (``.csv`` and ``.parquet`` are written).
 METRICS_TABLE = f"{TABLES}/stand_metrics"

@@ -20,6 +20,8 @@ from standgrid.cli.options import (
 
 QGIS_GUIDE = """\
 Open it in QGIS:
+  0. Project > Open..., pick {project}: all of the below, grouped per epoch and change,
+     styled, with legends in m and m²/ha (QGIS 3.22+). Or add layers one by one:
   1. Layer > Add Layer > Add Vector Layer..., pick {gpkg}, select all layers:
      cells (stand grid), stand_metrics (canopy height zq95), trees (crowns by height),
      stand_changes (growth per year, red-blue ramp), tree_changes (grown/new/removed),
@@ -45,6 +47,7 @@ def _human(r: dict[str, Any]) -> str:
     )
     parts.append(
         QGIS_GUIDE.format(
+            project=catalog / paths.QGIS_PROJECT,
             gpkg=catalog / paths.INDEX,
             vpcs=", ".join(str(catalog / paths.vpc(e)) for e in epochs),
             rasters=catalog / paths.raster("<epoch>", "*"),

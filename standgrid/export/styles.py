@@ -43,6 +43,8 @@ RDBU = (
 )  # fmt: skip
 #: viridis, 5 stops (canopy height and other stand metrics).
 VIRIDIS = ("#440154", "#3b528b", "#21918c", "#5ec962", "#fde725")
+#: ColorBrewer YlGn (5 classes), for stocking (basal area) of the cells.
+YLGN = ("#ffffcc", "#c2e699", "#78c679", "#31a354", "#006837")
 #: ColorBrewer YlOrRd (5 classes), for point density.
 YLORRD = ("#ffffb2", "#fecc5c", "#fd8d3c", "#f03b20", "#bd0026")
 #: Terrain: green lowland through tan to brown and pale high ground (DTM).
@@ -226,11 +228,14 @@ def _renderer(kind: str, **attrs: str) -> ET.Element:
     return ET.Element("renderer-v2", {**base, **attrs})
 
 
-def _labeling(field: str, geometry: str, size: float = 8.0) -> ET.Element:
+def _labeling(
+    field: str, geometry: str, size: float = 8.0, *, expression: bool = False, priority: int = 5
+) -> ET.Element:
     labeling = ET.Element("labeling", type="simple")
     settings = ET.SubElement(labeling, "settings", calloutType="simple")
     ET.SubElement(
-        settings, "text-style", fieldName=field, isExpression="0", fontFamily="Sans Serif",
+        settings, "text-style", fieldName=field, isExpression="1" if expression else "0",
+        fontFamily="Sans Serif",
         fontSize=f"{size:g}", fontSizeUnit="Point", textColor="0,0,0,255", textOpacity="1",
         fontWeight="50", fontItalic="0", namedStyle="Regular",
     )  # fmt: skip
@@ -239,12 +244,28 @@ def _labeling(field: str, geometry: str, size: float = 8.0) -> ET.Element:
         bufferColor="255,255,255,255", bufferOpacity="0.8", bufferJoinStyle="128",
     )  # fmt: skip
     placement = {"polygon": "1", "line": "2", "point": "0"}[geometry]
-    ET.SubElement(settings, "placement", placement=placement, dist="0", priority="5")
+    ET.SubElement(settings, "placement", placement=placement, dist="0", priority=str(priority))
     ET.SubElement(
         settings, "rendering", obstacle="1", scaleVisibility="0", fontLimitPixelSize="0",
         displayAll="0", labelPerPart="0",
     )  # fmt: skip
     return labeling
+
+
+def with_labels(
+    qml: str, expression: str, *, geometry: str, size: float = 8.0, priority: int = 5
+) -> str:
+    """A vector style (QML) with labels: the text of the QGIS ``expression`` per feature
+    (``priority`` 0..10: which labels QGIS keeps where they collide)."""
+    head, body = qml.split("\n", 1) if qml.startswith("<!DOCTYPE") else ("", qml)
+    root = ET.fromstring(body)
+    for old in root.findall("labeling"):
+        root.remove(old)
+    root.insert(1, _labeling(expression, geometry, size, expression=True, priority=priority))
+    root.set("labelsEnabled", "1")
+    ET.indent(root)
+    text = ET.tostring(root, encoding="unicode")
+    return f"{head}\n{text}\n" if head else text + "\n"
 
 
 def single_style(
@@ -320,10 +341,16 @@ def graduated_style(
     ramp: Sequence[str] = VIRIDIS,
     alpha: int = 255,
     precision: int = 2,
+    outline: str = "#606060",
+    outline_only: bool = False,
+    width: float = 0.26,
+    unit: str = "",
 ) -> str:
     """Equal-interval classes of ``field`` between ``vmin`` and ``vmax`` on ``ramp``.
 
     The lowest class starts at -inf and the highest ends at +inf, so no feature goes unstyled.
+    ``outline_only`` draws polygons as unfilled outlines in the class colour (``width`` mm);
+    ``unit`` ends each legend label (``12.0 - 16.0 m``).
     """
     if not vmax > vmin:
         vmax = vmin + 1.0
@@ -334,13 +361,15 @@ def graduated_style(
     for i in range(classes):
         lower = -1e300 if i == 0 else edges[i]
         upper = 1e300 if i == classes - 1 else edges[i + 1]
-        label = f"{edges[i]:.{precision}f} - {edges[i + 1]:.{precision}f}"
+        label = f"{edges[i]:.{precision}f} - {edges[i + 1]:.{precision}f} {unit}".rstrip()
         ET.SubElement(
             ranges, "range", lower=f"{lower:.15g}", upper=f"{upper:.15g}", symbol=str(i),
             label=label, render="true", uuid=f"range-{i}",
         )  # fmt: skip
         colour = _interpolate(ramp, (i + 0.5) / classes)
-        symbols.append(_symbol(geometry, colour, name=str(i), alpha=alpha, outline="#606060"))
+        symbols.append(_symbol(geometry, colour, name=str(i), alpha=alpha,
+                               outline=colour if outline_only else outline,
+                               no_fill=outline_only, width=width))  # fmt: skip
     source = ET.SubElement(renderer, "source-symbol")
     source.append(_symbol(geometry, ramp[0], name="0", alpha=alpha))
     renderer.append(_colour_ramp(ramp))
@@ -359,6 +388,7 @@ def diverging_style(
     ramp: Sequence[str] = RDBU,
     alpha: int = 255,
     precision: int = 2,
+    unit: str = "",
 ) -> str:
     """Classes symmetric around ``centre`` on the RdBu ramp (loss red, gain blue).
 
@@ -369,7 +399,7 @@ def diverging_style(
     classes = classes if classes % 2 else classes + 1
     return graduated_style(
         field, centre - half, centre + half, classes=classes, geometry=geometry, ramp=ramp,
-        alpha=alpha, precision=precision,
+        alpha=alpha, precision=precision, unit=unit,
     )  # fmt: skip
 
 
@@ -525,6 +555,11 @@ def pseudocolor_raster_style(
         minimumValue=f"{vmin:.10g}", maximumValue=f"{vmax:.10g}", labelPrecision=str(precision),
     )  # fmt: skip
     shader.append(_colour_ramp(ramp))
+    # the legend lists the labelled stops ("12.0 m"), not a bare continuous bar
+    ET.SubElement(
+        shader, "rampLegendSettings", useContinuousLegend="0", minimumLabel="",
+        maximumLabel="", prefix="", suffix="", direction="0", orientation="2",
+    )  # fmt: skip
     for i, colour in enumerate(ramp):
         t = i / (len(ramp) - 1)
         value = vmin * (1 - t) + vmax * t  # exact ends, and exactly 0 mid-way on -h..h

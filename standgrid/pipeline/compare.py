@@ -129,6 +129,7 @@ def _compare(
     (or copied into ``scratch``) before this one's transaction commits."""
     import pandas as pd
 
+    from standgrid.catalog.project import write_catalog_project
     from standgrid.compare import chm_difference, compare_stands, match_trees
     from standgrid.compare.assemble import (
         forest_metrics,
@@ -229,6 +230,7 @@ def _compare(
             ),
             "outputs": outputs,
         }
+        write_catalog_project(txn)  # catalog.qgz shows what this transaction commits
     return CompareReport(
         catalog=source.root,
         epoch_from=epoch_from,

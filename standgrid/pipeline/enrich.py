@@ -79,6 +79,7 @@ def _enrich(
     catalog: Catalog, options: EnrichOptions, executor: Executor, progress: Progress
 ) -> EnrichReport:
     from standgrid.catalog.invalidate import clear_invalidation, invalidate_comparisons
+    from standgrid.catalog.project import write_catalog_project
     from standgrid.enrich.allometry import height_diameter_models, impute_dbh, tree_summary
     from standgrid.enrich.outputs import metrics_table, write_layers, write_tables
     from standgrid.enrich.stands import stand_rows
@@ -130,6 +131,7 @@ def _enrich(
             txn.state["epochs"][epoch]["enrichment"] = summary
         write_tables(catalog, txn, metric_tables, tree_tables)
         write_layers(catalog, txn, metric_tables, tree_tables)
+        write_catalog_project(txn)  # catalog.qgz shows what this transaction commits
     return report
 
 

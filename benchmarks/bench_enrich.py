@@ -3,10 +3,12 @@
 Usage::
 
     python benchmarks/bench_enrich.py [--points 20000000] [--area 200] [--workdir DIR]
-                                      [--workers 0,1,2] [--memory MB]
+                                      [--workers 0,1,2] [--memory MB] [--scan LAS ...]
 
-1. Simulates one mission of about ``--points`` points (``standgrid.simulate``) and tiles it
-   into a LAZ catalog (20 m grid); both are reused from ``--workdir`` when present.
+1. Simulates one mission of about ``--points`` points (``standgrid.simulate``), or with
+   ``--scan`` cuts real georeferenced scans into a mission (``mission_from_scan``, e.g. the
+   four ``../shared/data/real/als/lasR_bcts/*.laz``), and tiles it into a LAZ catalog
+   (20 m grid); both are reused from ``--workdir`` when present.
 2. Baseline: every tile read with ``laspy.read`` and written again with ``LasData.write``
    (LAZ, lazrs, one thread), one process.
 3. Enrichment of a fresh copy of the catalog, once per entry of ``--workers``: 0 = this
@@ -93,6 +95,11 @@ def _child(args: list[str]) -> None:
         from bench_tile import measure_simulate
 
         result = measure_simulate(Path(rest[0]), int(rest[1]), float(rest[2]))
+    elif kind == "scan":
+        from standgrid.simulate import mission_from_scan
+
+        made = mission_from_scan(rest[1:], Path(rest[0]), seed=5)
+        result = {"points": int(made.n_points), "seconds": 0.0}
     elif kind == "tile":
         result = measure_tile(Path(rest[0]), Path(rest[1]))
     elif kind == "copy":
@@ -118,13 +125,17 @@ def main() -> None:
     parser.add_argument("--workdir", type=Path, default=None)
     parser.add_argument("--workers", default="0", help="comma-separated, 0 = this process")
     parser.add_argument("--memory", type=int, default=2048, help="budget per process, MB")
+    parser.add_argument("--scan", nargs="+", default=None, help="real LAS/LAZ scans")
     opts = parser.parse_args()
     work = opts.workdir or Path(tempfile.mkdtemp(prefix="standgrid-bench-enrich-"))
     work.mkdir(parents=True, exist_ok=True)
     missions = work / "sim"
     catalog = work / "catalog"
     if not (catalog / "catalog.json").exists():
-        if not (missions / "missions").exists():
+        if not (missions / "missions").exists() and opts.scan:
+            made = run_child("scan", str(missions), *opts.scan)
+            print(f"cut {made['points']:,} points of {len(opts.scan)} real scans into a mission")
+        elif not (missions / "missions").exists():
             sim = run_child("simulate", str(missions), str(opts.points), str(opts.area))
             print(f"simulated {sim['points']:,} points in {sim['seconds']:.0f} s")
         mission = next((missions / "missions").iterdir())

@@ -385,13 +385,15 @@ def fit_circle(
     good = np.isfinite(radii) & (radii < 5.0)
     best = kasa_circle(local)
     if good.any():
-        resid = np.abs(
-            np.hypot(
-                score_pts[None, :, 0] - centres[good, None, 0],
-                score_pts[None, :, 1] - centres[good, None, 1],
-            )
-            - radii[good, None]
+        # distances of every scored point to every candidate centre, |p - c|^2 expanded
+        # (one matrix product; local coordinates of a stem keep it exact to ~1e-16 m^2)
+        c = centres[good]
+        squared = (
+            (score_pts**2).sum(axis=1)[None, :]
+            - 2.0 * (c @ score_pts.T)
+            + (c**2).sum(axis=1)[:, None]
         )
+        resid = np.abs(np.sqrt(np.maximum(squared, 0.0)) - radii[good, None])
         # MSAC: truncated squared residuals, so a tight circle beats a loose one that
         # happens to touch as many points
         cost = np.minimum(resid, inlier_tolerance) ** 2
@@ -421,15 +423,26 @@ def _geometric_circle(
     ``scipy.optimize.least_squares(loss="soft_l1")``), by iteratively reweighted
     Gauss-Newton from ``start`` = (x, y, r)."""
     p = np.asarray(start, dtype=np.float64).copy()
+    x, y = xy[:, 0], xy[:, 1]
     for _ in range(iterations):
-        dx, dy = xy[:, 0] - p[0], xy[:, 1] - p[1]
-        dist = np.maximum(np.hypot(dx, dy), 1e-12)
+        dx, dy = x - p[0], y - p[1]
+        dist = np.maximum(np.sqrt(dx * dx + dy * dy), 1e-12)
         resid = dist - p[2]
         weight = 1.0 / np.sqrt(1.0 + (resid / scale) ** 2)
-        jac = np.column_stack([-dx / dist, -dy / dist, -np.ones(len(xy))])
-        jtw = jac.T * weight
+        # Jacobian rows (-ux, -uy, -1): the 3 x 3 normal equations by sums
+        ux, uy = dx / dist, dy / dist
+        wx, wy = weight * ux, weight * uy
+        sw = weight.sum()
+        normal = np.array(
+            [
+                [wx @ ux, wx @ uy, wx.sum()],
+                [wx @ uy, wy @ uy, wy.sum()],
+                [wx.sum(), wy.sum(), sw],
+            ]
+        )
+        rhs = np.array([wx @ resid, wy @ resid, weight @ resid])
         try:
-            step = np.linalg.solve(jtw @ jac, -(jtw @ resid))
+            step = np.linalg.solve(normal, rhs)
         except np.linalg.LinAlgError:
             break
         p += step

@@ -209,21 +209,17 @@ def chm(
     if h.shape != (len(xyz),):
         raise EnrichError(f"{h.shape} heights for {len(xyz)} points")
     xy = xyz[:, :2]
-    if subcircle > 0 and len(xy):
-        xy, h = _highest_per_subpixel(xy, h, grid, SUBPIXELS)
-        n_real = len(xy)
-        angles = np.arange(8) * (np.pi / 4)
-        ring = subcircle * np.column_stack([np.cos(angles), np.sin(angles)])
-        inflated = (xy[:, None, :] + ring[None, :, :]).reshape(-1, 2)
-        xy = np.concatenate([xy, inflated])
-        h = np.concatenate([h, np.repeat(h, 8)])
-        row, col = grid.pixel_of(xy[:, 0], xy[:, 1])
-        inside = (row >= 0) & (row < grid.nrows) & (col >= 0) & (col < grid.ncols)
-        inside[:n_real] = True  # the real points must be inside (checked below)
-        xy, h = xy[inside], h[inside]
-    index = grid._flat_index(np.column_stack([xy, np.zeros(len(xy))]))
+    index = grid._flat_index(xyz)  # raises when a point is outside the raster
     top = np.full(grid.nrows * grid.ncols, -np.inf)
     np.maximum.at(top, index, h)
+    if subcircle > 0 and len(xy):
+        xy, h = _highest_per_subpixel(xy, h, grid, SUBPIXELS)
+        for angle in np.arange(8) * (np.pi / 4):
+            x = xy[:, 0] + subcircle * np.cos(angle)
+            y = xy[:, 1] + subcircle * np.sin(angle)
+            row, col = grid.pixel_of(x, y)
+            inside = (row >= 0) & (row < grid.nrows) & (col >= 0) & (col < grid.ncols)
+            np.maximum.at(top, row[inside] * grid.ncols + col[inside], h[inside])
     top[np.isneginf(top)] = np.nan
     out = np.maximum(top.reshape(grid.shape), 0.0)
     if not 1 <= fill_min_neighbours <= 8:

@@ -1,0 +1,48 @@
+"""Read every collection of an OGC API - Features service with real QGIS (its "OAPIF" provider,
+what "Layer > Add WFS / OGC API - Features Layer" uses); run by Debian's /usr/bin/python3.
+
+    QT_QPA_PLATFORM=offscreen /usr/bin/python3 tests/qgis_oapif_check.py BASE_URL NAME...
+
+Prints one JSON object: name -> {valid, features (counted by iterating them), fields, crs,
+extent}, and ``messages`` (message-log entries of level warning or worse). Needs no standgrid
+import (the system Python has no standgrid).
+"""
+
+from __future__ import annotations
+
+import json
+import sys
+
+
+def main(base: str, names: list[str]) -> dict[str, object]:
+    from qgis.core import Qgis, QgsApplication, QgsVectorLayer
+
+    app = QgsApplication([], False)
+    app.initQgis()
+    messages: list[str] = []
+
+    def log(message: str, tag: str, level: int) -> None:
+        if level >= Qgis.Warning:
+            messages.append(f"{tag}: {message}")
+
+    QgsApplication.messageLog().messageReceived.connect(log)
+    out: dict[str, object] = {}
+    for name in names:
+        layer = QgsVectorLayer(f"url='{base}' typename='{name}'", name, "OAPIF")
+        entry: dict[str, object] = {"valid": layer.isValid()}
+        if layer.isValid():
+            entry["features"] = sum(1 for _ in layer.getFeatures())
+            entry["fields"] = [f.name() for f in layer.fields()]
+            entry["crs"] = layer.crs().authid()
+            extent = layer.extent()
+            entry["extent"] = [extent.xMinimum(), extent.yMinimum(), extent.xMaximum(),
+                               extent.yMaximum()]  # fmt: skip
+        out[name] = entry
+        del layer  # before exitQgis: a provider outliving the application crashes it
+    out["messages"] = messages
+    app.exitQgis()
+    return out
+
+
+if __name__ == "__main__":
+    print(json.dumps(main(sys.argv[1], sys.argv[2:])))

@@ -2,21 +2,19 @@
 
 from __future__ import annotations
 
-from collections.abc import Iterable
 from pathlib import Path
 from typing import Any
 
 import click
 
 from standgrid.cli.options import (
+    TerminalProgress,
     emit,
     json_option,
     lock_timeout_option,
     output_option,
     overwrite_option,
-    progress,
     quiet_option,
-    status,
 )
 
 QGIS_GUIDE = """\
@@ -95,9 +93,6 @@ def run(
     from standgrid.pipeline.run import run_pipeline
     from standgrid.pipeline.tile import TileOptions
 
-    def wrap(items: Iterable[Any], total: int, desc: str) -> Iterable[Any]:
-        return progress(items, total=total or None, desc=desc, quiet=quiet)
-
     report = run_pipeline(
         list(paths),
         output,
@@ -109,7 +104,6 @@ def run(
             lock_timeout=lock_timeout,
             accept_poor_georeference=accept_poor_georeference,
         ),
-        wrap=wrap,
-        status=lambda m: status(m, quiet),
+        progress=TerminalProgress(quiet),
     )
     emit(report.to_dict(), as_json, _human)

@@ -2,22 +2,21 @@
 
 from __future__ import annotations
 
-from collections.abc import Iterable
 from pathlib import Path
 from typing import Any
 
 import click
 
 from standgrid.cli.options import (
+    TerminalProgress,
+    cluster_options,
     emit,
     json_option,
     lock_timeout_option,
     mission_argument,
     output_option,
     overwrite_option,
-    progress,
     quiet_option,
-    status,
 )
 
 
@@ -116,6 +115,7 @@ def _human(report: dict[str, Any]) -> str:
     "--accept-poor-georeference", is_flag=True,
     help="Tile even when a GNSS fit's RMSE is far beyond the fixes' stated accuracy.",
 )  # fmt: skip
+@cluster_options
 @overwrite_option
 @lock_timeout_option
 @json_option
@@ -134,6 +134,8 @@ def tile(
     epoch: str | None,
     memory_mb: int,
     accept_poor_georeference: bool,
+    workers: int | None,
+    scheduler: str | None,
     overwrite: bool,
     lock_timeout: float,
     as_json: bool,
@@ -158,6 +160,7 @@ def tile(
       standgrid tile NO_GNSS -o catalog --anchor 51.7733 -1.3372 147.6 78.1
       standgrid tile UTM_PCD_MISSION -o catalog --crs EPSG:32630
     """
+    from standgrid.engine import MemoryBudget
     from standgrid.pipeline.tile import TileOptions, tile_missions
 
     options = TileOptions(
@@ -170,16 +173,12 @@ def tile(
         method=method,
         anchor=anchor,
         epoch=epoch,
-        memory_budget=memory_mb << 20,
+        memory_budget=MemoryBudget.megabytes(memory_mb),
         overwrite=overwrite,
         lock_timeout=lock_timeout,
         accept_poor_georeference=accept_poor_georeference,
+        workers=workers,
+        scheduler=scheduler,
     )
-
-    def wrap(items: Iterable[Any], total: int, desc: str) -> Iterable[Any]:
-        return progress(items, total=total or None, desc=desc, quiet=quiet)
-
-    report = tile_missions(
-        list(missions), output, options, wrap=wrap, status=lambda m: status(m, quiet)
-    )
+    report = tile_missions(list(missions), output, options, progress=TerminalProgress(quiet))
     emit(report.to_dict(), as_json, _human)

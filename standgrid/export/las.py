@@ -39,10 +39,11 @@ from numpy.typing import NDArray
 
 from standgrid._atomic import atomic_output
 from standgrid.errors import CRSError, PointCloudFormatError
+from standgrid.partition.lattice import SCALE, snap_to_storage
 from standgrid.pointcloud import PointCloud
 
-#: Coordinate resolution of every tile (1 mm).
-SCALE = 0.001
+__all__ = ["SCALE", "TileInfo", "read_tile", "snap_to_storage", "write_tile"]
+
 #: Private VLR holding the field manifest.
 VLR_USER_ID = "standgrid"
 VLR_RECORD_ID = 1
@@ -87,28 +88,6 @@ _RANGES: dict[str, tuple[float, float]] = {
     "green": (0, 65535),
     "blue": (0, 65535),
 }
-
-
-def snap_to_storage(
-    xyz: NDArray[np.float64], origin: tuple[float, float] = (0.0, 0.0)
-) -> NDArray[np.float64]:
-    """Snap coordinates to the 1 mm lattice tiles store, counted from a grid ``origin``.
-
-    ``o + round((v - o) * 1000) / 1000`` is correctly rounded, so a value on a cell edge
-    ``o + k * size`` comes out as exactly the float the grid computes for that edge, and a
-    coordinate read back from a tile (which may differ by an ulp) snaps to the same value.
-    Assign cells on snapped coordinates and every point stays in its cell when re-read.
-    """
-    pts = np.asarray(xyz, dtype=np.float64)
-    out = np.empty_like(pts)
-    per_mm = 1.0 / SCALE
-    for axis, o in enumerate((float(origin[0]), float(origin[1]), 0.0)):
-        np.subtract(pts[:, axis], o, out=out[:, axis])
-        out[:, axis] *= per_mm
-        np.round(out[:, axis], out=out[:, axis])
-        out[:, axis] /= per_mm
-        out[:, axis] += o
-    return out
 
 
 @dataclass(frozen=True)

@@ -2,14 +2,15 @@
 
 from __future__ import annotations
 
-from collections.abc import Callable, Sequence
+from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+from standgrid.engine import SILENT, Progress
 from standgrid.errors import MissionNotFoundError
 from standgrid.pipeline.enrich import EnrichOptions, enrich_catalog
-from standgrid.pipeline.tile import TileOptions, Wrap, _no_wrap, tile_missions
+from standgrid.pipeline.tile import TileOptions, tile_missions
 
 
 @dataclass
@@ -48,22 +49,23 @@ def run_pipeline(
     tile_options: TileOptions | None = None,
     enrich_options: EnrichOptions | None = None,
     *,
-    wrap: Wrap = _no_wrap,
-    status: Callable[[str], None] = lambda message: None,
+    progress: Progress = SILENT,
 ) -> RunReport:
     """Tile every mission, enrich every epoch, and compare the first epoch with the last."""
     from standgrid.pipeline.compare import compare_epochs
 
     missions = expand_missions(paths)
-    tiled = tile_missions(
-        missions, catalog, tile_options or TileOptions(), wrap=wrap, status=status
-    )
+    tiled = tile_missions(missions, catalog, tile_options or TileOptions(), progress=progress)
     timeout = (tile_options or TileOptions()).lock_timeout
     enriched = enrich_catalog(
-        catalog, enrich_options or EnrichOptions(), wrap=wrap, status=status, lock_timeout=timeout
+        catalog,
+        enrich_options or EnrichOptions(),
+        wrap=progress.track,
+        status=progress.status,
+        lock_timeout=timeout,
     )
     compared = None
     if len(enriched.epochs) >= 2:
-        status("comparing the first and the last epoch")
+        progress.status("comparing the first and the last epoch")
         compared = compare_epochs(catalog, lock_timeout=timeout).to_dict()
     return RunReport(tiled.to_dict(), enriched.to_dict(), compared)

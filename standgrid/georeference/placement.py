@@ -23,8 +23,8 @@ if TYPE_CHECKING:
     from standgrid.georeference.project import MapProjector
     from standgrid.mission.model import Mission, Payload
 
-#: Projectors and transformers built in this process, by :attr:`ToCatalog.key` (a dask
-#: worker keeps them across tasks).
+#: Projectors and transformers built in this process, by :attr:`ToCatalog.key` (unique per
+#: recipe; a dask worker keeps them across the tasks of a run).
 _BUILT: dict[str, Any] = {}
 _BUILT_MAX = 64
 
@@ -37,9 +37,12 @@ class Placement:
     fit: GeoreferenceFit | None
     source_crs: str | None = None
 
-    def to_catalog(self, crs: str, key: str) -> ToCatalog:
-        """The recipe into the catalog CRS ``crs``; ``key`` names it (unique per mission)."""
-        return ToCatalog(self.fit, self.source_crs, crs, key)
+    def to_catalog(self, crs: str, name: str) -> ToCatalog:
+        """The recipe into the catalog CRS ``crs`` (``name``: the mission's, for messages)."""
+        import uuid
+
+        # a key unique to this recipe: what a process builds for it is never another's
+        return ToCatalog(self.fit, self.source_crs, crs, f"{name}:{uuid.uuid4().hex}")
 
     def record(self) -> dict[str, Any]:
         """What the catalog stores about how the mission was placed."""
@@ -80,7 +83,7 @@ class ToCatalog:
         return self._built("transformer")
 
     def _built(self, kind: str) -> Any:
-        name = f"{kind}:{self.key}:{self.crs}"
+        name = f"{kind}:{self.key}"
         found = _BUILT.get(name)
         if found is None:
             if len(_BUILT) >= _BUILT_MAX:

@@ -42,6 +42,20 @@ def run_limited(func: Callable[[T], R], item: T) -> R:
         return func(item)
 
 
+def run_pickled(func: Callable[[T], R], payload: bytes) -> bytes:
+    """:func:`run_limited` on a pickled item, the result pickled.
+
+    Pickled in-band, every array is rebuilt in a fresh (aligned) allocation on arrival;
+    arrays dask deserialises out-of-band may be views at unaligned offsets of a network
+    frame, where numpy takes other (unaligned) loops whose float sums differ in the last
+    bit: a result computed on a worker would not be the one computed here.
+    """
+    import pickle
+
+    result = run_limited(func, pickle.loads(payload))
+    return pickle.dumps(result, protocol=pickle.HIGHEST_PROTOCOL)
+
+
 class SerialExecutor:
     """Everything in this process, one item after the other."""
 
@@ -60,6 +74,8 @@ class DaskExecutor:
         self.workers = max(1, len(client.scheduler_info().get("workers", {})))
 
     def map(self, func: Callable[[T], R], items: Sequence[T]) -> Iterator[tuple[int, R]]:
+        import pickle
+
         from distributed import as_completed
 
         pending = iter(enumerate(items))
@@ -68,7 +84,8 @@ class DaskExecutor:
 
         def submit_next() -> bool:
             for index, item in pending:
-                future = self.client.submit(run_limited, func, item, pure=False)
+                payload = pickle.dumps(item, protocol=pickle.HIGHEST_PROTOCOL)
+                future = self.client.submit(run_pickled, func, payload, pure=False)
                 index_of[future.key] = index
                 in_flight.add(future)
                 return True
@@ -78,7 +95,7 @@ class DaskExecutor:
             if not submit_next():
                 break
         for future in in_flight:
-            result = future.result()  # re-raises the task's own exception here
+            result = pickle.loads(future.result())  # re-raises the task's own exception
             index = index_of.pop(future.key)
             future.release()
             submit_next()

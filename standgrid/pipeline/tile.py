@@ -91,6 +91,8 @@ class TileReport:
     grid_fingerprint: str
     missions: dict[str, dict[str, Any]] = field(default_factory=dict)
     epochs: dict[str, dict[str, Any]] = field(default_factory=dict)
+    #: Processes the per-payload and per-cell work ran on (1: this one).
+    workers: int = 1
 
     @property
     def points_in(self) -> int:
@@ -109,6 +111,7 @@ class TileReport:
             "points_in": self.points_in,
             "points_out": self.points_out,
             "conserved": self.points_in == self.points_out,
+            "workers": self.workers,
             "epochs": self.epochs,
             "missions": self.missions,
         }
@@ -227,6 +230,7 @@ def _ingest(
     from standgrid.catalog.vpcs import stage_epoch_vpc
 
     report = TileReport(catalog.root, catalog.crs, catalog.scheme, catalog.fingerprint)
+    report.workers = executor.workers
     with catalog.transaction() as txn:
         index = CatalogIndex(catalog, txn)  # under the writer lock: no commit can intervene
         buffer, laz = settle_tiling(txn, options.buffer, options.laz)

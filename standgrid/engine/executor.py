@@ -52,8 +52,21 @@ def run_pickled(func: Callable[[T], R], payload: bytes) -> bytes:
     """
     import pickle
 
-    result = run_limited(func, pickle.loads(payload))
+    _limit_this_process()
+    result = func(pickle.loads(payload))
     return pickle.dumps(result, protocol=pickle.HIGHEST_PROTOCOL)
+
+
+_LIMITED: list[object] = []
+
+
+def _limit_this_process() -> None:
+    """BLAS/OpenMP pools of this (worker) process limited to one thread, once: entering
+    ``threadpool_limits`` inspects every loaded library (~15 ms), too much per task."""
+    if not _LIMITED:
+        from threadpoolctl import threadpool_limits
+
+        _LIMITED.append(threadpool_limits(1))  # kept for the life of the worker
 
 
 class SerialExecutor:
@@ -64,6 +77,11 @@ class SerialExecutor:
     def map(self, func: Callable[[T], R], items: Sequence[T]) -> Iterator[tuple[int, R]]:
         for index, item in enumerate(items):
             yield index, run_limited(func, item)
+
+
+#: Items pickled larger than this are scattered to a worker, not sent in the task graph
+#: (through the scheduler).
+SCATTER_BYTES = 256 << 10
 
 
 class DaskExecutor:
@@ -84,7 +102,9 @@ class DaskExecutor:
 
         def submit_next() -> bool:
             for index, item in pending:
-                payload = pickle.dumps(item, protocol=pickle.HIGHEST_PROTOCOL)
+                payload: Any = pickle.dumps(item, protocol=pickle.HIGHEST_PROTOCOL)
+                if len(payload) > SCATTER_BYTES:  # straight to a worker, not in the graph
+                    payload = self.client.scatter(payload, direct=True, hash=False)
                 future = self.client.submit(run_pickled, func, payload, pure=False)
                 index_of[future.key] = index
                 in_flight.add(future)
@@ -128,7 +148,7 @@ def open_executor(
         raise ClusterError("dask.distributed is not installed") from exc
     if scheduler is not None:
         try:
-            client = Client(scheduler, timeout="20s")
+            client = Client(scheduler, timeout="20s", direct_to_workers=True)
         except (OSError, TimeoutError) as exc:
             raise ClusterError(f"cannot reach the dask scheduler at {scheduler}: {exc}") from exc
         try:
@@ -141,18 +161,23 @@ def open_executor(
         finally:
             client.close()
         return
+    import dask
+
     # the nanny starts each worker with OMP/MKL/OPENBLAS_NUM_THREADS=1 (dask's default
-    # distributed.nanny.pre-spawn-environ); run_limited() also limits every task's pools
-    cluster = LocalCluster(
-        n_workers=workers,
-        threads_per_worker=1,
-        processes=True,
-        memory_limit=memory_budget + (1 << 30),
-        dashboard_address=None,
-        host="127.0.0.1",
-    )
+    # distributed.nanny.pre-spawn-environ); run_limited() also limits every task's pools.
+    # Not dask's MALLOC_TRIM_THRESHOLD_: it pins glibc's mmap threshold, so every array
+    # over 128 kB is a fresh mmap paid in page faults (tasks ran 1.5-3x slower).
+    with dask.config.set({"distributed.nanny.pre-spawn-environ.MALLOC_TRIM_THRESHOLD_": None}):
+        cluster = LocalCluster(
+            n_workers=workers,
+            threads_per_worker=1,
+            processes=True,
+            memory_limit=memory_budget + (1 << 30),
+            dashboard_address=None,
+            host="127.0.0.1",
+        )
     try:
-        with Client(cluster) as client:
+        with Client(cluster, direct_to_workers=True) as client:
             yield DaskExecutor(client)
     finally:
         cluster.close()

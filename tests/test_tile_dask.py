@@ -13,6 +13,7 @@ import sys
 import time
 from collections.abc import Iterator
 from pathlib import Path
+from typing import Any
 
 import laspy
 import numpy as np
@@ -169,3 +170,23 @@ def test_existing_scheduler_matches_one_process(
     assert len(stream.data) == payloads + cells
     assert {task["worker"] for task in stream.data} <= workers
     assert_same_catalog(one_process, catalog)
+
+
+def test_voronoi_reingest_on_cluster_matches_one_process(tmp_path: Path) -> None:
+    """Voronoi cells, two missions in one epoch, then one re-ingested: old tiles are read,
+    their other mission's points kept, on the workers as in one process."""
+    options = TileOptions(scheme="voronoi", epoch="all", laz=False)
+    serial, clustered = tmp_path / "serial", tmp_path / "cluster"
+    tile_missions(MISSIONS, serial, options)
+    again = tile_missions(MISSIONS[:1], serial, options)
+    kept = again.epochs["all"]["points_kept_from_catalog"]
+    assert 0 < kept < again.points_in  # the other mission's points came from the old tiles
+    with open_executor(workers=2) as executor:
+        tile_missions(MISSIONS, clustered, options, executor=executor)
+        report = tile_missions(MISSIONS[:1], clustered, options, executor=executor)
+
+    def figures(epochs: dict[str, Any]) -> dict[str, Any]:  # run files count as spilled
+        return {k: v for k, v in epochs["all"].items() if k != "bytes_spilled"}
+
+    assert report.workers == 2 and figures(report.epochs) == figures(again.epochs)
+    assert_same_catalog(serial, clustered)

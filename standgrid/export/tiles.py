@@ -12,6 +12,7 @@ from pathlib import Path
 from typing import Any
 
 from standgrid.export.las import TileInfo, write_tile
+from standgrid.partition.spill import CellExtents, read_cell
 from standgrid.pointcloud import PointCloud
 
 
@@ -44,3 +45,21 @@ def write_cell(task: CellTile) -> TileInfo:
         xmin, ymin, _, xmax, ymax, _ = info.bounds
         info = TileInfo(**{**info.__dict__, "core_bounds": shapely.box(xmin, ymin, xmax, ymax)})
     return info
+
+
+@dataclass(frozen=True)
+class RunCellTile:
+    """A cell to read from the partition's run files (a cluster) and write as a tile."""
+
+    path: Path
+    extents: CellExtents
+    crs: str
+    polygon: Any
+    lattice_origin: tuple[float, float]
+
+
+def write_run_cell(task: RunCellTile) -> TileInfo:
+    """Read one cell's points from the runs (:mod:`standgrid.partition.spill`), write its tile."""
+    cell = read_cell(task.extents)
+    tile = CellTile(task.path, cell.core, cell.buffer, task.crs, task.polygon, task.lattice_origin)
+    return write_cell(tile)

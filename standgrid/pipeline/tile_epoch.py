@@ -10,9 +10,8 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Any
 
-from standgrid.catalog import paths
 from standgrid.engine import MemoryBudget, Progress
-from standgrid.engine.ordered import ordered_map
+from standgrid.pipeline.tile_cells import EpochWork, write_cells
 
 if TYPE_CHECKING:
     from standgrid.catalog import Catalog, Transaction
@@ -74,13 +73,11 @@ def tile_epoch(
         trajectory_rows,
     )
     from standgrid.catalog.partition import catalog_partition
-    from standgrid.catalog.retile import KeptTiles, kept_points
+    from standgrid.catalog.retile import KeptTiles
     from standgrid.errors import ConservationError
     from standgrid.export.gpkg import cell_row
-    from standgrid.export.tiles import CellTile, write_cell
     from standgrid.georeference.placement import cloud_payloads
-    from standgrid.partition import PartitionEngine
-    from standgrid.partition.chunks import PayloadTask, payload_chunk
+    from standgrid.partition.chunks import PayloadTask
 
     names = {i.mission.name for i in group}
     previous = sorted(catalog.tiles(epoch)) if epoch in catalog.epochs else []
@@ -91,64 +88,47 @@ def tile_epoch(
     partition = catalog_partition(catalog, payloads=_sites(others, rows), coverage=False)
     origin = partition.lattice_origin
     tasks = [PayloadTask(**given, lattice_origin=origin, schema=schema) for given in sources]
-    buffer = partition.buffer(settings.buffer) if settings.buffer else None
 
-    kept_in = 0
     new_in: dict[str, int] = dict.fromkeys(names, 0)
+
+    def on_payload(k: int, points: int, footprint: Any) -> None:
+        rows[k]["point_count"] = points
+        rows[k]["geometry"] = footprint
+        new_in[rows[k]["mission"]] += points
+
+    work = EpochWork(
+        epoch=epoch,
+        kept=[KeptTiles(catalog.path(rel), tuple(renewed), origin, schema) for rel in previous],
+        payloads=tasks,
+        partition=partition,
+        buffer=partition.buffer(settings.buffer) if settings.buffer else None,
+        on_payload=on_payload,
+        final_partition=lambda: catalog_partition(catalog, payloads=_sites(others, rows)),
+        crs=catalog.crs,
+        laz=settings.laz,
+        memory_budget=settings.memory_budget,
+    )
+    done = write_cells(work, txn, executor, progress)
+    kept_in = done.kept_in
     number_to_name = {int(r["number"]): n for n, r in txn.state["missions"].items()}
     tiles_of: dict[str, set[str]] = {}
     result = EpochResult({})
     cell_rows: list[dict[str, Any]] = []
-    spill = txn.folder / "spill"
-    budget = settings.memory_budget.bytes
-    with PartitionEngine(
-        partition.assign, spill, memory_budget_bytes=budget, buffer=buffer
-    ) as engine:
-        kept_tasks = [
-            KeptTiles(catalog.path(rel), tuple(renewed), origin, schema) for rel in previous
-        ]
-        kept = ordered_map(executor, kept_points, kept_tasks)
-        for cloud in progress.track(kept, len(kept_tasks), f"{epoch}: existing tiles"):
-            if len(cloud):
-                engine.add(cloud)
-                kept_in += len(cloud)
-        chunks = ordered_map(executor, payload_chunk, tasks)
-        for row, chunk in zip(
-            rows, progress.track(chunks, len(tasks), f"{epoch}: payloads"), strict=True
-        ):
-            row["point_count"] = len(chunk.cloud)
-            row["geometry"] = chunk.footprint
-            engine.add(chunk.cloud)
-            new_in[row["mission"]] += len(chunk.cloud)
-        partition = catalog_partition(catalog, payloads=_sites(others, rows), coverage=True)
-        written: list[tuple[str, str]] = []
-
-        def cells() -> Any:
-            for cell in engine.finalise():
-                cell_id = partition.cell_id(cell.key)
-                rel = paths.tile(epoch, cell_id, laz=settings.laz)
-                written.append((cell_id, rel))
-                polygon = partition.polygon(cell.key)
-                yield CellTile(txn.stage(rel), cell.core, cell.buffer, catalog.crs, polygon, origin)
-
-        infos = ordered_map(executor, write_cell, cells())
-        for k, info in enumerate(progress.track(infos, 0, f"{epoch}: tiles")):
-            cell_id, rel = written[k]
-            missions = sorted(number_to_name[n] for n in info.points_per_source)
-            for name in missions:
-                tiles_of.setdefault(name, set()).add(rel)
-            size = partition.cell_size(cell_id)
-            row = cell_row(cell_id, info, level=0, cell_size=size, epoch=epoch, missions=missions,
-                           tile_path=rel)  # fmt: skip
-            cell_rows.append(row)
-            result.tiles.append((rel, info))
-        stats = engine.stats
+    for cell_id, rel, info in done.tiles:
+        missions = sorted(number_to_name[n] for n in info.points_per_source)
+        for name in missions:
+            tiles_of.setdefault(name, set()).add(rel)
+        size = partition.cell_size(cell_id)
+        row = cell_row(cell_id, info, level=0, cell_size=size, epoch=epoch, missions=missions,
+                       tile_path=rel)  # fmt: skip
+        cell_rows.append(row)
+        result.tiles.append((rel, info))
 
     fed = kept_in + sum(new_in.values())
-    if stats.points_in != fed or stats.points_out != fed:
+    if done.points_in != fed or done.points_out != fed:
         raise ConservationError(
-            f"epoch {epoch}: {fed} points fed, {stats.points_in} partitioned, "
-            f"{stats.points_out} written",
+            f"epoch {epoch}: {fed} points fed, {done.points_in} partitioned, "
+            f"{done.points_out} written",
             path=catalog.root,
         )
     rels = {rel for rel, _ in result.tiles}
@@ -201,11 +181,11 @@ def tile_epoch(
         "points_in": fed,
         "points_kept_from_catalog": kept_in,
         "points_new": sum(new_in.values()),
-        "points_out": stats.points_out,
-        "buffer_points": stats.buffer_points,
+        "points_out": done.points_out,
+        "buffer_points": done.buffer_points,
         "cells": len(result.tiles),
         "cells_removed": len(set(previous) - rels),
-        "bytes_spilled": stats.bytes_spilled,
+        "bytes_spilled": done.bytes_spilled,
     }
     return result
 

@@ -166,8 +166,11 @@ def open_executor(
     # the nanny starts each worker with OMP/MKL/OPENBLAS_NUM_THREADS=1 (dask's default
     # distributed.nanny.pre-spawn-environ); run_limited() also limits every task's pools.
     # Not dask's MALLOC_TRIM_THRESHOLD_: it pins glibc's mmap threshold, so every array
-    # over 128 kB is a fresh mmap paid in page faults (tasks ran 1.5-3x slower).
-    with dask.config.set({"distributed.nanny.pre-spawn-environ.MALLOC_TRIM_THRESHOLD_": None}):
+    # over 128 kB is a fresh mmap paid in page faults (tasks ran 1.5-3x slower). One rayon
+    # thread (lazrs' LAZ compression) per worker too: a worker is one core.
+    environ = "distributed.nanny.pre-spawn-environ"
+    with dask.config.set({f"{environ}.MALLOC_TRIM_THRESHOLD_": None,
+                          f"{environ}.RAYON_NUM_THREADS": 1}):  # fmt: skip
         cluster = LocalCluster(
             n_workers=workers,
             threads_per_worker=1,

@@ -188,13 +188,15 @@ def write_tile(
     intensity_scale: float = 1.0,
     overwrite: bool = True,
     lattice_origin: tuple[float, float] = (0.0, 0.0),
+    durable: bool = True,
 ) -> TileInfo:
     """Write ``core`` (+ ``buffer`` points flagged withheld) as one LAS 1.4 tile.
 
     ``laz`` defaults to the suffix (``.laz`` compressed). Coordinates are stored at 1 mm with
     a per-tile offset (the tile minimum floored to the metre). ``core`` and ``buffer`` must
     carry the same field names. A single cloud with a bool ``withheld`` field (and no
-    ``buffer``) is split by it. Written atomically; returns a :class:`TileInfo`.
+    ``buffer``) is split by it. Written atomically, and fsynced unless ``durable=False`` (a
+    tile staged in a catalog transaction: the commit fsyncs it); returns a :class:`TileInfo`.
     """
     import laspy
 
@@ -325,7 +327,8 @@ def write_tile(
 
     backend = laspy.LazBackend.LazrsParallel if laz else None
     # A file object: given a path, laspy picks compression from the (temporary) suffix.
-    with atomic_output(out, overwrite=overwrite) as tmp, open(tmp, "wb") as stream:
+    staged = atomic_output(out, overwrite=overwrite, durable=durable)
+    with staged as tmp, open(tmp, "wb") as stream:
         las.write(stream, do_compress=bool(laz), laz_backend=backend)
 
     z = core.xyz[:, 2]

@@ -40,6 +40,7 @@ def write_cell(task: CellTile) -> TileInfo:
         buffer=task.buffer,
         core_bounds=task.polygon,
         lattice_origin=task.lattice_origin,
+        durable=False,  # staged in a transaction: its commit fsyncs every staged file
     )
     if task.polygon is None or shapely.is_empty(task.polygon):
         xmin, ymin, _, xmax, ymax, _ = info.bounds

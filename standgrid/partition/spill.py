@@ -21,7 +21,7 @@ from numpy.typing import NDArray
 
 from standgrid.errors import ConservationError
 from standgrid.partition.chunks import PayloadChunk
-from standgrid.partition.engine import WITHHELD, BufferFunction, CellPoints
+from standgrid.partition.engine import WITHHELD, BufferFunction, CellPoints, _runs_of
 from standgrid.pointcloud import PointCloud
 
 _XYZ = "xyz"
@@ -51,15 +51,6 @@ class Run:
     buffer: tuple[NDArray[np.int64], NDArray[np.int64], NDArray[np.int64]]
     #: What the loader gave besides the points (a payload's footprint), or None.
     extra: Any = None
-
-
-def _runs_of(sorted_keys: NDArray[np.int64]) -> tuple[NDArray[np.int64], ...]:
-    if len(sorted_keys) == 0:
-        empty = np.empty(0, dtype=np.int64)
-        return empty, empty, empty
-    first = np.flatnonzero(np.r_[True, sorted_keys[1:] != sorted_keys[:-1]])
-    counts = np.diff(np.r_[first, len(sorted_keys)])
-    return sorted_keys[first], first.astype(np.int64), counts.astype(np.int64)
 
 
 def spill_chunk(task: SpillTask) -> Run:

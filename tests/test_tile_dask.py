@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import json
 import os
+import shutil
 import socket
 import subprocess
 import sys
@@ -23,6 +24,7 @@ from click.testing import CliRunner
 
 from standgrid.cli import cli
 from standgrid.engine import open_executor
+from standgrid.errors import PointCloudFormatError
 from standgrid.pipeline.tile import TileOptions, tile_missions
 from tests.conftest import BUNDLED_MISSIONS, REPO_ROOT
 
@@ -181,9 +183,18 @@ def test_voronoi_reingest_on_cluster_matches_one_process(tmp_path: Path) -> None
     again = tile_missions(MISSIONS[:1], serial, options)
     kept = again.epochs["all"]["points_kept_from_catalog"]
     assert 0 < kept < again.points_in  # the other mission's points came from the old tiles
+    broken = tmp_path / "broken" / MISSIONS[0].name
+    shutil.copytree(MISSIONS[0], broken)
+    victim = sorted((broken / "payload_clouds").glob("*.pcd"))[3]
+    victim.write_bytes(victim.read_bytes()[:-5000])  # header intact, points cut short
     with open_executor(workers=2) as executor:
         tile_missions(MISSIONS, clustered, options, executor=executor)
         report = tile_missions(MISSIONS[:1], clustered, options, executor=executor)
+        before = {p: p.stat().st_mtime_ns for p in clustered.rglob("*")}
+        with pytest.raises(PointCloudFormatError) as error:  # raised on a worker
+            tile_missions([broken], clustered, options, executor=executor)
+        assert victim.name in str(error.value)
+        assert {p: p.stat().st_mtime_ns for p in clustered.rglob("*")} == before
 
     def figures(epochs: dict[str, Any]) -> dict[str, Any]:  # run files count as spilled
         return {k: v for k, v in epochs["all"].items() if k != "bytes_spilled"}

@@ -69,13 +69,15 @@ def measure_copy(catalog: Path, out: Path) -> dict[str, Any]:
 def measure_enrich(catalog: Path, workers: int, memory_mb: int) -> dict[str, Any]:
     import pyogrio
 
+    from standgrid.engine import MemoryBudget
     from standgrid.pipeline.enrich import EnrichOptions, enrich_catalog
 
     cells = pyogrio.read_dataframe(catalog / "index.gpkg", layer="cells", read_geometry=False)
     points = int(cells["point_count"].sum())
     t0 = time.perf_counter()
     report = enrich_catalog(
-        catalog, EnrichOptions(memory_budget=memory_mb << 20), workers=workers or None
+        catalog, EnrichOptions(memory_budget=MemoryBudget.megabytes(memory_mb)),
+        workers=workers or None,
     )
     seconds = time.perf_counter() - t0
     epoch = next(iter(report.epochs.values()))

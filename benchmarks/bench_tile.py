@@ -3,7 +3,7 @@
 Usage::
 
     python benchmarks/bench_tile.py [--points 20000000] [--area 200] [--workdir DIR] [--keep]
-                                    [--blas-threads N] [--repeat N]
+                                    [--blas-threads N] [--repeat N] [--workers 1,2] [--no-copy]
 
 1. Simulates one mission of about ``--points`` points (``standgrid.simulate``); a mission
    already simulated under ``--workdir`` (kept with ``--keep``) is reused.
@@ -19,6 +19,12 @@ tile / copy (target >= 0.8) and the peaks; ``--repeat N`` keeps the fastest of N
 each measurement (the machine may be shared). ``--blas-threads N`` sets OPENBLAS_NUM_THREADS
 (and OMP/MKL) in the children: on a busy machine multi-threaded BLAS in the small
 ``(N, 3) @ (3, 3)`` products of the tiler can cost more than it gains.
+
+``--workers 1,2`` also tiles (LAZ) on a dask LocalCluster of each number of worker
+processes and prints the speed-up of the last over the first (target >= 1.7 for 1 -> 2 on
+two cores). The cluster is started before the clock starts (its start-up is printed
+apart); the peak memory printed is the client's (workers are limited by the budget).
+``--no-copy`` skips the tile-vs-copy part.
 """
 
 from __future__ import annotations
@@ -38,6 +44,7 @@ from typing import Any
 
 SEED = 11
 TARGET_RATIO = 0.8
+TARGET_SPEEDUP = 1.7
 
 
 def _peak_mb() -> dict[str, float]:
@@ -86,6 +93,22 @@ def measure_tile(mission: Path, catalog: Path, laz: bool) -> dict[str, Any]:
         "tiles": epoch["cells"],
         "bytes_spilled": epoch["bytes_spilled"],
     }
+
+
+def measure_tile_workers(mission: Path, catalog: Path, workers: int) -> dict[str, Any]:
+    """Tile (LAZ) on a LocalCluster of ``workers`` processes, started before the clock."""
+    from standgrid.engine import open_executor
+    from standgrid.pipeline.tile import TileOptions, tile_missions
+
+    t0 = time.perf_counter()
+    with open_executor(workers=workers) as executor:
+        started = time.perf_counter() - t0
+        t1 = time.perf_counter()
+        options = TileOptions(laz=True, overwrite=True)
+        report = tile_missions([mission], catalog, options, executor=executor)
+        seconds = time.perf_counter() - t1
+    assert report.points_in == report.points_out and report.workers == workers
+    return {"seconds": seconds, "startup_seconds": started, "points": report.points_out}
 
 
 def measure_baseline_files(catalog: Path, las_out: Path, laz_out: Path) -> dict[str, Any]:
@@ -139,6 +162,8 @@ def _child(args: list[str]) -> None:
         result = measure_simulate(Path(rest[0]), int(rest[1]), float(rest[2]))
     elif kind == "tile":
         result = measure_tile(Path(rest[0]), Path(rest[1]), rest[2] == "laz")
+    elif kind == "workers":
+        result = measure_tile_workers(Path(rest[0]), Path(rest[1]), int(rest[2]))
     elif kind == "baseline":
         result = measure_baseline_files(Path(rest[0]), Path(rest[1]), Path(rest[2]))
     elif kind == "copy":
@@ -180,6 +205,8 @@ def main() -> None:
     parser.add_argument("--keep", action="store_true", help="keep the work folder")
     parser.add_argument("--blas-threads", type=int, default=None)
     parser.add_argument("--repeat", type=int, default=1, help="best of N runs per measurement")
+    parser.add_argument("--workers", default=None, help="also tile on LocalClusters: 1,2")
+    parser.add_argument("--no-copy", action="store_true", help="skip tile vs copy")
     parser.add_argument("--child", nargs=argparse.REMAINDER, help=argparse.SUPPRESS)
     args = parser.parse_args()
     if args.child:
@@ -203,36 +230,60 @@ def main() -> None:
                 f"(simulated in {sim['seconds']:.1f} s)",
                 flush=True,
             )
-        results: dict[str, dict[str, Any]] = {}
-        for fmt in ("laz", "las"):
-            results[f"tile {fmt}"] = best_of(
-                args.repeat, "tile", sim["mission"], str(work / f"catalog_{fmt}"), fmt
-            )
-            print(f"tile {fmt}: {results[f'tile {fmt}']}", flush=True)
-        run_child(
-            "baseline", str(work / "catalog_las"), str(work / "all.las"), str(work / "all.laz")
-        )
-        for fmt in ("laz", "las"):
-            results[f"copy {fmt}"] = best_of(
-                args.repeat, "copy", str(work / f"all.{fmt}"), str(work / f"copy.{fmt}"), fmt
-            )
-            print(f"copy {fmt}: {results[f'copy {fmt}']}", flush=True)
-
-        print(f"\n{'measurement':<10} {'points':>12} {'seconds':>8} {'Mpts/s':>8} {'peak MB':>8}")
-        for name, r in results.items():
-            pps = r["points"] / r["seconds"]
-            print(
-                f"{name:<10} {r['points']:>12,} {r['seconds']:>8.2f} {pps / 1e6:>8.3f} "
-                f"{r['peak_mb']:>8.0f}"
-            )
-        for fmt in ("laz", "las"):
-            tile, copy = results[f"tile {fmt}"], results[f"copy {fmt}"]
-            ratio = (tile["points"] / tile["seconds"]) / (copy["points"] / copy["seconds"])
-            verdict = "ok" if ratio >= TARGET_RATIO else f"below the {TARGET_RATIO} target"
-            print(f"throughput ratio tile/copy ({fmt.upper()}): {ratio:.2f}  ({verdict})")
+        if not args.no_copy:
+            tile_versus_copy(args, sim, work)
+        if args.workers:
+            tile_on_workers(args, sim, work, [int(n) for n in args.workers.split(",")])
     finally:
         if not args.keep:
             shutil.rmtree(work, ignore_errors=True)
+
+
+def tile_on_workers(args: Any, sim: dict[str, Any], work: Path, counts: list[int]) -> None:
+    runs = {}
+    for n in counts:
+        runs[n] = best_of(
+            args.repeat, "workers", sim["mission"], str(work / "catalog_dask"), str(n)
+        )
+        r = runs[n]
+        print(
+            f"tile laz on {n} worker(s): {r['seconds']:.2f} s "
+            f"({r['points'] / r['seconds'] / 1e6:.3f} Mpts/s; cluster start "
+            f"{r['startup_seconds']:.1f} s, client peak {r['peak_mb']:.0f} MB)",
+            flush=True,
+        )
+    first, last = counts[0], counts[-1]
+    speedup = runs[first]["seconds"] / runs[last]["seconds"]
+    verdict = "ok" if speedup >= TARGET_SPEEDUP else f"below the {TARGET_SPEEDUP} target"
+    print(f"speed-up {first} -> {last} workers: {speedup:.2f}x  ({verdict})")
+
+
+def tile_versus_copy(args: Any, sim: dict[str, Any], work: Path) -> None:
+    results: dict[str, dict[str, Any]] = {}
+    for fmt in ("laz", "las"):
+        results[f"tile {fmt}"] = best_of(
+            args.repeat, "tile", sim["mission"], str(work / f"catalog_{fmt}"), fmt
+        )
+        print(f"tile {fmt}: {results[f'tile {fmt}']}", flush=True)
+    run_child("baseline", str(work / "catalog_las"), str(work / "all.las"), str(work / "all.laz"))
+    for fmt in ("laz", "las"):
+        results[f"copy {fmt}"] = best_of(
+            args.repeat, "copy", str(work / f"all.{fmt}"), str(work / f"copy.{fmt}"), fmt
+        )
+        print(f"copy {fmt}: {results[f'copy {fmt}']}", flush=True)
+
+    print(f"\n{'measurement':<10} {'points':>12} {'seconds':>8} {'Mpts/s':>8} {'peak MB':>8}")
+    for name, r in results.items():
+        pps = r["points"] / r["seconds"]
+        print(
+            f"{name:<10} {r['points']:>12,} {r['seconds']:>8.2f} {pps / 1e6:>8.3f} "
+            f"{r['peak_mb']:>8.0f}"
+        )
+    for fmt in ("laz", "las"):
+        tile, copy = results[f"tile {fmt}"], results[f"copy {fmt}"]
+        ratio = (tile["points"] / tile["seconds"]) / (copy["points"] / copy["seconds"])
+        verdict = "ok" if ratio >= TARGET_RATIO else f"below the {TARGET_RATIO} target"
+        print(f"throughput ratio tile/copy ({fmt.upper()}): {ratio:.2f}  ({verdict})")
 
 
 if __name__ == "__main__":

@@ -22,6 +22,7 @@ def _peak_mb() -> float:
 
 
 def main() -> None:
+    from standgrid.engine import MemoryBudget
     from standgrid.pipeline.tile import TileOptions, tile_missions
     from standgrid.simulate import simulate_mission
 
@@ -48,7 +49,8 @@ def main() -> None:
     catalog = args.workdir / "catalog"
     shutil.rmtree(catalog, ignore_errors=True)
     start = time.perf_counter()
-    report = tile_missions([mission], catalog, TileOptions(memory_budget=args.budget_mb << 20))
+    options = TileOptions(memory_budget=MemoryBudget.megabytes(args.budget_mb))
+    report = tile_missions([mission], catalog, options)
     seconds = time.perf_counter() - start
     epoch = next(iter(report.epochs.values()))
     print(f"points in / out    {report.points_in:,} / {report.points_out:,}")

@@ -42,6 +42,17 @@ def fsync_path(path: str | os.PathLike[str]) -> None:
         os.close(fd)
 
 
+def start_writeback(path: Path) -> None:
+    """Start writing a file's data to disk without waiting (a later fsync then mostly
+    finds it done); its pages leave the cache once written."""
+    fd = os.open(path, os.O_RDONLY)
+    try:
+        if hasattr(os, "posix_fadvise"):
+            os.posix_fadvise(fd, 0, 0, os.POSIX_FADV_DONTNEED)
+    finally:
+        os.close(fd)
+
+
 def fsync_tree(root: Path) -> None:
     """``fsync`` every file and folder under ``root`` (a freshly written output)."""
     if root.is_dir() and not root.is_symlink():
@@ -138,12 +149,16 @@ def _place_new(tmp: Path, final: Path) -> None:
 
 
 @contextlib.contextmanager
-def atomic_output(final: str | os.PathLike[str], *, overwrite: bool = True) -> Iterator[Path]:
+def atomic_output(
+    final: str | os.PathLike[str], *, overwrite: bool = True, durable: bool = True
+) -> Iterator[Path]:
     """Yield a temporary path beside ``final``; on success rename it onto ``final``.
 
     Works for a file or a folder written at the temporary path; the data is fsynced before
-    the rename and the folder after it. On error the temporary is removed and ``final`` is
-    left as it was; running out of space raises :class:`~standgrid.errors.OutOfSpaceError`.
+    the rename and the folder after it. ``durable=False`` (a file staged in a catalog
+    transaction, whose commit fsyncs every staged file): the write-back of a file is only
+    started, not waited for. On error the temporary is removed and ``final`` is left as it
+    was; running out of space raises :class:`~standgrid.errors.OutOfSpaceError`.
     """
     final_path = Path(final)
     if final_path.exists() and not overwrite:
@@ -159,14 +174,18 @@ def atomic_output(final: str | os.PathLike[str], *, overwrite: bool = True) -> I
     tmp = temporary_sibling(final_path)
     try:
         yield tmp
-        fsync_tree(tmp)
+        if durable:
+            fsync_tree(tmp)
+        elif tmp.is_file():
+            start_writeback(tmp)
         if not overwrite:
             _place_new(tmp, final_path)
         elif tmp.is_dir() and final_path.is_dir():
             _swap_folder(tmp, final_path)
         else:
             os.replace(tmp, final_path)
-        fsync_path(final_path.parent)
+        if durable:
+            fsync_path(final_path.parent)
     except BaseException as exc:
         if tmp.is_dir():
             shutil.rmtree(tmp, ignore_errors=True)

@@ -24,13 +24,14 @@ import pytest
 import rasterio
 
 from standgrid.catalog.chunks import chunk_side, plan_chunks
+from standgrid.engine import MemoryBudget
 from standgrid.pipeline.enrich import EnrichOptions, enrich_catalog
 from standgrid.pipeline.tile import TileOptions, tile_missions
 from tests.conftest import BUNDLED_MISSIONS, REPO_ROOT
 
 #: A small budget, so the 80 m stand is cut into several chunks (the merge is exercised);
 #: one epoch keeps the test short.
-OPTIONS = EnrichOptions(memory_budget=64 << 20, epochs=("2024",))
+OPTIONS = EnrichOptions(memory_budget=MemoryBudget(64 << 20), epochs=("2024",))
 
 
 @pytest.fixture(scope="module")
@@ -136,7 +137,7 @@ def test_the_epoch_is_cut_into_chunks_that_own_every_cell_once(single: Path) -> 
     cells = cells[cells["epoch"].astype(str) == "2024"]
     records = cells_of(cells)
     grid = json.loads((single / "catalog.json").read_text())["grid"]
-    side = chunk_side(records, 20.0, 10.0, OPTIONS.memory_budget // 700)
+    side = chunk_side(records, 20.0, 10.0, OPTIONS.memory_budget.bytes // 700)
     chunks = plan_chunks(records, side=side, origin=tuple(grid["origin"]), buffer=10.0)
     owned = [c.cell_id for chunk in chunks for c in chunk.cells]
     assert sorted(owned) == sorted(cells["cell_id"]) and len(chunks) > 1

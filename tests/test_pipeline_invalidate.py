@@ -85,7 +85,11 @@ def retiled(pair: EnrichedPair, tmp_path_factory: pytest.TempPathFactory) -> dic
     assert counts["metrics_2028"] > 0 and counts["stand_changes"] > 0  # something to remove
     assert _files(root, f"compare/{PAIR}") and _files(root, "rasters/2028")
     messages: list[str] = []
-    report = tile_missions([BUNDLED_MISSIONS / MISSIONS["2028"]], root, status=messages.append)
+    report = tile_missions(
+        [BUNDLED_MISSIONS / MISSIONS["2028"]],
+        root,
+        progress=CallbackProgress(on_status=messages.append),
+    )
     return {"root": root, "before": before, "counts": counts, "report": report.to_dict(),
             "messages": messages}  # fmt: skip
 

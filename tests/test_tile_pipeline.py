@@ -25,6 +25,7 @@ import pytest
 import shapely
 from scipy.spatial import cKDTree
 
+from standgrid.engine import CallbackProgress
 from standgrid.errors import (
     CRSError,
     GeoreferenceError,
@@ -579,7 +580,9 @@ def test_interrupted_run_leaves_the_catalog_intact(tmp_path: Path) -> None:
     victim.write_bytes(data[: len(data) - 5000])  # header intact, points cut short
     messages: list[str] = []
     with pytest.raises(PointCloudFormatError) as info:
-        tile_missions([broken], catalog, TileOptions(), status=messages.append)
+        tile_missions(
+            [broken], catalog, TileOptions(), progress=CallbackProgress(on_status=messages.append)
+        )
     assert victim.name in str(info.value)
     # it failed midway: inside the catalog transaction, while tiling the epoch
     assert any(m.startswith("tiling epoch 2028") for m in messages)

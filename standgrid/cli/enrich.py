@@ -99,6 +99,7 @@ def enrich(
       standgrid enrich catalog --epoch 2028 --pixel 0.5 --json
       standgrid enrich catalog --workers 2 --memory 4096
     """
+    from standgrid.engine import MemoryBudget
     from standgrid.pipeline.enrich import EnrichOptions, enrich_catalog
 
     options = EnrichOptions(
@@ -109,7 +110,7 @@ def enrich(
         min_observed_fraction=min_observed_fraction,
         min_density_pts_m2=min_density,
         epochs=epochs,
-        memory_budget=memory_mb << 20,
+        memory_budget=MemoryBudget.megabytes(memory_mb),
     )
     report = enrich_catalog(
         catalog,

@@ -2,22 +2,22 @@
 
 from __future__ import annotations
 
-from collections.abc import Iterable
 from pathlib import Path
 from typing import Any
 
 import click
 
 from standgrid.cli.options import (
+    TerminalProgress,
+    cluster_options,
     emit,
     json_option,
     lock_timeout_option,
+    memory_option,
     mission_argument,
     output_option,
     overwrite_option,
-    progress,
     quiet_option,
-    status,
 )
 
 
@@ -108,14 +108,12 @@ def _human(report: dict[str, Any]) -> str:
     "--epoch", default=None, callback=_epoch,
     help="Epoch label (default: the year of each mission).",
 )  # fmt: skip
-@click.option(
-    "--memory", "memory_mb", type=click.IntRange(16), default=2048, show_default=True,
-    help="Memory budget of the partition engine in MB (spills to disk beyond it).",
-)  # fmt: skip
+@memory_option
 @click.option(
     "--accept-poor-georeference", is_flag=True,
     help="Tile even when a GNSS fit's RMSE is far beyond the fixes' stated accuracy.",
 )  # fmt: skip
+@cluster_options
 @overwrite_option
 @lock_timeout_option
 @json_option
@@ -134,6 +132,8 @@ def tile(
     epoch: str | None,
     memory_mb: int,
     accept_poor_georeference: bool,
+    workers: int | None,
+    scheduler: str | None,
     overwrite: bool,
     lock_timeout: float,
     as_json: bool,
@@ -158,6 +158,7 @@ def tile(
       standgrid tile NO_GNSS -o catalog --anchor 51.7733 -1.3372 147.6 78.1
       standgrid tile UTM_PCD_MISSION -o catalog --crs EPSG:32630
     """
+    from standgrid.engine import MemoryBudget
     from standgrid.pipeline.tile import TileOptions, tile_missions
 
     options = TileOptions(
@@ -170,16 +171,12 @@ def tile(
         method=method,
         anchor=anchor,
         epoch=epoch,
-        memory_budget=memory_mb << 20,
+        memory_budget=MemoryBudget.megabytes(memory_mb),
         overwrite=overwrite,
         lock_timeout=lock_timeout,
         accept_poor_georeference=accept_poor_georeference,
+        workers=workers,
+        scheduler=scheduler,
     )
-
-    def wrap(items: Iterable[Any], total: int, desc: str) -> Iterable[Any]:
-        return progress(items, total=total or None, desc=desc, quiet=quiet)
-
-    report = tile_missions(
-        list(missions), output, options, wrap=wrap, status=lambda m: status(m, quiet)
-    )
+    report = tile_missions(list(missions), output, options, progress=TerminalProgress(quiet))
     emit(report.to_dict(), as_json, _human)

@@ -42,6 +42,33 @@ def run_limited(func: Callable[[T], R], item: T) -> R:
         return func(item)
 
 
+def run_pickled(func: Callable[[T], R], payload: bytes) -> bytes:
+    """:func:`run_limited` on a pickled item, the result pickled.
+
+    Pickled in-band, every array is rebuilt in a fresh (aligned) allocation on arrival;
+    arrays dask deserialises out-of-band may be views at unaligned offsets of a network
+    frame, where numpy takes other (unaligned) loops whose float sums differ in the last
+    bit: a result computed on a worker would not be the one computed here.
+    """
+    import pickle
+
+    _limit_this_process()
+    result = func(pickle.loads(payload))
+    return pickle.dumps(result, protocol=pickle.HIGHEST_PROTOCOL)
+
+
+_LIMITED: list[object] = []
+
+
+def _limit_this_process() -> None:
+    """BLAS/OpenMP pools of this (worker) process limited to one thread, once: entering
+    ``threadpool_limits`` inspects every loaded library (~15 ms), too much per task."""
+    if not _LIMITED:
+        from threadpoolctl import threadpool_limits
+
+        _LIMITED.append(threadpool_limits(1))  # kept for the life of the worker
+
+
 class SerialExecutor:
     """Everything in this process, one item after the other."""
 
@@ -52,6 +79,11 @@ class SerialExecutor:
             yield index, run_limited(func, item)
 
 
+#: Items pickled larger than this are scattered to a worker, not sent in the task graph
+#: (through the scheduler).
+SCATTER_BYTES = 256 << 10
+
+
 class DaskExecutor:
     """Items as tasks on a dask.distributed cluster, at most ``2 x workers`` in flight."""
 
@@ -60,6 +92,8 @@ class DaskExecutor:
         self.workers = max(1, len(client.scheduler_info().get("workers", {})))
 
     def map(self, func: Callable[[T], R], items: Sequence[T]) -> Iterator[tuple[int, R]]:
+        import pickle
+
         from distributed import as_completed
 
         pending = iter(enumerate(items))
@@ -68,7 +102,10 @@ class DaskExecutor:
 
         def submit_next() -> bool:
             for index, item in pending:
-                future = self.client.submit(run_limited, func, item, pure=False)
+                payload: Any = pickle.dumps(item, protocol=pickle.HIGHEST_PROTOCOL)
+                if len(payload) > SCATTER_BYTES:  # straight to a worker, not in the graph
+                    payload = self.client.scatter(payload, direct=True, hash=False)
+                future = self.client.submit(run_pickled, func, payload, pure=False)
                 index_of[future.key] = index
                 in_flight.add(future)
                 return True
@@ -78,7 +115,7 @@ class DaskExecutor:
             if not submit_next():
                 break
         for future in in_flight:
-            result = future.result()  # re-raises the task's own exception here
+            result = pickle.loads(future.result())  # re-raises the task's own exception
             index = index_of.pop(future.key)
             future.release()
             submit_next()
@@ -111,7 +148,7 @@ def open_executor(
         raise ClusterError("dask.distributed is not installed") from exc
     if scheduler is not None:
         try:
-            client = Client(scheduler, timeout="20s")
+            client = Client(scheduler, timeout="20s", direct_to_workers=True)
         except (OSError, TimeoutError) as exc:
             raise ClusterError(f"cannot reach the dask scheduler at {scheduler}: {exc}") from exc
         try:
@@ -124,18 +161,26 @@ def open_executor(
         finally:
             client.close()
         return
+    import dask
+
     # the nanny starts each worker with OMP/MKL/OPENBLAS_NUM_THREADS=1 (dask's default
-    # distributed.nanny.pre-spawn-environ); run_limited() also limits every task's pools
-    cluster = LocalCluster(
-        n_workers=workers,
-        threads_per_worker=1,
-        processes=True,
-        memory_limit=memory_budget + (1 << 30),
-        dashboard_address=None,
-        host="127.0.0.1",
-    )
+    # distributed.nanny.pre-spawn-environ); run_limited() also limits every task's pools.
+    # Not dask's MALLOC_TRIM_THRESHOLD_: it pins glibc's mmap threshold, so every array
+    # over 128 kB is a fresh mmap paid in page faults (tasks ran 1.5-3x slower). One rayon
+    # thread (lazrs' LAZ compression) per worker too: a worker is one core.
+    environ = "distributed.nanny.pre-spawn-environ"
+    with dask.config.set({f"{environ}.MALLOC_TRIM_THRESHOLD_": None,
+                          f"{environ}.RAYON_NUM_THREADS": 1}):  # fmt: skip
+        cluster = LocalCluster(
+            n_workers=workers,
+            threads_per_worker=1,
+            processes=True,
+            memory_limit=memory_budget + (1 << 30),
+            dashboard_address=None,
+            host="127.0.0.1",
+        )
     try:
-        with Client(cluster) as client:
+        with Client(cluster, direct_to_workers=True) as client:
             yield DaskExecutor(client)
     finally:
         cluster.close()

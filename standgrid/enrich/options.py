@@ -2,9 +2,9 @@
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
-from standgrid.engine.budget import DEFAULT_MEMORY_BUDGET
+from standgrid.engine.budget import MemoryBudget
 
 
 @dataclass(frozen=True)
@@ -22,5 +22,5 @@ class EnrichOptions:
     min_density_pts_m2: float = 2.0
     coverage_closing_m: float = 2.0
     epochs: tuple[str, ...] = ()
-    #: bytes one process (each dask worker) may hold for a chunk; sizes the chunks
-    memory_budget: int = DEFAULT_MEMORY_BUDGET
+    #: what one process (each dask worker) may hold for a chunk; sizes the chunks
+    memory_budget: MemoryBudget = field(default_factory=MemoryBudget)

@@ -297,31 +297,37 @@ def write_index(
 
     Layers not given are kept from ``base`` / the existing index. One atomic replace.
     """
+    given = {"cells": cells, "payloads": payloads, "trajectories": trajectories,
+             "gnss_fixes": gnss_fixes, "missions": missions}  # fmt: skip
     with IndexWriter(gpkg_path, crs, base=base) as writer:
-        if cells is not None:
-            frame = layer_frame("cells", cells, crs)
-            writer.write_layer("cells", frame, style=styles.load_qml("cells"))
-            density = frame["density"].dropna()
-            if len(density):
-                writer.add_style(
-                    "cells", styles.density_style(float(density.min()), float(density.max())),
-                    style_name="cells by density", default=False,
-                    description="points per square metre",
-                )  # fmt: skip
-        if payloads is not None:
-            writer.write_layer("payloads", payloads, style=styles.load_qml("payloads"))
-        if trajectories is not None:
-            frame = layer_frame("trajectories", trajectories, crs)
-            names = sorted(str(m) for m in frame["mission"].unique())
-            writer.write_layer(
-                "trajectories", frame,
-                style=styles.categorized_style("mission", names, geometry="line"),
-            )  # fmt: skip
-        if gnss_fixes is not None:
-            writer.write_layer("gnss_fixes", gnss_fixes, style=styles.load_qml("gnss_fixes"))
-        if missions is not None:
-            writer.write_layer("missions", missions)
+        for name, rows in given.items():
+            if rows is not None:
+                write_standard_layer(writer, name, rows)
     return Path(gpkg_path)
+
+
+def write_standard_layer(writer: IndexWriter, name: str, rows: Any) -> None:
+    """Write one of the standard layers (:data:`LAYER_COLUMNS`) with its QGIS styles."""
+    frame = layer_frame(name, rows, writer.crs)
+    if name == "cells":
+        writer.write_layer("cells", frame, style=styles.load_qml("cells"))
+        density = frame["density"].dropna()
+        if len(density):
+            writer.add_style(
+                "cells", styles.density_style(float(density.min()), float(density.max())),
+                style_name="cells by density", default=False,
+                description="points per square metre",
+            )  # fmt: skip
+    elif name == "trajectories":
+        names = sorted(str(m) for m in frame["mission"].unique())
+        writer.write_layer(
+            "trajectories", frame,
+            style=styles.categorized_style("mission", names, geometry="line"),
+        )  # fmt: skip
+    elif name in ("payloads", "gnss_fixes"):
+        writer.write_layer(name, frame, style=styles.load_qml(name))
+    else:
+        writer.write_layer(name, frame)
 
 
 def iso_time(sec: int, nsec: int) -> str:

@@ -39,10 +39,11 @@ from numpy.typing import NDArray
 
 from standgrid._atomic import atomic_output
 from standgrid.errors import CRSError, PointCloudFormatError
+from standgrid.partition.lattice import SCALE, snap_to_storage
 from standgrid.pointcloud import PointCloud
 
-#: Coordinate resolution of every tile (1 mm).
-SCALE = 0.001
+__all__ = ["SCALE", "TileInfo", "read_tile", "snap_to_storage", "write_tile"]
+
 #: Private VLR holding the field manifest.
 VLR_USER_ID = "standgrid"
 VLR_RECORD_ID = 1
@@ -87,28 +88,6 @@ _RANGES: dict[str, tuple[float, float]] = {
     "green": (0, 65535),
     "blue": (0, 65535),
 }
-
-
-def snap_to_storage(
-    xyz: NDArray[np.float64], origin: tuple[float, float] = (0.0, 0.0)
-) -> NDArray[np.float64]:
-    """Snap coordinates to the 1 mm lattice tiles store, counted from a grid ``origin``.
-
-    ``o + round((v - o) * 1000) / 1000`` is correctly rounded, so a value on a cell edge
-    ``o + k * size`` comes out as exactly the float the grid computes for that edge, and a
-    coordinate read back from a tile (which may differ by an ulp) snaps to the same value.
-    Assign cells on snapped coordinates and every point stays in its cell when re-read.
-    """
-    pts = np.asarray(xyz, dtype=np.float64)
-    out = np.empty_like(pts)
-    per_mm = 1.0 / SCALE
-    for axis, o in enumerate((float(origin[0]), float(origin[1]), 0.0)):
-        np.subtract(pts[:, axis], o, out=out[:, axis])
-        out[:, axis] *= per_mm
-        np.round(out[:, axis], out=out[:, axis])
-        out[:, axis] /= per_mm
-        out[:, axis] += o
-    return out
 
 
 @dataclass(frozen=True)
@@ -209,13 +188,15 @@ def write_tile(
     intensity_scale: float = 1.0,
     overwrite: bool = True,
     lattice_origin: tuple[float, float] = (0.0, 0.0),
+    durable: bool = True,
 ) -> TileInfo:
     """Write ``core`` (+ ``buffer`` points flagged withheld) as one LAS 1.4 tile.
 
     ``laz`` defaults to the suffix (``.laz`` compressed). Coordinates are stored at 1 mm with
     a per-tile offset (the tile minimum floored to the metre). ``core`` and ``buffer`` must
     carry the same field names. A single cloud with a bool ``withheld`` field (and no
-    ``buffer``) is split by it. Written atomically; returns a :class:`TileInfo`.
+    ``buffer``) is split by it. Written atomically, and fsynced unless ``durable=False`` (a
+    tile staged in a catalog transaction: the commit fsyncs it); returns a :class:`TileInfo`.
     """
     import laspy
 
@@ -346,7 +327,8 @@ def write_tile(
 
     backend = laspy.LazBackend.LazrsParallel if laz else None
     # A file object: given a path, laspy picks compression from the (temporary) suffix.
-    with atomic_output(out, overwrite=overwrite) as tmp, open(tmp, "wb") as stream:
+    staged = atomic_output(out, overwrite=overwrite, durable=durable)
+    with staged as tmp, open(tmp, "wb") as stream:
         las.write(stream, do_compress=bool(laz), laz_backend=backend)
 
     z = core.xyz[:, 2]

@@ -109,6 +109,8 @@ MAX_COORDINATE_M = 1e9
 
 
 def _check_coordinates(xyz: NDArray[np.float64], path: Path) -> None:
+    if not len(xyz) or (xyz.min() >= -MAX_COORDINATE_M and xyz.max() <= MAX_COORDINATE_M):
+        return  # two passes over the data; NaN fails both comparisons and is found below
     bad = ~np.isfinite(xyz).all(axis=1)
     if bad.any():
         first = int(np.argmax(bad))

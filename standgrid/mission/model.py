@@ -214,6 +214,13 @@ class Mission:
         self._cache.put(key, cloud)
         return cloud
 
+    def file_to_base(self, payload: Payload) -> Matrix4 | None:
+        """T_base_file of the payload's own file: :meth:`load_base` reads the file and applies
+        it (None: the file is in the base frame already, or in a projected CRS)."""
+        if payload.frame != "map":
+            return None
+        return invert_pose(self._source_poses[payload.path])
+
     @property
     def is_projected(self) -> bool:
         """True when the payloads are clouds already in a projected CRS (frame ``utm``)."""

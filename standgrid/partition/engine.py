@@ -26,11 +26,11 @@ from typing import Any, Protocol
 import numpy as np
 from numpy.typing import NDArray
 
+from standgrid.engine.budget import DEFAULT_MEMORY_BUDGET
 from standgrid.errors import ConservationError, GridError, StandgridError
 from standgrid.partition.grid import StandGrid, key_to_index
 from standgrid.pointcloud import PointCloud
 
-DEFAULT_MEMORY_BUDGET = 512 * 2**20
 #: Held points are spilled beyond this fraction of the budget: the rest of the budget is
 #: for the temporaries of a spill (keys, their sort order: ~0.6 x the held bytes).
 _SPILL_AT = 0.6

@@ -25,7 +25,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from standgrid.catalog import paths
-from standgrid.engine import SILENT, MemoryBudget, Progress
+from standgrid.engine import SILENT, Progress
 from standgrid.enrich.options import EnrichOptions
 from standgrid.enrich.stands import CoverageRule, StandSample
 from standgrid.errors import EnrichError, EpochNotFoundError
@@ -56,22 +56,28 @@ def enrich_catalog(
     progress: Progress = SILENT,
     workers: int | None = None,
     scheduler: str | None = None,
+    executor: Executor | None = None,
     lock_timeout: float | None = 30.0,
 ) -> EnrichReport:
     """Enrich every epoch of the catalog (or ``options.epochs``); returns what was done.
 
-    Chunks run in this process, on a local dask cluster of ``workers`` processes, or on the
-    cluster at ``scheduler``; this process alone writes the catalog, under its writer lock
-    (waiting up to ``lock_timeout`` seconds for another writer).
+    Chunks run in this process, on a local dask cluster of ``workers`` processes, on the
+    cluster at ``scheduler``, or on ``executor`` (an open one, which overrides both); this
+    process alone writes the catalog, under its writer lock (waiting up to ``lock_timeout``
+    seconds for another writer).
     """
+    import contextlib
+
     from standgrid.catalog import Catalog
     from standgrid.engine import open_executor
 
     options = options or EnrichOptions()
-    with (
-        Catalog.writing(catalog_path, lock_timeout=lock_timeout) as catalog,
-        open_executor(workers, scheduler, memory_budget=options.memory_budget) as executor,
-    ):
+    with contextlib.ExitStack() as stack:
+        if executor is None:
+            executor = stack.enter_context(
+                open_executor(workers, scheduler, memory_budget=options.memory_budget.bytes)
+            )
+        catalog = stack.enter_context(Catalog.writing(catalog_path, lock_timeout=lock_timeout))
         return _enrich(catalog, options, executor, progress)
 
 
@@ -179,7 +185,7 @@ def _enrich_epoch(
     tiling_buffer = float(txn.state.get("tiling", {}).get("buffer", 0.0))
     halo = max(options.halo, tiling_buffer, 2 * options.coverage_closing_m + 2 * grid.pixel_size)
     # 7/8 of the budget for a chunk's block, 1/8 for the tiles kept for later chunks
-    budget = MemoryBudget(options.memory_budget)
+    budget = options.memory_budget
     side = chunk_side(cells, cell_size, halo, budget.bytes * 7 // 8 // BYTES_PER_POINT)
     chunks = plan_chunks(cells, side=side, origin=origin, buffer=halo)
     size = _cell_size(catalog)

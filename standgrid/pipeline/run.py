@@ -55,25 +55,22 @@ def run_pipeline(
 ) -> RunReport:
     """Tile every mission, enrich every epoch, and compare the first epoch with the last
     (enrichment on a dask cluster with ``workers`` or ``scheduler``)."""
+    from standgrid.engine import open_executor
     from standgrid.pipeline.compare import compare_epochs
 
     missions = expand_missions(paths)
-    tiled = tile_missions(
-        missions,
-        catalog,
-        tile_options or TileOptions(),
-        wrap=progress.track,
-        status=progress.status,
-    )
-    timeout = (tile_options or TileOptions()).lock_timeout
-    enriched = enrich_catalog(
-        catalog,
-        enrich_options or EnrichOptions(),
-        progress=progress,
-        workers=workers,
-        scheduler=scheduler,
-        lock_timeout=timeout,
-    )
+    tile_options = tile_options or TileOptions()
+    enrich_options = enrich_options or EnrichOptions()
+    timeout = tile_options.lock_timeout
+    # one cluster (or this process) for both stages
+    budget = max(tile_options.memory_budget.bytes, enrich_options.memory_budget.bytes)
+    with open_executor(workers, scheduler, memory_budget=budget) as executor:
+        tiled = tile_missions(
+            missions, catalog, tile_options, progress=progress, executor=executor
+        )
+        enriched = enrich_catalog(
+            catalog, enrich_options, progress=progress, executor=executor, lock_timeout=timeout
+        )
     compared = None
     if len(enriched.epochs) >= 2:
         compared = compare_epochs(catalog, progress=progress, lock_timeout=timeout).to_dict()

@@ -1,0 +1,150 @@
+"""Where a tiling run writes: checking the output folder, creating a catalog, its settings."""
+
+from __future__ import annotations
+
+import os
+from collections.abc import Iterable
+from dataclasses import dataclass
+from pathlib import Path
+from typing import TYPE_CHECKING, Any, Literal
+
+from standgrid.catalog.store import CATALOG_FILE
+from standgrid.errors import (
+    CRSError,
+    GridMismatchError,
+    OutputExistsError,
+    OutputNotWritableError,
+    OutputOverlapsInputError,
+)
+
+if TYPE_CHECKING:
+    from standgrid.catalog.store import Catalog, FileLock, Transaction
+    from standgrid.georeference.placement import Placement
+
+
+@dataclass(frozen=True)
+class GridRequest:
+    """The partition a run asks for (``None``/``"auto"``: the catalog's own)."""
+
+    scheme: Literal["grid", "voronoi"] | None = None
+    cell_size: float | None = None
+    levels: tuple[float, ...] = ()
+    origin: tuple[float, float] = (0.0, 0.0)
+    crs: str = "auto"
+
+    def definition(self, crs: str) -> dict[str, Any]:
+        """The catalog.json ``grid`` of this request in the CRS ``crs``."""
+        from standgrid.partition import StandGrid
+
+        if self.scheme == "voronoi":
+            return {"scheme": "voronoi", "crs": crs}  # cells come from the payloads
+        grid = StandGrid(crs, self.cell_size or 20.0, origin=self.origin, levels=self.levels)
+        return grid.to_dict()
+
+
+def absolute_output(catalog_path: str | Path, overwrite: bool) -> Path:
+    """The catalog path made absolute ("." included); replacing the folder the process
+    works in is refused."""
+    path = Path(os.path.abspath(catalog_path))
+    if not path.name:
+        raise OutputNotWritableError("a catalog cannot be the file-system root", path=path)
+    cwd = Path.cwd().resolve()
+    if overwrite and path.is_dir() and any(path.iterdir()):
+        real = path.resolve()
+        if cwd == real or cwd.is_relative_to(real):
+            raise OutputNotWritableError(
+                "is (or holds) the current folder; --overwrite cannot replace it (run from "
+                "another folder)",
+                path=catalog_path,
+            )
+    return path
+
+
+def refuse_overlap(output: Path, inputs: Iterable[str | Path]) -> None:
+    """Refuse an output that is, holds or lies inside an input folder (symlinks resolved)."""
+    out = Path(os.path.realpath(output))
+    for given in inputs:
+        source = Path(os.path.realpath(given))
+        if out == source:
+            how = "is"
+        elif out.is_relative_to(source):
+            how = "lies inside"
+        elif source.is_relative_to(out):
+            how = "holds"
+        else:
+            continue
+        raise OutputOverlapsInputError(
+            f"the output {how} the input {given}; outputs never overlap inputs (choose another -o)",
+            path=output,
+        )
+
+
+def is_catalog(path: Path) -> bool:
+    return (path / CATALOG_FILE).is_file()
+
+
+def refuse_foreign_folder(path: Path, overwrite: bool) -> None:
+    """A folder with other files is not silently turned into (or replaced by) a catalog."""
+    if path.exists() and not path.is_dir():
+        raise OutputExistsError("exists and is not a folder", path=path)
+    if path.is_dir() and any(path.iterdir()) and not overwrite:
+        raise OutputExistsError(
+            "is a folder with files but not a catalog (use overwrite to replace it)", path=path
+        )
+
+
+def check_existing(catalog: Catalog, request: GridRequest) -> None:
+    """Refuse adding missions in another CRS, scheme or grid than the catalog's."""
+    from dataclasses import replace
+
+    from standgrid.georeference import crs_to_text, resolve_crs
+
+    path = catalog.root
+    if request.crs not in ("auto", "", None):
+        wanted = crs_to_text(resolve_crs(request.crs))
+        if wanted != catalog.crs:
+            raise CRSError(
+                f"the catalog is in {catalog.crs}; cannot add missions in {wanted}",
+                path=path / CATALOG_FILE,
+            )
+    if request.scheme is not None and request.scheme != catalog.scheme:
+        raise GridMismatchError(
+            f"the catalog uses the {catalog.scheme} scheme, not {request.scheme}",
+            path=path / CATALOG_FILE,
+        )
+    if catalog.scheme == "grid" and request.cell_size is not None:
+        stored = catalog.grid_definition
+        if not request.levels and float(request.cell_size) == float(stored["cell_size"]):
+            # an unspecified --levels means "the catalog's", not the default levels
+            request = replace(request, levels=tuple(float(v) for v in stored["levels"]))
+        catalog.check_grid(request.definition(catalog.crs))
+
+
+def create_catalog(
+    path: Path, final: Path, lock: FileLock, placements: list[Placement], request: GridRequest
+) -> Catalog:
+    """A new, empty catalog at ``path`` (to be published at ``final``) in the requested (or
+    the missions' UTM, or their clouds' own projected) CRS."""
+    from standgrid.catalog.store import Catalog
+    from standgrid.georeference import crs_to_text, resolve_crs
+
+    first = placements[0]
+    if first.fit is None and request.crs in ("auto", "", None):
+        assert first.source_crs is not None
+        crs = first.source_crs  # projected clouds: their own CRS
+    else:
+        fit = next((p.fit for p in placements if p.fit is not None), None)
+        lat, lon = (fit.lla_ref[0], fit.lla_ref[1]) if fit is not None else (None, None)
+        crs = crs_to_text(resolve_crs(request.crs, lon=lon, lat=lat))
+    scheme = request.scheme or "grid"
+    return Catalog.build(path, request.definition(crs), crs, scheme, final=final, held=lock)
+
+
+def settle_tiling(txn: Transaction, buffer: float | None, laz: bool | None) -> tuple[float, bool]:
+    """Unset buffer/compression settings take the catalog's (the last ones given; 0 m and
+    LAZ for a new catalog), which are updated to what this run uses."""
+    stored = txn.state.setdefault("tiling", {"buffer": 0.0, "laz": True})
+    use_buffer = stored["buffer"] if buffer is None else float(buffer)
+    use_laz = stored["laz"] if laz is None else bool(laz)
+    stored.update(buffer=use_buffer, laz=use_laz)
+    return use_buffer, use_laz

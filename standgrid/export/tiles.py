@@ -1,0 +1,66 @@
+"""One cell's tile as a task: a pure function of plain data, run here or on a dask worker.
+
+The LAS/LAZ encoding (LAZ compression above all) is the expensive, per-cell part of tiling,
+so :func:`write_cell` is what an executor spreads over processes; it writes the tile where
+the task says (a transaction's staging folder) and returns the :class:`TileInfo`.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+from standgrid.export.las import TileInfo, write_tile
+from standgrid.partition.spill import CellExtents, read_cell
+from standgrid.pointcloud import PointCloud
+
+
+@dataclass(frozen=True)
+class CellTile:
+    """What :func:`write_cell` needs: the output file, the points and where they belong."""
+
+    path: Path
+    core: PointCloud
+    buffer: PointCloud | None
+    crs: str
+    #: The cell polygon (shapely); None or empty: the core points' bounding box stands in.
+    polygon: Any
+    lattice_origin: tuple[float, float]
+
+
+def write_cell(task: CellTile) -> TileInfo:
+    """Write one cell's tile; its ``core_bounds`` is the cell polygon (or the points' box)."""
+    import shapely
+
+    info = write_tile(
+        task.path,
+        task.core,
+        crs=task.crs,
+        buffer=task.buffer,
+        core_bounds=task.polygon,
+        lattice_origin=task.lattice_origin,
+        durable=False,  # staged in a transaction: its commit fsyncs every staged file
+    )
+    if task.polygon is None or shapely.is_empty(task.polygon):
+        xmin, ymin, _, xmax, ymax, _ = info.bounds
+        info = TileInfo(**{**info.__dict__, "core_bounds": shapely.box(xmin, ymin, xmax, ymax)})
+    return info
+
+
+@dataclass(frozen=True)
+class RunCellTile:
+    """A cell to read from the partition's run files (a cluster) and write as a tile."""
+
+    path: Path
+    extents: CellExtents
+    crs: str
+    polygon: Any
+    lattice_origin: tuple[float, float]
+
+
+def write_run_cell(task: RunCellTile) -> TileInfo:
+    """Read one cell's points from the runs (:mod:`standgrid.partition.spill`), write its tile."""
+    cell = read_cell(task.extents)
+    tile = CellTile(task.path, cell.core, cell.buffer, task.crs, task.polygon, task.lattice_origin)
+    return write_cell(tile)

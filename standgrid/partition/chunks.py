@@ -1,0 +1,100 @@
+"""Payloads as chunks for the partition engine: read, into the catalog CRS, snapped, stamped.
+
+:func:`payload_chunk` is a pure function of a :class:`PayloadTask` (plain picklable data), so
+an executor may run it in this process or on a dask worker: the result is the same.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
+
+import numpy as np
+from numpy.typing import NDArray
+
+from standgrid.errors import MissionConsistencyError
+from standgrid.partition.lattice import snap_to_storage
+from standgrid.partition.schema import Schema, conform
+from standgrid.pointcloud import PointCloud
+
+if TYPE_CHECKING:
+    from standgrid.georeference.placement import ToCatalog
+
+#: Footprint hulls are taken over at most this many points of a payload (display geometry).
+FOOTPRINT_POINTS = 20_000
+
+
+@dataclass(frozen=True)
+class PayloadTask:
+    """One payload to read and bring into the catalog CRS."""
+
+    path: Path
+    #: ``"base"``/``"map"`` (a node-relative cloud) or ``"utm"`` (already projected).
+    frame: str
+    #: T_base_file for ``"map"``-frame files, else None.
+    file_to_base: NDArray[np.float64] | None
+    #: T_map_base of the payload's node (None for projected clouds).
+    pose: NDArray[np.float64] | None
+    to_catalog: ToCatalog
+    lattice_origin: tuple[float, float]
+    schema: Schema
+    #: Per-point values the tiler sets: GPS time of the payload stamp (kept when the cloud
+    #: has its own), the mission number and the payload id.
+    gps_time: float
+    point_source_id: int
+    payload_id: int
+    #: The footprint when the payload has fewer than 3 points (its pose point).
+    fallback_footprint: Any = None
+
+
+@dataclass(frozen=True)
+class PayloadChunk:
+    """A payload's points in the catalog CRS with the epoch's schema, and its footprint."""
+
+    cloud: PointCloud
+    footprint: Any
+
+
+def payload_chunk(task: PayloadTask) -> PayloadChunk:
+    """Read one payload and bring it into the catalog CRS, snapped to the 1 mm lattice."""
+    from standgrid.mission.clouds import read_cloud
+
+    cloud = read_cloud(task.path)
+    if task.to_catalog.fit is None:  # already in a projected CRS
+        xyz = task.to_catalog.projected_points(cloud.xyz)
+    elif task.frame == "utm":
+        raise MissionConsistencyError(
+            "a UTM-frame cloud cannot be brought to the base frame without a georeference",
+            path=task.path,
+        )
+    else:
+        if task.file_to_base is not None:
+            cloud = cloud.transformed(task.file_to_base)
+        assert task.pose is not None
+        xyz = task.to_catalog.base_points(cloud.xyz, task.pose)
+    xyz = snap_to_storage(xyz, task.lattice_origin)
+    n = len(xyz)
+    fields = dict(cloud.fields)
+    if "gps_time" not in fields:  # per-point times of the source win over the payload stamp
+        fields["gps_time"] = np.full(n, task.gps_time)
+    fields["point_source_id"] = np.full(n, task.point_source_id, dtype=np.uint16)
+    fields["payload_id"] = np.full(n, task.payload_id, dtype=np.uint32)
+    chunk = conform(PointCloud(xyz, fields), task.schema, task.path)
+    return PayloadChunk(chunk, footprint(chunk.xyz, task.fallback_footprint))
+
+
+def footprint(xyz: NDArray[np.float64], fallback: Any) -> Any:
+    """The convex hull of a payload's projected points (a polygon; ``fallback`` if < 3)."""
+    import shapely
+    from scipy.spatial import ConvexHull, QhullError
+
+    stride = max(1, len(xyz) // FOOTPRINT_POINTS)
+    xy = xyz[::stride, :2]
+    if len(xy) < 3:
+        return fallback
+    try:
+        hull = ConvexHull(xy)
+    except QhullError:  # collinear points
+        return shapely.MultiPoint(xy[:: max(1, len(xy) // 1000)]).convex_hull
+    return shapely.Polygon(xy[hull.vertices])

@@ -1,0 +1,73 @@
+"""One field schema per epoch: every chunk fed to the partition engine is brought to it."""
+
+from __future__ import annotations
+
+from collections.abc import Iterable
+from pathlib import Path
+
+import numpy as np
+
+from standgrid.errors import CatalogError
+from standgrid.pointcloud import PointCloud
+
+#: Fields the tiler sets on every point.
+TILER_FIELDS: dict[str, np.dtype] = {
+    "gps_time": np.dtype(np.float64),
+    "point_source_id": np.dtype(np.uint16),
+    "payload_id": np.dtype(np.uint32),
+}
+#: The buffer flag: set by the partition engine, never part of a schema.
+WITHHELD = "withheld"
+
+Schema = dict[str, np.dtype]
+
+
+def epoch_schema(samples: Iterable[PointCloud], where: Path) -> Schema:
+    """The field set and dtypes of an epoch's chunks: the union over ``samples`` (promoted),
+    plus :data:`TILER_FIELDS`. ``(N, k)`` fields keep their ``k`` (a sub-array dtype)."""
+    schema: Schema = {}
+    for cloud in samples:
+        for name, values in cloud.fields.items():
+            if name == WITHHELD:
+                continue
+            dtype = np.dtype((values.dtype, values.shape[1:])) if values.ndim > 1 else values.dtype
+            if name in schema and schema[name].shape != dtype.shape:
+                raise CatalogError(
+                    f"field {name!r} has shape {dtype.shape} here and {schema[name].shape} "
+                    "in another payload of the epoch",
+                    path=where,
+                )
+            if name in schema:
+                base = np.result_type(schema[name].base, dtype.base)
+                dtype = np.dtype((base, dtype.shape)) if dtype.shape else base
+            schema[name] = dtype
+    for name, dtype in TILER_FIELDS.items():
+        schema[name] = dtype
+    return schema
+
+
+def conform(cloud: PointCloud, schema: Schema, source: Path) -> PointCloud:
+    """Bring a chunk to the epoch's schema: cast, fill absent fields (NaN or 0)."""
+    unknown = sorted(set(cloud.fields) - set(schema) - {WITHHELD})
+    if unknown:
+        raise CatalogError(
+            f"fields {unknown} appear here but not in the epoch's first payload; "
+            "every payload of a mission must carry the same fields",
+            path=source,
+        )
+    n = len(cloud)
+    fields = {}
+    for name, dtype in schema.items():
+        values = cloud.fields.get(name)
+        base, shape = dtype.base, dtype.shape
+        if values is None:
+            fill = np.nan if np.issubdtype(base, np.floating) else 0
+            fields[name] = np.full((n, *shape), fill, dtype=base)
+        elif values.shape[1:] != shape:
+            raise CatalogError(
+                f"field {name!r} has shape {values.shape[1:]}, the epoch's is {shape}",
+                path=source,
+            )
+        else:
+            fields[name] = values.astype(base, copy=False)
+    return PointCloud(cloud.xyz, fields)

@@ -103,55 +103,52 @@ def write_layers(
     metric_tables: dict[str, pd.DataFrame],
     tree_tables: dict[str, pd.DataFrame],
 ) -> None:
-    """GeoPackage layers ``stand_metrics`` and ``trees`` with default QGIS styles."""
-    import shutil
-
+    """GeoPackage layers ``stand_metrics`` and ``trees`` (the enriched epochs' rows replaced)
+    with default QGIS styles over the whole layer's range."""
     import geopandas as gpd
     import pandas as pd
 
-    from standgrid.export.gpkg import IndexWriter, index_layer_names, read_index_layer
+    from standgrid.catalog.index import CatalogIndex
     from standgrid.export.styles import stand_metric_style
 
-    index = catalog.path(paths.INDEX)
-    staged = txn.stage(paths.INDEX)
-    if not staged.exists():
-        shutil.copyfile(index, staged)
-    present = index_layer_names(staged)
-    cells = read_index_layer(staged, "cells")[["cell_id", "epoch", "geometry"]]
-    cells["epoch"] = cells["epoch"].astype(str)
-    old_metrics = read_index_layer(staged, "stand_metrics") if "stand_metrics" in present else None
-    old_trees = read_index_layer(staged, "trees") if "trees" in present else None
-
+    index = CatalogIndex(catalog, txn)
+    epochs = set(metric_tables) | set(tree_tables)
+    cells = index.read("cells")[["cell_id", "epoch", "geometry"]]
     new_metrics = pd.concat(metric_tables.values(), ignore_index=True)
     stands = gpd.GeoDataFrame(
         new_metrics,
         geometry=stand_polygons(catalog, new_metrics["cell_id"], cells),
         crs=catalog.crs,
     )
-    if old_metrics is not None:
-        keep = old_metrics[~old_metrics["epoch"].astype(str).isin(metric_tables)]
-        stands = gpd.GeoDataFrame(pd.concat([keep, stands], ignore_index=True), geometry="geometry")
+    column = "zq95" if "zq95" in stands.columns else "zmax"
+    lo, hi = _range(_kept_and_new(index, "stand_metrics", epochs, stands, column))
+    index.replace(
+        "stand_metrics", stands, epochs=epochs, style=stand_metric_style("zq95", lo, hi)
+    )
     tree_rows = [t for t in tree_tables.values() if len(t)]
-    trees = None
-    if tree_rows:
-        table = pd.concat(tree_rows, ignore_index=True)
+    if tree_rows or "trees" in index.layers():
+        table = pd.concat(tree_rows, ignore_index=True) if tree_rows else None
         trees = gpd.GeoDataFrame(
-            table.drop(columns=["crown"]), geometry=list(table["crown"]), crs=catalog.crs
+            table.drop(columns=["crown"]) if table is not None else pd.DataFrame(),
+            geometry=list(table["crown"]) if table is not None else [],
+            crs=catalog.crs,
         )
-        trees["tree_id"] = trees["tree_id"].astype(np.int64)
-    if old_trees is not None:
-        keep = old_trees[~old_trees["epoch"].astype(str).isin(tree_tables)]
-        trees = gpd.GeoDataFrame(
-            pd.concat([keep, trees] if trees is not None else [keep], ignore_index=True),
-            geometry="geometry",
-        )
-    with IndexWriter(staged, catalog.crs) as writer:
-        height = stands["zq95"] if "zq95" in stands.columns else stands.get("zmax")
-        lo, hi = _range(height)
-        writer.write_layer("stand_metrics", stands, style=stand_metric_style("zq95", lo, hi))
-        if trees is not None and len(trees):
-            lo, hi = _range(trees["height_m"])
-            writer.write_layer("trees", trees, style=stand_metric_style("height_m", lo, hi))
+        if len(trees):
+            trees["tree_id"] = trees["tree_id"].astype(np.int64)
+        lo, hi = _range(_kept_and_new(index, "trees", epochs, trees, "height_m"))
+        index.replace("trees", trees, epochs=epochs, style=stand_metric_style("height_m", lo, hi))
+    index.save()
+
+
+def _kept_and_new(index: Any, layer: str, epochs: set[str], new: Any, column: str) -> Any:
+    """The values of ``column`` the layer will hold: rows of other epochs, and ``new``."""
+    import pandas as pd
+
+    old = index.read(layer)
+    parts = [new[column]] if column in new.columns else []
+    if len(old) and column in old.columns:
+        parts.append(old.loc[~old["epoch"].astype(str).isin(epochs), column])
+    return pd.concat(parts, ignore_index=True) if parts else None
 
 
 def stand_polygons(catalog: Catalog, ids: Iterable[str], cells: Any) -> list[Any]:

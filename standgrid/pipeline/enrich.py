@@ -17,7 +17,6 @@ metrics (all in one catalog transaction; the previous state stays intact on any 
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -36,6 +35,7 @@ if TYPE_CHECKING:
     from standgrid.catalog import Catalog, Transaction
     from standgrid.catalog.chunks import ChunkCell
     from standgrid.engine import Executor
+    from standgrid.partition.protocol import Partition
 
 __all__ = ["EnrichOptions", "EnrichReport", "enrich_catalog"]
 
@@ -118,12 +118,11 @@ def _enrich(
                 f"comparisons {', '.join(lost)} removed (their inputs change): compare again"
             )
         models = height_diameter_models(catalog, {e: r.trees for e, r in results.items()})
-        stand_size = _stand_size(catalog)
         for epoch, result in results.items():
             trees = impute_dbh(result.trees, models[epoch])
             rows = stand_rows(
                 result.samples, result.stand_of, trees, rule,
-                height_break=options.height_break, stand_size=stand_size,
+                height_break=options.height_break, stand_size=result.stand_size,
             )  # fmt: skip
             metric_tables[epoch] = metrics_table(rows, epoch)
             tree_tables[epoch] = trees
@@ -147,6 +146,8 @@ class _EpochResult:
 
     samples: list[StandSample]
     stand_of: dict[str, str | None]
+    #: side of the coarser stands (1 ha: 100 m) the cells aggregate into; None without
+    stand_size: float | None
     trees: pd.DataFrame
     summary: dict[str, Any]
 
@@ -162,16 +163,18 @@ def _enrich_epoch(
     import shapely
 
     from standgrid.catalog.chunks import BYTES_PER_POINT, chunk_side, plan_chunks
+    from standgrid.catalog.partition import catalog_partition
     from standgrid.enrich.block import BlockContext
     from standgrid.enrich.coverage import Coverage, cells_mask
     from standgrid.enrich.engine import BlockJob, EpochRasters, apply_blocks
     from standgrid.enrich.outputs import tree_table, write_coverage, write_raster
     from standgrid.enrich.rasters import RasterGrid
 
-    cells = _epoch_cells(catalog, epoch)
+    partition = catalog_partition(catalog, epoch, coverage=False)
+    cells = _epoch_cells(catalog, epoch, partition)
     if not cells:
         raise EnrichError(f"epoch {epoch} has no tiles", path=catalog.root)
-    origin, cell_size = _grid_alignment(catalog)
+    origin, cell_size = partition.raster_alignment()
     polygons = [c.polygon for c in cells]
     grid = RasterGrid.covering(
         tuple(shapely.bounds(shapely.union_all(polygons))),
@@ -188,8 +191,8 @@ def _enrich_epoch(
     budget = options.memory_budget
     side = chunk_side(cells, cell_size, halo, budget.bytes * 7 // 8 // BYTES_PER_POINT)
     chunks = plan_chunks(cells, side=side, origin=origin, buffer=halo)
-    size = _cell_size(catalog)
-    context = BlockContext(grid, options, half_open=catalog.scheme == "grid", cell_size=size)
+    size = partition.cell_size(cells[0].cell_id)
+    context = BlockContext(grid, options, half_open=partition.half_open, cell_size=size)
     jobs = [
         BlockJob(
             chunk,
@@ -245,49 +248,14 @@ def _enrich_epoch(
         "observed_fraction": observed_m2 / float(sum(p.area for p in polygons)),
     }
     stand_of = {c.cell_id: c.stand_id for c in cells}
-    return _EpochResult(samples, stand_of, trees, summary)
+    stands = sorted({s for s in stand_of.values() if s is not None})
+    stand_size = partition.cell_size(stands[0]) if stands else None
+    return _EpochResult(samples, stand_of, stand_size, trees, summary)
 
 
-def _epoch_cells(catalog: Catalog, epoch: str) -> list[ChunkCell]:
+def _epoch_cells(catalog: Catalog, epoch: str, partition: Partition) -> list[ChunkCell]:
     from standgrid.catalog.chunks import cells_of
-    from standgrid.export.gpkg import read_index_layer
+    from standgrid.catalog.index import CatalogIndex
 
-    grid = _stand_grid(catalog)
-    cells = read_index_layer(catalog.path(paths.INDEX), "cells")
-    cells = cells[cells["epoch"].astype(str) == epoch].sort_values("cell_id")
-    return cells_of(cells, None if grid is None else lambda cell_id: _stand_of(grid, cell_id))
-
-
-def _stand_grid(catalog: Catalog) -> Any:
-    """The catalog's StandGrid when it has a coarser (stand) level, else None."""
-    from standgrid.partition import StandGrid
-
-    if catalog.scheme != "grid":
-        return None
-    grid = StandGrid.from_dict(catalog.grid_definition)
-    return grid if len(grid.levels) > 1 else None
-
-
-def _stand_of(grid: Any, cell_id: str) -> str:
-    from standgrid.partition import CellId
-
-    return str(CellId.parse(cell_id).parent(grid))
-
-
-def _stand_size(catalog: Catalog) -> float | None:
-    grid = _stand_grid(catalog)
-    return None if grid is None else float(grid.levels[1])
-
-
-def _grid_alignment(catalog: Catalog) -> tuple[tuple[float, float], float]:
-    """Origin and cell size the rasters align to (the stand grid's; 10 m for Voronoi)."""
-    definition = catalog.grid_definition
-    if catalog.scheme == "grid":
-        x0, y0 = definition["origin"]
-        return (float(x0), float(y0)), float(definition["cell_size"])
-    return (0.0, 0.0), 10.0
-
-
-def _cell_size(catalog: Catalog) -> float:
-    return float(catalog.grid_definition["cell_size"]) if catalog.scheme == "grid" else math.nan
-
+    cells = CatalogIndex(catalog).read("cells", epoch).sort_values("cell_id")
+    return cells_of(cells, partition.stand_of)

@@ -1,0 +1,164 @@
+"""The web viewer in a real browser: headless Chromium (Debian's ``chromium``) driven by
+Playwright against a real ``standgrid serve`` on the bundled enriched pair. Skipped when
+chromium or the python ``playwright`` package is missing. Screenshots go to
+``$STANDGRID_SCREENSHOTS`` (default ``/work/notes``) when that folder exists."""
+
+from __future__ import annotations
+
+import os
+import shutil
+import time
+from collections.abc import Iterator
+from pathlib import Path
+from typing import Any
+
+import laspy
+import numpy as np
+import pyogrio
+import pytest
+
+from tests.pipeline_fixtures import enriched_pair
+
+CHROMIUM = shutil.which("chromium") or "/usr/bin/chromium"
+ARGS = ["--headless", "--no-sandbox", "--disable-gpu", "--disable-background-networking",
+        "--disable-component-update", "--disable-sync", "--no-first-run",
+        # WebGL (the CHM layer, the 3-D view) on the CPU: SwiftShader, as --disable-gpu asks
+        "--use-angle=swiftshader", "--enable-unsafe-swiftshader"]  # fmt: skip
+SHOTS = Path(os.environ.get("STANDGRID_SCREENSHOTS", "/work/notes"))
+
+
+@pytest.fixture(scope="module")
+def catalog(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    return enriched_pair(tmp_path_factory).path
+
+
+@pytest.fixture(scope="module")
+def base(catalog: Path) -> Iterator[str]:
+    from standgrid.serve import create_app
+    from standgrid.serve.server import running
+
+    with running(create_app(catalog)) as server:
+        assert server.base_url is not None
+        yield server.base_url
+
+
+@pytest.fixture(scope="module")
+def browser() -> Iterator[Any]:
+    playwright_api = pytest.importorskip("playwright.sync_api")
+    if not Path(CHROMIUM).is_file():
+        pytest.skip(f"no chromium at {CHROMIUM}")
+    with playwright_api.sync_playwright() as p:
+        browser = p.chromium.launch(executable_path=CHROMIUM, args=ARGS, headless=True)
+        yield browser
+        browser.close()
+
+
+class Page:
+    """A page of the viewer with every console error and failed request recorded."""
+
+    def __init__(self, browser: Any, base: str) -> None:
+        self.page = browser.new_page(viewport={"width": 1500, "height": 900})
+        self.errors: list[str] = []
+        self.failed: list[str] = []
+        self.page.on("console", lambda m: m.type == "error" and self.errors.append(m.text))
+        self.page.on("pageerror", lambda e: self.errors.append(str(e)))
+        self.page.on("requestfailed", lambda r: self.failed.append(f"{r.url} {r.failure}"))
+        self.page.on("response", lambda r: r.status >= 400 and self.failed.append(
+            f"{r.url} HTTP {r.status}"))  # fmt: skip
+        self.base = base
+
+    def open(self) -> float:
+        t0 = time.perf_counter()
+        self.page.goto(f"{self.base}/")
+        self.page.wait_for_selector("body[data-ready=true]", timeout=30_000)
+        return time.perf_counter() - t0
+
+    def js(self, expression: str, arg: Any = None) -> Any:
+        return self.page.evaluate(expression, arg)
+
+    def idle(self) -> None:
+        self.js("() => window.standgrid.idle()")
+
+    def map_png(self) -> bytes:
+        png: bytes = self.page.locator("#map").screenshot()
+        return png
+
+    def shot(self, name: str) -> None:
+        if SHOTS.is_dir():
+            self.page.screenshot(path=str(SHOTS / f"web-{name}.png"))
+
+
+def _cells(catalog: Path) -> Any:
+    return pyogrio.read_dataframe(catalog / "index.gpkg", layer="cells")
+
+
+def test_viewer_map_epochs_metrics_and_cell_view(browser: Any, base: str, catalog: Path) -> None:
+    metrics = pyogrio.read_dataframe(catalog / "index.gpkg", layer="stand_metrics")
+    cells = _cells(catalog)
+    view = Page(browser, base)
+    wall = view.open()
+    first_map_ms = view.js("() => window.standgrid.firstMapMs")
+    print(f"\nfirst map: {first_map_ms:.0f} ms in the page ({wall:.2f} s wall, from goto)")
+
+    # The map shows the catalog's 20 m cells of the first epoch: every one loaded and drawn.
+    epochs = sorted(metrics["epoch"].unique())
+    level0 = metrics[metrics["level"] == 0]
+    per_epoch = level0.groupby("epoch").size()
+    for epoch in epochs:
+        assert view.js("e => window.standgrid.loadedCells(e)", epoch) == per_epoch[epoch]
+    assert view.js("() => window.standgrid.state.epoch") == epochs[0]
+    assert view.js("() => window.standgrid.drawnCells()") == per_epoch[epochs[0]]
+    view.shot("map-2024")
+
+    # Another metric: other class colours and another picture.
+    before = view.map_png()
+    cell = level0[level0["epoch"] == epochs[0]].sort_values("zq95").iloc[-1]["cell_id"]
+    fill_q95 = view.js("c => window.standgrid.cellFill(c)", cell)
+    view.page.select_option("#metric", "stems_ha")
+    view.idle()
+    assert view.js("() => window.standgrid.state.metric") == "stems_ha"
+    assert "stems per ha" in view.page.inner_text("#legend")
+    after_metric = view.map_png()
+    assert after_metric != before
+    view.shot("map-stems")
+
+    # Another epoch: the other epoch's cells drawn, with other colours where values differ.
+    view.page.select_option("#metric", "zq95")
+    view.idle()
+    assert view.js("c => window.standgrid.cellFill(c)", cell) == fill_q95
+    view.page.select_option("#epoch", epochs[1])
+    view.idle()
+    assert view.js("() => window.standgrid.drawnCells()") == per_epoch[epochs[1]]
+    assert view.map_png() != before
+    view.shot(f"map-{epochs[1]}")
+    view.page.select_option("#epoch", epochs[0])
+    view.idle()
+
+    # A click on a cell opens its 3-D view with that cell's point count.
+    cell_row = cells[(cells["epoch"] == epochs[0])].sort_values("point_count").iloc[-1]
+    x, y = view.js("c => window.standgrid.pixelOf(c)", cell_row["cell_id"])
+    box = view.page.locator("#map").bounding_box()
+    t0 = time.perf_counter()
+    view.page.mouse.click(box["x"] + x, box["y"] + y)
+    view.page.wait_for_function(
+        "c => window.standgrid.state.cellView && window.standgrid.state.cellView.cellId === c",
+        arg=cell_row["cell_id"], timeout=20_000)  # fmt: skip
+    wall_3d = time.perf_counter() - t0
+    shown = int(view.page.get_attribute("#panel-count", "data-count") or -1)
+    las = laspy.read(catalog / cell_row["tile_path"])
+    core = int((~np.asarray(las.withheld, dtype=bool)).sum())
+    assert shown == core == int(cell_row["point_count"])
+    assert f"{core:,} points in the cell" in view.page.inner_text("#panel-count")
+    assert cell_row["cell_id"] in view.page.inner_text("#panel-title")
+    ms_3d = view.js("() => window.standgrid.state.cellView.ms")
+    print(f"3-D view of {cell_row['cell_id']} ({core} points): {ms_3d:.0f} ms in the page "
+          f"({wall_3d:.2f} s wall, click to drawn)")
+    # The 3-D canvas is drawn (not one flat colour).
+    canvas = view.page.locator("#view3d canvas").screenshot()
+    assert len(set(canvas[100:])) > 50
+    view.shot("cell-3d")
+    view.page.select_option("#colour-by", "tree")
+    view.shot("cell-3d-trees")
+
+    assert view.errors == []
+    assert view.failed == []

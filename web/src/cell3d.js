@@ -1,0 +1,151 @@
+// The side panel of a clicked cell: its attributes and its points in 3-D (three.js), read
+// from /viewer/points/{epoch}/{cell} (standgrid/serve/viewer.py: encode_points).
+import * as THREE from 'three';
+import { OrbitControls } from 'three/addons/controls/OrbitControls.js';
+import { VIRIDIS, formatValue, metricLabel } from './scales.js';
+
+const $ = (id) => document.getElementById(id);
+const SHOWN = ['observed_fraction', 'n_points', 'zmax', 'zq95', 'zmean', 'pzabove2', 'n_trees',
+  'stems_ha', 'basal_area_m2_ha', 'qmd_cm', 'mean_height_m', 'dominant_height_m', 'null_reason'];
+const CLASS_COLOURS = { 2: '#a0522d', 1: '#4f9d4f' };
+
+// The binary answer: uint32 header length, JSON header, then the arrays it names.
+export function decodePoints(buffer) {
+  const headerLength = new DataView(buffer).getUint32(0, true);
+  const header = JSON.parse(new TextDecoder().decode(new Uint8Array(buffer, 4, headerLength)));
+  const n = header.count;
+  const sizes = { '<f4': 4, '<u4': 4, u1: 1 };
+  const views = { '<f4': Float32Array, '<u4': Uint32Array, u1: Uint8Array };
+  let offset = 4 + headerLength;
+  const arrays = {};
+  for (const [name, dtype] of header.arrays) {
+    const width = name === 'xyz' ? 3 : 1;
+    // Copy: a typed array needs an offset aligned to its element size.
+    arrays[name] = new views[dtype](buffer.slice(offset, offset + n * width * sizes[dtype]));
+    offset += n * width * sizes[dtype];
+  }
+  if (offset !== buffer.byteLength) throw new Error(`points: ${buffer.byteLength} bytes, expected ${offset}`);
+  return { header, ...arrays };
+}
+
+function ramp(t) {
+  const x = Math.min(1, Math.max(0, t)) * (VIRIDIS.length - 1);
+  const k = Math.min(VIRIDIS.length - 2, Math.floor(x));
+  const a = new THREE.Color(VIRIDIS[k]);
+  return a.lerp(new THREE.Color(VIRIDIS[k + 1]), x - k);
+}
+
+function colours(points, by) {
+  const n = points.header.count;
+  const out = new Float32Array(n * 3);
+  const height = points.height_above_ground;
+  let top = 0;
+  for (let i = 0; i < n; i += 1) if (height[i] > top) top = height[i];
+  const colour = new THREE.Color();
+  for (let i = 0; i < n; i += 1) {
+    if (by === 'classification') colour.set(CLASS_COLOURS[points.classification[i]] || '#9aa3ad');
+    else if (by === 'tree') {
+      const key = points.tree_key[i];
+      if (key === 0) colour.set('#6b6b6b');
+      else colour.setHSL(((key * 2654435761) >>> 0) / 4294967296, 0.75, 0.55);
+    } else if (Number.isNaN(height[i])) colour.set('#9aa3ad');
+    else colour.copy(ramp(top > 0 ? height[i] / top : 0));
+    out.set([colour.r, colour.g, colour.b], i * 3);
+  }
+  return { out, top };
+}
+
+function colourLegend(by, top) {
+  if (by === 'height') {
+    const stops = VIRIDIS.map((c, k) => `${c} ${(100 * k) / (VIRIDIS.length - 1)}%`).join(',');
+    return `<div style="height:10px;background:linear-gradient(to right,${stops})"></div>`
+      + `<div style="display:flex;justify-content:space-between;font-size:12px"><span>0 m</span>`
+      + `<span>${(top / 2).toFixed(1)} m</span><span>${top.toFixed(1)} m</span></div>`;
+  }
+  if (by === 'classification') {
+    return '<span class="swatch" style="background:#a0522d"></span> ground (2) '
+      + '<span class="swatch" style="background:#4f9d4f"></span> other (1)';
+  }
+  return 'one colour per tree; grey: no tree';
+}
+
+function attributeRows(attributes, tile) {
+  const rows = [];
+  if (tile) rows.push(['tile points (cells layer)', tile.point_count]);
+  if (attributes) {
+    for (const key of SHOWN) {
+      if (key in attributes && attributes[key] !== null && attributes[key] !== '') {
+        const value = attributes[key];
+        rows.push([metricLabel(key), typeof value === 'number' ? formatValue(value, key) : value]);
+      }
+    }
+  }
+  return rows.map(([k, v]) => `<tr><td>${k}</td><td>${v}</td></tr>`).join('');
+}
+
+// Opens the panel for one cell; resolves when its points are drawn.
+export async function openCellView({ cellId, epoch, attributes, tile }) {
+  const t0 = performance.now();
+  const panel = $('panel');
+  panel.hidden = false;
+  $('panel-title').textContent = `${cellId} · ${epoch}`;
+  $('panel-count').textContent = 'loading points…';
+  $('panel-attributes').innerHTML = attributeRows(attributes, tile);
+  window.dispatchEvent(new Event('resize'));
+
+  const response = await fetch(`/viewer/points/${encodeURIComponent(epoch)}/${encodeURIComponent(cellId)}`);
+  if (!response.ok) throw new Error(`points of ${cellId}: HTTP ${response.status}`);
+  const points = decodePoints(await response.arrayBuffer());
+  const n = points.header.count;
+
+  const container = $('view3d');
+  container.replaceChildren();
+  const renderer = new THREE.WebGLRenderer({ antialias: true, preserveDrawingBuffer: true });
+  renderer.setPixelRatio(1);
+  renderer.setSize(container.clientWidth, container.clientHeight);
+  container.append(renderer.domElement);
+  const scene = new THREE.Scene();
+  scene.background = new THREE.Color('#1b1f1b');
+  const geometry = new THREE.BufferGeometry();
+  geometry.setAttribute('position', new THREE.BufferAttribute(points.xyz, 3));
+  const by = $('colour-by').value;
+  const { out, top } = colours(points, by);
+  geometry.setAttribute('color', new THREE.BufferAttribute(out, 3));
+  geometry.computeBoundingBox();
+  const box = geometry.boundingBox;
+  const centre = box.getCenter(new THREE.Vector3());
+  const size = box.getSize(new THREE.Vector3());
+  const material = new THREE.PointsMaterial({ size: 2, sizeAttenuation: false, vertexColors: true });
+  scene.add(new THREE.Points(geometry, material));
+
+  // z up, looking from the south-east and above.
+  const camera = new THREE.PerspectiveCamera(45, container.clientWidth / container.clientHeight, 0.1, 5000);
+  camera.up.set(0, 0, 1);
+  const reach = Math.max(size.x, size.y, size.z, 1) * 1.5;
+  camera.position.set(centre.x + reach * 0.7, centre.y - reach * 0.9, centre.z + reach * 0.6);
+  const controls = new OrbitControls(camera, renderer.domElement);
+  controls.target.copy(centre);
+  controls.update();
+  const render = () => renderer.render(scene, camera);
+  controls.addEventListener('change', render);
+  render();
+
+  const buffer = points.header.meta.buffer_points;
+  $('panel-count').textContent = `${n.toLocaleString('en')} points in the cell`
+    + (buffer ? ` (+ ${buffer.toLocaleString('en')} buffer points in the tile, not shown)` : '');
+  $('panel-count').dataset.count = String(n);
+  $('colour-legend').innerHTML = colourLegend(by, top);
+  const recolour = () => {
+    const next = colours(points, $('colour-by').value);
+    geometry.getAttribute('color').copyArray(next.out);
+    geometry.getAttribute('color').needsUpdate = true;
+    $('colour-legend').innerHTML = colourLegend($('colour-by').value, next.top);
+    render();
+  };
+  $('colour-by').onchange = recolour;
+  const ms = performance.now() - t0;
+  return {
+    cellId, epoch, count: n, ms,
+    dispose() { controls.dispose(); geometry.dispose(); material.dispose(); renderer.dispose(); },
+  };
+}

@@ -43,7 +43,7 @@ def test_bundle_was_built_from_the_sources_in_web() -> None:
     assert {"index.html", "package.json", "package-lock.json", "vite.config.js"} <= set(sources)
     changed = sorted(n for n in sources.keys() | manifest["sources"].keys()
                      if sources.get(n) != manifest["sources"].get(n))  # fmt: skip
-    assert changed == [], f"web/ changed since the bundle was built: run `npm run build` ({changed})"
+    assert changed == [], f"web/ changed since the bundle was built; npm run build: {changed}"
 
 
 def test_bundle_files_are_the_build_outputs() -> None:

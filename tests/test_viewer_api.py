@@ -4,7 +4,6 @@ its start-up configuration, and a cell's points checked against the tile read wi
 from __future__ import annotations
 
 import json
-from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
@@ -15,22 +14,7 @@ import pyogrio
 import pytest
 import rasterio
 
-from tests.pipeline_fixtures import CRS, enriched_pair
-
-
-@pytest.fixture(scope="module")
-def catalog(tmp_path_factory: pytest.TempPathFactory) -> Path:
-    return enriched_pair(tmp_path_factory).path
-
-
-@pytest.fixture(scope="module")
-def base(catalog: Path) -> Iterator[str]:
-    from standgrid.serve import create_app
-    from standgrid.serve.server import running
-
-    with running(create_app(catalog)) as server:
-        assert server.base_url is not None
-        yield server.base_url
+from tests.pipeline_fixtures import CRS
 
 
 def _decode(body: bytes) -> tuple[dict[str, Any], dict[str, np.ndarray]]:
@@ -47,42 +31,46 @@ def _decode(body: bytes) -> tuple[dict[str, Any], dict[str, np.ndarray]]:
     return header, arrays
 
 
-def test_root_is_the_viewer_for_browsers_and_json_for_clients(base: str) -> None:
-    page = httpx.get(f"{base}/", headers={"Accept": "text/html,application/xhtml+xml"})
+def test_root_is_the_viewer_for_browsers_and_json_for_clients(enriched_base: str) -> None:
+    page = httpx.get(f"{enriched_base}/", headers={"Accept": "text/html,application/xhtml+xml"})
     assert page.status_code == 200
     assert page.headers["content-type"].startswith("text/html")
     script = next(s for s in page.text.split('"') if s.startswith("/viewer/assets/")
                   and s.endswith(".js"))  # fmt: skip
-    asset = httpx.get(f"{base}{script}")
+    asset = httpx.get(f"{enriched_base}{script}")
     assert asset.status_code == 200
     assert "javascript" in asset.headers["content-type"]
-    service = httpx.get(f"{base}/").json()
+    service = httpx.get(f"{enriched_base}/").json()
     assert {link["rel"] for link in service["links"]} >= {"ogc", "files", "viewer"}
 
 
-def test_config_names_the_crs_epochs_and_chm_ranges(base: str, catalog: Path) -> None:
-    config = httpx.get(f"{base}/viewer/config.json").json()
+def test_config_names_the_crs_epochs_and_chm_ranges(
+    enriched_base: str, enriched_catalog: Path
+) -> None:
+    config = httpx.get(f"{enriched_base}/viewer/config.json").json()
     assert config["crs"]["code"] == CRS
     assert config["crs"]["uri"] == "http://www.opengis.net/def/crs/EPSG/0/32630"
-    stored = json.loads((catalog / "catalog.json").read_text())["epochs"]
+    stored = json.loads((enriched_catalog / "catalog.json").read_text())["epochs"]
     assert [e["label"] for e in config["epochs"]] == list(stored)
     for epoch in config["epochs"]:
         assert epoch["date"] == stored[epoch["label"]]["date"]
         assert epoch["chm"] == f"files/rasters/{epoch['label']}/chm.tif"
-        assert httpx.head(f"{base}/{epoch['chm']}").status_code == 200
-        with rasterio.open(catalog / epoch["chm"].removeprefix("files/")) as src:
+        assert httpx.head(f"{enriched_base}/{epoch['chm']}").status_code == 200
+        with rasterio.open(enriched_catalog / epoch["chm"].removeprefix("files/")) as src:
             valid = src.read(1, masked=True).compressed()
         assert epoch["chm_max"] == pytest.approx(np.percentile(valid, 98.0), abs=1e-4)
     assert {"cells", "stand_metrics", "trees"} <= set(config["layers"])
 
 
-def test_cell_points_are_the_tiles_core_points(base: str, catalog: Path) -> None:
-    cells = pyogrio.read_dataframe(catalog / "index.gpkg", layer="cells")
+def test_cell_points_are_the_tiles_core_points(
+    enriched_base: str, enriched_catalog: Path
+) -> None:
+    cells = pyogrio.read_dataframe(enriched_catalog / "index.gpkg", layer="cells")
     row = cells.sort_values("point_count").iloc[-1]
-    answer = httpx.get(f"{base}/viewer/points/{row['epoch']}/{row['cell_id']}")
+    answer = httpx.get(f"{enriched_base}/viewer/points/{row['epoch']}/{row['cell_id']}")
     assert answer.status_code == 200
     header, arrays = _decode(answer.content)
-    las = laspy.read(catalog / row["tile_path"])
+    las = laspy.read(enriched_catalog / row["tile_path"])
     core = ~np.asarray(las.withheld, dtype=bool)
     assert header["count"] == int(core.sum()) == int(row["point_count"])
     assert header["meta"]["tile_points"] == las.header.point_count
@@ -101,8 +89,8 @@ def test_cell_points_are_the_tiles_core_points(base: str, catalog: Path) -> None
 
 @pytest.mark.parametrize("path", ["/viewer/points/1999/20m_E1_N1",
                                   "/viewer/points/2024/20m_E1_N1"])  # fmt: skip
-def test_unknown_cell_or_epoch_is_a_404_problem(base: str, path: str) -> None:
-    answer = httpx.get(f"{base}{path}")
+def test_unknown_cell_or_epoch_is_a_404_problem(enriched_base: str, path: str) -> None:
+    answer = httpx.get(f"{enriched_base}{path}")
     assert answer.status_code == 404
     assert answer.headers["content-type"] == "application/problem+json"
     assert "20m_E1_N1" in answer.json()["detail"] or "1999" in answer.json()["detail"]

@@ -17,29 +17,12 @@ import numpy as np
 import pyogrio
 import pytest
 
-from tests.pipeline_fixtures import enriched_pair
-
 CHROMIUM = shutil.which("chromium") or "/usr/bin/chromium"
 ARGS = ["--headless", "--no-sandbox", "--disable-gpu", "--disable-background-networking",
         "--disable-component-update", "--disable-sync", "--no-first-run",
         # WebGL (the CHM layer, the 3-D view) on the CPU: SwiftShader, as --disable-gpu asks
         "--use-angle=swiftshader", "--enable-unsafe-swiftshader"]  # fmt: skip
 SHOTS = Path(os.environ.get("STANDGRID_SCREENSHOTS", "/work/notes"))
-
-
-@pytest.fixture(scope="module")
-def catalog(tmp_path_factory: pytest.TempPathFactory) -> Path:
-    return enriched_pair(tmp_path_factory).path
-
-
-@pytest.fixture(scope="module")
-def base(catalog: Path) -> Iterator[str]:
-    from standgrid.serve import create_app
-    from standgrid.serve.server import running
-
-    with running(create_app(catalog)) as server:
-        assert server.base_url is not None
-        yield server.base_url
 
 
 @pytest.fixture(scope="module")
@@ -92,7 +75,10 @@ def _cells(catalog: Path) -> Any:
     return pyogrio.read_dataframe(catalog / "index.gpkg", layer="cells")
 
 
-def test_viewer_map_epochs_metrics_and_cell_view(browser: Any, base: str, catalog: Path) -> None:
+def test_viewer_map_epochs_metrics_and_cell_view(
+    browser: Any, enriched_base: str, enriched_catalog: Path
+) -> None:
+    base, catalog = enriched_base, enriched_catalog
     metrics = pyogrio.read_dataframe(catalog / "index.gpkg", layer="stand_metrics")
     cells = _cells(catalog)
     view = Page(browser, base)

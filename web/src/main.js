@@ -274,11 +274,15 @@ async function main() {
     payloadLayer.changed();
   }
 
-  $('epoch').addEventListener('change', async (e) => {
+  // What a control started (read by idle(), so a test waits for it).
+  let pending = Promise.resolve();
+  $('epoch').addEventListener('change', (e) => {
     state.epoch = e.target.value;
-    await showEpoch();
-    restyle();
-    if (state.cellView) openCell(state.cellView.cellId);
+    pending = (async () => {
+      await showEpoch();
+      restyle();
+      if (state.cellView) await openCell(state.cellView.cellId);
+    })();
   });
   $('metric').addEventListener('change', (e) => { state.metric = e.target.value; restyle(); });
   $('basemap').addEventListener('change', (e) => {
@@ -309,12 +313,15 @@ async function main() {
       layerFilter: (layer) => layer === cellLayer || layer === tileLayer,
       hitTolerance: 0,
     });
-    if (hit) openCell(hit.get('cell_id'));
+    if (hit) pending = openCell(hit.get('cell_id'));
   });
   $('panel-close').addEventListener('click', () => { $('panel').hidden = true; state.cellView?.dispose(); state.cellView = null; map.updateSize(); });
 
   // Test and automation hook (read by tests/test_viewer_browser.py).
-  const idle = () => new Promise((resolve) => { map.once('rendercomplete', () => resolve()); map.render(); });
+  const idle = async () => {
+    await pending;
+    await new Promise((resolve) => { map.once('rendercomplete', () => resolve()); map.render(); });
+  };
   await idle();
   const navigationMs = performance.now();
   $('status').textContent = `${metrics.filter((f) => f.get('level') === 0 && f.get('epoch') === state.epoch).length} cells · `

@@ -71,7 +71,7 @@ function colourLegend(by, top) {
 
 function attributeRows(attributes, tile) {
   const rows = [];
-  if (tile) rows.push(['tile points (cells layer)', tile.point_count]);
+  if (tile) rows.push(['points in the cell (cells layer) · point_count', tile.point_count]);
   if (attributes) {
     for (const key of SHOWN) {
       if (key in attributes && attributes[key] !== null && attributes[key] !== '') {

@@ -124,7 +124,7 @@ function treeStyle(feature, resolution) {
     styles.push(new Style({
       geometry: measured ? new Point([p.stem_x, p.stem_y]) : (f) => f.getGeometry().getInteriorPoints(),
       image: measured ? stemDot : undefined,
-      text: resolution < 0.12 && p.dbh_m ? new Text({
+      text: resolution < 0.08 && p.dbh_m ? new Text({
         text: `${measured ? '' : '≈'}${(p.dbh_m * 100).toFixed(0)}`, font: '11px system-ui, sans-serif',
         offsetY: measured ? -10 : 0,
         fill: new Fill({ color: '#000' }), stroke: new Stroke({ color: '#fff', width: 3 }),
@@ -191,11 +191,11 @@ async function main() {
     source: cellSource, visible: !has('stand_metrics'),
     style: byEpoch(new Style({ stroke: new Stroke({ color: '#555', width: 1 }) })),
   });
-  const standLayer = new VectorLayer({ source: metricSource, style: standLabel });
+  const standLayer = new VectorLayer({ source: metricSource, style: standLabel, declutter: true });
   const trajectoryLayer = new VectorLayer({ source: new VectorSource({ features: trajectories }), style: byEpoch(trajectoryStyle) });
   const payloadLayer = new VectorLayer({ source: new VectorSource({ features: payloads }), style: byEpoch(payloadStyle), visible: false });
   const treeSource = new VectorSource();
-  const treeLayer = new VectorLayer({ source: treeSource, style: treeStyle, visible: true, minZoom: 0 });
+  const treeLayer = new VectorLayer({ source: treeSource, style: treeStyle, declutter: true });
   const map = new Map({
     target: 'map',
     layers: [basemapLayer, chmLayer, cellLayer, tileLayer, standLayer, trajectoryLayer, payloadLayer, treeLayer],

@@ -16,6 +16,7 @@ import laspy
 import numpy as np
 import pyogrio
 import pytest
+import rasterio
 
 CHROMIUM = shutil.which("chromium") or "/usr/bin/chromium"
 ARGS = ["--headless", "--no-sandbox", "--disable-gpu", "--disable-background-networking",
@@ -98,25 +99,56 @@ def test_viewer_map_epochs_metrics_and_cell_view(
     assert view.js("() => window.standgrid.drawnCells()") == per_epoch[epochs[0]]
     view.shot("map-2024")
 
-    # Another metric: other class colours and another picture.
-    before = view.map_png()
-    cell = level0[level0["epoch"] == epochs[0]].sort_values("zq95").iloc[-1]["cell_id"]
-    fill_q95 = view.js("c => window.standgrid.cellFill(c)", cell)
+    # The CHM is drawn where the COG says: the map's value at pixel centres = rasterio's.
+    with rasterio.open(catalog / "rasters" / epochs[0] / "chm.tif") as src:
+        chm = src.read(1, masked=True)
+        rows, cols = np.nonzero(~np.ma.getmaskarray(chm))
+        picks = np.linspace(0, len(rows) - 1, 12).astype(int)
+        for r, c in zip(rows[picks], cols[picks], strict=True):
+            x, y = src.xy(r, c)
+            shown = view.js("([x, y]) => window.standgrid.chmAt(x, y)", [x, y])
+            assert shown == pytest.approx(float(chm[r, c]), abs=1e-4), (x, y)
+
+    # The choropleth: equal intervals over both epochs, so the highest value of a metric is
+    # in the top class (yellow) and the lowest in the bottom one (purple).
+    def fills(epoch: str) -> dict[str, str]:
+        ids = level0.loc[level0["epoch"] == epoch, "cell_id"].tolist()
+        return dict(zip(ids, view.js("ids => ids.map(window.standgrid.cellFill)", ids),
+                        strict=True))  # fmt: skip
+
+    def check_extremes(metric: str) -> None:
+        values = level0.dropna(subset=[metric])
+        top, low = values.loc[values[metric].idxmax()], values.loc[values[metric].idxmin()]
+        for row, colour in ((top, "#fde725"), (low, "#440154")):
+            if row["epoch"] != view.js("() => window.standgrid.state.epoch"):
+                view.page.select_option("#epoch", row["epoch"])
+                view.idle()
+            assert view.js("c => window.standgrid.cellFill(c)", row["cell_id"]) == colour
+
+    before, fills_q95 = view.map_png(), fills(epochs[0])
+    check_extremes("zq95")
+    view.page.select_option("#epoch", epochs[0])
+    view.idle()
+
+    # Another metric: other class colours, another legend, another picture.
     view.page.select_option("#metric", "stems_ha")
     view.idle()
     assert view.js("() => window.standgrid.state.metric") == "stems_ha"
     assert "stems per ha" in view.page.inner_text("#legend")
-    after_metric = view.map_png()
-    assert after_metric != before
+    assert fills(epochs[0]) != fills_q95
+    assert view.map_png() != before
     view.shot("map-stems")
+    check_extremes("stems_ha")
 
     # Another epoch: the other epoch's cells drawn, with other colours where values differ.
     view.page.select_option("#metric", "zq95")
+    view.page.select_option("#epoch", epochs[0])
     view.idle()
-    assert view.js("c => window.standgrid.cellFill(c)", cell) == fill_q95
+    assert fills(epochs[0]) == fills_q95
     view.page.select_option("#epoch", epochs[1])
     view.idle()
     assert view.js("() => window.standgrid.drawnCells()") == per_epoch[epochs[1]]
+    assert fills(epochs[1]) != fills_q95
     assert view.map_png() != before
     view.shot(f"map-{epochs[1]}")
     view.page.select_option("#epoch", epochs[0])

@@ -348,6 +348,11 @@ async function main() {
       return map.getPixelFromCoordinate([(x0 + x1) / 2, (y0 + y1) / 2]);
     },
     openCell,
+    // The CHM value the map holds at a coordinate (band 1 of the COG as loaded), or null.
+    chmAt: (x, y) => {
+      const data = chmLayer.getData(map.getPixelFromCoordinate([x, y]));
+      return data && data[data.length - 1] !== 0 ? Number(data[0]) : null;
+    },
   };
   document.body.dataset.ready = 'true';
 }

@@ -180,5 +180,14 @@ def test_viewer_map_epochs_metrics_and_cell_view(
     view.page.select_option("#colour-by", "tree")
     view.shot("cell-3d-trees")
 
+    # Both epochs of the cell overlaid, each with its own tile's point count.
+    view.page.select_option("#colour-by", "epoch")
+    other = cells[(cells["epoch"] == epochs[1]) & (cells["cell_id"] == cell_row["cell_id"])]
+    expected = f"{epochs[1]}: {int(other['point_count'].iloc[0]):,} points"
+    view.page.wait_for_function("t => document.querySelector('#colour-legend').innerText"
+                                ".includes(t)", arg=expected, timeout=20_000)  # fmt: skip
+    assert f"{epochs[0]}: {core:,} points" in view.page.inner_text("#colour-legend")
+    view.shot("cell-3d-epochs")
+
     assert view.errors == []
     assert view.failed == []

@@ -8,6 +8,8 @@ const $ = (id) => document.getElementById(id);
 const SHOWN = ['observed_fraction', 'n_points', 'zmax', 'zq95', 'zmean', 'pzabove2', 'n_trees',
   'stems_ha', 'basal_area_m2_ha', 'qmd_cm', 'mean_height_m', 'dominant_height_m', 'null_reason'];
 const CLASS_COLOURS = { 2: '#a0522d', 1: '#4f9d4f' };
+// Epochs overlaid: the clicked epoch, then the others.
+const EPOCH_COLOURS = ['#4ea1ff', '#ffb000', '#ff5cc8', '#7ee081'];
 
 // The binary answer: uint32 header length, JSON header, then the arrays it names.
 export function decodePoints(buffer) {
@@ -35,7 +37,7 @@ function ramp(t) {
   return a.lerp(new THREE.Color(VIRIDIS[k + 1]), x - k);
 }
 
-function colours(points, by) {
+function colours(points, by, epochIndex = 0) {
   const n = points.header.count;
   const out = new Float32Array(n * 3);
   const height = points.height_above_ground;
@@ -43,7 +45,8 @@ function colours(points, by) {
   for (let i = 0; i < n; i += 1) if (height[i] > top) top = height[i];
   const colour = new THREE.Color();
   for (let i = 0; i < n; i += 1) {
-    if (by === 'classification') colour.set(CLASS_COLOURS[points.classification[i]] || '#9aa3ad');
+    if (by === 'epoch') colour.set(EPOCH_COLOURS[epochIndex % EPOCH_COLOURS.length]);
+    else if (by === 'classification') colour.set(CLASS_COLOURS[points.classification[i]] || '#9aa3ad');
     else if (by === 'tree') {
       const key = points.tree_key[i];
       if (key === 0) colour.set('#6b6b6b');
@@ -55,7 +58,11 @@ function colours(points, by) {
   return { out, top };
 }
 
-function colourLegend(by, top) {
+function colourLegend(by, top, overlays = []) {
+  if (by === 'epoch') {
+    return overlays.map((o, k) => `<span class="swatch" style="background:${EPOCH_COLOURS[k % EPOCH_COLOURS.length]}"></span> `
+      + `${o.epoch}: ${o.count === null ? 'no tile' : `${o.count.toLocaleString('en')} points`}`).join('<br/>');
+  }
   if (by === 'height') {
     const stops = VIRIDIS.map((c, k) => `${c} ${(100 * k) / (VIRIDIS.length - 1)}%`).join(',');
     return `<div style="height:10px;background:linear-gradient(to right,${stops})"></div>`
@@ -83,8 +90,15 @@ function attributeRows(attributes, tile) {
   return rows.map(([k, v]) => `<tr><td>${k}</td><td>${v}</td></tr>`).join('');
 }
 
-// Opens the panel for one cell; resolves when its points are drawn.
-export async function openCellView({ cellId, epoch, attributes, tile }) {
+async function fetchPoints(epoch, cellId) {
+  const response = await fetch(`/viewer/points/${encodeURIComponent(epoch)}/${encodeURIComponent(cellId)}`);
+  if (!response.ok) throw new Error(`points of ${cellId} in ${epoch}: HTTP ${response.status}`);
+  return decodePoints(await response.arrayBuffer());
+}
+
+// Opens the panel for one cell; resolves when its points are drawn. ``epochs``: every epoch
+// that has a tile of the cell (for the overlay).
+export async function openCellView({ cellId, epoch, attributes, tile, epochs = [epoch] }) {
   const t0 = performance.now();
   const panel = $('panel');
   panel.hidden = false;
@@ -93,9 +107,7 @@ export async function openCellView({ cellId, epoch, attributes, tile }) {
   $('panel-attributes').innerHTML = attributeRows(attributes, tile);
   window.dispatchEvent(new Event('resize'));
 
-  const response = await fetch(`/viewer/points/${encodeURIComponent(epoch)}/${encodeURIComponent(cellId)}`);
-  if (!response.ok) throw new Error(`points of ${cellId}: HTTP ${response.status}`);
-  const points = decodePoints(await response.arrayBuffer());
+  const points = await fetchPoints(epoch, cellId);
   const n = points.header.count;
 
   const container = $('view3d');
@@ -135,17 +147,48 @@ export async function openCellView({ cellId, epoch, attributes, tile }) {
     + (buffer ? ` (+ ${buffer.toLocaleString('en')} buffer points in the tile, not shown)` : '');
   $('panel-count').dataset.count = String(n);
   $('colour-legend').innerHTML = colourLegend(by, top);
-  const recolour = () => {
-    const next = colours(points, $('colour-by').value);
+  // The other epochs' points of the cell, overlaid (fetched on first use), each at its own
+  // origin relative to this epoch's.
+  const others = epochs.filter((e) => e !== epoch);
+  let overlays = null;
+  const overlayGroup = new THREE.Group();
+  scene.add(overlayGroup);
+  async function loadOverlays() {
+    overlays = [{ epoch, count: n }];
+    for (const [k, other] of others.entries()) {
+      const more = await fetchPoints(other, cellId);
+      const g = new THREE.BufferGeometry();
+      g.setAttribute('position', new THREE.BufferAttribute(more.xyz, 3));
+      g.setAttribute('color', new THREE.BufferAttribute(colours(more, 'epoch', k + 1).out, 3));
+      const cloud = new THREE.Points(g, material);
+      const shift = more.header.origin.map((v, i) => v - points.header.origin[i]);
+      cloud.position.set(shift[0], shift[1], shift[2]);
+      overlayGroup.add(cloud);
+      overlays.push({ epoch: other, count: more.header.count });
+    }
+  }
+  const recolour = async () => {
+    const by = $('colour-by').value;
+    if (by === 'epoch' && overlays === null) await loadOverlays();
+    overlayGroup.visible = by === 'epoch';
+    const next = colours(points, by);
     geometry.getAttribute('color').copyArray(next.out);
     geometry.getAttribute('color').needsUpdate = true;
-    $('colour-legend').innerHTML = colourLegend($('colour-by').value, next.top);
+    $('colour-legend').innerHTML = colourLegend(by, next.top, overlays || []);
     render();
   };
+  const epochOption = $('colour-by').querySelector('option[value=epoch]');
+  epochOption.disabled = others.length === 0;
+  if (epochOption.disabled && $('colour-by').value === 'epoch') $('colour-by').value = 'height';
+  if ($('colour-by').value === 'epoch') await recolour();
   $('colour-by').onchange = recolour;
   const ms = performance.now() - t0;
   return {
     cellId, epoch, count: n, ms,
-    dispose() { controls.dispose(); geometry.dispose(); material.dispose(); renderer.dispose(); },
+    recoloured: () => recolour(),
+    dispose() {
+      controls.dispose(); geometry.dispose(); material.dispose(); renderer.dispose();
+      overlayGroup.children.forEach((c) => c.geometry.dispose());
+    },
   };
 }

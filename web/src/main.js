@@ -196,9 +196,14 @@ async function main() {
   const payloadLayer = new VectorLayer({ source: new VectorSource({ features: payloads }), style: byEpoch(payloadStyle), visible: false });
   const treeSource = new VectorSource();
   const treeLayer = new VectorLayer({ source: treeSource, style: treeStyle, declutter: true });
+  const selectedSource = new VectorSource();
+  const selectedLayer = new VectorLayer({
+    source: selectedSource,
+    style: new Style({ stroke: new Stroke({ color: '#ff1f1f', width: 3.5 }) }),
+  });
   const map = new Map({
     target: 'map',
-    layers: [basemapLayer, chmLayer, cellLayer, tileLayer, standLayer, trajectoryLayer, payloadLayer, treeLayer],
+    layers: [basemapLayer, chmLayer, cellLayer, tileLayer, standLayer, trajectoryLayer, payloadLayer, treeLayer, selectedLayer],
     view,
     controls: [new ScaleLine({ units: 'metric' })],
   });
@@ -306,8 +311,12 @@ async function main() {
     const attributes = metrics.find((f) => f.get('cell_id') === cellId && f.get('epoch') === state.epoch);
     const tile = cells.find((f) => f.get('cell_id') === cellId && f.get('epoch') === state.epoch);
     state.cellView?.dispose();
+    selectedSource.clear(true);
+    if (attributes || tile) selectedSource.addFeature((attributes || tile).clone());
+    const epochs = config.epochs.map((e) => e.label)
+      .filter((e) => cells.some((f) => f.get('cell_id') === cellId && f.get('epoch') === e));
     state.cellView = await openCellView({
-      cellId, epoch: state.epoch, attributes: attributes?.getProperties(), tile: tile?.getProperties(),
+      cellId, epoch: state.epoch, attributes: attributes?.getProperties(), tile: tile?.getProperties(), epochs,
     });
     return state.cellView;
   }
@@ -318,7 +327,7 @@ async function main() {
     });
     if (hit) pending = openCell(hit.get('cell_id'));
   });
-  $('panel-close').addEventListener('click', () => { $('panel').hidden = true; state.cellView?.dispose(); state.cellView = null; map.updateSize(); });
+  $('panel-close').addEventListener('click', () => { $('panel').hidden = true; selectedSource.clear(); state.cellView?.dispose(); state.cellView = null; map.updateSize(); });
 
   // Test and automation hook (read by tests/test_viewer_browser.py).
   const idle = async () => {

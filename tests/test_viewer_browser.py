@@ -154,6 +154,31 @@ def test_viewer_map_epochs_metrics_and_cell_view(
     view.page.select_option("#epoch", epochs[0])
     view.idle()
 
+    # A comparison: the change of the metric per cell on a red-blue ramp symmetric about 0,
+    # the CHM difference under it.
+    changes = pyogrio.read_dataframe(catalog / "index.gpkg", layer="stand_changes")
+    pair = (changes["epoch_from"] == epochs[0]) & (changes["epoch_to"] == epochs[1])
+    changes = changes[(changes["level"] == 0) & pair]
+    view.page.select_option("#epoch", f"change:{epochs[0]}__{epochs[1]}")
+    view.idle()
+    assert view.js("() => window.standgrid.drawnCells()") == len(changes)
+    changes = changes.dropna(subset=["zq95_delta"])
+    assert f"change in height, 95th percentile (m), {epochs[0]} → {epochs[1]}" in (
+        view.page.inner_text("#legend"))
+    biggest = changes.loc[changes["zq95_delta"].abs().idxmax()]
+    end = "#2166ac" if biggest["zq95_delta"] > 0 else "#b2182b"  # gain blue, loss red
+    assert view.js("c => window.standgrid.cellFill(c)", biggest["cell_id"]) == end
+    diff_tif = catalog / "compare" / f"{epochs[0]}__{epochs[1]}" / "chm_diff.tif"
+    with rasterio.open(diff_tif) as src:
+        diff = src.read(1, masked=True)
+        rows, cols = np.nonzero(~np.ma.getmaskarray(diff))
+        for r, c in zip(rows[::997][:8], cols[::997][:8], strict=True):
+            shown = view.js("([x, y]) => window.standgrid.chmAt(x, y)", list(src.xy(r, c)))
+            assert shown == pytest.approx(float(diff[r, c]), abs=1e-4)
+    view.shot("map-change")
+    view.page.select_option("#epoch", epochs[0])
+    view.idle()
+
     # A click on a cell opens its 3-D view with that cell's point count.
     cell_row = cells[(cells["epoch"] == epochs[0])].sort_values("point_count").iloc[-1]
     x, y = view.js("c => window.standgrid.pixelOf(c)", cell_row["cell_id"])

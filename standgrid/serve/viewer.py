@@ -45,8 +45,9 @@ def viewer_page() -> FileResponse:
 
 
 def _raster_max(path: Path) -> float | None:
-    """The CHM's colour ramp top: its ``CHM_PERCENTILE`` over valid pixels (read decimated
-    to at most 1024 x 1024), or None without valid pixels."""
+    """A raster's colour ramp top: its ``CHM_PERCENTILE`` of |value| over valid pixels (read
+    decimated to at most 1024 x 1024), or None without valid pixels (CHM: heights; CHM
+    difference: the half-width of its ramp centred on 0, as its QGIS style)."""
     import rasterio
 
     with rasterio.open(path) as src:
@@ -55,12 +56,13 @@ def _raster_max(path: Path) -> float | None:
         band = src.read(1, out_shape=shape, masked=True)
     valid = band.compressed()
     valid = valid[np.isfinite(valid)]
-    return float(np.percentile(valid, CHM_PERCENTILE)) if valid.size else None
+    return float(np.percentile(np.abs(valid), CHM_PERCENTILE)) if valid.size else None
 
 
 def viewer_config(catalog: Catalog, layers: set[str]) -> dict[str, Any]:
     """What the viewer needs to start: the CRS (EPSG code and WKT2, which proj4js reads to
-    draw in it), the epochs, the served CHMs and which layers exist."""
+    draw in it), the epochs, the comparisons, the served CHMs (and CHM differences) with
+    their colour ramp tops, and which layers exist."""
     import pyproj
 
     crs = pyproj.CRS.from_user_input(catalog.crs)
@@ -78,6 +80,17 @@ def viewer_config(catalog: Catalog, layers: set[str]) -> dict[str, Any]:
             "chm": f"files/{chm}" if has_chm else None,
             "chm_max": _raster_max(chm_path) if has_chm else None,
         })  # fmt: skip
+    comparisons = []
+    for key, entry in catalog.comparisons.items():
+        if entry.get("other_catalog"):
+            continue  # against another catalog: its layers are not in this index
+        diff = str((entry.get("outputs") or {}).get("chm_difference") or "")
+        has_diff = bool(diff) and diff in published and catalog.path(diff).is_file()
+        comparisons.append({
+            "key": key, "from": entry["from"], "to": entry["to"],
+            "chm_diff": f"files/{diff}" if has_diff else None,
+            "chm_diff_max": _raster_max(catalog.path(diff)) if has_diff else None,
+        })  # fmt: skip
     return {
         "catalog": catalog.root.name,
         "crs": {
@@ -86,6 +99,7 @@ def viewer_config(catalog: Catalog, layers: set[str]) -> dict[str, Any]:
             "wkt": crs.to_wkt(),
         },
         "epochs": epochs,
+        "comparisons": comparisons,
         "layers": sorted(layers),
     }
 

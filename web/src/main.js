@@ -19,7 +19,7 @@ import { createEmpty, extend, isEmpty } from 'ol/extent.js';
 import Point from 'ol/geom/Point.js';
 import proj4 from 'proj4';
 import { openCellView } from './cell3d.js';
-import { VIRIDIS, classBreaks, formatValue, metricLabel, metricName, metricUnit, rampColours } from './scales.js';
+import { RDBU, VIRIDIS, classBreaks, divergingBreaks, formatValue, metricLabel, metricName, metricUnit, rampColours } from './scales.js';
 
 const $ = (id) => document.getElementById(id);
 // Columns of stand_metrics that are not metrics to map.
@@ -77,9 +77,18 @@ function fillStyle(colour) {
 
 function cellStyle(feature) {
   const p = feature.getProperties();
-  if (p.epoch !== state.epoch || p.level !== 0) return null;
+  if (state.change || p.epoch !== state.epoch || p.level !== 0) return null;
   state.drawnCells.add(p.cell_id);
   return fillStyle(classColour(p[state.metric]));
+}
+
+// A comparison's 20 m cells: the change of the metric (<metric>_delta of stand_changes).
+function changeStyle(feature) {
+  const p = feature.getProperties();
+  const c = state.change;
+  if (!c || p.epoch_from !== c.from || p.epoch_to !== c.to || p.level !== 0) return null;
+  state.drawnCells.add(p.cell_id);
+  return fillStyle(classColour(p[`${state.metric}_delta`]));
 }
 
 const standStyle = new Style({ stroke: new Stroke({ color: '#111', width: 2.2 }) });
@@ -137,11 +146,14 @@ function treeStyle(feature, resolution) {
 // --- legend ---------------------------------------------------------------------------------
 function renderLegend(features) {
   const unit = metricUnit(state.metric);
-  const shown = features.filter((f) => f.get('epoch') === state.epoch && f.get('level') === 0);
+  const c = state.change;
+  const column = c ? `${state.metric}_delta` : state.metric;
+  const shown = features.filter((f) => f.get('level') === 0 && (c
+    ? f.get('epoch_from') === c.from && f.get('epoch_to') === c.to : f.get('epoch') === state.epoch));
   const counts = new Array(state.breaks.length).fill(0);
   let missing = 0;
   for (const f of shown) {
-    const v = f.get(state.metric);
+    const v = f.get(column);
     if (v === null || v === undefined || Number.isNaN(v)) missing += 1;
     else counts[Math.max(0, state.breaks.findIndex((u) => v <= u))] += 1;
   }
@@ -153,8 +165,11 @@ function renderLegend(features) {
   });
   rows.push(`<tr><td><span class="swatch" style="background:${NO_DATA}"></span></td>`
     + `<td>no value</td><td>${missing}</td></tr>`);
-  $('legend').innerHTML = `<div class="title">${metricName(state.metric)}${unit ? ` (${unit})` : ''}`
-    + `, ${state.epoch}</div><table><tr><td></td><td></td><td title="20 m cells">cells</td></tr>`
+  const title = c ? `change in ${metricName(state.metric)}${unit ? ` (${unit})` : ''}, ${c.from} → ${c.to}`
+    : `${metricName(state.metric)}${unit ? ` (${unit})` : ''}, ${state.epoch}`;
+  $('legend').innerHTML = `<div class="title">${title}</div>`
+    + `${c && shown.length && !shown.some((f) => typeof f.get(column) === 'number') ? '<div>no change column for this metric</div>' : ''}`
+    + `<table><tr><td></td><td></td><td title="20 m cells">cells</td></tr>`
     + `${rows.join('')}</table>`;
 }
 
@@ -178,8 +193,9 @@ async function main() {
   const load = async (name, params) => (
     has(name) ? format.readFeatures(await collection(name, crsUri, params)) : []);
 
-  const [metrics, cells, trajectories, payloads] = await Promise.all([
-    load('stand_metrics'), load('cells'), load('trajectories'), load('payloads')]);
+  const [metrics, cells, trajectories, payloads, changes] = await Promise.all([
+    load('stand_metrics'), load('cells'), load('trajectories'), load('payloads'),
+    config.comparisons.length ? load('stand_changes') : []]);
   const metricSource = new VectorSource({ features: metrics });
   const cellSource = new VectorSource({ features: cells });
 
@@ -187,6 +203,7 @@ async function main() {
   const chmLayer = new WebGLTileLayer({ visible: true, opacity: 0.95 });
   const basemapLayer = new TileLayer({ visible: false });
   const cellLayer = new VectorLayer({ source: metricSource, style: cellStyle, opacity: 0.7 });
+  const changeLayer = new VectorLayer({ source: new VectorSource({ features: changes }), style: changeStyle, opacity: 0.7 });
   const tileLayer = new VectorLayer({
     source: cellSource, visible: !has('stand_metrics'),
     style: byEpoch(new Style({ stroke: new Stroke({ color: '#555', width: 1 }) })),
@@ -203,7 +220,7 @@ async function main() {
   });
   const map = new Map({
     target: 'map',
-    layers: [basemapLayer, chmLayer, cellLayer, tileLayer, standLayer, trajectoryLayer, payloadLayer, treeLayer, selectedLayer],
+    layers: [basemapLayer, chmLayer, cellLayer, changeLayer, tileLayer, standLayer, trajectoryLayer, payloadLayer, treeLayer, selectedLayer],
     view,
     controls: [new ScaleLine({ units: 'metric' })],
   });
@@ -225,7 +242,10 @@ async function main() {
 
   const opacity = document.createElement('label');
   opacity.innerHTML = 'cell opacity <input id="cell-opacity" type="range" min="0" max="1" step="0.05" value="0.7"/>';
-  opacity.querySelector('input').addEventListener('input', (e) => cellLayer.setOpacity(Number(e.target.value)));
+  opacity.querySelector('input').addEventListener('input', (e) => {
+    cellLayer.setOpacity(Number(e.target.value));
+    changeLayer.setOpacity(Number(e.target.value));
+  });
   $('layers').append(opacity);
 
   // Metric picker: every numeric column of stand_metrics.
@@ -236,28 +256,51 @@ async function main() {
   $('metric').innerHTML = columns.map((c) => `<option value="${c}">${metricLabel(c)}</option>`).join('');
   $('metric').value = state.metric;
   $('epoch').innerHTML = config.epochs.map((e) => `<option value="${e.label}">${e.label}`
-    + `${e.date ? ` (${e.date})` : ''}</option>`).join('');
+    + `${e.date ? ` (${e.date})` : ''}</option>`).join('')
+    + config.comparisons.map((c) => `<option value="change:${c.key}">change ${c.from} → ${c.to}</option>`).join('');
   state.epoch = config.epochs[0]?.label;
+  state.change = null;
 
   // What a control started (read by idle(), so a test waits for it).
   let pending = Promise.resolve();
 
+  function chmSource(path) {
+    return path ? new GeoTIFF({
+      sources: [{ url: new URL(`/${path}`, window.location.origin).href }],
+      normalize: false, interpolate: false, convertToRGB: false, wrapX: false,
+    }) : null;
+  }
+
+  function rampLegend(title, ramp, lo, hi) {
+    const stops = ramp.map((c, k) => `${c} ${(100 * k) / (ramp.length - 1)}%`).join(',');
+    return `<div class="title">${title}</div>`
+      + `<div class="ramp" style="background:linear-gradient(to right,${stops})"></div>`
+      + `<div class="ticks"><span>${lo.toFixed(0)} m</span><span>${((lo + hi) / 2).toFixed(0)} m</span>`
+      + `<span>${hi.toFixed(0)} m</span></div>`;
+  }
+
+  function rasterStyle(ramp, lo, hi) {
+    return {
+      color: ['case', ['==', ['band', 2], 0], [0, 0, 0, 0], ['interpolate', ['linear'], ['band', 1],
+        ...ramp.flatMap((colour, k) => [lo + ((hi - lo) * k) / (ramp.length - 1), colour])]],
+    };
+  }
+
   async function showEpoch() {
     const epoch = config.epochs.find((e) => e.label === state.epoch);
-    chmLayer.setSource(epoch?.chm ? new GeoTIFF({
-      sources: [{ url: new URL(`/${epoch.chm}`, window.location.origin).href }],
-      normalize: false, interpolate: false, convertToRGB: false, wrapX: false,
-    }) : null);
+    const c = state.change;
     const top = epoch?.chm_max || 30;
     state.chmMax = top;
-    const stops = CHM_RAMP.map((c, k) => `${c} ${(100 * k) / (CHM_RAMP.length - 1)}%`).join(',');
-    $('chm-legend').innerHTML = epoch?.chm ? '<div class="title">canopy height (CHM)</div>'
-      + `<div class="ramp" style="background:linear-gradient(to right,${stops})"></div>`
-      + `<div class="ticks"><span>0 m</span><span>${(top / 2).toFixed(0)} m</span><span>${top.toFixed(0)} m</span></div>` : '';
-    chmLayer.setStyle({
-      color: ['case', ['==', ['band', 2], 0], [0, 0, 0, 0], ['interpolate', ['linear'], ['band', 1],
-        ...CHM_RAMP.flatMap((colour, k) => [(top * k) / (CHM_RAMP.length - 1), colour])]],
-    });
+    if (c) {
+      const reach = c.chm_diff_max || 10;
+      chmLayer.setSource(chmSource(c.chm_diff));
+      chmLayer.setStyle(rasterStyle(RDBU, -reach, reach));
+      $('chm-legend').innerHTML = c.chm_diff ? rampLegend(`CHM change ${c.from} → ${c.to}`, RDBU, -reach, reach) : '';
+    } else {
+      chmLayer.setSource(chmSource(epoch?.chm));
+      chmLayer.setStyle(rasterStyle(CHM_RAMP, 0, top));
+      $('chm-legend').innerHTML = epoch?.chm ? rampLegend('canopy height (CHM)', CHM_RAMP, 0, top) : '';
+    }
     treeSource.clear(true);
     if (has('trees')) {
       // Trees come after the first picture; a later epoch switch wins.
@@ -269,14 +312,17 @@ async function main() {
   }
 
   function restyle() {
-    const values = metrics.filter((f) => f.get('level') === 0).map((f) => f.get(state.metric));
-    const { lower, breaks } = classBreaks(values, VIRIDIS.length);
+    const c = state.change;
+    const values = (c ? changes : metrics).filter((f) => f.get('level') === 0)
+      .map((f) => f.get(c ? `${state.metric}_delta` : state.metric));
+    const { lower, breaks } = c ? divergingBreaks(values) : classBreaks(values, VIRIDIS.length);
     state.lower = lower;
     state.breaks = breaks;
-    state.colours = rampColours(breaks.length);
+    state.colours = c ? RDBU : rampColours(breaks.length);
     state.drawnCells = new Set();
-    renderLegend(metrics);
+    renderLegend(c ? changes : metrics);
     cellLayer.changed();
+    changeLayer.changed();
     standLayer.changed();
     tileLayer.changed();
     trajectoryLayer.changed();
@@ -284,7 +330,9 @@ async function main() {
   }
 
   $('epoch').addEventListener('change', (e) => {
-    state.epoch = e.target.value;
+    const value = e.target.value;
+    state.change = config.comparisons.find((c) => `change:${c.key}` === value) || null;
+    state.epoch = state.change ? state.change.to : value;
     pending = (async () => {
       const trees = showEpoch();
       restyle();
@@ -322,7 +370,7 @@ async function main() {
   }
   map.on('singleclick', (event) => {
     const hit = map.forEachFeatureAtPixel(event.pixel, (f) => f, {
-      layerFilter: (layer) => layer === cellLayer || layer === tileLayer,
+      layerFilter: (layer) => layer === cellLayer || layer === changeLayer || layer === tileLayer,
       hitTolerance: 0,
     });
     if (hit) pending = openCell(hit.get('cell_id'));
@@ -348,8 +396,11 @@ async function main() {
     loadedCells: (epoch) => metrics.filter((f) => f.get('level') === 0 && f.get('epoch') === epoch).length,
     drawnCells: () => state.drawnCells.size,
     cellFill: (cellId) => {
-      const f = metrics.find((g) => g.get('cell_id') === cellId && g.get('epoch') === state.epoch);
-      return f ? classColour(f.get(state.metric)) : null;
+      const c = state.change;
+      const f = c ? changes.find((g) => g.get('cell_id') === cellId && g.get('level') === 0
+          && g.get('epoch_from') === c.from && g.get('epoch_to') === c.to)
+        : metrics.find((g) => g.get('cell_id') === cellId && g.get('epoch') === state.epoch);
+      return f ? classColour(f.get(c ? `${state.metric}_delta` : state.metric)) : null;
     },
     pixelOf: (cellId) => {
       const f = metrics.find((g) => g.get('cell_id') === cellId && g.get('epoch') === state.epoch);

@@ -1,5 +1,7 @@
 // Colour ramps, class breaks and metric names and units (docs/METRICS.md).
 export const VIRIDIS = ['#440154', '#414487', '#2a788e', '#22a884', '#7ad151', '#fde725'];
+// Change: red loss, blue gain (ColorBrewer RdBu, as the CHM difference's QGIS style).
+export const RDBU = ['#b2182b', '#ef8a62', '#fddbc7', '#d1e5f0', '#67a9cf', '#2166ac'];
 
 const NAMES = {
   zmax: 'max height', zmean: 'mean height', zsd: 'height s.d.', zskew: 'height skewness',
@@ -66,6 +68,17 @@ export function classBreaks(values, classes) {
     if (lower + k * step >= max) break;
   }
   return { lower, breaks };
+}
+
+// Classes symmetric about 0 for a change (RDBU.length of them, on round numbers): the lower
+// bound and each class's upper bound.
+export function divergingBreaks(values) {
+  const finite = values.filter((v) => typeof v === 'number' && Number.isFinite(v));
+  const half = RDBU.length / 2;
+  const reach = finite.length ? Math.max(...finite.map(Math.abs)) : 0;
+  const step = reach > 0 ? niceStep(reach, half) : 1;
+  const breaks = Array.from({ length: RDBU.length }, (_, k) => Number(((k + 1 - half) * step).toPrecision(12)));
+  return { lower: -half * step, breaks };
 }
 
 // n colours spread over the ramp (its two ends always used).

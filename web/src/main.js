@@ -107,7 +107,7 @@ const standLabel = (feature, resolution) => {
 const byEpoch = (style) => (feature, resolution) => (
   feature.get('epoch') === state.epoch ? (typeof style === 'function' ? style(feature, resolution) : style) : null);
 
-const trajectoryStyle = new Style({ stroke: new Stroke({ color: '#e4572e', width: 2, lineDash: [6, 4] }) });
+const trajectoryStyle = new Style({ stroke: new Stroke({ color: 'rgba(228,87,46,0.85)', width: 1.5, lineDash: [6, 4] }) });
 const payloadStyle = new Style({
   stroke: new Stroke({ color: '#1f6feb', width: 1 }), fill: new Fill({ color: 'rgba(31,111,235,0.06)' }),
   image: new CircleStyle({ radius: 3, fill: new Fill({ color: '#1f6feb' }) }),
@@ -212,7 +212,8 @@ async function main() {
   const trajectoryLayer = new VectorLayer({ source: new VectorSource({ features: trajectories }), style: byEpoch(trajectoryStyle) });
   const payloadLayer = new VectorLayer({ source: new VectorSource({ features: payloads }), style: byEpoch(payloadStyle), visible: false });
   const treeSource = new VectorSource();
-  const treeLayer = new VectorLayer({ source: treeSource, style: treeStyle, declutter: true });
+  // Crowns only where they can be told apart (a 1 ha overview would be all crowns).
+  const treeLayer = new VectorLayer({ source: treeSource, style: treeStyle, declutter: true, maxResolution: 0.5 });
   const selectedSource = new VectorSource();
   const selectedLayer = new VectorLayer({
     source: selectedSource,
@@ -230,7 +231,7 @@ async function main() {
   const switches = [
     ['CHM (canopy height)', chmLayer, 'chm'], ['20 m cells: metric', cellLayer, 'cells'],
     ['20 m tile cells (outlines)', tileLayer, 'tiles'], ['1 ha stands (outlines)', standLayer, 'stands'],
-    ['trees (crown colour: height; DBH cm, ≈ imputed)', treeLayer, 'trees'], ['trajectories', trajectoryLayer, 'trajectories'],
+    ['trees (zoomed in; crown colour: height; DBH cm, ≈ imputed)', treeLayer, 'trees'], ['trajectories', trajectoryLayer, 'trajectories'],
     ['payload footprints', payloadLayer, 'payloads'],
   ];
   for (const [label, layer, key] of switches) {

@@ -189,6 +189,7 @@ def test_viewer_map_epochs_metrics_and_cell_view(
         "c => window.standgrid.state.cellView && window.standgrid.state.cellView.cellId === c",
         arg=cell_row["cell_id"], timeout=20_000)  # fmt: skip
     wall_3d = time.perf_counter() - t0
+    assert view.page.get_attribute("#panel-count", "data-tree-count") is None  # a cell
     shown = int(view.page.get_attribute("#panel-count", "data-count") or -1)
     las = laspy.read(catalog / cell_row["tile_path"])
     core = int((~np.asarray(las.withheld, dtype=bool)).sum())
@@ -213,6 +214,28 @@ def test_viewer_map_epochs_metrics_and_cell_view(
                                 ".includes(t)", arg=expected, timeout=20_000)  # fmt: skip
     assert f"{epochs[0]}: {core:,} points" in view.page.inner_text("#colour-legend")
     view.shot("cell-3d-epochs")
+
+    # A click on a tree's marker (stem or top): the tree's attributes, its cell's points with
+    # the tree's marked, as many as the tile holds with its tree_id.
+    trees = pyogrio.read_dataframe(catalog / "index.gpkg", layer="trees", fid_as_index=True)
+    tree = trees[trees["epoch"] == epochs[0]].sort_values("n_points").iloc[-1]
+    x, y = view.js("f => window.standgrid.treePixel(f)", int(tree.name))
+    box = view.page.locator("#map").bounding_box()
+    view.page.mouse.click(box["x"] + x, box["y"] + y)
+    view.page.wait_for_function(
+        "() => document.querySelector('#panel-count').dataset.treeCount !== undefined",
+        timeout=20_000)  # fmt: skip
+    assert view.js("() => window.standgrid.state.cellView.treeFid") == int(tree.name)
+    tile = laspy.read(catalog / "tiles" / epochs[0] / f"{tree['cell_id']}.laz")
+    core = ~np.asarray(tile.withheld, dtype=bool)
+    of_tree = int((np.asarray(tile["tree_id"])[core] == int(tree["tree_id"])).sum())
+    assert of_tree > 0
+    assert int(view.page.get_attribute("#panel-count", "data-tree-count") or -1) == of_tree
+    assert view.page.get_attribute("#panel-count", "data-count") == str(int(core.sum()))
+    assert f"tree in {tree['cell_id']}" in view.page.inner_text("#panel-title")
+    assert f"{tree['height_m']:.1f}" in view.page.inner_text("#panel-attributes")
+    assert str(int(tree["tree_id"])) in view.page.inner_text("#panel-attributes")  # exact
+    view.shot("tree-3d")
 
     assert view.errors == []
     assert view.failed == []

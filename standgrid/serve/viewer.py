@@ -143,10 +143,13 @@ def encode_points(
     summary="A cell's points for the 3-D view (compact binary; buffer points left out)",
     responses={200: {"content": {POINTS_MEDIA_TYPE: {}}}},
 )  # fmt: skip
-def cell_points(request: Request, epoch: str, cell_id: str) -> Response:
+def cell_points(request: Request, epoch: str, cell_id: str, tree: int | None = None) -> Response:
+    """``tree``: the fid of a tree (``trees`` layer) whose points the answer marks
+    (``meta.tree``: its id as text, its colour key and its point count in the cell)."""
     import laspy
 
-    with snapshot(request.app.state.catalog_root, with_index=False) as snap:
+    with snapshot(request.app.state.catalog_root, with_index=tree is not None) as snap:
+        chosen = _tree(snap, tree) if tree is not None else None
         if epoch not in snap.catalog.epochs:
             raise Problem(404, f"no epoch {epoch!r}; epochs: {sorted(snap.catalog.epochs)}")
         tiles = set(snap.catalog.tiles(epoch))
@@ -167,13 +170,26 @@ def cell_points(request: Request, epoch: str, cell_id: str) -> Response:
     def field(name: str, fill: float) -> np.ndarray:
         return np.asarray(las[name])[core] if name in names else np.full(count, fill)
 
-    body = encode_points(
-        xyz, field("height_above_ground", np.nan), field("tree_id", 0),
-        np.asarray(las.classification)[core],
-        {"tile": f"files/{relative}", "tile_points": int(las.header.point_count),
-         "buffer_points": int(las.header.point_count) - count},
-    )  # fmt: skip
+    tree_ids = field("tree_id", 0).astype(np.int64)
+    meta: dict[str, Any] = {"tile": f"files/{relative}",
+                            "tile_points": int(las.header.point_count),
+                            "buffer_points": int(las.header.point_count) - count}  # fmt: skip
+    if chosen is not None:
+        meta["tree"] = {"fid": tree, "tree_id": str(chosen), "key": chosen % (1 << 32),
+                        "points": int((tree_ids == chosen).sum())}  # fmt: skip
+    body = encode_points(xyz, field("height_above_ground", np.nan), tree_ids,
+                         np.asarray(las.classification)[core], meta)  # fmt: skip
     return Response(body, media_type=POINTS_MEDIA_TYPE, headers={"Cache-Control": "no-cache"})
+
+
+def _tree(snap: Any, fid: int) -> int:
+    """The tree id of the ``trees`` feature ``fid`` (a 404 problem when there is none)."""
+    from standgrid.serve import features
+
+    page = features.feature(snap.index, snap.layer("trees"), fid) if snap.index else None
+    if page is None or not page.fids:
+        raise Problem(404, f"no tree {fid} in the trees collection")
+    return int(page.properties[0]["tree_id"])
 
 
 def install(app: Any, description: dict[str, Any]) -> None:

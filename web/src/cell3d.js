@@ -46,6 +46,7 @@ function colours(points, by, epochIndex = 0) {
   const colour = new THREE.Color();
   for (let i = 0; i < n; i += 1) {
     if (by === 'epoch') colour.set(EPOCH_COLOURS[epochIndex % EPOCH_COLOURS.length]);
+    else if (by === 'selected') colour.set(points.tree_key[i] === points.header.meta.tree?.key ? '#ff3b3b' : '#56625a');
     else if (by === 'classification') colour.set(CLASS_COLOURS[points.classification[i]] || '#9aa3ad');
     else if (by === 'tree') {
       const key = points.tree_key[i];
@@ -69,6 +70,10 @@ function colourLegend(by, top, overlays = []) {
       + `<div style="display:flex;justify-content:space-between;font-size:12px"><span>0 m</span>`
       + `<span>${(top / 2).toFixed(1)} m</span><span>${top.toFixed(1)} m</span></div>`;
   }
+  if (by === 'selected') {
+    return '<span class="swatch" style="background:#ff3b3b"></span> the selected tree '
+      + '<span class="swatch" style="background:#56625a"></span> other points';
+  }
   if (by === 'classification') {
     return '<span class="swatch" style="background:#a0522d"></span> ground (2) '
       + '<span class="swatch" style="background:#4f9d4f"></span> other (1)';
@@ -76,8 +81,20 @@ function colourLegend(by, top, overlays = []) {
   return 'one colour per tree; grey: no tree';
 }
 
-function attributeRows(attributes, tile) {
+const TREE_ROWS = [['height_m', 'tree height (m)', 1], ['dbh_m', 'DBH (cm)', 100], ['dbh_source', 'DBH source'],
+  ['dbh_se_m', 'DBH standard error (cm)', 100], ['crown_area_m2', 'crown area (m²)', 1], ['n_points', 'tree points', 1],
+  ['dbh_n_points', 'stem fit points', 1], ['dbh_arc_deg', 'stem fit arc (°)', 1]];
+// tree_id is an int64 beyond a double's exact integers: shown from the server's text.
+
+function attributeRows(attributes, tile, tree) {
   const rows = [];
+  if (tree) {
+    for (const [key, label, scale] of TREE_ROWS) {
+      const value = tree[key];
+      if (value === null || value === undefined || value === '') continue;
+      rows.push([`${label} · ${key}`, typeof value === 'number' && scale ? formatValue(value * scale) : value]);
+    }
+  }
   if (tile) rows.push(['points in the cell (cells layer) · point_count', tile.point_count]);
   if (attributes) {
     for (const key of SHOWN) {
@@ -90,24 +107,29 @@ function attributeRows(attributes, tile) {
   return rows.map(([k, v]) => `<tr><td>${k}</td><td>${v}</td></tr>`).join('');
 }
 
-async function fetchPoints(epoch, cellId) {
-  const response = await fetch(`/viewer/points/${encodeURIComponent(epoch)}/${encodeURIComponent(cellId)}`);
+async function fetchPoints(epoch, cellId, treeFid = null) {
+  const query = treeFid === null ? '' : `?tree=${treeFid}`;
+  const response = await fetch(`/viewer/points/${encodeURIComponent(epoch)}/${encodeURIComponent(cellId)}${query}`);
   if (!response.ok) throw new Error(`points of ${cellId} in ${epoch}: HTTP ${response.status}`);
   return decodePoints(await response.arrayBuffer());
 }
 
 // Opens the panel for one cell; resolves when its points are drawn. ``epochs``: every epoch
 // that has a tile of the cell (for the overlay).
-export async function openCellView({ cellId, epoch, attributes, tile, epochs = [epoch] }) {
+export async function openCellView({ cellId, epoch, attributes, tile, epochs = [epoch], tree = null }) {
   const t0 = performance.now();
   const panel = $('panel');
   panel.hidden = false;
-  $('panel-title').textContent = `${cellId} · ${epoch}`;
+  $('panel-title').textContent = tree ? `tree in ${cellId} · ${epoch}` : `${cellId} · ${epoch}`;
   $('panel-count').textContent = 'loading points…';
-  $('panel-attributes').innerHTML = attributeRows(attributes, tile);
+  $('panel-attributes').innerHTML = attributeRows(attributes, tile, tree?.properties);
+  const selectedOption = $('colour-by').querySelector('option[value=selected]');
+  selectedOption.disabled = !tree;
+  if (tree) $('colour-by').value = 'selected';
+  else if ($('colour-by').value === 'selected') $('colour-by').value = 'height';
   window.dispatchEvent(new Event('resize'));
 
-  const points = await fetchPoints(epoch, cellId);
+  const points = await fetchPoints(epoch, cellId, tree ? tree.fid : null);
   const n = points.header.count;
 
   const container = $('view3d');
@@ -146,6 +168,14 @@ export async function openCellView({ cellId, epoch, attributes, tile, epochs = [
   $('panel-count').textContent = `${n.toLocaleString('en')} points in the cell`
     + (buffer ? ` (+ ${buffer.toLocaleString('en')} buffer points in the tile, not shown)` : '');
   $('panel-count').dataset.count = String(n);
+  const marked = points.header.meta.tree;
+  if (marked) {
+    const all = tree?.properties?.n_points;
+    $('panel-count').textContent += `; ${marked.points.toLocaleString('en')} of them of the selected tree`
+      + (all && all !== marked.points ? ` (of its ${all.toLocaleString('en')}: the rest lie in neighbouring cells)` : '');
+    $('panel-attributes').insertAdjacentHTML('afterbegin', `<tr><td>tree id · tree_id</td><td>${marked.tree_id}</td></tr>`);
+    $('panel-count').dataset.treeCount = String(marked.points);
+  } else delete $('panel-count').dataset.treeCount;
   $('colour-legend').innerHTML = colourLegend(by, top);
   // The other epochs' points of the cell, overlaid (fetched on first use), each at its own
   // origin relative to this epoch's.
@@ -184,7 +214,7 @@ export async function openCellView({ cellId, epoch, attributes, tile, epochs = [
   $('colour-by').onchange = recolour;
   const ms = performance.now() - t0;
   return {
-    cellId, epoch, count: n, ms,
+    cellId, epoch, count: n, ms, treeFid: tree ? tree.fid : null,
     recoloured: () => recolour(),
     dispose() {
       controls.dispose(); geometry.dispose(); material.dispose(); renderer.dispose();

@@ -123,20 +123,26 @@ function crownColour(height) {
 }
 const stemDot = new CircleStyle({ radius: 2.5, fill: new Fill({ color: '#111' }),
   stroke: new Stroke({ color: '#fff', width: 1 }) });
+const topDot = new CircleStyle({ radius: 2.5, fill: new Fill({ color: '#fff' }),
+  stroke: new Stroke({ color: '#111', width: 1 }) });
+// Where a tree is marked (and picked): its fitted stem, else its top.
+function markerOf(feature) {
+  const p = feature.getProperties();
+  const measured = state.stemsInViewCrs && p.stem_x !== null && p.stem_x !== undefined;
+  return { measured, at: measured ? [p.stem_x, p.stem_y] : [p.x, p.y] };
+}
 function treeStyle(feature, resolution) {
   const p = feature.getProperties();
   const styles = [new Style({ stroke: new Stroke({ color: crownColour(p.height_m), width: 1.6 }) })];
   if (resolution < 0.25) {
-    // A measured stem at its fitted position; an imputed DBH (from height) at the crown,
-    // marked with "≈".
-    const measured = state.stemsInViewCrs && p.stem_x !== null && p.stem_x !== undefined;
+    // A measured stem: a black dot at the fitted position; otherwise a white dot at the
+    // top, its DBH imputed from height (marked "≈").
+    const { measured, at } = markerOf(feature);
     styles.push(new Style({
-      geometry: measured ? new Point([p.stem_x, p.stem_y]) : (f) => f.getGeometry().getInteriorPoints(),
-      image: measured ? stemDot : undefined,
+      geometry: new Point(at), image: measured ? stemDot : topDot,
       text: resolution < 0.08 && p.dbh_m ? new Text({
         text: `${measured ? '' : '≈'}${(p.dbh_m * 100).toFixed(0)}`, font: '11px system-ui, sans-serif',
-        offsetY: measured ? -10 : 0,
-        fill: new Fill({ color: '#000' }), stroke: new Stroke({ color: '#fff', width: 3 }),
+        offsetY: -10, fill: new Fill({ color: '#000' }), stroke: new Stroke({ color: '#fff', width: 3 }),
       }) : undefined,
     }));
   }
@@ -231,7 +237,7 @@ async function main() {
   const switches = [
     ['CHM (canopy height)', chmLayer, 'chm'], ['20 m cells: metric', cellLayer, 'cells'],
     ['20 m tile cells (outlines)', tileLayer, 'tiles'], ['1 ha stands (outlines)', standLayer, 'stands'],
-    ['trees (zoomed in; crown colour: height; DBH cm, ≈ imputed)', treeLayer, 'trees'], ['trajectories', trajectoryLayer, 'trajectories'],
+    ['trees (zoomed in; crown colour: height; ● stem, ○ top: click for the tree; DBH cm, ≈ imputed)', treeLayer, 'trees'], ['trajectories', trajectoryLayer, 'trajectories'],
     ['payload footprints', payloadLayer, 'payloads'],
   ];
   for (const [label, layer, key] of switches) {
@@ -338,7 +344,7 @@ async function main() {
       const trees = showEpoch();
       restyle();
       await trees;
-      if (state.cellView) await openCell(state.cellView.cellId);
+      if (state.cellView) await openCell(state.cellView.cellId); // a tree is of one epoch
     })();
   });
   $('metric').addEventListener('change', (e) => { state.metric = e.target.value; restyle(); });
@@ -356,20 +362,37 @@ async function main() {
   else view.setCenter([0, 0]).setZoom(2);
 
   // Click a cell: its attributes and its points in 3-D.
-  async function openCell(cellId) {
+  async function openCell(cellId, tree = null) {
     const attributes = metrics.find((f) => f.get('cell_id') === cellId && f.get('epoch') === state.epoch);
     const tile = cells.find((f) => f.get('cell_id') === cellId && f.get('epoch') === state.epoch);
     state.cellView?.dispose();
     selectedSource.clear(true);
     if (attributes || tile) selectedSource.addFeature((attributes || tile).clone());
+    if (tree) selectedSource.addFeature(tree.clone());
     const epochs = config.epochs.map((e) => e.label)
       .filter((e) => cells.some((f) => f.get('cell_id') === cellId && f.get('epoch') === e));
     state.cellView = await openCellView({
       cellId, epoch: state.epoch, attributes: attributes?.getProperties(), tile: tile?.getProperties(), epochs,
+      tree: tree ? { fid: tree.getId(), properties: tree.getProperties() } : null,
     });
     return state.cellView;
   }
   map.on('singleclick', (event) => {
+    // A tree when the click is on its marker (within 8 px; markers are drawn when zoomed
+    // in), else the cell under the click.
+    let tree = null;
+    if (treeLayer.getVisible() && view.getResolution() < 0.25) {
+      let nearest = 8 * 8;
+      for (const f of treeSource.getFeatures()) {
+        const [px, py] = map.getPixelFromCoordinate(markerOf(f).at);
+        const d2 = (px - event.pixel[0]) ** 2 + (py - event.pixel[1]) ** 2;
+        if (d2 < nearest) { nearest = d2; tree = f; }
+      }
+    }
+    if (tree) {
+      pending = openCell(tree.get('cell_id'), tree);
+      return;
+    }
     const hit = map.forEachFeatureAtPixel(event.pixel, (f) => f, {
       layerFilter: (layer) => layer === cellLayer || layer === changeLayer || layer === tileLayer,
       hitTolerance: 0,
@@ -409,6 +432,11 @@ async function main() {
       return map.getPixelFromCoordinate([(x0 + x1) / 2, (y0 + y1) / 2]);
     },
     openCell,
+    // The pixel of a tree's marker (stem or top), given its feature id (the trees layer's fid).
+    treePixel: (fid) => {
+      const f = treeSource.getFeatureById(fid);
+      return f ? map.getPixelFromCoordinate(markerOf(f).at) : null;
+    },
     // The CHM value the map holds at a coordinate (band 1 of the COG as loaded), or null.
     chmAt: (x, y) => {
       const data = chmLayer.getData(map.getPixelFromCoordinate([x, y]));

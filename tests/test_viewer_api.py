@@ -94,3 +94,22 @@ def test_unknown_cell_or_epoch_is_a_404_problem(enriched_base: str, path: str) -
     assert answer.status_code == 404
     assert answer.headers["content-type"] == "application/problem+json"
     assert "20m_E1_N1" in answer.json()["detail"] or "1999" in answer.json()["detail"]
+
+
+def test_a_trees_points_are_marked_with_its_exact_id(
+    enriched_base: str, enriched_catalog: Path
+) -> None:
+    trees = pyogrio.read_dataframe(enriched_catalog / "index.gpkg", layer="trees",
+                                   fid_as_index=True)  # fmt: skip
+    tree = trees.sort_values("n_points").iloc[-1]
+    url = f"{enriched_base}/viewer/points/{tree['epoch']}/{tree['cell_id']}"
+    header, arrays = _decode(httpx.get(url, params={"tree": int(tree.name)}).content)
+    marked = header["meta"]["tree"]
+    assert marked["tree_id"] == str(int(tree["tree_id"]))  # text: exact beyond 2**53
+    las = laspy.read(enriched_catalog / "tiles" / tree["epoch"] / f"{tree['cell_id']}.laz")
+    ids = np.asarray(las["tree_id"])[~np.asarray(las.withheld, dtype=bool)]
+    assert marked["points"] == int((ids == int(tree["tree_id"])).sum()) > 0
+    assert int((arrays["tree_key"][:, 0] == marked["key"]).sum()) == marked["points"]
+    missing = httpx.get(url, params={"tree": 10**9})
+    assert missing.status_code == 404
+    assert "no tree" in missing.json()["detail"]

@@ -237,5 +237,23 @@ def test_viewer_map_epochs_metrics_and_cell_view(
     assert str(int(tree["tree_id"])) in view.page.inner_text("#panel-attributes")  # exact
     view.shot("tree-3d")
 
+    # The printable page of the tree's 1 ha stand: every tree of the stand in that epoch.
+    href = view.page.get_attribute("#stand-link", "href") or ""
+    stand_id = tree["stand_id"]
+    assert f"stand={stand_id}" in href
+    stand = Page(browser, base)
+    stand.page.goto(f"{base}{href}")
+    stand.page.wait_for_selector("body[data-ready=true]", state="attached", timeout=30_000)
+    expected_trees = trees[(trees["stand_id"] == stand_id) & (trees["epoch"] == epochs[0])]
+    assert stand.page.locator("#tree-list tr").count() == len(expected_trees) + 1  # + header
+    assert f"Trees ({len(expected_trees)}, {epochs[0]})" in stand.page.inner_text("#stand")
+    row = metrics[(metrics["cell_id"] == stand_id) & (metrics["epoch"] == epochs[0])].iloc[0]
+    metrics_text = stand.page.inner_text("table.metrics")
+    assert f"{row['basal_area_m2_ha']:.1f}" in metrics_text
+    assert stand.page.locator("section.plots svg").count() == 2
+    if SHOTS.is_dir():
+        stand.page.screenshot(path=str(SHOTS / "web-stand.png"), full_page=True)
+    assert stand.errors == [] and stand.failed == []
+
     assert view.errors == []
     assert view.failed == []

@@ -15,10 +15,11 @@ import GeoTIFF from 'ol/source/GeoTIFF.js';
 import VectorSource from 'ol/source/Vector.js';
 import XYZ from 'ol/source/XYZ.js';
 import { Circle as CircleStyle, Fill, Stroke, Style, Text } from 'ol/style.js';
-import { createEmpty, extend, isEmpty } from 'ol/extent.js';
+import { createEmpty, extend, getCenter, isEmpty } from 'ol/extent.js';
 import Point from 'ol/geom/Point.js';
 import proj4 from 'proj4';
 import { openCellView } from './cell3d.js';
+import { renderStandPage } from './stand.js';
 import { RDBU, VIRIDIS, classBreaks, divergingBreaks, formatValue, metricLabel, metricName, metricUnit, rampColours } from './scales.js';
 
 const $ = (id) => document.getElementById(id);
@@ -194,6 +195,14 @@ async function main() {
     state.stemsInViewCrs = true; // stem_x, stem_y are in the catalog CRS
   }
   state.projection = dataProjection;
+  const query = new URLSearchParams(window.location.search);
+  if (query.get('stand')) {
+    const attributesOnly = (name, params) => collection(name, null, params);
+    attributesOnly.catalog = config.catalog;
+    await renderStandPage({ standId: query.get('stand'), epoch: query.get('epoch'),
+      collection: attributesOnly, epochs: config.epochs });
+    return;
+  }
   const format = new GeoJSON({ dataProjection, featureProjection: dataProjection });
   const has = (name) => config.layers.includes(name);
   const load = async (name, params) => (
@@ -371,6 +380,12 @@ async function main() {
     if (tree) selectedSource.addFeature(tree.clone());
     const epochs = config.epochs.map((e) => e.label)
       .filter((e) => cells.some((f) => f.get('cell_id') === cellId && f.get('epoch') === e));
+    const centre = (attributes || tile) ? getCenter((attributes || tile).getGeometry().getExtent()) : null;
+    const stand = centre && metrics.find((f) => f.get('level') === 1 && f.get('epoch') === state.epoch
+      && f.getGeometry().intersectsCoordinate(centre));
+    const page = (id) => `/?stand=${encodeURIComponent(id)}&epoch=${encodeURIComponent(state.epoch)}`;
+    $('panel-links').innerHTML = `stand page: <a href="${page(cellId)}" target="_blank">this cell</a>`
+      + (stand ? ` · <a href="${page(stand.get('cell_id'))}" target="_blank" id="stand-link">its 1 ha stand ${stand.get('cell_id')}</a>` : '');
     state.cellView = await openCellView({
       cellId, epoch: state.epoch, attributes: attributes?.getProperties(), tile: tile?.getProperties(), epochs,
       tree: tree ? { fid: tree.getId(), properties: tree.getProperties() } : null,

@@ -157,6 +157,7 @@ function renderLegend(features) {
   const column = c ? `${state.metric}_delta` : state.metric;
   const shown = features.filter((f) => f.get('level') === 0 && (c
     ? f.get('epoch_from') === c.from && f.get('epoch_to') === c.to : f.get('epoch') === state.epoch));
+  const signed = (v) => `${c && v > 0 ? '+' : ''}${formatValue(v, state.metric)}`;
   const counts = new Array(state.breaks.length).fill(0);
   let missing = 0;
   for (const f of shown) {
@@ -167,7 +168,7 @@ function renderLegend(features) {
   const rows = state.breaks.map((upper, k) => {
     const lower = k === 0 ? state.lower : state.breaks[k - 1];
     return `<tr><td><span class="swatch" style="background:${state.colours[k]}"></span></td>`
-      + `<td>${formatValue(lower, state.metric)} – ${formatValue(upper, state.metric)}</td>`
+      + `<td>${signed(lower)} – ${signed(upper)}</td>`
       + `<td>${counts[k]}</td></tr>`;
   });
   rows.push(`<tr><td><span class="swatch" style="background:${NO_DATA}"></span></td>`
@@ -307,6 +308,12 @@ async function main() {
     const c = state.change;
     const top = epoch?.chm_max || 30;
     state.chmMax = top;
+    // Crown outline colours: CROWN_RAMP[k] for heights within top / 6 of k * top / 3.
+    const edges = [top / 6, top / 2, (5 * top) / 6];
+    $('crown-legend').innerHTML = '<div class="title">tree crowns by height</div>' + CROWN_RAMP.map((colour, k) => (
+      `<span class="swatch" style="border:2px solid ${colour};background:none"></span> `
+      + `${k === 0 ? `< ${edges[0].toFixed(0)}` : k === 3 ? `> ${edges[2].toFixed(0)}` : `${edges[k - 1].toFixed(0)}–${edges[k].toFixed(0)}`} m`
+    )).join(' ');
     if (c) {
       const reach = c.chm_diff_max || 10;
       chmLayer.setSource(chmSource(c.chm_diff));

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import os
+from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
@@ -31,3 +32,22 @@ def vilens() -> Path:
 def als() -> Path:
     """The real airborne laser scans folder."""
     return real_file("als")
+
+
+@pytest.fixture(scope="module")
+def enriched_catalog(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """The bundled pair tiled, enriched and compared (made once per session)."""
+    from tests.pipeline_fixtures import enriched_pair
+
+    return enriched_pair(tmp_path_factory).path
+
+
+@pytest.fixture(scope="module")
+def enriched_base(enriched_catalog: Path) -> Iterator[str]:
+    """A real uvicorn server (in a thread) on :func:`enriched_catalog`: its base URL."""
+    from standgrid.serve import create_app
+    from standgrid.serve.server import running
+
+    with running(create_app(enriched_catalog)) as server:
+        assert server.base_url is not None
+        yield server.base_url

@@ -4,7 +4,6 @@ httpx, checked against the GeoPackage read independently with pyogrio."""
 from __future__ import annotations
 
 import sqlite3
-from collections.abc import Iterator
 from pathlib import Path
 
 import httpx
@@ -14,25 +13,20 @@ import pyproj
 import pytest
 import shapely
 
-from tests.pipeline_fixtures import CRS, enriched_pair
+from tests.pipeline_fixtures import CRS
 
 CRS84 = "http://www.opengis.net/def/crs/OGC/1.3/CRS84"
 UTM = "http://www.opengis.net/def/crs/EPSG/0/32630"
 
 
 @pytest.fixture(scope="module")
-def catalog(tmp_path_factory: pytest.TempPathFactory) -> Path:
-    return enriched_pair(tmp_path_factory).path
+def catalog(enriched_catalog: Path) -> Path:
+    return enriched_catalog
 
 
 @pytest.fixture(scope="module")
-def base(catalog: Path) -> Iterator[str]:
-    from standgrid.serve import create_app
-    from standgrid.serve.server import running
-
-    with running(create_app(catalog)) as server:
-        assert server.base_url is not None
-        yield server.base_url
+def base(enriched_base: str) -> str:
+    return enriched_base
 
 
 def _layers(catalog: Path) -> list[str]:

@@ -24,9 +24,8 @@ def create_app(
     ``<catalog>-missions`` beside the catalog).
     Raises :class:`~standgrid.errors.CatalogNotFoundError` when ``catalog`` is not one."""
     from fastapi import FastAPI
-    from fastapi.responses import JSONResponse
 
-    from standgrid.serve import files, ingest, ogc, problems
+    from standgrid.serve import files, ingest, ogc, problems, viewer
     from standgrid.serve import missions as retrieval
     from standgrid.serve.auth import WriteGuard
     from standgrid.serve.limits import BodyLimit
@@ -47,19 +46,18 @@ def create_app(
     app.include_router(retrieval.router)
     app.include_router(ingest.router)
 
-    @app.get("/", tags=["Service"], summary="What this service offers")
-    def index() -> JSONResponse:
-        return JSONResponse({
-            "title": "standgrid",
-            "catalog": root.name,
-            "links": [
-                {"rel": "ogc", "href": "/ogc", "title": "OGC API - Features"},
-                {"rel": "files", "href": "/files", "title": "catalog files (range requests)"},
-                {"rel": "missions", "href": "/missions", "title": "retrieval API"},
-                {"rel": "service-desc", "href": "/openapi.json", "title": "OpenAPI 3.1"},
-                {"rel": "service-doc", "href": "/docs", "title": "API documentation"},
-            ],
-        })  # fmt: skip
+    viewer.install(app, description={
+        "title": "standgrid",
+        "catalog": root.name,
+        "links": [
+            {"rel": "ogc", "href": "/ogc", "title": "OGC API - Features"},
+            {"rel": "files", "href": "/files", "title": "catalog files (range requests)"},
+            {"rel": "missions", "href": "/missions", "title": "retrieval API"},
+            {"rel": "service-desc", "href": "/openapi.json", "title": "OpenAPI 3.1"},
+            {"rel": "service-doc", "href": "/docs", "title": "API documentation"},
+            {"rel": "viewer", "href": "/", "type": "text/html", "title": "web viewer"},
+        ],
+    })  # fmt: skip
 
     # The middleware added last runs first: the write guard answers before the body limit
     # reads anything or a route is found.

@@ -1,0 +1,209 @@
+"""The web viewer at ``/``: the built bundle (``serve/static``, made from ``web/`` by vite),
+its start-up description of the catalog (``/viewer/config.json``) and a cell's points for
+the 3-D view (``/viewer/points/{epoch}/{cell_id}``).
+
+A browser asking for ``/`` (``Accept: text/html``) gets the viewer; any other client gets
+the service's JSON description (``app.py``). Every script and style comes from the package.
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from fastapi import APIRouter, Request
+from fastapi.responses import FileResponse, JSONResponse, Response
+
+from standgrid.catalog import Catalog, paths
+from standgrid.serve.files import published_files
+from standgrid.serve.problems import Problem
+from standgrid.serve.snapshot import snapshot
+
+#: The built viewer (vite's output; see web/ and tests/test_viewer_bundle.py).
+STATIC = Path(__file__).with_name("static")
+#: The build's record of its sources and outputs (hashes), checked by the tests.
+BUILD_MANIFEST = "build-manifest.json"
+#: Media type of a cell's points (layout in :func:`cell_points`).
+POINTS_MEDIA_TYPE = "application/vnd.standgrid.points"
+#: Per-point arrays of the points answer, in order: name, numpy dtype.
+POINT_ARRAYS = (("xyz", "<f4"), ("height_above_ground", "<f4"), ("tree_key", "<u4"),
+                ("classification", "u1"))  # fmt: skip
+#: Height range of the CHM colour ramp: a raster's percentile (as its QGIS style).
+CHM_PERCENTILE = 98.0
+
+router = APIRouter(tags=["Viewer"])
+
+
+def viewer_page() -> FileResponse:
+    """The viewer's HTML page (a 404 problem when the package was built without it)."""
+    page = STATIC / "index.html"
+    if not page.is_file():
+        raise Problem(404, f"the web viewer is not built into this package ({page} missing)")
+    return FileResponse(page, media_type="text/html")
+
+
+def _raster_max(path: Path) -> float | None:
+    """A raster's colour ramp top: its ``CHM_PERCENTILE`` of |value| over valid pixels (read
+    decimated to at most 1024 x 1024), or None without valid pixels (CHM: heights; CHM
+    difference: the half-width of its ramp centred on 0, as its QGIS style)."""
+    import rasterio
+
+    with rasterio.open(path) as src:
+        scale = max(1, int(np.ceil(max(src.width, src.height) / 1024)))
+        shape = (max(1, src.height // scale), max(1, src.width // scale))
+        band = src.read(1, out_shape=shape, masked=True)
+    valid = band.compressed()
+    valid = valid[np.isfinite(valid)]
+    return float(np.percentile(np.abs(valid), CHM_PERCENTILE)) if valid.size else None
+
+
+def viewer_config(catalog: Catalog, layers: set[str]) -> dict[str, Any]:
+    """What the viewer needs to start: the CRS (EPSG code and WKT2, which proj4js reads to
+    draw in it), the epochs, the comparisons, the served CHMs (and CHM differences) with
+    their colour ramp tops, and which layers exist."""
+    import pyproj
+
+    crs = pyproj.CRS.from_user_input(catalog.crs)
+    epsg = crs.to_epsg()
+    published = published_files(catalog)
+    epochs = []
+    for label, record in catalog.epoch_records.items():
+        chm = paths.raster(label, "chm")
+        chm_path = catalog.path(chm)
+        has_chm = chm in published and chm_path.is_file()
+        epochs.append({
+            "label": label,
+            "date": record.date,
+            "state": record.state,
+            "chm": f"files/{chm}" if has_chm else None,
+            "chm_max": _raster_max(chm_path) if has_chm else None,
+        })  # fmt: skip
+    comparisons = []
+    for key, entry in catalog.comparisons.items():
+        if entry.get("other_catalog"):
+            continue  # against another catalog: its layers are not in this index
+        diff = str((entry.get("outputs") or {}).get("chm_difference") or "")
+        has_diff = bool(diff) and diff in published and catalog.path(diff).is_file()
+        comparisons.append({
+            "key": key, "from": entry["from"], "to": entry["to"],
+            "chm_diff": f"files/{diff}" if has_diff else None,
+            "chm_diff_max": _raster_max(catalog.path(diff)) if has_diff else None,
+        })  # fmt: skip
+    return {
+        "catalog": catalog.root.name,
+        "crs": {
+            "code": f"EPSG:{epsg}" if epsg else None,
+            "uri": f"http://www.opengis.net/def/crs/EPSG/0/{epsg}" if epsg else None,
+            "wkt": crs.to_wkt(),
+        },
+        "epochs": epochs,
+        "comparisons": comparisons,
+        "layers": sorted(layers),
+    }
+
+
+@router.get("/viewer/config.json", summary="What the web viewer needs to start")
+def config(request: Request) -> JSONResponse:
+    with snapshot(request.app.state.catalog_root) as snap:
+        return JSONResponse(viewer_config(snap.catalog, set(snap.layers)))
+
+
+def encode_points(
+    xyz: np.ndarray, height: np.ndarray, tree_id: np.ndarray, classification: np.ndarray,
+    meta: dict[str, Any],
+) -> bytes:
+    """A cell's points as one binary answer: a little-endian uint32 byte length, a JSON
+    header (``count``, ``origin`` [x, y, z], ``arrays`` [[name, dtype], ...] and ``meta``)
+    padded with spaces to a multiple of 4 bytes, then each array of ``POINT_ARRAYS`` in
+    turn: xyz float32 relative to ``origin`` (mm-exact for a 20 m cell), height above
+    ground float32 (NaN before enrichment), the tree id folded to uint32 (a colour key;
+    0 = no tree) and the LAS classification."""
+    count = len(xyz)
+    origin = xyz.min(axis=0) if count else np.zeros(3)
+    header = json.dumps({"count": count, "origin": [float(v) for v in origin],
+                         "arrays": [list(a) for a in POINT_ARRAYS], "meta": meta})  # fmt: skip
+    head = header.encode()
+    head += b" " * (-(4 + len(head)) % 4)
+    keys = (tree_id.astype(np.int64) % (1 << 32)).astype("<u4")
+    body = [
+        (xyz - origin).astype("<f4"),
+        height.astype("<f4"),
+        keys,
+        classification.astype("u1"),
+    ]
+    return np.uint32(len(head)).astype("<u4").tobytes() + head + b"".join(
+        np.ascontiguousarray(a).tobytes() for a in body
+    )
+
+
+@router.get(
+    "/viewer/points/{epoch}/{cell_id}",
+    summary="A cell's points for the 3-D view (compact binary; buffer points left out)",
+    responses={200: {"content": {POINTS_MEDIA_TYPE: {}}}},
+)  # fmt: skip
+def cell_points(request: Request, epoch: str, cell_id: str, tree: int | None = None) -> Response:
+    """``tree``: the fid of a tree (``trees`` layer) whose points the answer marks
+    (``meta.tree``: its id as text, its colour key and its point count in the cell)."""
+    import laspy
+
+    with snapshot(request.app.state.catalog_root, with_index=tree is not None) as snap:
+        chosen = _tree(snap, tree) if tree is not None else None
+        if epoch not in snap.catalog.epochs:
+            raise Problem(404, f"no epoch {epoch!r}; epochs: {sorted(snap.catalog.epochs)}")
+        tiles = set(snap.catalog.tiles(epoch))
+        relative = next((t for t in (paths.tile(epoch, cell_id, laz=laz) for laz in (True, False))
+                         if t in tiles), None)  # fmt: skip
+        if relative is None:
+            raise Problem(404, f"epoch {epoch!r} has no tile of cell {cell_id!r}")
+        path = snap.catalog.path(relative)
+        try:
+            las = laspy.read(path)
+        except (OSError, laspy.errors.LaspyException) as exc:
+            raise Problem(500, f"{relative}: cannot read the tile: {exc}") from exc
+    names = set(las.point_format.dimension_names)
+    core = ~np.asarray(las.withheld, dtype=bool)
+    count = int(core.sum())
+    xyz = np.column_stack([np.asarray(las.x), np.asarray(las.y), np.asarray(las.z)])[core]
+
+    def field(name: str, fill: float) -> np.ndarray:
+        return np.asarray(las[name])[core] if name in names else np.full(count, fill)
+
+    tree_ids = field("tree_id", 0).astype(np.int64)
+    meta: dict[str, Any] = {"tile": f"files/{relative}",
+                            "tile_points": int(las.header.point_count),
+                            "buffer_points": int(las.header.point_count) - count}  # fmt: skip
+    if chosen is not None:
+        meta["tree"] = {"fid": tree, "tree_id": str(chosen), "key": chosen % (1 << 32),
+                        "points": int((tree_ids == chosen).sum())}  # fmt: skip
+    body = encode_points(xyz, field("height_above_ground", np.nan), tree_ids,
+                         np.asarray(las.classification)[core], meta)  # fmt: skip
+    return Response(body, media_type=POINTS_MEDIA_TYPE, headers={"Cache-Control": "no-cache"})
+
+
+def _tree(snap: Any, fid: int) -> int:
+    """The tree id of the ``trees`` feature ``fid`` (a 404 problem when there is none)."""
+    from standgrid.serve import features
+
+    page = features.feature(snap.index, snap.layer("trees"), fid) if snap.index else None
+    if page is None or not page.fids:
+        raise Problem(404, f"no tree {fid} in the trees collection")
+    return int(page.properties[0]["tree_id"])
+
+
+def install(app: Any, description: dict[str, Any]) -> None:
+    """The viewer's routes and static assets (``/viewer/...``) on ``app``, and ``/``: the
+    viewer for a browser (``Accept: text/html``), else ``description`` (JSON)."""
+    from starlette.staticfiles import StaticFiles
+
+    @app.get("/", tags=["Service"],
+             summary="The web viewer (Accept: text/html), else what this service offers")
+    def index(request: Request) -> Response:
+        if "text/html" in request.headers.get("accept", ""):
+            return viewer_page()
+        return JSONResponse(description)
+
+    app.include_router(router)
+    if (STATIC / "assets").is_dir():
+        app.mount("/viewer/assets", StaticFiles(directory=STATIC / "assets"), name="viewer")

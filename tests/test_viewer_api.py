@@ -1,0 +1,115 @@
+"""The viewer's server side against a real uvicorn server: the page at ``/`` for browsers,
+its start-up configuration, and a cell's points checked against the tile read with laspy."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+from typing import Any
+
+import httpx
+import laspy
+import numpy as np
+import pyogrio
+import pytest
+import rasterio
+
+from tests.pipeline_fixtures import CRS
+
+
+def _decode(body: bytes) -> tuple[dict[str, Any], dict[str, np.ndarray]]:
+    """The points answer read independently of the viewer's JS decoder."""
+    length = int(np.frombuffer(body[:4], "<u4")[0])
+    header = json.loads(body[4 : 4 + length])
+    n, offset, arrays = header["count"], 4 + length, {}
+    for name, dtype in header["arrays"]:
+        width = 3 if name == "xyz" else 1
+        size = n * width * np.dtype(dtype).itemsize
+        arrays[name] = np.frombuffer(body[offset : offset + size], dtype).reshape(n, width)
+        offset += size
+    assert offset == len(body)
+    return header, arrays
+
+
+def test_root_is_the_viewer_for_browsers_and_json_for_clients(enriched_base: str) -> None:
+    page = httpx.get(f"{enriched_base}/", headers={"Accept": "text/html,application/xhtml+xml"})
+    assert page.status_code == 200
+    assert page.headers["content-type"].startswith("text/html")
+    script = next(s for s in page.text.split('"') if s.startswith("/viewer/assets/")
+                  and s.endswith(".js"))  # fmt: skip
+    asset = httpx.get(f"{enriched_base}{script}")
+    assert asset.status_code == 200
+    assert "javascript" in asset.headers["content-type"]
+    service = httpx.get(f"{enriched_base}/").json()
+    assert {link["rel"] for link in service["links"]} >= {"ogc", "files", "viewer"}
+
+
+def test_config_names_the_crs_epochs_and_chm_ranges(
+    enriched_base: str, enriched_catalog: Path
+) -> None:
+    config = httpx.get(f"{enriched_base}/viewer/config.json").json()
+    assert config["crs"]["code"] == CRS
+    assert config["crs"]["uri"] == "http://www.opengis.net/def/crs/EPSG/0/32630"
+    stored = json.loads((enriched_catalog / "catalog.json").read_text())["epochs"]
+    assert [e["label"] for e in config["epochs"]] == list(stored)
+    for epoch in config["epochs"]:
+        assert epoch["date"] == stored[epoch["label"]]["date"]
+        assert epoch["chm"] == f"files/rasters/{epoch['label']}/chm.tif"
+        assert httpx.head(f"{enriched_base}/{epoch['chm']}").status_code == 200
+        with rasterio.open(enriched_catalog / epoch["chm"].removeprefix("files/")) as src:
+            valid = src.read(1, masked=True).compressed()
+        assert epoch["chm_max"] == pytest.approx(np.percentile(valid, 98.0), abs=1e-4)
+    assert {"cells", "stand_metrics", "trees"} <= set(config["layers"])
+
+
+def test_cell_points_are_the_tiles_core_points(
+    enriched_base: str, enriched_catalog: Path
+) -> None:
+    cells = pyogrio.read_dataframe(enriched_catalog / "index.gpkg", layer="cells")
+    row = cells.sort_values("point_count").iloc[-1]
+    answer = httpx.get(f"{enriched_base}/viewer/points/{row['epoch']}/{row['cell_id']}")
+    assert answer.status_code == 200
+    header, arrays = _decode(answer.content)
+    las = laspy.read(enriched_catalog / row["tile_path"])
+    core = ~np.asarray(las.withheld, dtype=bool)
+    assert header["count"] == int(core.sum()) == int(row["point_count"])
+    assert header["meta"]["tile_points"] == las.header.point_count
+    assert header["meta"]["buffer_points"] == int((~core).sum()) > 0
+    xyz = np.column_stack([las.x, las.y, las.z])[core]
+    back = arrays["xyz"].astype(np.float64) + np.asarray(header["origin"])
+    assert np.abs(back - xyz).max() < 1e-5  # float32 offsets within a 20 m cell
+    hag = np.asarray(las["height_above_ground"])[core]
+    np.testing.assert_allclose(arrays["height_above_ground"][:, 0], hag, rtol=0, atol=1e-6)
+    np.testing.assert_array_equal(arrays["classification"][:, 0],
+                                  np.asarray(las.classification)[core])  # fmt: skip
+    tree = np.asarray(las["tree_id"])[core]
+    np.testing.assert_array_equal(arrays["tree_key"][:, 0] == 0, tree == 0)
+    assert len(np.unique(arrays["tree_key"])) == len(np.unique(tree))
+
+
+@pytest.mark.parametrize("path", ["/viewer/points/1999/20m_E1_N1",
+                                  "/viewer/points/2024/20m_E1_N1"])  # fmt: skip
+def test_unknown_cell_or_epoch_is_a_404_problem(enriched_base: str, path: str) -> None:
+    answer = httpx.get(f"{enriched_base}{path}")
+    assert answer.status_code == 404
+    assert answer.headers["content-type"] == "application/problem+json"
+    assert "20m_E1_N1" in answer.json()["detail"] or "1999" in answer.json()["detail"]
+
+
+def test_a_trees_points_are_marked_with_its_exact_id(
+    enriched_base: str, enriched_catalog: Path
+) -> None:
+    trees = pyogrio.read_dataframe(enriched_catalog / "index.gpkg", layer="trees",
+                                   fid_as_index=True)  # fmt: skip
+    tree = trees.sort_values("n_points").iloc[-1]
+    url = f"{enriched_base}/viewer/points/{tree['epoch']}/{tree['cell_id']}"
+    header, arrays = _decode(httpx.get(url, params={"tree": int(tree.name)}).content)
+    marked = header["meta"]["tree"]
+    assert marked["tree_id"] == str(int(tree["tree_id"]))  # text: exact beyond 2**53
+    las = laspy.read(enriched_catalog / "tiles" / tree["epoch"] / f"{tree['cell_id']}.laz")
+    ids = np.asarray(las["tree_id"])[~np.asarray(las.withheld, dtype=bool)]
+    assert marked["points"] == int((ids == int(tree["tree_id"])).sum()) > 0
+    assert int((arrays["tree_key"][:, 0] == marked["key"]).sum()) == marked["points"]
+    missing = httpx.get(url, params={"tree": 10**9})
+    assert missing.status_code == 404
+    assert "no tree" in missing.json()["detail"]

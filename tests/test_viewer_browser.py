@@ -1,0 +1,262 @@
+"""The web viewer in a real browser: headless Chromium (Debian's ``chromium``) driven by
+Playwright against a real ``standgrid serve`` on the bundled enriched pair. Skipped when
+chromium or the python ``playwright`` package is missing. Screenshots go to
+``$STANDGRID_SCREENSHOTS`` (default ``/work/notes``) when that folder exists."""
+
+from __future__ import annotations
+
+import io
+import os
+import shutil
+import time
+from collections.abc import Iterator
+from pathlib import Path
+from typing import Any
+
+import laspy
+import numpy as np
+import pyogrio
+import pytest
+import rasterio
+from PIL import Image
+
+CHROMIUM = shutil.which("chromium") or "/usr/bin/chromium"
+ARGS = ["--headless", "--no-sandbox", "--disable-gpu", "--disable-background-networking",
+        "--disable-component-update", "--disable-sync", "--no-first-run",
+        # WebGL (the CHM layer, the 3-D view) on the CPU: SwiftShader, as --disable-gpu asks
+        "--use-angle=swiftshader", "--enable-unsafe-swiftshader"]  # fmt: skip
+SHOTS = Path(os.environ.get("STANDGRID_SCREENSHOTS", "/work/notes"))
+
+
+@pytest.fixture(scope="module")
+def browser() -> Iterator[Any]:
+    playwright_api = pytest.importorskip("playwright.sync_api")
+    if not Path(CHROMIUM).is_file():
+        pytest.skip(f"no chromium at {CHROMIUM}")
+    with playwright_api.sync_playwright() as p:
+        browser = p.chromium.launch(executable_path=CHROMIUM, args=ARGS, headless=True)
+        yield browser
+        browser.close()
+
+
+class Page:
+    """A page of the viewer with every console error and failed request recorded."""
+
+    def __init__(self, browser: Any, base: str) -> None:
+        self.page = browser.new_page(viewport={"width": 1500, "height": 900})
+        self.errors: list[str] = []
+        self.failed: list[str] = []
+        self.page.on("console", lambda m: m.type == "error" and self.errors.append(m.text))
+        self.page.on("pageerror", lambda e: self.errors.append(str(e)))
+        self.page.on("requestfailed", lambda r: self.failed.append(f"{r.url} {r.failure}"))
+        self.page.on("response", lambda r: r.status >= 400 and self.failed.append(
+            f"{r.url} HTTP {r.status}"))  # fmt: skip
+        self.base = base
+
+    def open(self) -> float:
+        t0 = time.perf_counter()
+        self.page.goto(f"{self.base}/")
+        self.page.wait_for_selector("body[data-ready=true]", timeout=30_000)
+        return time.perf_counter() - t0
+
+    def js(self, expression: str, arg: Any = None) -> Any:
+        return self.page.evaluate(expression, arg)
+
+    def idle(self) -> None:
+        self.js("() => window.standgrid.idle()")
+
+    def map_png(self) -> bytes:
+        png: bytes = self.page.locator("#map").screenshot()
+        return png
+
+    def shot(self, name: str) -> None:
+        if SHOTS.is_dir():
+            self.page.screenshot(path=str(SHOTS / f"web-{name}.png"))
+
+
+def _cells(catalog: Path) -> Any:
+    return pyogrio.read_dataframe(catalog / "index.gpkg", layer="cells")
+
+
+def test_viewer_map_epochs_metrics_and_cell_view(
+    browser: Any, enriched_base: str, enriched_catalog: Path
+) -> None:
+    base, catalog = enriched_base, enriched_catalog
+    metrics = pyogrio.read_dataframe(catalog / "index.gpkg", layer="stand_metrics")
+    cells = _cells(catalog)
+    view = Page(browser, base)
+    wall = view.open()
+    first_map_ms = view.js("() => window.standgrid.firstMapMs")
+    trees_ms = view.js("() => window.standgrid.treesMs")
+    print(f"\nfirst map: {first_map_ms:.0f} ms from navigation, trees drawn at {trees_ms:.0f} ms "
+          f"({wall:.2f} s wall, from goto)")
+
+    # The map shows the catalog's 20 m cells of the first epoch: every one loaded and drawn.
+    epochs = sorted(metrics["epoch"].unique())
+    level0 = metrics[metrics["level"] == 0]
+    per_epoch = level0.groupby("epoch").size()
+    for epoch in epochs:
+        assert view.js("e => window.standgrid.loadedCells(e)", epoch) == per_epoch[epoch]
+    assert view.js("() => window.standgrid.state.epoch") == epochs[0]
+    assert view.js("() => window.standgrid.drawnCells()") == per_epoch[epochs[0]]
+    view.shot("map-2024")
+
+    # The CHM is drawn where the COG says: the map's value at pixel centres = rasterio's.
+    with rasterio.open(catalog / "rasters" / epochs[0] / "chm.tif") as src:
+        chm = src.read(1, masked=True)
+        rows, cols = np.nonzero(~np.ma.getmaskarray(chm))
+        picks = np.linspace(0, len(rows) - 1, 12).astype(int)
+        for r, c in zip(rows[picks], cols[picks], strict=True):
+            x, y = src.xy(r, c)
+            shown = view.js("([x, y]) => window.standgrid.chmAt(x, y)", [x, y])
+            assert shown == pytest.approx(float(chm[r, c]), abs=1e-4), (x, y)
+
+    # The choropleth: equal intervals over both epochs, so the highest value of a metric is
+    # in the top class (yellow) and the lowest in the bottom one (purple).
+    def fills(epoch: str) -> dict[str, str]:
+        ids = level0.loc[level0["epoch"] == epoch, "cell_id"].tolist()
+        return dict(zip(ids, view.js("ids => ids.map(window.standgrid.cellFill)", ids),
+                        strict=True))  # fmt: skip
+
+    def check_extremes(metric: str) -> None:
+        values = level0.dropna(subset=[metric])
+        top, low = values.loc[values[metric].idxmax()], values.loc[values[metric].idxmin()]
+        for row, colour in ((top, "#fde725"), (low, "#440154")):
+            if row["epoch"] != view.js("() => window.standgrid.state.epoch"):
+                view.page.select_option("#epoch", row["epoch"])
+                view.idle()
+            assert view.js("c => window.standgrid.cellFill(c)", row["cell_id"]) == colour
+
+    before, fills_q95 = view.map_png(), fills(epochs[0])
+    check_extremes("zq95")
+    view.page.select_option("#epoch", epochs[0])
+    view.idle()
+
+    # Another metric: other class colours, another legend, another picture.
+    view.page.select_option("#metric", "stems_ha")
+    view.idle()
+    assert view.js("() => window.standgrid.state.metric") == "stems_ha"
+    assert "stems per ha" in view.page.inner_text("#legend")
+    assert fills(epochs[0]) != fills_q95
+    assert view.map_png() != before
+    view.shot("map-stems")
+    check_extremes("stems_ha")
+
+    # Another epoch: the other epoch's cells drawn, with other colours where values differ.
+    view.page.select_option("#metric", "zq95")
+    view.page.select_option("#epoch", epochs[0])
+    view.idle()
+    assert fills(epochs[0]) == fills_q95
+    view.page.select_option("#epoch", epochs[1])
+    view.idle()
+    assert view.js("() => window.standgrid.drawnCells()") == per_epoch[epochs[1]]
+    assert fills(epochs[1]) != fills_q95
+    assert view.map_png() != before
+    view.shot(f"map-{epochs[1]}")
+    view.page.select_option("#epoch", epochs[0])
+    view.idle()
+
+    # A comparison: the change of the metric per cell on a red-blue ramp symmetric about 0,
+    # the CHM difference under it.
+    changes = pyogrio.read_dataframe(catalog / "index.gpkg", layer="stand_changes")
+    pair = (changes["epoch_from"] == epochs[0]) & (changes["epoch_to"] == epochs[1])
+    changes = changes[(changes["level"] == 0) & pair]
+    view.page.select_option("#epoch", f"change:{epochs[0]}__{epochs[1]}")
+    view.idle()
+    assert view.js("() => window.standgrid.drawnCells()") == len(changes)
+    changes = changes.dropna(subset=["zq95_delta"])
+    assert f"change in height, 95th percentile (m), {epochs[0]} → {epochs[1]}" in (
+        view.page.inner_text("#legend"))
+    biggest = changes.loc[changes["zq95_delta"].abs().idxmax()]
+    end = "#2166ac" if biggest["zq95_delta"] > 0 else "#b2182b"  # gain blue, loss red
+    assert view.js("c => window.standgrid.cellFill(c)", biggest["cell_id"]) == end
+    diff_tif = catalog / "compare" / f"{epochs[0]}__{epochs[1]}" / "chm_diff.tif"
+    with rasterio.open(diff_tif) as src:
+        diff = src.read(1, masked=True)
+        rows, cols = np.nonzero(~np.ma.getmaskarray(diff))
+        for r, c in zip(rows[::997][:8], cols[::997][:8], strict=True):
+            shown = view.js("([x, y]) => window.standgrid.chmAt(x, y)", list(src.xy(r, c)))
+            assert shown == pytest.approx(float(diff[r, c]), abs=1e-4)
+    view.shot("map-change")
+    view.page.select_option("#epoch", epochs[0])
+    view.idle()
+
+    # A click on a cell opens its 3-D view with that cell's point count.
+    cell_row = cells[(cells["epoch"] == epochs[0])].sort_values("point_count").iloc[-1]
+    x, y = view.js("c => window.standgrid.pixelOf(c)", cell_row["cell_id"])
+    box = view.page.locator("#map").bounding_box()
+    t0 = time.perf_counter()
+    view.page.mouse.click(box["x"] + x, box["y"] + y)
+    view.page.wait_for_function(
+        "c => window.standgrid.state.cellView && window.standgrid.state.cellView.cellId === c",
+        arg=cell_row["cell_id"], timeout=20_000)  # fmt: skip
+    wall_3d = time.perf_counter() - t0
+    assert view.page.get_attribute("#panel-count", "data-tree-count") is None  # a cell
+    shown = int(view.page.get_attribute("#panel-count", "data-count") or -1)
+    las = laspy.read(catalog / cell_row["tile_path"])
+    core = int((~np.asarray(las.withheld, dtype=bool)).sum())
+    assert shown == core == int(cell_row["point_count"])
+    assert f"{core:,} points in the cell" in view.page.inner_text("#panel-count")
+    assert cell_row["cell_id"] in view.page.inner_text("#panel-title")
+    ms_3d = view.js("() => window.standgrid.state.cellView.ms")
+    print(f"3-D view of {cell_row['cell_id']} ({core} points): {ms_3d:.0f} ms in the page "
+          f"({wall_3d:.2f} s wall, click to drawn)")
+    # The 3-D canvas is drawn: many colours of the height ramp, not its background alone.
+    png = Image.open(io.BytesIO(view.page.locator("#view3d canvas").screenshot()))
+    colours = np.unique(np.asarray(png.convert("RGB")).reshape(-1, 3), axis=0)
+    assert len(colours) > 50
+    view.shot("cell-3d")
+    view.page.select_option("#colour-by", "tree")
+    view.shot("cell-3d-trees")
+
+    # Both epochs of the cell overlaid, each with its own tile's point count.
+    view.page.select_option("#colour-by", "epoch")
+    other = cells[(cells["epoch"] == epochs[1]) & (cells["cell_id"] == cell_row["cell_id"])]
+    expected = f"{epochs[1]}: {int(other['point_count'].iloc[0]):,} points"
+    view.page.wait_for_function("t => document.querySelector('#colour-legend').innerText"
+                                ".includes(t)", arg=expected, timeout=20_000)  # fmt: skip
+    assert f"{epochs[0]}: {core:,} points" in view.page.inner_text("#colour-legend")
+    view.shot("cell-3d-epochs")
+
+    # A click on a tree's marker (stem or top): the tree's attributes, its cell's points with
+    # the tree's marked, as many as the tile holds with its tree_id.
+    trees = pyogrio.read_dataframe(catalog / "index.gpkg", layer="trees", fid_as_index=True)
+    tree = trees[trees["epoch"] == epochs[0]].sort_values("n_points").iloc[-1]
+    x, y = view.js("f => window.standgrid.treePixel(f)", int(tree.name))
+    box = view.page.locator("#map").bounding_box()
+    view.page.mouse.click(box["x"] + x, box["y"] + y)
+    view.page.wait_for_function(
+        "() => document.querySelector('#panel-count').dataset.treeCount !== undefined",
+        timeout=20_000)  # fmt: skip
+    assert view.js("() => window.standgrid.state.cellView.treeFid") == int(tree.name)
+    tile = laspy.read(catalog / "tiles" / epochs[0] / f"{tree['cell_id']}.laz")
+    core = ~np.asarray(tile.withheld, dtype=bool)
+    of_tree = int((np.asarray(tile["tree_id"])[core] == int(tree["tree_id"])).sum())
+    assert of_tree > 0
+    assert int(view.page.get_attribute("#panel-count", "data-tree-count") or -1) == of_tree
+    assert view.page.get_attribute("#panel-count", "data-count") == str(int(core.sum()))
+    assert f"tree in {tree['cell_id']}" in view.page.inner_text("#panel-title")
+    assert f"{tree['height_m']:.1f}" in view.page.inner_text("#panel-attributes")
+    assert str(int(tree["tree_id"])) in view.page.inner_text("#panel-attributes")  # exact
+    view.shot("tree-3d")
+
+    # The printable page of the tree's 1 ha stand: every tree of the stand in that epoch.
+    href = view.page.get_attribute("#stand-link", "href") or ""
+    stand_id = tree["stand_id"]
+    assert f"stand={stand_id}" in href
+    stand = Page(browser, base)
+    stand.page.goto(f"{base}{href}")
+    stand.page.wait_for_selector("body[data-ready=true]", state="attached", timeout=30_000)
+    expected_trees = trees[(trees["stand_id"] == stand_id) & (trees["epoch"] == epochs[0])]
+    assert stand.page.locator("#tree-list tr").count() == len(expected_trees) + 1  # + header
+    assert f"Trees ({len(expected_trees)}, {epochs[0]})" in stand.page.inner_text("#stand")
+    row = metrics[(metrics["cell_id"] == stand_id) & (metrics["epoch"] == epochs[0])].iloc[0]
+    metrics_text = stand.page.inner_text("table.metrics")
+    assert f"{row['basal_area_m2_ha']:.1f}" in metrics_text
+    assert stand.page.locator("section.plots svg").count() == 2
+    if SHOTS.is_dir():
+        stand.page.screenshot(path=str(SHOTS / "web-stand.png"), full_page=True)
+    assert stand.errors == [] and stand.failed == []
+
+    assert view.errors == []
+    assert view.failed == []

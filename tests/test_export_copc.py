@@ -92,7 +92,9 @@ def test_octree_puts_every_point_in_one_node_inside_its_voxel() -> None:
     edge = 20_000
     ijk = rng.integers(0, edge + 1, (30_000, 3))
     ijk[:100] = edge  # the far faces belong to the last nodes
-    keys, node = octree_nodes(ijk, edge, resolution=8, leaf_points=300)
+    keys, node, grouped = octree_nodes(ijk, edge, resolution=8, leaf_points=300)
+    np.testing.assert_array_equal(np.sort(grouped), np.arange(len(ijk)))  # a permutation
+    assert np.all(np.diff(node[grouped]) >= 0)  # node by node, in key order
     assert node.min() == 0 and node.max() == len(keys) - 1
     assert len({tuple(k) for k in keys}) == len(keys)
     assert np.all(np.diff(keys[:, 0]) >= 0)  # coarse to fine
@@ -107,8 +109,14 @@ def test_octree_puts_every_point_in_one_node_inside_its_voxel() -> None:
         assert (depth - 1, x // 2, y // 2, z // 2) in key_set
     assert keys[:, 0].max() >= 2
     root = np.flatnonzero(keys[:, 0] == 0)[0]
-    # the root holds at most one point per cell of its 8^3 grid
-    assert np.sum(node == root) <= 8**3
+    # the root holds the first point (in input order) of every occupied cell of its 8^3 grid
+    cell = np.minimum(ijk * 8 // edge, 7)
+    cell_id = (cell[:, 0] * 8 + cell[:, 1]) * 8 + cell[:, 2]
+    first = np.full(8**3, len(ijk))
+    np.minimum.at(first, cell_id, np.arange(len(ijk)))
+    np.testing.assert_array_equal(np.flatnonzero(node == root), np.sort(first[first < len(ijk)]))
+    with pytest.raises(ValueError, match="power of two"):
+        octree_nodes(ijk, edge, resolution=12)
 
 
 def test_copc_file_is_laz_14_with_the_plain_tiles_vlrs_and_dims(

@@ -12,7 +12,7 @@ How it is built:
    records, typed extra-bytes VLR, WKT VLR and standgrid field manifest are the ones a
    plain tile has, by construction.
 2. The octree: a cube around the points; the root takes one point per cell of a
-   ``resolution``\\ :sup:`3` grid over it (the first point of each cell, in tile order), and
+   ``resolution``-cubed grid over it (the first point of each cell, in tile order), and
    each child node takes one point per cell of the same grid over its own (half-size) cube
    from the points left, until a node has at most ``leaf_points`` points left (it takes
    them all) or cells are finer than the 1 mm lattice. Every point is in exactly one node;
@@ -66,61 +66,98 @@ def copc_suffix(path: str | os.PathLike[str]) -> bool:
     return Path(path).name.lower().endswith(".copc.laz")
 
 
+_MORTON_BITS = 21  # per axis: three fit in a uint64
+
+
+def _spread(v: NDArray[np.uint64]) -> NDArray[np.uint64]:
+    """Bits ``b`` of 21-bit integers moved to ``3 * b`` (Morton interleaving)."""
+    v = v & np.uint64(0x1FFFFF)
+    for shift, mask in ((32, 0x1F00000000FFFF), (16, 0x1F0000FF0000FF), (8, 0x100F00F00F00F00F),
+                        (4, 0x10C30C30C30C30C3), (2, 0x1249249249249249)):  # fmt: skip
+        v = (v | (v << np.uint64(shift))) & np.uint64(mask)
+    return v
+
+
+def _compact(v: NDArray[np.uint64]) -> NDArray[np.uint64]:
+    """The inverse of :func:`_spread`."""
+    v = v & np.uint64(0x1249249249249249)
+    for shift, mask in ((2, 0x10C30C30C30C30C3), (4, 0x100F00F00F00F00F), (8, 0x1F0000FF0000FF),
+                        (16, 0x1F00000000FFFF), (32, 0x1FFFFF)):  # fmt: skip
+        v = (v | (v >> np.uint64(shift))) & np.uint64(mask)
+    return v
+
+
 def octree_nodes(
     ijk: NDArray[np.int64],
     edge: int,
     *,
     resolution: int = RESOLUTION,
     leaf_points: int = LEAF_POINTS,
-) -> tuple[NDArray[np.int64], NDArray[np.int64]]:
-    """Assign integer lattice points to octree nodes; ``(keys, node_of_point)``.
+) -> tuple[NDArray[np.int64], NDArray[np.int64], NDArray[np.int64]]:
+    """Assign integer lattice points to octree nodes; ``(keys, node_of_point, grouped)``.
 
     ``ijk``: (N, 3) integer coordinates counted from the cube's corner, in ``[0, edge]``
     (the cube is closed: a point on its far face is in the last node). ``keys``: (M, 4)
     node keys ``(depth, x, y, z)``, coarse to fine; ``node_of_point``: (N,) index into
-    ``keys``. Exact integer arithmetic: node ``k`` of depth ``d`` holds
-    ``k * edge / 2**d <= u < (k + 1) * edge / 2**d`` on each axis.
+    ``keys``; ``grouped``: the input indices node by node (in ``keys`` order; within a
+    node in finest-cell order). Exact integer arithmetic: node ``k`` of depth ``d`` holds
+    ``k * edge / 2**d <= u < (k + 1) * edge / 2**d`` on each axis; a node takes the first
+    point (in input order) of each cell of its ``resolution``-cubed grid, or all its
+    points when at most ``leaf_points`` are left. ``resolution`` is a power of two.
+
+    One sort: cells of every depth are prefixes of the finest cells' Morton codes
+    (``floor(floor(x) / 2) == floor(x / 2)``), so each depth is a pass over runs.
     """
+    if resolution < 1 or resolution & (resolution - 1):
+        raise ValueError(f"resolution {resolution} is not a power of two")
     n = len(ijk)
     edge = max(int(edge), 1)
+    r_bits = resolution.bit_length() - 1
+    finest = 0  # cells of the finest depth: at least the lattice, at most 2**21 per axis
+    while (resolution << finest) < edge and (resolution << (finest + 1)) <= 1 << _MORTON_BITS:
+        finest += 1
+    cells = resolution << finest
+    c = np.minimum((np.asarray(ijk, dtype=np.int64) * cells) // edge, cells - 1).astype(np.uint64)
+    morton = _spread(c[:, 0]) << np.uint64(2) | _spread(c[:, 1]) << np.uint64(1) | _spread(c[:, 2])
+    order = np.argsort(morton, kind="stable")  # ties: input order
+    code = morton[order]
+    rank = np.empty(n, dtype=np.int64)  # sorted position of each input point
+    rank[order] = np.arange(n)
+    remaining = np.ones(n, dtype=bool)  # over sorted positions
     node_of_point = np.full(n, -1, dtype=np.int64)
-    keys: list[tuple[int, int, int, int]] = []
-    remaining = np.arange(n, dtype=np.int64)
-    depth = 0
-    while len(remaining):
-        per_axis = 1 << depth
-        pts = ijk[remaining]
-        node_xyz = np.minimum((pts * per_axis) // edge, per_axis - 1)
-        node_id = (node_xyz[:, 0] * per_axis + node_xyz[:, 1]) * per_axis + node_xyz[:, 2]
-        if per_axis**3 <= 1 << 21:  # counting beats sorting
-            dense = np.bincount(node_id, minlength=per_axis**3)
-            uniq = np.flatnonzero(dense)
-            rank = np.zeros(len(dense), dtype=np.int64)
-            rank[uniq] = np.arange(len(uniq))
-            inverse, counts = rank[node_id], dense[uniq]
+    keys: list[NDArray[np.int64]] = []
+    grouped: list[NDArray[np.int64]] = []
+    count = 0
+    for depth in range(finest + 1):
+        pos = np.flatnonzero(remaining)
+        if not len(pos):
+            break
+        cell = code[pos] >> np.uint64(3 * (finest - depth))
+        node = cell >> np.uint64(3 * r_bits)
+        node_start = np.flatnonzero(np.r_[True, node[1:] != node[:-1]])
+        if depth == finest:
+            take = np.ones(len(pos), dtype=bool)
         else:
-            uniq, inverse, counts = np.unique(node_id, return_inverse=True, return_counts=True)
-        cells = per_axis * resolution
-        # Cells finer than the lattice (or a depth whose ids would overflow): all the rest.
-        if edge <= cells or cells > 2**20:
-            take = np.ones(len(remaining), dtype=bool)
-        else:
-            c = np.minimum((pts * cells) // edge, cells - 1)
-            voxel = (c[:, 0] * cells + c[:, 1]) * cells + c[:, 2]
-            _, first = np.unique(voxel, return_index=True)
-            take = counts[inverse] <= leaf_points
-            take[first] = True
-        taken_nodes = np.unique(inverse[take])
-        local = np.full(len(uniq), -1, dtype=np.int64)
-        local[taken_nodes] = len(keys) + np.arange(len(taken_nodes))
-        for u in uniq[taken_nodes]:
-            x, rest = divmod(int(u), per_axis * per_axis)
-            y, z = divmod(rest, per_axis)
-            keys.append((depth, x, y, z))
-        node_of_point[remaining[take]] = local[inverse[take]]
-        remaining = remaining[~take]
-        depth += 1
-    return np.array(keys, dtype=np.int64).reshape(-1, 4), node_of_point
+            sizes = np.diff(np.r_[node_start, len(pos)])
+            take = np.repeat(sizes <= leaf_points, sizes)
+            cell_start = np.flatnonzero(np.r_[True, cell[1:] != cell[:-1]])
+            # the first point in input order of each cell (a run is in finest-cell order)
+            first = np.minimum.reduceat(order[pos], cell_start)
+            take[np.searchsorted(pos, rank[first])] = True
+        taken = pos[take]
+        taken_node = node[take]
+        starts = np.r_[True, taken_node[1:] != taken_node[:-1]]
+        index = count + np.cumsum(starts) - 1
+        node_of_point[order[taken]] = index
+        grouped.append(order[taken])
+        unique_nodes = taken_node[starts]
+        x, y, z = (_compact(unique_nodes >> np.uint64(2 - axis)) for axis in range(3))
+        keys.append(np.column_stack([np.full(len(unique_nodes), depth), x, y, z]).astype(np.int64))
+        count += len(unique_nodes)
+        remaining[taken] = False
+    if not keys:
+        return np.zeros((0, 4), dtype=np.int64), node_of_point, np.zeros(0, dtype=np.int64)
+    return np.concatenate(keys), node_of_point, np.concatenate(grouped)
 
 
 def write_copc_tile(
@@ -146,9 +183,10 @@ def write_copc_tile(
     out = Path(path)
     if laz is False:
         raise PointCloudFormatError("a COPC tile is always compressed (laz=False given)", path=out)
-    if resolution < 1 or leaf_points < 1:
+    if resolution < 1 or resolution & (resolution - 1) or leaf_points < 1:
         raise PointCloudFormatError(
-            f"resolution {resolution} and leaf_points {leaf_points} must be positive", path=out
+            f"resolution {resolution} must be a power of two, leaf_points {leaf_points} positive",
+            path=out,
         )
     if out.exists() and not overwrite:  # before any work; atomic_output checks again
         from standgrid.errors import OutputExistsError
@@ -197,11 +235,10 @@ def _scratch_to_copc(
     # the header minimum, edge the largest extent (in lattice steps).
     corner = ijk_stored.min(axis=0) if n else np.zeros(3, np.int64)
     edge = int((ijk_stored.max(axis=0) - corner).max()) if n else 1
-    keys, node_of_point = octree_nodes(
+    keys, node_of_point, order = octree_nodes(
         ijk_stored - corner, edge, resolution=resolution, leaf_points=leaf_points
     )
-    order = np.argsort(node_of_point, kind="stable")
-    starts = np.searchsorted(node_of_point[order], np.arange(len(keys) + 1))
+    starts = np.r_[0, np.cumsum(np.bincount(node_of_point, minlength=len(keys)))]
 
     scales, offsets = np.asarray(header.scales), np.asarray(header.offsets)
     half_m = max(edge, 1) * SCALE / 2

@@ -132,6 +132,11 @@ def test_copc_file_is_laz_14_with_the_plain_tiles_vlrs_and_dims(
     assert (h.version.major, h.version.minor) == (1, 4)
     assert h.point_format.id == ref.header.point_format.id == 6
     assert isinstance(h.vlrs[0], laspy.copc.CopcInfoVlr)  # COPC: the info VLR comes first
+    # write_tile's VLRs, no copclib extents VLR (all zeros), the hierarchy the only EVLR
+    assert [(v.user_id, v.record_id) for v in h.vlrs] == [("copc", 1)] + [
+        (v.user_id, v.record_id) for v in ref.header.vlrs
+    ]
+    assert [(v.user_id, v.record_id) for v in las.evlrs] == [("copc", 1000)]
     assert h.point_count == len(core) + len(buffer)
     assert h.global_encoding.wkt
     assert h.global_encoding.gps_time_type == laspy.header.GpsTimeType.STANDARD

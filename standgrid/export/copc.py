@@ -16,14 +16,16 @@ How it is built:
    each child node takes one point per cell of the same grid over its own (half-size) cube
    from the points left, until a node has at most ``leaf_points`` points left (it takes
    them all) or cells are finer than the 1 mm lattice. Every point is in exactly one node;
-   within a node points keep their tile order; nodes are written coarse to fine.
+   within a node points are in Morton order of the finest cells; nodes are written coarse
+   to fine.
 3. copclib's ``FileWriter`` compresses the nodes and writes the hierarchy.
 4. copclib's Python API can declare extra bytes only as untyped bytes and no VLRs of its
    own, so the VLR block is rebuilt: COPC info first, then the scratch tile's VLRs (WKT,
    typed extra bytes, field manifest), then copclib's LAZ VLR; the data after the block
    moves by the size difference, and every absolute offset behind it (header, COPC info,
-   LAZ chunk table pointer, hierarchy entries) moves with it. copclib's non-standard
-   extents VLR and its WKT EVLR are left out (the WKT is the scratch tile's VLR).
+   LAZ chunk table pointer, hierarchy entries) moves with it. Left out: copclib's extents
+   VLR (``copc``/10000, an extension outside COPC 1.0, all zeros when nodes are given as
+   raw records: a wrong number) and its WKT EVLR (the WKT is the scratch tile's VLR).
 
 Written atomically (temporary sibling, fsync, rename). Point order differs from the plain
 tile's (grouped by node); :func:`~standgrid.export.las.read_tile` reads a COPC tile back to

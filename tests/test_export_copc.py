@@ -6,6 +6,7 @@ from __future__ import annotations
 import shutil
 from collections.abc import Iterator
 from pathlib import Path
+from typing import Any
 
 import copclib
 import laspy
@@ -283,8 +284,23 @@ def test_empty_and_single_point_tiles(tmp_path: Path) -> None:
 # --- over HTTP from a real standgrid server ------------------------------------------------
 
 
+class BytesSent:
+    """ASGI wrapper counting the response body bytes the server sends (no change to them)."""
+
+    def __init__(self, app: Any) -> None:
+        self.app, self.sent = app, 0
+
+    async def __call__(self, scope: Any, receive: Any, send: Any) -> None:
+        async def counted(message: Any) -> None:
+            if message["type"] == "http.response.body":
+                self.sent += len(message.get("body", b""))
+            await send(message)
+
+        await self.app(scope, receive, counted)
+
+
 @pytest.fixture(scope="module")
-def served(tmp_path_factory: pytest.TempPathFactory) -> Iterator[tuple[str, Path, str]]:
+def served(tmp_path_factory: pytest.TempPathFactory) -> Iterator[tuple[str, Path, str, BytesSent]]:
     """A tiled catalog whose first 2024 tile is rewritten as COPC, served by uvicorn."""
     from standgrid.catalog import Catalog
     from standgrid.serve import create_app
@@ -298,13 +314,16 @@ def served(tmp_path_factory: pytest.TempPathFactory) -> Iterator[tuple[str, Path
     cloud = read_tile(folder / rel, include_withheld=True)
     write_copc_tile(folder / rel, cloud, crs=las.header.parse_crs().to_wkt(),
                     resolution=8, leaf_points=200)  # fmt: skip
-    with running(create_app(folder)) as server:
+    app = BytesSent(create_app(folder))
+    with running(app) as server:
         assert server.base_url is not None
-        yield server.base_url, folder, rel
+        yield server.base_url, folder, rel, app
 
 
-def test_served_copc_tile_is_queried_by_bounds_over_http(served: tuple[str, Path, str]) -> None:
-    base, folder, rel = served
+def test_served_copc_tile_is_queried_by_bounds_over_http(
+    served: tuple[str, Path, str, BytesSent],
+) -> None:
+    base, folder, rel, _ = served
     local = laspy.read(folder / rel)
     x, y = np.asarray(local.x), np.asarray(local.y)
     lo = (float(np.quantile(x, 0.3)), float(np.quantile(y, 0.2)))
@@ -323,3 +342,21 @@ def test_served_copc_tile_is_queried_by_bounds_over_http(served: tuple[str, Path
         total_nodes = len(reader.root_page.entries)
     assert total_nodes > 1
     np.testing.assert_array_equal(_record_rows(got), _record_rows(local.points[inside]))
+
+
+def test_a_small_bounds_query_over_http_fetches_a_part_of_the_tile(
+    served: tuple[str, Path, str, BytesSent],
+) -> None:
+    base, folder, rel, app = served
+    local = laspy.read(folder / rel)
+    lo = np.array([np.quantile(local.x, 0.45), np.quantile(local.y, 0.45)])
+    hi = np.array([np.quantile(local.x, 0.55), np.quantile(local.y, 0.55)])
+    before = app.sent
+    with laspy.CopcReader.open(f"{base}/files/{rel}") as reader:
+        got = reader.query(laspy.copc.Bounds(mins=lo, maxs=hi))
+    fetched = app.sent - before
+    xy = np.column_stack([local.x, local.y])
+    assert len(got) == int(np.all((xy >= lo) & (xy <= hi), axis=1).sum()) > 0
+    size = (folder / rel).stat().st_size
+    print(f"fetched {fetched} of {size} bytes for {len(got)} of {len(local)} points")
+    assert fetched < 0.6 * size

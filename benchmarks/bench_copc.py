@@ -1,0 +1,142 @@
+"""COPC tiles (write_copc_tile) against plain LAZ tiles (write_tile), same points, same run.
+
+Usage: python benchmarks/bench_copc.py [big_points] [n_tiles] [tile_points]
+       (defaults 2,000,000 / 100 / 20,000)
+
+A forest-like cloud (sloping ground, stems, crown surfaces; the fields tiles carry) is
+written as one big tile and as ``n_tiles`` small tiles, each as LAZ and as COPC. Prints
+points/s of both, the time ratio COPC/LAZ, the file sizes, the share of the COPC time spent
+on its uncompressed scratch tile, and what COPC buys: reading a 1/16 corner of the big tile
+through laspy's CopcReader against reading the whole LAZ tile and filtering.
+"""
+
+from __future__ import annotations
+
+import sys
+import tempfile
+import time
+from collections.abc import Callable
+from pathlib import Path
+
+import laspy
+import numpy as np
+
+from standgrid.export.copc import write_copc_tile
+from standgrid.export.las import snap_to_storage, write_tile
+from standgrid.pointcloud import PointCloud
+
+CRS = "EPSG:32632"
+X0, Y0, Z0 = 500_000.0, 6_000_000.0, 100.0
+
+
+def forest_cloud(n: int, seed: int, size: float = 20.0) -> PointCloud:
+    rng = np.random.default_rng(seed)
+    n_ground, n_stem = n // 2, n // 4
+    n_crown = n - n_ground - n_stem
+    gx, gy = rng.uniform(0, size, n_ground), rng.uniform(0, size, n_ground)
+    ground = np.column_stack([gx, gy, 0.05 * gx + rng.normal(0, 0.02, n_ground)])
+    n_trees = max(int(size * size / 40), 1)
+    stems = rng.uniform(1, size - 1, (n_trees, 2))
+    which = rng.integers(0, n_trees, n_stem)
+    angle = rng.uniform(0, 2 * np.pi, n_stem)
+    radius = 0.2
+    stem = np.column_stack(
+        [
+            stems[which, 0] + radius * np.cos(angle),
+            stems[which, 1] + radius * np.sin(angle),
+            rng.uniform(0, 14, n_stem),
+        ]
+    )
+    which_c = rng.integers(0, n_trees, n_crown)
+    d = rng.normal(size=(n_crown, 3))
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    crown = np.column_stack([stems[which_c] + 1.5 * d[:, :2], 16 + 3 * d[:, 2]])
+    local = np.clip(np.concatenate([ground, stem, crown]), 0, size)
+    xyz = snap_to_storage(local + np.array([X0, Y0, Z0]))
+    return PointCloud(
+        xyz,
+        {
+            "intensity": rng.uniform(0.0, 1.0, n).astype(np.float32),
+            "gps_time": rng.uniform(1.4e9, 1.4e9 + 600, n),
+            "point_source_id": np.full(n, 7, np.uint16),
+            "classification": np.where(np.arange(n) < n_ground, 2, 5).astype(np.uint8),
+            "payload_id": rng.integers(0, 5000, n).astype(np.uint32),
+            "height_above_ground": (local[:, 2] - 0.05 * local[:, 0]).astype(np.float32),
+            "tree_id": np.concatenate([np.full(n_ground, -1), which, which_c]).astype(np.int32),
+        },
+    )
+
+
+def best_of(fn: Callable[[], object], repeat: int) -> float:
+    times = []
+    for _ in range(repeat):
+        t0 = time.perf_counter()
+        fn()
+        times.append(time.perf_counter() - t0)
+    return min(times)
+
+
+def compare(label: str, clouds: list[PointCloud], folder: Path, repeat: int) -> None:
+    n = sum(len(c) for c in clouds)
+
+    def write(kind: str) -> None:
+        for i, cloud in enumerate(clouds):
+            if kind == "laz":
+                write_tile(folder / f"{i}.laz", cloud, crs=CRS)
+            elif kind == "las":
+                write_tile(folder / f"{i}.las", cloud, crs=CRS)
+            else:
+                write_copc_tile(folder / f"{i}.copc.laz", cloud, crs=CRS)
+
+    t_laz = best_of(lambda: write("laz"), repeat)
+    t_copc = best_of(lambda: write("copc"), repeat)
+    t_las = best_of(lambda: write("las"), repeat)  # what the COPC writer's scratch costs
+    size_laz = sum((folder / f"{i}.laz").stat().st_size for i in range(len(clouds)))
+    size_copc = sum((folder / f"{i}.copc.laz").stat().st_size for i in range(len(clouds)))
+    print(
+        f"{label}: LAZ {n / t_laz / 1e6:.2f} Mpts/s ({t_laz:.2f} s), "
+        f"COPC {n / t_copc / 1e6:.2f} Mpts/s ({t_copc:.2f} s), "
+        f"time ratio COPC/LAZ {t_copc / t_laz:.2f}; "
+        f"size COPC/LAZ {size_copc / size_laz:.3f} ({size_laz / n:.1f} B/pt LAZ); "
+        f"scratch LAS write {t_las / t_copc:.0%} of the COPC time"
+    )
+
+
+def query(cloud: PointCloud, folder: Path, repeat: int) -> None:
+    laz, copc = folder / "q.laz", folder / "q.copc.laz"
+    write_tile(laz, cloud, crs=CRS)
+    write_copc_tile(copc, cloud, crs=CRS)
+    lo, hi = np.array([X0, Y0]), np.array([X0 + 5.0, Y0 + 5.0])
+
+    def whole() -> int:
+        las = laspy.read(laz)
+        xy = np.column_stack([las.x, las.y])
+        return int(np.all((xy >= lo) & (xy <= hi), axis=1).sum())
+
+    def by_bounds() -> int:
+        with laspy.CopcReader.open(copc) as reader:
+            return len(reader.query(laspy.copc.Bounds(mins=lo, maxs=hi)))
+
+    assert whole() == by_bounds()
+    t_whole, t_query = best_of(whole, repeat), best_of(by_bounds, repeat)
+    print(
+        f"bounds query (1/16 of the tile, {by_bounds():,} points): read LAZ + filter "
+        f"{t_whole:.3f} s, CopcReader.query {t_query:.3f} s, ratio {t_whole / t_query:.1f}x"
+    )
+
+
+def main() -> None:
+    big = int(sys.argv[1]) if len(sys.argv) > 1 else 2_000_000
+    n_tiles = int(sys.argv[2]) if len(sys.argv) > 2 else 100
+    per_tile = int(sys.argv[3]) if len(sys.argv) > 3 else 20_000
+    big_cloud = forest_cloud(big, seed=0)
+    small = [forest_cloud(per_tile, seed=1 + i) for i in range(n_tiles)]
+    with tempfile.TemporaryDirectory() as tmp:
+        folder = Path(tmp)
+        compare(f"1 tile of {big:,}", [big_cloud], folder, repeat=3)
+        compare(f"{n_tiles} tiles of {per_tile:,}", small, folder, repeat=2)
+        query(big_cloud, folder, repeat=3)
+
+
+if __name__ == "__main__":
+    main()

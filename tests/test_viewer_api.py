@@ -113,3 +113,15 @@ def test_a_trees_points_are_marked_with_its_exact_id(
     missing = httpx.get(url, params={"tree": 10**9})
     assert missing.status_code == 404
     assert "no tree" in missing.json()["detail"]
+
+
+def test_tree_keys_tell_apart_trees_on_one_row() -> None:
+    """Tree ids pack x and y at 0.1 m; trees whose tops share a y row must not share a key."""
+    from standgrid.enrich.trees import tree_id_from_xy
+    from standgrid.serve.viewer import tree_key
+
+    x = 614_700.0 + np.arange(200) * 0.1
+    ids = tree_id_from_xy(x, np.full(200, 5_737_150.0))
+    keys = tree_key(ids)
+    assert len(np.unique(keys)) == 200 and (keys != 0).all()
+    assert tree_key(np.array([0]))[0] == 0

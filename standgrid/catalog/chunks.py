@@ -26,7 +26,7 @@ from standgrid.pointcloud import PointCloud
 
 #: Bytes a chunk's computation holds per point of its block (the decoded tiles, the block's
 #: coordinates and every per-point array a pass keeps), used to size chunks to the budget.
-BYTES_PER_POINT = 800
+BYTES_PER_POINT = 500
 
 
 @dataclass(frozen=True)

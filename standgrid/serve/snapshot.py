@@ -47,7 +47,8 @@ class Snapshot:
 
 @contextlib.contextmanager
 def snapshot(root: Path, *, with_index: bool = True) -> Iterator[Snapshot]:
-    """The catalog at ``root`` as of its last commit (and its index, when it has one)."""
+    """The catalog at ``root`` as of its last commit (and its index, when it has one), with
+    the catalog's readers lock held until the block ends."""
     conn: sqlite3.Connection | None = None
     layers: dict[str, Layer] = {}
     with _cache_lock:
@@ -69,8 +70,10 @@ def snapshot(root: Path, *, with_index: bool = True) -> Iterator[Snapshot]:
                     _layers_cache.clear()
                     _layers_cache[key] = cached
             layers = cached
-    try:
-        yield Snapshot(catalog, conn, layers)
-    finally:
-        if conn is not None:
-            conn.close()
+        # yielded under the readers lock: no commit renames a file in while the request
+        # reads (files opened here stay the snapshot's even after it)
+        try:
+            yield Snapshot(catalog, conn, layers)
+        finally:
+            if conn is not None:
+                conn.close()

@@ -110,6 +110,16 @@ def config(request: Request) -> JSONResponse:
         return JSONResponse(viewer_config(snap.catalog, set(snap.layers)))
 
 
+def tree_key(tree_id: Any) -> Any:
+    """A tree id folded to 32 bits for the browser, both halves mixed (the low half alone is
+    only the top's y: trees on one 0.1 m row would share it); 0 only for no tree."""
+    ids = np.asarray(tree_id, dtype=np.int64).astype(np.uint64)
+    hi, lo = ids >> np.uint64(32), ids & np.uint64(0xFFFFFFFF)
+    key = ((hi * np.uint64(0x9E3779B1)) ^ lo) & np.uint64(0xFFFFFFFF)
+    key = np.where((key == 0) & (ids != 0), np.uint64(1), key)
+    return np.where(ids == 0, np.uint64(0), key).astype(np.uint32)
+
+
 def encode_points(
     xyz: np.ndarray, height: np.ndarray, tree_id: np.ndarray, classification: np.ndarray,
     meta: dict[str, Any],
@@ -126,7 +136,7 @@ def encode_points(
                          "arrays": [list(a) for a in POINT_ARRAYS], "meta": meta})  # fmt: skip
     head = header.encode()
     head += b" " * (-(4 + len(head)) % 4)
-    keys = (tree_id.astype(np.int64) % (1 << 32)).astype("<u4")
+    keys = tree_key(tree_id).astype("<u4")
     body = [
         (xyz - origin).astype("<f4"),
         height.astype("<f4"),
@@ -175,7 +185,8 @@ def cell_points(request: Request, epoch: str, cell_id: str, tree: int | None = N
                             "tile_points": int(las.header.point_count),
                             "buffer_points": int(las.header.point_count) - count}  # fmt: skip
     if chosen is not None:
-        meta["tree"] = {"fid": tree, "tree_id": str(chosen), "key": chosen % (1 << 32),
+        key = int(tree_key(np.array([chosen]))[0])
+        meta["tree"] = {"fid": tree, "tree_id": str(chosen), "key": key,
                         "points": int((tree_ids == chosen).sum())}  # fmt: skip
     body = encode_points(xyz, field("height_above_ground", np.nan), tree_ids,
                          np.asarray(las.classification)[core], meta)  # fmt: skip

@@ -8,6 +8,7 @@ buffer copies included), the tree lists, the stand metrics and every raster must
 
 from __future__ import annotations
 
+import json
 import os
 import shutil
 import socket
@@ -15,6 +16,7 @@ import subprocess
 import sys
 import time
 from collections.abc import Iterator
+from dataclasses import replace
 from pathlib import Path
 
 import laspy
@@ -127,8 +129,6 @@ def _assert_same(a: Path, b: Path) -> None:
 
 
 def test_the_epoch_is_cut_into_chunks_that_own_every_cell_once(single: Path) -> None:
-    import json
-
     import pyogrio
 
     from standgrid.catalog.chunks import cells_of
@@ -163,3 +163,45 @@ def test_dask_scheduler_and_worker_give_the_same_catalog(
     shutil.copytree(tiled, out)
     enrich_catalog(out, OPTIONS, scheduler=scheduler)
     _assert_same(single, out)
+
+
+def test_another_chunk_layout_changes_numbers_only_within_tolerance(
+    tiled: Path, single: Path
+) -> None:
+    """Another memory budget cuts the epoch into other chunks. Ground squares, bins and the
+    pixels of every raster are on fixed lattices, so what changes is bounded: the terrain
+    model where the survey's edge limits a block's ground, and crowns at a block's edge.
+    Measured (bundled pair, 64 MB vs 512 MB): 0.7 % of heights differ, by at most 0.27 m; 3
+    classes; basal area of 4 of 30 cells by at most 0.6 %; stems/ha and observed ground
+    not at all."""
+    import laspy
+
+    out = tiled.parent / "other-layout"
+    shutil.copytree(tiled, out)
+    report = enrich_catalog(out, replace(OPTIONS, memory_budget=MemoryBudget(512 << 20)))
+    state = json.loads((single / "catalog.json").read_text())
+    assert report.epochs["2024"]["chunks"] != state["epochs"]["2024"]["enrichment"]["chunks"]
+    points = changed = 0
+    for tile in sorted((single / "tiles" / "2024").glob("*.la[sz]")):
+        a, b = laspy.read(tile), laspy.read(out / "tiles" / "2024" / tile.name)
+        ka, kb = np.lexsort((a.Z, a.Y, a.X)), np.lexsort((b.Z, b.Y, b.X))
+        ha = np.asarray(a["height_above_ground"])[ka]
+        hb = np.asarray(b["height_above_ground"])[kb]
+        np.testing.assert_array_equal(np.isnan(ha), np.isnan(hb))
+        d = np.abs(ha - hb)[np.isfinite(ha)]
+        assert d.max(initial=0.0) < 0.5, tile.name
+        points, changed = points + len(ha), changed + int((d > 1e-4).sum())
+    assert changed < 0.02 * points
+    metrics = {
+        name: pd.read_parquet(root / "tables/stand_metrics.parquet").query("epoch == '2024'")
+        .set_index("cell_id")
+        for name, root in (("a", single), ("b", out))
+    }
+    a, b = metrics["a"], metrics["b"]
+    pd.testing.assert_series_equal(a["stems_ha"], b["stems_ha"])
+    pd.testing.assert_series_equal(a["observed_fraction"], b["observed_fraction"])
+    for column in ("zq95", "zmean", "basal_area_m2_ha"):
+        np.testing.assert_array_equal(a[column].isna(), b[column].isna())
+        known = a[column].notna()
+        gap = (a.loc[known, column] - b.loc[known, column]).abs()
+        assert (gap <= 0.02 * a.loc[known, column].abs() + 1e-9).all(), column

@@ -114,12 +114,21 @@ class DaskExecutor:
         for _ in range(2 * self.workers):
             if not submit_next():
                 break
-        for future in in_flight:
-            result = pickle.loads(future.result())  # re-raises the task's own exception
-            index = index_of.pop(future.key)
-            future.release()
-            submit_next()
-            yield index, result
+        try:
+            for future in in_flight:
+                result = pickle.loads(future.result())  # re-raises the task's own exception
+                index = index_of.pop(future.key)
+                future.release()
+                submit_next()
+                yield index, result
+        finally:  # an error, or a caller that stops reading: nothing may go on writing
+            left = list(in_flight.futures)
+            if left:
+                self.client.cancel(left)
+                with contextlib.suppress(Exception):
+                    from distributed import wait
+
+                    wait(left, timeout=60)
 
 
 @contextlib.contextmanager

@@ -90,13 +90,13 @@ def enrich_block(points: ChunkPoints, context: BlockContext) -> BlockResult:
     if len(trees):
         trees["observed"] = coverage.observed_at(*stem_xy(trees))
 
-    # rasters of the owned cells, on the chunk's core window
-    core_xyz = xyz[: points.n_core]
-    with_height = np.isfinite(hag[: points.n_core])
+    # rasters over the whole block (a pixel's CHM fill looks at its neighbours, a Voronoi
+    # edge pixel holds points of two cells), kept on the chunk's core window
+    with_height = np.isfinite(hag)
     rasters = {
         "dtm": _crop(dtm, buffered, core),
-        "chm": chm(core_xyz[with_height], hag[: points.n_core][with_height], core),
-        "density": density(core_xyz, core),
+        "chm": _crop(chm(xyz[with_height], hag[with_height], buffered), buffered, core),
+        "density": _crop(density(xyz, buffered), buffered, core),
         "observed": _crop(coverage.observed, buffered, core),
         "near_ground": _crop(coverage.near_ground, buffered, core),
     }

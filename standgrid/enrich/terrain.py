@@ -2,13 +2,19 @@
 
 1. CSF (:func:`standgrid.enrich.ground.classify_ground`) runs over the lowest return of
    each quarter cloth cell (the returns the cloth comes to rest on: a 30-40x smaller cloud
-   for dense scans), once over the whole block and once square by square
-   (:data:`GROUND_SQUARE_M` on a fixed lattice, each with :data:`GROUND_HALO_M` around it);
-   a return either calls ground is ground (see :func:`_classify`);
-2. the terrain model is the TIN of that ground, thinned to one point per half pixel, at the
-   window's pixel centres (nearest ground point outside their hull);
+   for dense scans), square by square: :data:`GROUND_SQUARE_M` squares on a fixed lattice
+   (the stand grid's), each seen with :data:`GROUND_HALO_M` around it;
+2. the terrain model is the TIN of that ground, thinned to the point nearest the centre of
+   each half-pixel square, at the window's pixel centres (nearest ground point outside
+   their hull);
 3. every return within :data:`CLASS_THRESHOLD_M` of the terrain (CSF's own class threshold)
    is ground; heights above ground are bilinear in the terrain model.
+
+Every bin and square sits on the fixed lattice and no choice depends on the order of the
+points, so a point's ground class and height depend only on the points within
+:data:`GROUND_HALO_M` of its square: a block that holds them (a chunk whose buffer is at
+least that wide) gives every point it owns what one computation over the whole epoch
+would, whatever the chunk layout (the memory budget) is.
 """
 
 from __future__ import annotations
@@ -42,9 +48,9 @@ def classify_terrain(
     rigidness: int = 1,
     source: str | None = None,
 ) -> Terrain:
-    """Ground, terrain model and heights of ``xyz`` (all inside ``window``); the CSF squares
-    sit on ``lattice`` (the same for every block, so blocks agree)."""
-    lowest = _lowest(xyz, cloth_resolution / 2)
+    """Ground, terrain model and heights of ``xyz`` (all inside ``window``); bins and CSF
+    squares sit on ``lattice`` (the same for every block, so blocks agree)."""
+    lowest = _lowest(xyz, cloth_resolution / 2, lattice)
     cloth = lowest[_classify(xyz[lowest], lattice, cloth_resolution, rigidness, source)]
     if len(cloth) == 0:
         return Terrain(
@@ -52,7 +58,7 @@ def classify_terrain(
             np.full(window.shape, np.nan, dtype=np.float32),
             np.full(len(xyz), np.nan, dtype=np.float32),
         )
-    dtm = _dtm(xyz[cloth], window)
+    dtm = _dtm(xyz[cloth], window, lattice)
     heights = height_above_ground(xyz, dtm, window)
     return Terrain(np.abs(heights) <= CLASS_THRESHOLD_M, dtm, heights)
 
@@ -61,10 +67,12 @@ def classify_terrain(
 DTM_MARGIN_M = 3.0
 #: A return this close to the terrain (m) is ground (CSF's class threshold).
 CLASS_THRESHOLD_M = 0.5
-#: Ground is classified in squares of this side (m), on a fixed lattice ...
-GROUND_SQUARE_M = 40.0
-#: ... each seen with this much around it (m).
+#: Ground is classified in squares of this side (m, a stand cell), on the lattice ...
+GROUND_SQUARE_M = 20.0
+#: ... each seen with this much around it (m): a chunk's buffer must be at least as wide.
 GROUND_HALO_M = 10.0
+
+
 def _classify(
     xyz: NDArray[np.float64],
     lattice: tuple[float, float],
@@ -72,13 +80,9 @@ def _classify(
     rigidness: int,
     source: str | None,
 ) -> NDArray[np.bool_]:
-    """Ground mask of the block: ground for CSF over the whole block, or for CSF over the
-    square (:data:`GROUND_SQUARE_M` on ``lattice``, seen with :data:`GROUND_HALO_M` around
-    it) holding the point. CSF misses ground near the data's edge on one scale or the other
-    (measured: over a whole 80 m block with relief it misses ground along a survey edge that
-    40 m squares find; over a 30 m strip of a 25 deg slope it misses the upslope edge that
-    the whole 60 m slope finds), and it calls almost nothing ground that is not (< 0.01 %
-    of the vegetation over 1 m), so the union keeps the best of both."""
+    """Ground mask, CSF square by square (:data:`GROUND_SQUARE_M` on ``lattice``, seen with
+    :data:`GROUND_HALO_M` around it): the same extent for every square, so the cloth's edge
+    effects do not depend on how much of the survey a block holds."""
     ground = np.zeros(len(xyz), dtype=bool)
     if len(xyz) < 3:
         return ground
@@ -91,17 +95,34 @@ def _classify(
         y0 = lattice[1] + iy * GROUND_SQUARE_M
         x1, y1 = x0 + GROUND_SQUARE_M, y0 + GROUND_SQUARE_M
         near = np.flatnonzero((x >= x0 - h) & (x < x1 + h) & (y >= y0 - h) & (y < y1 + h))
-        own = (kx[near] == ix) & (ky[near] == iy)
-        ground[near[own]] = _csf(xyz[near], cloth_resolution, rigidness, source)[own]
-    return ground | _csf(xyz, cloth_resolution, rigidness, source)
+        # CSF sees the points sorted by x, y, z: its result may depend on their order,
+        # which the block layout would otherwise set
+        order = near[np.lexsort((xyz[near, 2], xyz[near, 1], xyz[near, 0]))]
+        square = np.zeros(len(xyz), dtype=bool)
+        square[order] = _csf(xyz[order], cloth_resolution, rigidness, source)
+        mine = order[(kx[order] == ix) & (ky[order] == iy)]
+        ground[mine] = square[mine]
+    return ground
 
 
-def _lowest(xyz: NDArray[np.float64], size: float) -> NDArray[np.int64]:
-    """Rows of the lowest point of each ``size`` square (ties: every tied point), sorted."""
+def _bins(
+    xy: NDArray[np.float64], size: float, lattice: tuple[float, float]
+) -> NDArray[np.int64]:
+    """Per point, its ``size`` square on ``lattice``, as one integer key."""
+    cell = np.floor((xy - np.asarray(lattice)) / size).astype(np.int64)
+    cell -= cell.min(axis=0)  # the key's range only; the squares stay the lattice's
+    key: NDArray[np.int64] = cell[:, 0] * (int(cell[:, 1].max()) + 1) + cell[:, 1]
+    return key
+
+
+def _lowest(
+    xyz: NDArray[np.float64], size: float, lattice: tuple[float, float]
+) -> NDArray[np.int64]:
+    """Rows of the lowest point of each ``size`` square of ``lattice`` (ties: every tied
+    point), sorted."""
     if len(xyz) == 0:
         return np.zeros(0, dtype=np.int64)
-    cell = np.floor((xyz[:, :2] - xyz[:, :2].min(axis=0)) / size).astype(np.int64)
-    key = cell[:, 0] * (int(cell[:, 1].max()) + 1) + cell[:, 1]
+    key = _bins(xyz[:, :2], size, lattice)
     low = np.full(int(key.max()) + 1, np.inf)
     np.minimum.at(low, key, xyz[:, 2])
     return np.flatnonzero(xyz[:, 2] <= low[key])
@@ -120,24 +141,30 @@ def _csf(
         raise EnrichError(f"ground classification failed: {exc}", path=source) from exc
 
 
-def _dtm(ground: NDArray[np.float64], window: RasterGrid) -> NDArray[np.float32]:
+def _dtm(
+    ground: NDArray[np.float64], window: RasterGrid, lattice: tuple[float, float]
+) -> NDArray[np.float32]:
     """The window's DTM from the ground points near it, thinned to half a pixel."""
     xmin, ymin, xmax, ymax = window.bounds
     m = DTM_MARGIN_M
     x, y = ground[:, 0], ground[:, 1]
     near = (x >= xmin - m) & (x <= xmax + m) & (y >= ymin - m) & (y <= ymax + m)
     chosen = ground[near] if near.sum() >= 3 else ground
-    return dtm_from_ground(thin(chosen, window.pixel_size / 2), window)
+    return dtm_from_ground(thin(chosen, window.pixel_size / 2, lattice), window)
 
 
-def thin(points: NDArray[np.float64], spacing: float) -> NDArray[np.float64]:
-    """At most one point per ``spacing`` square (the first in file order, so unbiased in z):
-    a terrain model at pixel size p needs no more than ~4 ground points per p^2."""
+def thin(
+    points: NDArray[np.float64], spacing: float, lattice: tuple[float, float] = (0.0, 0.0)
+) -> NDArray[np.float64]:
+    """The point nearest the centre of each ``spacing`` square of ``lattice`` (ties by x, y,
+    z; unbiased in z, independent of the points' order): a terrain model at pixel size p
+    needs no more than ~4 ground points per p^2."""
     if len(points) < 1000:
         return points
-    bins = np.floor((points[:, :2] - points[:, :2].min(axis=0)) / spacing).astype(np.int64)
-    keys = bins[:, 0] * (int(bins[:, 1].max()) + 1) + bins[:, 1]
-    _, first = np.unique(keys, return_index=True)
-    return points[np.sort(first)]
-
-
+    key = _bins(points[:, :2], spacing, lattice)
+    centre = np.floor((points[:, :2] - np.asarray(lattice)) / spacing) + 0.5
+    offset = (points[:, :2] - np.asarray(lattice)) / spacing - centre
+    dist = (offset**2).sum(axis=1)
+    order = np.lexsort((points[:, 2], points[:, 1], points[:, 0], dist, key))
+    first = np.r_[True, key[order][1:] != key[order][:-1]]
+    return points[np.sort(order[first])]

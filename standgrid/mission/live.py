@@ -24,7 +24,12 @@ from typing import Literal
 import numpy as np
 
 from standgrid._atomic import atomic_output
-from standgrid.errors import MissionConsistencyError, MissionNotFoundError, StandgridError
+from standgrid.errors import (
+    MissionConsistencyError,
+    MissionNotFoundError,
+    PointCloudFormatError,
+    StandgridError,
+)
 from standgrid.geometry import Matrix4
 from standgrid.mission.clouds import CLOUD_EXTENSIONS, read_cloud
 from standgrid.mission.metadata import MissionMetadata, read_metadata, write_metadata
@@ -99,7 +104,7 @@ class LiveMission:
         if not extension.startswith("."):
             extension = "." + extension
         if extension not in CLOUD_EXTENSIONS:
-            raise StandgridError(
+            raise PointCloudFormatError(
                 f"unknown cloud format {extension!r}; one of {', '.join(CLOUD_EXTENSIONS)}"
             )
         self._require()

@@ -169,6 +169,7 @@ def _enrich_epoch(
     from standgrid.enrich.engine import BlockJob, EpochRasters, apply_blocks
     from standgrid.enrich.outputs import tree_table, write_coverage, write_raster
     from standgrid.enrich.rasters import RasterGrid
+    from standgrid.enrich.terrain import GROUND_HALO_M
 
     partition = catalog_partition(catalog, epoch, coverage=False)
     cells = _epoch_cells(catalog, epoch, partition)
@@ -186,7 +187,13 @@ def _enrich_epoch(
     # the buffer must reach every copy a tile holds, so those get heights and ids too; and
     # be wider than the coverage closing (2 x radius), so chunks agree with the whole epoch
     tiling_buffer = float(txn.state.get("tiling", {}).get("buffer", 0.0))
-    halo = max(options.halo, tiling_buffer, 2 * options.coverage_closing_m + 2 * grid.pixel_size)
+    # and hold every point CSF sees around the ground squares of the cells it owns
+    halo = max(
+        options.halo,
+        tiling_buffer,
+        2 * options.coverage_closing_m + 2 * grid.pixel_size,
+        GROUND_HALO_M,
+    )
     # 7/8 of the budget for a chunk's block, 1/8 for the tiles kept for later chunks
     budget = options.memory_budget
     side = chunk_side(cells, cell_size, halo, budget.bytes * 7 // 8 // BYTES_PER_POINT)

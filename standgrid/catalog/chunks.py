@@ -13,6 +13,7 @@ Everything here is plain, picklable data, so chunks run on dask workers as well 
 
 from __future__ import annotations
 
+import threading
 from collections import OrderedDict
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
@@ -153,7 +154,7 @@ def read_chunk(
 ) -> ChunkPoints:
     """Decode the chunk's own tiles and its neighbours' points in the buffer; tiles' core
     coordinates stay in this process's cache (up to ``cache_bytes``) for later chunks."""
-    _CORES.max_points = cache_bytes // CACHED_BYTES_PER_POINT
+    _CORES.resize(cache_bytes // CACHED_BYTES_PER_POINT)
     from standgrid.export.las import read_tile, snap_to_storage
 
     def read(cell: ChunkCell) -> PointCloud:
@@ -190,6 +191,7 @@ class _CoreCache:
         self.max_points = max_points
         self._items: OrderedDict[tuple[Any, ...], NDArray[np.float64]] = OrderedDict()
         self._points = 0
+        self._lock = threading.Lock()  # a dask worker may run tasks on several threads
 
     @staticmethod
     def _key(path: Path) -> tuple[Any, ...]:
@@ -198,18 +200,27 @@ class _CoreCache:
 
     def get(self, path: Path) -> NDArray[np.float64] | None:
         key = self._key(path)
-        found = self._items.get(key)
-        if found is not None:
-            self._items.move_to_end(key)
+        with self._lock:
+            found = self._items.get(key)
+            if found is not None:
+                self._items.move_to_end(key)
         return found
 
     def put(self, path: Path, xyz: NDArray[np.float64]) -> None:
         key = self._key(path)
-        if key in self._items or len(xyz) > self.max_points:
-            return
-        self._items[key] = xyz
-        self._points += len(xyz)
-        while self._points > self.max_points:
+        with self._lock:
+            if key not in self._items and len(xyz) <= self.max_points:
+                self._items[key] = xyz
+                self._points += len(xyz)
+            self._shrink()
+
+    def resize(self, max_points: int) -> None:
+        with self._lock:
+            self.max_points = max_points
+            self._shrink()
+
+    def _shrink(self) -> None:
+        while self._points > self.max_points and self._items:
             _, dropped = self._items.popitem(last=False)
             self._points -= len(dropped)
 

@@ -5,8 +5,10 @@ Over the whole block (the owned cells plus the neighbours' points in the buffer)
 observed, and tree crowns, tops and stems. Kept for the owned cells only: their points'
 classification, height and tree id, their raster pixels (DTM, CHM, density, observed, near
 ground), the trees whose top stands in them and one :class:`StandSample` per cell. The
-buffer must be wider than a crown and than twice the coverage closing radius, so that the
-owned part equals what one computation over the whole epoch would give.
+buffer must be wider than a crown, than twice the coverage closing radius and than the
+ground squares' halo (:data:`standgrid.enrich.terrain.GROUND_HALO_M`), so that the owned
+part is what one computation over the whole epoch gives, but for the terrain where the
+survey's edge limits the block's ground and crowns at the block's edge (docs/METRICS.md).
 """
 
 from __future__ import annotations

@@ -22,23 +22,15 @@ def main(
 ) -> dict[str, object]:
     from qgis.core import (
         Qgis,
-        QgsApplication,
         QgsMapRendererParallelJob,
         QgsMapSettings,
         QgsProject,
     )
     from qgis.PyQt.QtCore import QSize
     from qgis.PyQt.QtGui import QColor
+    from qgis_app import start_qgis
 
-    app = QgsApplication([], False)
-    app.initQgis()
-    messages: list[str] = []
-
-    def log(message: str, tag: str, level: int) -> None:
-        if level >= Qgis.Warning:
-            messages.append(f"{tag}: {message}")
-
-    QgsApplication.messageLog().messageReceived.connect(log)
+    app, messages = start_qgis()
     project = QgsProject.instance()
     bad: list[str] = []
     ok = project.read(project_path)

@@ -15,17 +15,10 @@ import sys
 
 
 def main(base: str, names: list[str]) -> dict[str, object]:
-    from qgis.core import Qgis, QgsApplication, QgsVectorLayer
+    from qgis.core import QgsVectorLayer
+    from qgis_app import start_qgis
 
-    app = QgsApplication([], False)
-    app.initQgis()
-    messages: list[str] = []
-
-    def log(message: str, tag: str, level: int) -> None:
-        if level >= Qgis.Warning:
-            messages.append(f"{tag}: {message}")
-
-    QgsApplication.messageLog().messageReceived.connect(log)
+    app, messages = start_qgis()
     out: dict[str, object] = {}
     for name in names:
         layer = QgsVectorLayer(f"url='{base}' typename='{name}'", name, "OAPIF")

@@ -6,13 +6,10 @@ from __future__ import annotations
 import json
 import os
 import subprocess
-from collections.abc import Iterator
 from pathlib import Path
 
 import pyogrio
 import pytest
-
-from tests.pipeline_fixtures import enriched_pair
 
 QGIS_PYTHON = "/usr/bin/python3"
 CHECKER = Path(__file__).with_name("qgis_oapif_check.py")
@@ -32,22 +29,10 @@ pytestmark = pytest.mark.skipif(
 )
 
 
-@pytest.fixture(scope="module")
-def catalog(tmp_path_factory: pytest.TempPathFactory) -> Path:
-    return enriched_pair(tmp_path_factory).path
-
-
-@pytest.fixture(scope="module")
-def base(catalog: Path) -> Iterator[str]:
-    from standgrid.serve import create_app
-    from standgrid.serve.server import running
-
-    with running(create_app(catalog)) as server:
-        assert server.base_url is not None
-        yield server.base_url
-
-
-def test_qgis_loads_every_collection_with_all_its_features(base: str, catalog: Path) -> None:
+def test_qgis_loads_every_collection_with_all_its_features(
+    enriched_base: str, enriched_catalog: Path
+) -> None:
+    base, catalog = enriched_base, enriched_catalog
     layers = sorted(
         n for n, _ in pyogrio.list_layers(catalog / "index.gpkg") if n != "layer_styles"
     )

@@ -18,7 +18,13 @@ from standgrid.enrich.coverage import (
 )
 from standgrid.enrich.metrics import tree_metrics
 from standgrid.enrich.rasters import RasterGrid
-from standgrid.enrich.stands import CoverageRule, StandSample, aggregate, stand_row
+from standgrid.enrich.stands import (
+    CoverageRule,
+    StandAggregator,
+    StandSample,
+    aggregate,
+    stand_row,
+)
 from standgrid.errors import EnrichError
 
 GRID = RasterGrid(0.0, 0.0, 1.0, 40, 40)
@@ -116,6 +122,54 @@ def test_a_stand_aggregates_its_measured_cells_over_the_whole_stand_area() -> No
     assert row["observed_fraction"] == pytest.approx(0.8)
     assert row["stems_ha"] == pytest.approx(20 * 14 / 0.8)
     assert row["area_m2"] == 10_000.0
+
+
+def test_stands_measured_as_their_cells_arrive_equal_stands_measured_at_once() -> None:
+    rng = np.random.default_rng(7)
+    stand_of: dict[str, str | None] = {}
+    cells = []
+    for s in range(3):  # three stands of 25 cells, one cell without enough coverage
+        for i in range(25):
+            cell_id = f"20m_E{s * 5 + i % 5}_N{i // 5}"
+            stand_of[cell_id] = f"100m_E{s}_N0"
+            observed = 10.0 if (s, i) == (1, 3) else 400.0
+            heights = rng.gamma(2.0, 4.0, 1000).astype(np.float32)
+            cells.append(StandSample(cell_id, 0, 20.0, 400.0, observed, 1200, heights, _trees(2)))
+    stand_of["20m_E99_N0"] = None  # a cell outside every stand
+    cells.append(StandSample("20m_E99_N0", 0, 20.0, 400.0, 400.0, 9, np.ones(9), _trees(0)))
+    rule = CoverageRule()
+
+    def members(stand: str) -> list[StandSample]:
+        return [c for c in cells if stand_of[c.stand_id] == stand and c.measured(rule)]
+
+    stand_ids = ("100m_E0_N0", "100m_E1_N0", "100m_E2_N0")
+    expected = [stand_row(aggregate(s, 100.0, 10_000.0, members(s)), rule) for s in stand_ids]
+    aggregator = StandAggregator(stand_of, 100.0, rule, height_break=2.0)
+    order = rng.permutation(len(cells))
+    for batch in np.array_split(order, 7):
+        aggregator.add([cells[k] for k in batch])
+    stands = aggregator.result()
+    assert tuple(s.stand_id for s in stands) == stand_ids
+    assert sum(len(c.heights) for c in cells) == 0  # every cell's heights released
+    assert len(stands[1].members) == 24  # the sparse cell is not part of its stand
+    got = [stand_row(s, rule) for s in stands]
+    for a, b in zip(got, expected, strict=True):
+        assert a.keys() == b.keys()
+        for key in a:
+            if isinstance(b[key], float):  # sums in another order: equal to round-off
+                assert a[key] == pytest.approx(b[key], rel=1e-12, nan_ok=True), key
+            else:
+                assert a[key] == b[key], key
+
+
+def test_a_stand_missing_a_cell_is_an_error_not_a_partial_stand() -> None:
+    stand_of: dict[str, str | None] = {"20m_E0_N0": "100m_E0_N0", "20m_E1_N0": "100m_E0_N0"}
+    aggregator = StandAggregator(stand_of, 100.0, CoverageRule(), height_break=2.0)
+    aggregator.add(
+        [StandSample("20m_E0_N0", 0, 20.0, 400.0, 400.0, 9, np.ones(9, np.float32), _trees(0))]
+    )
+    with pytest.raises(EnrichError, match="still miss cells"):
+        aggregator.result()
 
 
 def test_basal_area_is_null_when_a_tree_has_no_dbh_and_reports_the_measured_share() -> None:

@@ -21,7 +21,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from standgrid.enrich.rasters import RasterGrid
-from standgrid.enrich.stands import StandSample, stem_xy
+from standgrid.enrich.stands import StandSample, measure_heights, stem_xy
 
 if TYPE_CHECKING:
     import pandas as pd
@@ -119,6 +119,11 @@ def enrich_block(points: ChunkPoints, context: BlockContext) -> BlockResult:
                 no_ground=empty,
             )
         )
+    measure_heights(samples, height_break=options.height_break)
+    rule = options.coverage_rule
+    for cell, sample in zip(chunk.cells, samples, strict=True):
+        if cell.stand_id is None or not sample.measured(rule):
+            sample.release_heights()  # only a coarser stand of measured cells needs them
     fields: dict[str, NDArray[Any]] = {
         "classification": np.where(ground, GROUND, OTHER).astype(np.uint8),
         "height_above_ground": hag,

@@ -157,14 +157,22 @@ def _sorted_metrics(
     if n_groups == 0:
         names = ["n_height", *_metric_names(height_break, strata)]
         return {name: np.zeros(0) for name in names}
-    keyed = np.empty(len(h), dtype=np.complex128)
-    keyed.real = group
-    keyed.imag = h
-    keyed.sort()
-    z = np.ascontiguousarray(keyed.imag)
     counts = np.bincount(group, minlength=n_groups)
     starts = np.concatenate([[0], np.cumsum(counts)[:-1]])
     ends = starts + counts
+    keyed = np.empty(len(h), dtype=np.complex128)
+    keyed.real = group
+    if len(h) >= 64 * n_groups and bool((group[1:] >= group[:-1]).all()):
+        # already grouped (stands measured one after another): sorting each group's heights
+        # gives the same order as the complex sort, several times faster
+        z = h.copy()
+        for start, end in zip(starts, ends, strict=True):
+            z[start:end].sort()
+        keyed.imag = z
+    else:
+        keyed.imag = h
+        keyed.sort()
+        z = np.ascontiguousarray(keyed.imag)
     n = counts.astype(np.float64)
     group_ids = np.arange(n_groups, dtype=np.float64)
 

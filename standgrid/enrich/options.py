@@ -5,6 +5,7 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 
 from standgrid.engine.budget import MemoryBudget
+from standgrid.enrich.stands import CoverageRule
 
 
 @dataclass(frozen=True)
@@ -24,3 +25,8 @@ class EnrichOptions:
     epochs: tuple[str, ...] = ()
     #: what one process (each dask worker) may hold for a chunk; sizes the chunks
     memory_budget: MemoryBudget = field(default_factory=MemoryBudget)
+
+    @property
+    def coverage_rule(self) -> CoverageRule:
+        """The least a stand must have observed for its metrics to be reported."""
+        return CoverageRule(self.min_observed_fraction, self.min_density_pts_m2)

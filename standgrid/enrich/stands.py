@@ -81,15 +81,40 @@ class StandSample:
     observed_m2: float
     #: every return of the stand, observed ground or not
     n_points: int
-    #: heights above ground of the returns on observed ground (NaN: no terrain height)
+    #: heights above ground of the returns on observed ground (NaN: no terrain height);
+    #: may be released once :attr:`area` is measured (:meth:`release_heights`)
     heights: NDArray[np.floating]
     #: trees whose stem (or top, without a stem fit) stands on observed ground
     trees: pd.DataFrame
     no_ground: bool = False
+    #: the area-based metrics of ``heights`` (:func:`measure_heights`), once measured
+    area: dict[str, Any] | None = None
+    #: the cells a coarser stand aggregates (their trees are its trees)
+    members: tuple[str, ...] = ()
+    #: returns on observed ground (``len(heights)`` until the heights are released)
+    n_on_observed: int = -1
+
+    def __post_init__(self) -> None:
+        if self.n_on_observed < 0:
+            self.n_on_observed = len(self.heights)
 
     @property
     def observed_fraction(self) -> float:
         return self.observed_m2 / self.area_m2 if self.area_m2 > 0 else math.nan
+
+    def density(self) -> float:
+        """Returns per square metre of observed ground."""
+        return self.n_on_observed / self.observed_m2 if self.observed_m2 > 0 else math.nan
+
+    def measured(self, rule: CoverageRule) -> bool:
+        """Whether the stand gets metrics: it has terrain and passes the coverage rule."""
+        return not self.no_ground and rule.shortfall(self.observed_fraction, self.density()) is None
+
+    def release_heights(self) -> None:
+        """Drop the heights (their metrics are measured), keeping their count."""
+        if self.area is None:
+            raise EnrichError(f"stand {self.stand_id}: heights released before measured")
+        self.heights = np.zeros(0, dtype=np.float32)
 
 
 def stand_row(
@@ -102,36 +127,54 @@ def stand_row(
 def stand_rows_of(
     samples: list[StandSample], rule: CoverageRule, *, height_break: float = 2.0
 ) -> list[dict[str, Any]]:
-    """The ``stand_metrics`` row of each sample (metrics computed for many at once, in
-    batches of at most :data:`BATCH_HEIGHTS` heights, so memory stays bounded)."""
+    """The ``stand_metrics`` row of each sample (area metrics measured where not yet, tree
+    metrics for many at once)."""
+    measure_heights(samples, height_break=height_break)
     rows: list[dict[str, Any]] = []
+    for start in range(0, len(samples), TREE_BATCH):
+        rows += _batch_rows(samples[start : start + TREE_BATCH], rule)
+    return rows
+
+
+#: Heights measured at once (~100 MB of working arrays).
+BATCH_HEIGHTS = 2_000_000
+#: Stands whose tree metrics are computed at once.
+TREE_BATCH = 10_000
+
+
+def measure_heights(samples: list[StandSample], *, height_break: float = 2.0) -> None:
+    """Fill :attr:`StandSample.area` of the samples not measured yet, many at once, in
+    batches of at most :data:`BATCH_HEIGHTS` heights (memory stays bounded)."""
     batch: list[StandSample] = []
     size = 0
-    for sample in samples:
+    for sample in (s for s in samples if s.area is None):
         if batch and size + len(sample.heights) > BATCH_HEIGHTS:
-            rows += _batch_rows(batch, rule, height_break)
+            _measure_batch(batch, height_break)
             batch, size = [], 0
         batch.append(sample)
         size += len(sample.heights)
-    return rows + _batch_rows(batch, rule, height_break) if batch else rows
+    if batch:
+        _measure_batch(batch, height_break)
 
 
-#: Heights of one batch of stand rows (~100 MB of working arrays).
-BATCH_HEIGHTS = 2_000_000
-
-
-def _batch_rows(
-    samples: list[StandSample], rule: CoverageRule, height_break: float
-) -> list[dict[str, Any]]:
-    from standgrid.enrich.metrics import area_metrics, tree_metrics
+def _measure_batch(samples: list[StandSample], height_break: float) -> None:
+    from standgrid.enrich.metrics import area_metrics
 
     keys = np.arange(len(samples), dtype=np.int64)
-    area_table = area_metrics(
+    table = area_metrics(
         np.repeat(keys, [len(s.heights) for s in samples]),
         np.concatenate([np.asarray(s.heights, dtype=np.float64) for s in samples]),
         cells=keys,
         height_break=height_break,
     )
+    for sample, row in zip(samples, table.to_dict("records"), strict=True):
+        sample.area = row
+
+
+def _batch_rows(samples: list[StandSample], rule: CoverageRule) -> list[dict[str, Any]]:
+    from standgrid.enrich.metrics import tree_metrics
+
+    keys = np.arange(len(samples), dtype=np.int64)
     with_trees = [(k, s.trees) for k, s in enumerate(samples) if len(s.trees)]
     trees = (
         pd.concat([t.assign(_key=k) for k, t in with_trees], ignore_index=True)
@@ -147,11 +190,9 @@ def _batch_rows(
         cells=keys,
         dbh_measured=None if source is None else (source == "measured").to_numpy(dtype=bool),
     )
-    area_rows = area_table.to_dict("records")
-    tree_rows = tree_table.to_dict("records")
     return [
-        _row(sample, area_row, tree_row, rule)
-        for sample, area_row, tree_row in zip(samples, area_rows, tree_rows, strict=True)
+        _row(sample, sample.area or {}, tree_row, rule)
+        for sample, tree_row in zip(samples, tree_table.to_dict("records"), strict=True)
     ]
 
 
@@ -159,8 +200,8 @@ def _row(
     sample: StandSample, area_row: dict[str, Any], tree_row: dict[str, Any], rule: CoverageRule
 ) -> dict[str, Any]:
     observed = sample.observed_m2
-    n_on_observed = len(sample.heights)
-    density = n_on_observed / observed if observed > 0 else math.nan
+    n_on_observed = sample.n_on_observed
+    density = sample.density()
     row: dict[str, Any] = {
         "cell_id": sample.stand_id,
         "level": sample.level,
@@ -192,12 +233,6 @@ def _row(
     return row
 
 
-def passes(row: dict[str, Any]) -> bool:
-    """Whether a stand row was measured (not null for lack of coverage or terrain)."""
-    reason = row.get("null_reason")
-    return not (isinstance(reason, str) and reason.startswith((INSUFFICIENT_COVERAGE, NO_TERRAIN)))
-
-
 def aggregate(
     stand_id: str, cell_size: float, area_m2: float, members: list[StandSample]
 ) -> StandSample:
@@ -219,7 +254,69 @@ def aggregate(
             else pd.DataFrame({"height_m": [], "dbh_m": []})
         ),
         no_ground=False,
+        members=tuple(m.stand_id for m in members),
     )
+
+
+class StandAggregator:
+    """Coarser stands measured as soon as all their cells are in, so a cell's heights are
+    held only until its stand is complete (cells arrive chunk by chunk)."""
+
+    def __init__(
+        self,
+        stand_of: dict[str, str | None],
+        stand_size: float | None,
+        rule: CoverageRule,
+        *,
+        height_break: float,
+    ) -> None:
+        self.stand_size = stand_size
+        self.rule = rule
+        self.height_break = height_break
+        self.stand_of = stand_of if stand_size is not None else {}
+        self._waiting: dict[str, int] = {}
+        for stand in self.stand_of.values():
+            if stand is not None:
+                self._waiting[stand] = self._waiting.get(stand, 0) + 1
+        self._members: dict[str, list[StandSample]] = {s: [] for s in self._waiting}
+        self.stands: dict[str, StandSample] = {}
+
+    def holds(self, sample: StandSample) -> bool:
+        """Whether a cell's heights are still needed (it counts toward a coarser stand)."""
+        return self.stand_of.get(sample.stand_id) is not None and sample.measured(self.rule)
+
+    def add(self, cells: list[StandSample]) -> None:
+        """Take measured cells; measure the stands they complete; release the cells' heights."""
+        measure_heights(cells, height_break=self.height_break)
+        complete: list[str] = []
+        for cell in cells:
+            stand = self.stand_of.get(cell.stand_id)
+            if stand is not None and self.holds(cell):
+                self._members[stand].append(cell)
+            elif len(cell.heights):
+                cell.release_heights()
+            if stand is not None:
+                self._waiting[stand] -= 1
+                if self._waiting[stand] == 0:
+                    complete.append(stand)
+        size = self.stand_size or 0.0  # complete stands exist only with a stand size
+        done = []
+        for stand_id in complete:
+            members = self._members.pop(stand_id)
+            done.append(aggregate(stand_id, size, size * size, members))
+            for member in members:
+                member.release_heights()  # the stand holds a copy
+        measure_heights(done, height_break=self.height_break)
+        for sample in done:
+            sample.release_heights()
+            self.stands[sample.stand_id] = sample
+
+    def result(self) -> list[StandSample]:
+        """Every coarser stand, sorted by id (all cells must have been added)."""
+        missing = sorted(s for s, n in self._waiting.items() if n > 0)
+        if missing:
+            raise EnrichError(f"stands {missing[:5]} still miss cells")
+        return [self.stands[s] for s in sorted(self.stands)]
 
 
 def stem_xy(trees: pd.DataFrame) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
@@ -248,32 +345,24 @@ def _text(value: Any) -> bool:
 
 
 def stand_rows(
-    samples: list[StandSample],
-    stand_of: dict[str, str | None],
+    cells: list[StandSample],
+    stands: list[StandSample],
     trees: pd.DataFrame,
     rule: CoverageRule,
     *,
     height_break: float,
-    stand_size: float | None,
 ) -> list[dict[str, Any]]:
-    """Every cell's row, then every coarser stand's (``stand_size``, the grid's next level)
-    over its measured cells: a stand aggregates the observed ground, points and trees of its
-    cells that pass the coverage rule; its area is the whole stand's."""
+    """Every cell's row, then every coarser stand's (from :class:`StandAggregator`): a stand
+    aggregates the observed ground, points and trees of its cells that pass the coverage
+    rule; its area is the whole stand's."""
     on_ground = trees[trees["observed"]] if len(trees) else trees
     by_cell = dict(tuple(on_ground.groupby("cell_id"))) if len(on_ground) else {}
-    for sample in samples:
-        sample.trees = by_cell.get(sample.stand_id, trees.iloc[0:0])
-    rows = stand_rows_of(samples, rule, height_break=height_break)
-    if stand_size is None:
-        return rows
-    measured = [s for s, row in zip(samples, rows, strict=True) if passes(row)]
-    stands = [
-        aggregate(
-            stand_id,
-            stand_size,
-            stand_size * stand_size,
-            [m for m in measured if stand_of[m.stand_id] == stand_id],
-        )
-        for stand_id in sorted({s for s in stand_of.values() if s is not None})
-    ]
-    return rows + stand_rows_of(stands, rule, height_break=height_break)
+    empty = trees.iloc[0:0]
+    for cell in cells:
+        cell.trees = by_cell.get(cell.stand_id, empty)
+    for stand in stands:
+        frames = [by_cell[m] for m in stand.members if m in by_cell]
+        stand.trees = pd.concat(frames, ignore_index=True) if frames else empty
+    return stand_rows_of(cells, rule, height_break=height_break) + stand_rows_of(
+        stands, rule, height_break=height_break
+    )

@@ -26,7 +26,7 @@ import numpy as np
 from standgrid.catalog import paths
 from standgrid.engine import SILENT, Progress
 from standgrid.enrich.options import EnrichOptions
-from standgrid.enrich.stands import CoverageRule, StandSample
+from standgrid.enrich.stands import StandAggregator, StandSample
 from standgrid.errors import EnrichError, EpochNotFoundError
 
 if TYPE_CHECKING:
@@ -102,7 +102,7 @@ def _enrich(
         raise EnrichError(
             "the catalog has no epochs: tile missions into it first", path=catalog.root
         )
-    rule = CoverageRule(options.min_observed_fraction, options.min_density_pts_m2)
+    rule = options.coverage_rule
     report = EnrichReport(catalog.root)
     metric_tables: dict[str, pd.DataFrame] = {}
     tree_tables: dict[str, pd.DataFrame] = {}
@@ -121,9 +121,8 @@ def _enrich(
         for epoch, result in results.items():
             trees = impute_dbh(result.trees, models[epoch])
             rows = stand_rows(
-                result.samples, result.stand_of, trees, rule,
-                height_break=options.height_break, stand_size=result.stand_size,
-            )  # fmt: skip
+                result.samples, result.stands, trees, rule, height_break=options.height_break
+            )
             metric_tables[epoch] = metrics_table(rows, epoch)
             tree_tables[epoch] = trees
             summary = result.summary | tree_summary(trees, models[epoch])
@@ -142,12 +141,11 @@ def _enrich(
 
 @dataclass
 class _EpochResult:
-    """An epoch after the chunk engine: per-cell samples (trees not yet attached), trees."""
+    """An epoch after the chunk engine: cells and coarser stands, measured (trees not yet
+    attached), and the trees."""
 
     samples: list[StandSample]
-    stand_of: dict[str, str | None]
-    #: side of the coarser stands (1 ha: 100 m) the cells aggregate into; None without
-    stand_size: float | None
+    stands: list[StandSample]
     trees: pd.DataFrame
     summary: dict[str, Any]
 
@@ -216,11 +214,19 @@ def _enrich_epoch(
         f"{epoch}: {len(cells)} cells in {len(chunks)} chunks of up to {side:g} m "
         f"(+{halo:g} m buffer) on {executor.workers} worker(s)"
     )
+    stand_of = {c.cell_id: c.stand_id for c in cells}
+    stand_ids = sorted({s for s in stand_of.values() if s is not None})
+    # side of the coarser stands (1 ha: 100 m) the cells aggregate into
+    stand_size = partition.cell_size(stand_ids[0]) if stand_ids else None
+    stands = StandAggregator(
+        stand_of, stand_size, options.coverage_rule, height_break=options.height_break
+    )
     rasters = EpochRasters.empty(grid)
     samples: list[StandSample] = []
     tree_frames = []
     for job, result in apply_blocks(jobs, executor, progress, f"{epoch}: chunks"):
         rasters.paste(job.chunk, result)
+        stands.add(result.samples)
         samples.extend(result.samples)
         tree_frames.append(result.trees)
     if all(s.no_ground for s in samples):
@@ -254,10 +260,7 @@ def _enrich_epoch(
         "observed_m2": observed_m2,
         "observed_fraction": observed_m2 / float(sum(p.area for p in polygons)),
     }
-    stand_of = {c.cell_id: c.stand_id for c in cells}
-    stands = sorted({s for s in stand_of.values() if s is not None})
-    stand_size = partition.cell_size(stands[0]) if stands else None
-    return _EpochResult(samples, stand_of, stand_size, trees, summary)
+    return _EpochResult(samples, stands.result(), trees, summary)
 
 
 def _epoch_cells(catalog: Catalog, epoch: str, partition: Partition) -> list[ChunkCell]:

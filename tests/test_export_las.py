@@ -11,7 +11,7 @@ import pytest
 from shapely.geometry import box
 
 from standgrid.errors import CRSError, PointCloudFormatError
-from standgrid.export.las import read_tile, write_tile
+from standgrid.export.las import read_tile, read_tile_record, rewrite_tile, write_tile
 from standgrid.pointcloud import PointCloud
 from standgrid.stamps import unix_ns_to_adjusted_gps_time
 from tests.conftest import real_file
@@ -223,3 +223,63 @@ def test_stored_coordinates_stay_on_an_off_metre_grid_lattice(tmp_path: Path) ->
     np.testing.assert_array_equal(
         grid.cell_keys(back[:, 0], back[:, 1]), grid.cell_keys(xyz[:, 0], xyz[:, 1])
     )
+
+
+@pytest.mark.parametrize("suffix", [".las", ".laz"])
+def test_rewrite_tile_equals_writing_the_cloud_with_the_new_fields(
+    tmp_path: Path, suffix: str
+) -> None:
+    core, buffer = make_cloud(1500), make_cloud(200, seed=1, source=4)
+    source = tmp_path / f"source{suffix}"
+    write_tile(source, core, crs=CRS, buffer=buffer)
+    rng = np.random.default_rng(5)
+    n = 1700
+    new = {
+        "classification": rng.integers(1, 3, n).astype(np.uint8),
+        "height_above_ground": rng.normal(10.0, 5.0, n).astype(np.float32),
+        "ring": rng.integers(0, 2**20, n).astype(np.uint32),  # stored as u2 before: re-typed
+    }
+    rewritten = tmp_path / f"rewritten{suffix}"
+    rewrite_tile(read_tile_record(source), rewritten, new, source=source)
+
+    # the same cloud and fields written from scratch
+    def with_new(cloud: PointCloud, rows: slice) -> PointCloud:
+        return PointCloud(cloud.xyz, cloud.fields | {k: v[rows] for k, v in new.items()})
+
+    expected = tmp_path / f"expected{suffix}"
+    write_tile(expected, with_new(core, slice(0, 1500)), crs=CRS,
+               buffer=with_new(buffer, slice(1500, n)))  # fmt: skip
+    got, want = (
+        read_tile(rewritten, include_withheld=True),
+        read_tile(expected, include_withheld=True),
+    )
+    assert np.array_equal(got.xyz, want.xyz)
+    assert list(got.fields) == list(want.fields)
+    for name, values in want.fields.items():
+        assert got.fields[name].dtype == values.dtype, name
+        assert np.array_equal(got.fields[name], values), name
+    las = laspy.read(rewritten)  # a second reader: the stored dimensions themselves
+    assert np.array_equal(np.asarray(las.classification), new["classification"])
+    assert np.array_equal(np.asarray(las["ring"]), new["ring"])
+    assert np.array_equal(np.asarray(las["height_above_ground"]), new["height_above_ground"])
+    assert las.header.parse_crs().to_epsg() == 32632
+    with laspy.open(rewritten) as reader:
+        assert reader.header.are_points_compressed == (suffix == ".laz")
+
+
+def test_rewrite_tile_refuses_wrong_lengths_and_foreign_files(tmp_path: Path) -> None:
+    source = tmp_path / "tile.laz"
+    write_tile(source, make_cloud(100), crs=CRS)
+    record = read_tile_record(source)
+    with pytest.raises(PointCloudFormatError, match="99"):
+        rewrite_tile(record, tmp_path / "out.laz", {"tree_id": np.zeros(99, np.uint32)},
+                     source=source)  # fmt: skip
+    with pytest.raises(PointCloudFormatError, match="cannot be rewritten"):
+        rewrite_tile(record, tmp_path / "out.laz", {"x": np.zeros(100)}, source=source)
+    foreign = tmp_path / "foreign.las"
+    las = laspy.create(point_format=6, file_version="1.4")
+    las.x = np.arange(5.0)
+    las.write(foreign)
+    with pytest.raises(PointCloudFormatError, match="not a standgrid tile"):
+        rewrite_tile(read_tile_record(foreign), tmp_path / "o.las", {}, source=foreign)
+    assert not (tmp_path / "out.laz").exists() and not (tmp_path / "o.las").exists()

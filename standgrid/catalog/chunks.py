@@ -23,8 +23,6 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from standgrid.pointcloud import PointCloud
-
 #: Bytes a chunk's computation holds per point of its block (the decoded tiles, the block's
 #: coordinates and every per-point array a pass keeps), used to size chunks to the budget.
 BYTES_PER_POINT = 500
@@ -127,6 +125,18 @@ def plan_chunks(
 
 
 @dataclass
+class OwnedTile:
+    """A chunk's own tile as stored (rewritten with the chunk's fields) and its buffer copies."""
+
+    path: str
+    #: the ``laspy.LasData`` read
+    record: Any
+    withheld: NDArray[np.bool_]
+    #: coordinates of the withheld points (copies of other cells' points), on the lattice
+    buffer_xyz: NDArray[np.float64]
+
+
+@dataclass
 class ChunkPoints:
     """A chunk's points: the owned tiles' core points first (in ``chunk.cells`` order), then
     the neighbours' core points inside the buffered bounds.
@@ -138,7 +148,7 @@ class ChunkPoints:
     chunk: Chunk
     xyz: NDArray[np.float64]
     cell_rows: list[slice]
-    tiles: list[PointCloud]
+    tiles: list[OwnedTile]
 
     @property
     def n_core(self) -> int:
@@ -155,17 +165,17 @@ def read_chunk(
     """Decode the chunk's own tiles and its neighbours' points in the buffer; tiles' core
     coordinates stay in this process's cache (up to ``cache_bytes``) for later chunks."""
     _CORES.resize(cache_bytes // CACHED_BYTES_PER_POINT)
-    from standgrid.export.las import read_tile, snap_to_storage
+    from standgrid.export.las import read_tile_record, snap_to_storage
 
-    def read(cell: ChunkCell) -> PointCloud:
-        cloud = read_tile(Path(root) / cell.tile, include_withheld=True)
-        return PointCloud(snap_to_storage(cloud.xyz, lattice_origin), cloud.fields)
-
-    tiles = [read(cell) for cell in chunk.cells]
-    parts, rows, start = [], [], 0
-    for cell, cloud in zip(chunk.cells, tiles, strict=True):
-        core = cloud.xyz[~cloud.fields["withheld"].astype(bool)]
-        _CORES.put(Path(root) / cell.tile, core)  # a later chunk's neighbour
+    tiles, parts, rows, start = [], [], [], 0
+    for cell in chunk.cells:
+        path = Path(root) / cell.tile
+        record = read_tile_record(path)
+        withheld = np.asarray(record.withheld, dtype=bool)
+        stored = snap_to_storage(_xyz(record), lattice_origin)
+        core = stored[~withheld]
+        _CORES.put(path, core)  # a later chunk's neighbour
+        tiles.append(OwnedTile(str(path), record, withheld, stored[withheld]))
         parts.append(core)
         rows.append(slice(start, start + len(core)))
         start += len(core)
@@ -236,21 +246,26 @@ def _core_xyz(path: Path) -> NDArray[np.float64]:
     layers of a LAZ 1.4 tile (a neighbour lends its points to the buffer, nothing else)."""
     import laspy
 
-    from standgrid.errors import PointCloudFormatError
-    from standgrid.mission.clouds import check_las_size
+    from standgrid.export.las import read_tile_record
 
-    check_las_size(path)
     layers = (
         laspy.DecompressionSelection.XY_RETURNS_CHANNEL
         | laspy.DecompressionSelection.Z
         | laspy.DecompressionSelection.FLAGS
     )
-    try:
-        las = laspy.read(path, decompression_selection=layers)
-    except (laspy.errors.LaspyException, OSError, ValueError, RuntimeError) as exc:
-        raise PointCloudFormatError(f"cannot read LAS/LAZ: {exc}", path=path) from exc
-    core = ~np.asarray(las.withheld, dtype=bool)
-    return np.column_stack([np.asarray(las.x), np.asarray(las.y), np.asarray(las.z)])[core]
+    las = read_tile_record(path, decompression_selection=layers)
+    return _xyz(las)[~np.asarray(las.withheld, dtype=bool)]
+
+
+def _xyz(las: Any) -> NDArray[np.float64]:
+    """The scaled coordinates of a ``laspy.LasData`` as one (N, 3) float64 array."""
+    xyz = np.empty((len(las.points), 3), dtype=np.float64)
+    for k, (stored, scale, offset) in enumerate(
+        zip((las.X, las.Y, las.Z), las.header.scales, las.header.offsets, strict=True)
+    ):
+        np.multiply(stored, scale, out=xyz[:, k])
+        xyz[:, k] += offset
+    return xyz
 
 
 def tile_rows(points: ChunkPoints, k: int) -> NDArray[np.int64]:
@@ -258,13 +273,13 @@ def tile_rows(points: ChunkPoints, k: int) -> NDArray[np.int64]:
     for a buffer copy whose original lies outside the block."""
     from scipy.spatial import cKDTree
 
-    cloud = points.tiles[k]
-    withheld = cloud.fields["withheld"].astype(bool)
-    rows = np.empty(len(cloud), dtype=np.int64)
+    tile = points.tiles[k]
+    withheld = tile.withheld
+    rows = np.empty(len(withheld), dtype=np.int64)
     span = points.cell_rows[k]
     rows[~withheld] = np.arange(span.start, span.stop)
     if withheld.any():
-        wanted = cloud.xyz[withheld]
+        wanted = tile.buffer_xyz
         lo, hi = wanted.min(axis=0) - 1e-3, wanted.max(axis=0) + 1e-3
         inside = np.flatnonzero(((points.xyz >= lo) & (points.xyz <= hi)).all(axis=1))
         rows[withheld] = -1
@@ -279,37 +294,23 @@ def write_chunk_tiles(
     fields: Mapping[str, NDArray[Any]],
     missing: Mapping[str, Any],
     targets: Sequence[str],
-    *,
-    crs: str,
-    lattice_origin: tuple[float, float],
 ) -> None:
     """Write every owned tile again with ``fields`` (per block row) set on its points.
 
     A buffer copy whose original is outside the block gets ``missing[name]``. ``targets[k]``
     is where tile k goes (the transaction's staged path). Other fields are kept as read.
     """
-    from standgrid.export.las import write_tile
+    from standgrid.export.las import rewrite_tile
 
-    for k, (cell, cloud, target) in enumerate(
-        zip(points.chunk.cells, points.tiles, targets, strict=True)
-    ):
+    for k, (tile, target) in enumerate(zip(points.tiles, targets, strict=True)):
         rows = tile_rows(points, k)
         found = rows >= 0
-        new = {name: v for name, v in cloud.fields.items() if name != "withheld"}
+        new = {}
         for name, values in fields.items():
-            out = np.full(len(cloud), missing[name], dtype=values.dtype)
+            out = np.full(len(rows), missing[name], dtype=values.dtype)
             out[found] = values[rows[found]]
             new[name] = out
-        withheld = cloud.fields["withheld"].astype(bool)
-        core = ~withheld
-        write_tile(
-            target,
-            PointCloud(cloud.xyz[core], {n: v[core] for n, v in new.items()}),
-            crs=crs,
-            buffer=PointCloud(cloud.xyz[withheld], {n: v[withheld] for n, v in new.items()}),
-            core_bounds=cell.polygon,
-            lattice_origin=lattice_origin,
-        )
+        rewrite_tile(tile.record, target, new, source=tile.path, durable=False)
 
 
 def cells_of(records: Any, stand_of: Any = None) -> list[ChunkCell]:

@@ -32,7 +32,6 @@ class BlockJob:
     root: str
     targets: tuple[str, ...]
     context: BlockContext
-    crs: str
     lattice_origin: tuple[float, float]
     #: bytes of this process's budget that keep tiles' coordinates for later chunks
     cache_bytes: int = 0
@@ -49,8 +48,6 @@ def run_block(job: BlockJob) -> BlockResult:
         result.fields,
         {"classification": 1, "height_above_ground": np.nan, "tree_id": 0},
         job.targets,
-        crs=job.crs,
-        lattice_origin=job.lattice_origin,
     )
     result.fields = {}  # written; not shipped back
     return result

@@ -325,11 +325,7 @@ def write_tile(
         withheld[n_core:] = 1
         las.withheld = withheld
 
-    backend = laspy.LazBackend.LazrsParallel if laz else None
-    # A file object: given a path, laspy picks compression from the (temporary) suffix.
-    staged = atomic_output(out, overwrite=overwrite, durable=durable)
-    with staged as tmp, open(tmp, "wb") as stream:
-        las.write(stream, do_compress=bool(laz), laz_backend=backend)
+    _write_las(las, out, laz=bool(laz), overwrite=overwrite, durable=durable)
 
     z = core.xyz[:, 2]
     if n_core:
@@ -372,6 +368,84 @@ def write_tile(
     )
 
 
+def _write_las(las: Any, out: Path, *, laz: bool, overwrite: bool, durable: bool) -> None:
+    """Write ``las`` to ``out`` atomically (LAZ with the parallel lazrs backend)."""
+    import laspy
+
+    backend = laspy.LazBackend.LazrsParallel if laz else None
+    # A file object: given a path, laspy picks compression from the (temporary) suffix.
+    staged = atomic_output(out, overwrite=overwrite, durable=durable)
+    with staged as tmp, open(tmp, "wb") as stream:
+        las.write(stream, do_compress=laz, laz_backend=backend)
+
+
+def read_tile_record(path: str | os.PathLike[str], **options: Any) -> Any:
+    """A tile's ``laspy.LasData`` as stored (its size checked first); ``options`` go to
+    ``laspy.read`` (e.g. ``decompression_selection``)."""
+    import laspy
+
+    from standgrid.mission.clouds import check_las_size
+
+    src = Path(path)
+    check_las_size(src)
+    try:
+        return laspy.read(src, **options)
+    except (laspy.errors.LaspyException, OSError, ValueError, RuntimeError) as exc:
+        # lazrs.LazrsError is a RuntimeError
+        raise PointCloudFormatError(f"cannot read LAS/LAZ: {exc}", path=src) from exc
+
+
+def rewrite_tile(
+    record: Any,
+    path: str | os.PathLike[str],
+    fields: dict[str, NDArray[Any]],
+    *,
+    source: str | os.PathLike[str],
+    durable: bool = True,
+) -> None:
+    """Write a tile read with :func:`read_tile_record` (from ``source``) to ``path`` with
+    ``fields`` (one value per stored point, withheld included) set, added when missing; every
+    other dimension, the header's offsets and the points' order are kept as stored, so
+    :func:`read_tile` of the result equals :func:`write_tile` of the same cloud and fields."""
+    import laspy
+
+    out, src = Path(path), Path(source)
+    manifest = _manifest(record, src)
+    if manifest is None:
+        raise PointCloudFormatError("not a standgrid tile (no field manifest)", path=src)
+    for name, values in fields.items():
+        if len(values) != len(record.points) or values.ndim != 1:
+            raise PointCloudFormatError(
+                f"field {name!r} has {values.shape} values for {len(record.points)} points",
+                path=src,
+            )
+        stored = values.astype(np.uint8) if values.dtype == np.bool_ else values
+        if name in _STANDARD_FIELDS:
+            if name in _RANGES:
+                _check_range(name, values, out)
+        elif name in _LAS_DIMENSION_NAMES or name == "intensity_raw":
+            raise PointCloudFormatError(f"field {name!r} cannot be rewritten", path=src)
+        else:
+            if name in manifest and manifest[name] != values.dtype.str:
+                record.remove_extra_dim(name)  # stored with another type: stored anew
+            if name not in record.point_format.extra_dimension_names:
+                record.add_extra_dim(
+                    laspy.ExtraBytesParams(
+                        name=name,
+                        type=_extra_type(name, values, out),
+                        description="bool" if values.dtype == np.bool_ else "",
+                    )
+                )
+        record[name] = stored
+        manifest[name] = values.dtype.str
+    for vlr in record.header.vlrs:
+        if getattr(vlr, "user_id", None) == VLR_USER_ID and vlr.record_id == VLR_RECORD_ID:
+            data = json.loads(bytes(vlr.record_data).decode())
+            data["fields"] = manifest
+            vlr.record_data = json.dumps(data).encode()
+    _write_las(record, out, laz=out.suffix.lower() == ".laz", overwrite=True, durable=durable)
+
+
 def _manifest(las: Any, path: Path) -> dict[str, str] | None:
     for vlr in las.header.vlrs:
         if getattr(vlr, "user_id", None) == VLR_USER_ID and vlr.record_id == VLR_RECORD_ID:
@@ -392,17 +466,8 @@ def read_tile(path: str | os.PathLike[str], *, include_withheld: bool = False) -
     tells them apart). Tiles from :func:`write_tile` give back exactly the fields written,
     with their dtypes; other files give the common LAS dimensions plus extra bytes.
     """
-    import laspy
-
-    from standgrid.mission.clouds import check_las_size
-
     src = Path(path)
-    check_las_size(src)
-    try:
-        las = laspy.read(src)
-    except (laspy.errors.LaspyException, OSError, ValueError, RuntimeError) as exc:
-        # lazrs.LazrsError is a RuntimeError
-        raise PointCloudFormatError(f"cannot read LAS/LAZ: {exc}", path=src) from exc
+    las = read_tile_record(src)
     withheld = np.asarray(las.withheld, dtype=bool)
     keep = slice(None) if include_withheld else ~withheld
     xyz = np.column_stack([np.asarray(las.x), np.asarray(las.y), np.asarray(las.z)])[keep]

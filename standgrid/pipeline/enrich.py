@@ -204,7 +204,6 @@ def _enrich_epoch(
             str(catalog.root),
             tuple(str(txn.stage(c.tile)) for c in chunk.cells),
             context,
-            catalog.crs,
             origin,
             cache_bytes=budget.bytes // 8,
         )

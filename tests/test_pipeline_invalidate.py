@@ -17,7 +17,8 @@ import pyogrio
 import pytest
 from click.testing import CliRunner
 
-from standgrid.catalog.invalidate import clear_invalidation, without_enrichment
+from standgrid.catalog.invalidate import enrichment_note, without_enrichment
+from standgrid.catalog.records import EpochRecord
 from standgrid.cli import cli
 from standgrid.compare.options import CompareOptions
 from standgrid.engine import CallbackProgress
@@ -250,13 +251,15 @@ def test_enrich_refreshes_the_stale_epoch(
 
 
 def test_enrich_says_what_it_computes() -> None:
-    assert clear_invalidation({"enriched": True}) == "recomputing (was enriched)"
-    assert clear_invalidation({"enriched": False}) == "computing (not enriched)"
-    entry = {"enriched": False, "invalidated": {"at": "T", "reason": "re-tiled: missions m",
-                                                "comparisons": ["a__b"]}}  # fmt: skip
-    note = clear_invalidation(entry)
-    assert note == "refreshing stale epoch (re-tiled: missions m, T); compare again: a__b"
-    assert "invalidated" not in entry
+    def note(entry: dict[str, Any]) -> str:
+        return enrichment_note(EpochRecord.from_json("2024", {"missions": [], **entry}))
+
+    assert note({"enriched": True}) == "recomputing (was enriched)"
+    assert note({"enriched": False}) == "computing (not enriched)"
+    stale = {"at": "T", "reason": "re-tiled: missions m", "comparisons": ["a__b"]}
+    assert note({"enriched": False, "invalidated": stale}) == (
+        "refreshing stale epoch (re-tiled: missions m, T); compare again: a__b"
+    )
 
 
 def test_retiling_an_unenriched_epoch_marks_nothing(

@@ -19,11 +19,11 @@ kept (it may hold the source's classes; ``enrich`` re-derives ground).
 
 The epoch's ``catalog.json`` entry gets ``enriched = false`` and
 ``invalidated = {"at", "reason", "comparisons"}``; the next ``enrich`` of the epoch clears it
-(:func:`clear_invalidation`). ``comparisons_invalidated`` (key -> ``{"at", "reason"}``) stays,
-so ``standgrid status`` lists a lost comparison until it is made again. Other epochs'
-results are untouched. A comparison made with ``--other`` (its "to" epoch read from another
-catalog) is invalidated by its "from" epoch only; comparisons stored in *other* catalogs that
-read this one are not known here.
+(:meth:`Transaction.begin_enrichment`). ``comparisons_invalidated`` (key -> ``{"at",
+"reason"}``) stays, so ``standgrid status`` lists a lost comparison until it is made
+again. Other epochs' results are untouched. A comparison made with ``--other`` (its "to"
+epoch read from another catalog) is invalidated by its "from" epoch only; comparisons
+stored in *other* catalogs that read this one are not known here.
 """
 
 from __future__ import annotations
@@ -44,6 +44,7 @@ from standgrid.errors import CatalogError
 
 if TYPE_CHECKING:
     from standgrid.catalog import Catalog, Transaction
+    from standgrid.catalog.records import EpochRecord
 
 #: index.gpkg layers of enrichment (keyed by ``epoch``) and of comparisons (keyed by
 #: ``epoch_from``, ``epoch_to``).
@@ -181,14 +182,14 @@ def retile_reason(tiled: list[str], moved_out: list[str]) -> str:
     return "re-tiled: " + "; ".join(parts)
 
 
-def clear_invalidation(entry: dict[str, Any]) -> str:
-    """Mark an epoch's catalog entry as freshly enriched; returns the line to say so."""
-    stale = entry.pop("invalidated", None)
+def enrichment_note(before: EpochRecord) -> str:
+    """What enriching an epoch does, from its record before (the line to say so)."""
+    stale = before.invalidated
     if stale:
         redo = ", ".join(stale.get("comparisons", []))
         again = f"; compare again: {redo}" if redo else ""
         return f"refreshing stale epoch ({stale.get('reason')}, {stale.get('at')}){again}"
-    return "recomputing (was enriched)" if entry.get("enriched") else "computing (not enriched)"
+    return "recomputing (was enriched)" if before.enriched else "computing (not enriched)"
 
 
 def _comparisons_of(state: Mapping[str, Any], epochs: set[str]) -> dict[str, tuple[str, str]]:

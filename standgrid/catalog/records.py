@@ -1,8 +1,10 @@
 """Frozen, typed views of the missions and epochs recorded in ``catalog.json``.
 
 The JSON format is unchanged: a record is read from it (:meth:`MissionRecord.from_json`,
-:meth:`EpochRecord.from_json`) and pipelines read these instead of raw dict keys. Writes still
-go through ``Transaction.state`` and :meth:`Transaction.record_mission`.
+:meth:`EpochRecord.from_json`) and pipelines read these instead of raw dict keys. Pipelines write
+through the transaction's typed methods (:meth:`Transaction.record_mission`,
+``settle_epoch``, ``mark_enriched``, ``record_comparison``, ...); only ``standgrid.catalog``
+touches the JSON itself.
 """
 
 from __future__ import annotations

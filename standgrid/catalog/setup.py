@@ -143,8 +143,8 @@ def create_catalog(
 def settle_tiling(txn: Transaction, buffer: float | None, laz: bool | None) -> tuple[float, bool]:
     """Unset buffer/compression settings take the catalog's (the last ones given; 0 m and
     LAZ for a new catalog), which are updated to what this run uses."""
-    stored = txn.state.setdefault("tiling", {"buffer": 0.0, "laz": True})
-    use_buffer = stored["buffer"] if buffer is None else float(buffer)
-    use_laz = stored["laz"] if laz is None else bool(laz)
-    stored.update(buffer=use_buffer, laz=use_laz)
+    stored_buffer, stored_laz = txn.tiling_settings()
+    use_buffer = stored_buffer if buffer is None else float(buffer)
+    use_laz = stored_laz if laz is None else bool(laz)
+    txn.set_tiling_settings(use_buffer, use_laz)
     return use_buffer, use_laz

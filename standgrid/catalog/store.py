@@ -723,6 +723,60 @@ class Transaction:
         entry["missions"] = sorted({*entry["missions"], name})
         return record
 
+    # typed reads and writes of the state this transaction will commit
+
+    def epoch_record(self, label: str) -> EpochRecord | None:
+        """An epoch as this transaction has it (None: not there, or gone)."""
+        entry = self.state["epochs"].get(label)
+        return None if entry is None else EpochRecord.from_json(label, entry)
+
+    def mission_records(self) -> dict[str, MissionRecord]:
+        """Mission name -> its record as this transaction has it."""
+        return {n: MissionRecord.from_json(n, e) for n, e in self.state["missions"].items()}
+
+    def tiling_settings(self) -> tuple[float, bool]:
+        """The buffer (m) and compression tiles were last written with (0 m, LAZ if never)."""
+        stored = self.state.get("tiling") or {}
+        return float(stored.get("buffer", 0.0)), bool(stored.get("laz", True))
+
+    def set_tiling_settings(self, buffer: float, laz: bool) -> None:
+        """Record the buffer and compression this run writes tiles with."""
+        self.state["tiling"] = {"buffer": float(buffer), "laz": bool(laz)}
+
+    def set_mission_tiles(self, name: str, tiles: Iterable[str]) -> None:
+        """The tiles a recorded mission's points are in (after its epoch was re-tiled)."""
+        self.state["missions"][name]["tiles"] = sorted({_relative(t) for t in tiles})
+
+    def settle_epoch(self, label: str, *, buffer: float, laz: bool) -> EpochRecord | None:
+        """After tiling: the epoch's date is its missions' earliest, it is not enriched, and
+        its tiles were written with ``buffer`` and ``laz``; None when no mission is left."""
+        entry = self.state["epochs"].get(label)
+        if entry is None:
+            return None
+        dates = [self.state["missions"][n]["date"] for n in entry["missions"]]
+        entry["date"] = min(d for d in dates if d) if any(dates) else ""
+        entry["enriched"] = False
+        entry["tiling"] = {"buffer": float(buffer), "laz": bool(laz)}
+        return EpochRecord.from_json(label, entry)
+
+    def begin_enrichment(self, label: str) -> EpochRecord:
+        """Clear an epoch's stale mark before it is enriched again; returns the epoch as it
+        was (its :attr:`EpochRecord.state` says what enriching it does)."""
+        entry = self.state["epochs"][label]
+        before = EpochRecord.from_json(label, entry)
+        entry.pop("invalidated", None)
+        return before
+
+    def mark_enriched(self, label: str, summary: Mapping[str, Any]) -> None:
+        """An epoch is enriched; ``summary`` is what enrichment measured."""
+        entry = self.state["epochs"][label]
+        entry["enriched"] = True
+        entry["enrichment"] = _jsonable(dict(summary))
+
+    def record_comparison(self, key: str, entry: Mapping[str, Any]) -> None:
+        """Set a comparison's record (its epochs, the other catalog, its outputs)."""
+        self.state.setdefault("comparisons", {})[key] = _jsonable(dict(entry))
+
     def remove_mission(self, name: str) -> None:
         """Drop a mission's record (its number stays reserved)."""
         record = self.state["missions"].pop(name, None)

@@ -219,17 +219,15 @@ def _compare(
             "chm_difference": chm_rel, "chm_difference_style": style_rel, **written,
             "gpkg": paths.INDEX,
         }  # fmt: skip
-        comparisons = txn.state.setdefault("comparisons", {})
-        comparisons[paths.comparison_key(epoch_from, epoch_to)] = {
-            "from": epoch_from,
-            "to": epoch_to,
-            "other_catalog": (
-                str(Path(other_catalog).resolve())
-                if other_catalog is not None and target is not source
-                else None
-            ),
-            "outputs": outputs,
-        }
+        other = (
+            str(Path(other_catalog).resolve())
+            if other_catalog is not None and target is not source
+            else None
+        )
+        txn.record_comparison(
+            paths.comparison_key(epoch_from, epoch_to),
+            {"from": epoch_from, "to": epoch_to, "other_catalog": other, "outputs": outputs},
+        )
         write_catalog_project(txn)  # catalog.qgz shows what this transaction commits
     return CompareReport(
         catalog=source.root,
@@ -303,5 +301,3 @@ def _cell_polygons(
     return gpd.GeoDataFrame(
         {"cell_id": ids}, geometry=stand_polygons(source, ids, cells), crs=source.crs
     )
-
-

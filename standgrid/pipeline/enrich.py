@@ -84,7 +84,7 @@ def enrich_catalog(
 def _enrich(
     catalog: Catalog, options: EnrichOptions, executor: Executor, progress: Progress
 ) -> EnrichReport:
-    from standgrid.catalog.invalidate import clear_invalidation, invalidate_comparisons
+    from standgrid.catalog.invalidate import enrichment_note, invalidate_comparisons
     from standgrid.catalog.project import write_catalog_project
     from standgrid.enrich.allometry import height_diameter_models, impute_dbh, tree_summary
     from standgrid.enrich.outputs import metrics_table, write_layers, write_tables
@@ -109,7 +109,7 @@ def _enrich(
     with catalog.transaction() as txn:
         results = {}
         for epoch in epochs:
-            note = clear_invalidation(txn.state["epochs"][epoch])  # says if it was stale
+            note = enrichment_note(txn.begin_enrichment(epoch))  # says if it was stale
             progress.status(f"enriching epoch {epoch}: {note}")
             results[epoch] = _enrich_epoch(catalog, txn, epoch, options, executor, progress)
         lost = invalidate_comparisons(catalog, txn, set(epochs), "re-enriched")
@@ -131,8 +131,7 @@ def _enrich(
                 "min_density_pts_m2": rule.min_density_pts_m2,
             }
             report.epochs[epoch] = summary
-            txn.state["epochs"][epoch]["enriched"] = True
-            txn.state["epochs"][epoch]["enrichment"] = summary
+            txn.mark_enriched(epoch, summary)
         write_tables(catalog, txn, metric_tables, tree_tables)
         write_layers(catalog, txn, metric_tables, tree_tables)
         write_catalog_project(txn)  # catalog.qgz shows what this transaction commits
@@ -184,7 +183,7 @@ def _enrich_epoch(
     )
     # the buffer must reach every copy a tile holds, so those get heights and ids too; and
     # be wider than the coverage closing (2 x radius), so chunks agree with the whole epoch
-    tiling_buffer = float(txn.state.get("tiling", {}).get("buffer", 0.0))
+    tiling_buffer, _ = txn.tiling_settings()
     # and hold every point CSF sees around the ground squares of the cells it owns
     halo = max(
         options.halo,

@@ -110,7 +110,7 @@ def tile_epoch(
     )
     done = write_cells(work, txn, executor, progress)
     kept_in = done.kept_in
-    number_to_name = {int(r["number"]): n for n, r in txn.state["missions"].items()}
+    number_to_name = {r.number: n for n, r in txn.mission_records().items()}
     tiles_of: dict[str, set[str]] = {}
     result = EpochResult({})
     cell_rows: list[dict[str, Any]] = []
@@ -134,9 +134,10 @@ def tile_epoch(
     rels = {rel for rel, _ in result.tiles}
     for rel in set(previous) - rels:
         txn.delete(rel)
-    for name in txn.state["epochs"].get(epoch, {}).get("missions", []):
+    before = txn.epoch_record(epoch)
+    for name in before.missions if before else ():
         if name not in names:
-            txn.state["missions"][name]["tiles"] = sorted(tiles_of.get(name, ()))
+            txn.set_mission_tiles(name, tiles_of.get(name, ()))
     mission_rows, trajectories, fixes = [], [], []
     for ingest in group:
         mission = ingest.mission
@@ -168,16 +169,9 @@ def tile_epoch(
         "gnss_fixes", pd.concat(fixes, ignore_index=True) if fixes else [], missions=names
     )
     index.replace("missions", mission_rows, missions=names)
-    entry = txn.state["epochs"].get(epoch)
-    if entry is None:  # every mission moved out: the epoch is gone
-        entry = {"date": "", "missions": []}
-    else:
-        dates = [txn.state["missions"][n]["date"] for n in entry["missions"]]
-        entry["date"] = min(d for d in dates if d) if any(dates) else ""
-        entry["enriched"] = False
-        entry["tiling"] = {"buffer": settings.buffer, "laz": settings.laz}
+    settled = txn.settle_epoch(epoch, buffer=settings.buffer, laz=settings.laz)
     result.report = {
-        "date": entry["date"],
+        "date": settled.date or "" if settled else "",  # None: every mission moved out
         "points_in": fed,
         "points_kept_from_catalog": kept_in,
         "points_new": sum(new_in.values()),

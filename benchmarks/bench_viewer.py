@@ -1,11 +1,12 @@
 """The web viewer on a large catalog, in headless Chromium: time to the first map and to a
-cell's 3-D view, against the served data's own floor measured in the same run.
+cell's and a payload's 3-D view, against the served data's own floor measured in the same run.
 
 A real ``standgrid serve`` (uvicorn in a thread) on CATALOG; Playwright drives Debian's
 ``chromium``. Printed: the catalog's size (cells, points), the first map (from navigation:
 the page, the OGC layers, the CHM tiles drawn) and the trees, then for ``--cells`` cells
 picked across the catalog the 3-D view (points fetched, decoded, drawn) with the point
-count; baselines: the same OGC layers and points fetched by httpx in this process.
+count, then the same for ``--payloads`` payloads (their points gathered from the tiles);
+baselines: the same OGC layers and points fetched by httpx in this process.
 
 Example (a 1,024-cell, ~20 M point catalog):
     standgrid simulate /tmp/big --epochs 1 --area 640 --points-per-payload 20000
@@ -16,6 +17,7 @@ Example (a 1,024-cell, ~20 M point catalog):
 from __future__ import annotations
 
 import argparse
+import json
 import statistics
 import time
 from pathlib import Path
@@ -32,6 +34,7 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("catalog", type=Path)
     parser.add_argument("--cells", type=int, default=5, help="cells whose 3-D view is timed")
+    parser.add_argument("--payloads", type=int, default=5, help="payloads whose 3-D view is timed")
     parser.add_argument("--chromium", default="/usr/bin/chromium")
     parser.add_argument("--screenshot", type=Path, help="PNG of the map and the last 3-D view")
     args = parser.parse_args()
@@ -64,8 +67,10 @@ def main() -> None:
         page.wait_for_function("document.body.dataset.ready === 'true'", timeout=120_000)
         first = page.evaluate("() => window.standgrid.firstMapMs")
         trees = page.evaluate("() => window.standgrid.treesMs")
-        print(f"viewer: first map {first:.0f} ms from navigation ({first / floor:.1f}x the "
-              f"layers' fetch), trees drawn at {trees:.0f} ms")
+        print(
+            f"viewer: first map {first:.0f} ms from navigation ({first / floor:.1f}x the "
+            f"layers' fetch), trees drawn at {trees:.0f} ms"
+        )
         if args.screenshot:
             page.screenshot(path=str(args.screenshot.with_stem(args.screenshot.stem + "-map")))
 
@@ -81,13 +86,45 @@ def main() -> None:
                                  row["cell_id"])  # fmt: skip
             assert view[0] == row["point_count"], (row["cell_id"], view[0], row["point_count"])
             in_page.append(view[1])
-            print(f"  3-D view of {row['cell_id']}: {view[0]:,} points in {view[1]:.0f} ms "
-                  f"(points by httpx: {fetched[-1]:.0f} ms)")
+            print(
+                f"  3-D view of {row['cell_id']}: {view[0]:,} points in {view[1]:.0f} ms "
+                f"(points by httpx: {fetched[-1]:.0f} ms)"
+            )
         ratio = statistics.median(in_page) / statistics.median(fetched)
-        print(f"3-D view: median {statistics.median(in_page):.0f} ms, max {max(in_page):.0f} ms; "
-              f"{ratio:.1f}x the points' fetch alone")
+        print(
+            f"3-D view: median {statistics.median(in_page):.0f} ms, max {max(in_page):.0f} ms; "
+            f"{ratio:.1f}x the points' fetch alone"
+        )
         if args.screenshot:
             page.screenshot(path=str(args.screenshot.with_stem(args.screenshot.stem + "-3d")))
+
+        payloads = pyogrio.read_dataframe(args.catalog / "index.gpkg", layer="payloads",
+                                          read_geometry=False)  # fmt: skip
+        payloads = payloads[payloads["epoch"] == epoch].sort_values("payload_id")
+        picks = payloads.iloc[[round(k * (len(payloads) - 1) / max(1, args.payloads - 1))
+                               for k in range(min(args.payloads, len(payloads)))]]  # fmt: skip
+        in_page, fetched = [], []
+        for _, row in picks.iterrows():
+            ident = int(row["payload_id"])
+            t0 = time.perf_counter()
+            answer = httpx.get(f"{base}/viewer/points", params={"payload": ident}, timeout=60)
+            fetched.append(1000 * (time.perf_counter() - t0))
+            length = int.from_bytes(answer.content[:4], "little")
+            tiles = json.loads(answer.content[4 : 4 + length])["meta"]["payload"]["tiles"]
+            view = page.evaluate("i => window.standgrid.openPayload(i).then(v => [v.count, v.ms])",
+                                 ident)  # fmt: skip
+            assert view[0] == row["point_count"], (ident, view[0], row["point_count"])
+            in_page.append(view[1])
+            print(
+                f"  3-D view of payload {ident}: {view[0]:,} points from {len(tiles)} tiles read "
+                f"in {view[1]:.0f} ms (points by httpx: {fetched[-1]:.0f} ms)"
+            )
+        if in_page:
+            ratio = statistics.median(in_page) / statistics.median(fetched)
+            print(
+                f"payload 3-D view: median {statistics.median(in_page):.0f} ms, max "
+                f"{max(in_page):.0f} ms; {ratio:.1f}x the points' fetch alone"
+            )
         print(f"console errors: {len(errors)}" + (f": {errors[:3]}" if errors else ""))
         browser.close()
 

@@ -62,9 +62,7 @@ def test_config_names_the_crs_epochs_and_chm_ranges(
     assert {"cells", "stand_metrics", "trees"} <= set(config["layers"])
 
 
-def test_cell_points_are_the_tiles_core_points(
-    enriched_base: str, enriched_catalog: Path
-) -> None:
+def test_cell_points_are_the_tiles_core_points(enriched_base: str, enriched_catalog: Path) -> None:
     cells = pyogrio.read_dataframe(enriched_catalog / "index.gpkg", layer="cells")
     row = cells.sort_values("point_count").iloc[-1]
     answer = httpx.get(f"{enriched_base}/viewer/points/{row['epoch']}/{row['cell_id']}")
@@ -125,3 +123,83 @@ def test_tree_keys_tell_apart_trees_on_one_row() -> None:
     keys = tree_key(ids)
     assert len(np.unique(keys)) == 200 and (keys != 0).all()
     assert tree_key(np.array([0]))[0] == 0
+
+
+def _payload_points(catalog: Path, epoch: str, ident: int) -> np.ndarray:
+    """The core points of every tile of ``epoch`` whose payload_id is ``ident`` (laspy),
+    sorted by x, y, z."""
+    parts = []
+    for tile in sorted((catalog / "tiles" / epoch).glob("*.la[sz]")):
+        las = laspy.read(tile)
+        mine = ~np.asarray(las.withheld, dtype=bool) & (np.asarray(las["payload_id"]) == ident)
+        parts.append(np.column_stack([las.x, las.y, las.z])[mine])
+    xyz = np.concatenate(parts)
+    return xyz[np.lexsort(xyz.T[::-1])]
+
+
+def test_payload_points_are_exactly_the_payloads_points_in_the_tiles(
+    enriched_base: str, enriched_catalog: Path
+) -> None:
+    payloads = pyogrio.read_dataframe(enriched_catalog / "index.gpkg", layer="payloads")
+    for epoch in sorted(payloads["epoch"].unique()):
+        row = payloads[payloads["epoch"] == epoch].sort_values("payload_id").iloc[0]
+        ident = int(row["payload_id"])
+        answer = httpx.get(f"{enriched_base}/viewer/points", params={"payload": ident})
+        assert answer.status_code == 200
+        header, arrays = _decode(answer.content)
+        expected = _payload_points(enriched_catalog, epoch, ident)
+        got = header["meta"]["payload"]
+        assert header["count"] == len(expected) == int(row["point_count"]) > 0
+        assert got["found"] == got["point_count"] == len(expected) and got["complete"]
+        assert got["epoch"] == epoch and got["mission"] == row["mission"]
+        assert header["meta"]["capped"] is False and header["meta"]["total"] == len(expected)
+        # georeferenced: the same points (float32 offsets from the stated origin)
+        back = arrays["xyz"].astype(np.float64) + np.asarray(header["origin"])
+        back = back[np.lexsort(back.T[::-1])]
+        assert np.abs(back - expected).max() < 1e-4
+        # every tile named holds some of them, or was read on the way (under the footprint)
+        assert 0 < got["tiles_with_points"] <= len(got["tiles"])
+
+
+def test_payload_points_are_capped_evenly_and_say_so(
+    enriched_base: str, enriched_catalog: Path
+) -> None:
+    payloads = pyogrio.read_dataframe(enriched_catalog / "index.gpkg", layer="payloads")
+    row = payloads.sort_values("point_count").iloc[-1]
+    url = f"{enriched_base}/viewer/points"
+    full = _decode(httpx.get(url, params={"payload": int(row["payload_id"])}).content)
+    capped = _decode(
+        httpx.get(url, params={"payload": int(row["payload_id"]), "limit": 1000}).content
+    )
+    header, arrays = capped
+    assert header["count"] == 1000
+    assert header["meta"]["total"] == int(row["point_count"]) > 1000
+    assert header["meta"]["capped"] is True
+    assert header["meta"]["stride"] == pytest.approx(int(row["point_count"]) / 1000)
+    # a subset of the full answer's points, spread over all of it
+    every = full[1]["xyz"].astype(np.float64) + np.asarray(full[0]["origin"])
+    some = arrays["xyz"].astype(np.float64) + np.asarray(header["origin"])
+    keep = np.linspace(0, len(every), 1000, endpoint=False).astype(np.int64)
+    assert np.abs(some - every[keep]).max() < 1e-4
+    too_many = httpx.get(url, params={"payload": int(row["payload_id"]), "limit": 10**9})
+    assert too_many.status_code == 400
+
+
+def test_unknown_payload_is_a_404_problem(enriched_base: str) -> None:
+    answer = httpx.get(f"{enriched_base}/viewer/points", params={"payload": 1})
+    assert answer.status_code == 404
+    assert answer.headers["content-type"] == "application/problem+json"
+    assert "no payload 1" in answer.json()["detail"]
+
+
+def test_cell_points_are_capped_on_request(enriched_base: str, enriched_catalog: Path) -> None:
+    cells = pyogrio.read_dataframe(enriched_catalog / "index.gpkg", layer="cells")
+    row = cells.sort_values("point_count").iloc[-1]
+    url = f"{enriched_base}/viewer/points/{row['epoch']}/{row['cell_id']}"
+    header, _ = _decode(httpx.get(url, params={"limit": 500}).content)
+    assert header["count"] == 500
+    assert header["meta"]["total"] == int(row["point_count"])
+    assert header["meta"]["capped"] is True
+    uncapped, _ = _decode(httpx.get(url).content)
+    assert uncapped["meta"]["capped"] is False
+    assert uncapped["count"] == uncapped["meta"]["total"] == int(row["point_count"])

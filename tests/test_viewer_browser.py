@@ -88,8 +88,10 @@ def test_viewer_map_epochs_metrics_and_cell_view(
     wall = view.open()
     first_map_ms = view.js("() => window.standgrid.firstMapMs")
     trees_ms = view.js("() => window.standgrid.treesMs")
-    print(f"\nfirst map: {first_map_ms:.0f} ms from navigation, trees drawn at {trees_ms:.0f} ms "
-          f"({wall:.2f} s wall, from goto)")
+    print(
+        f"\nfirst map: {first_map_ms:.0f} ms from navigation, trees drawn at {trees_ms:.0f} ms "
+        f"({wall:.2f} s wall, from goto)"
+    )
 
     # The map shows the catalog's 20 m cells of the first epoch: every one loaded and drawn.
     epochs = sorted(metrics["epoch"].unique())
@@ -166,7 +168,8 @@ def test_viewer_map_epochs_metrics_and_cell_view(
     assert view.js("() => window.standgrid.drawnCells()") == len(changes)
     changes = changes.dropna(subset=["zq95_delta"])
     assert f"change in height, 95th percentile (m), {epochs[0]} → {epochs[1]}" in (
-        view.page.inner_text("#legend"))
+        view.page.inner_text("#legend")
+    )
     biggest = changes.loc[changes["zq95_delta"].abs().idxmax()]
     end = "#2166ac" if biggest["zq95_delta"] > 0 else "#b2182b"  # gain blue, loss red
     assert view.js("c => window.standgrid.cellFill(c)", biggest["cell_id"]) == end
@@ -199,8 +202,10 @@ def test_viewer_map_epochs_metrics_and_cell_view(
     assert f"{core:,} points in the cell" in view.page.inner_text("#panel-count")
     assert cell_row["cell_id"] in view.page.inner_text("#panel-title")
     ms_3d = view.js("() => window.standgrid.state.cellView.ms")
-    print(f"3-D view of {cell_row['cell_id']} ({core} points): {ms_3d:.0f} ms in the page "
-          f"({wall_3d:.2f} s wall, click to drawn)")
+    print(
+        f"3-D view of {cell_row['cell_id']} ({core} points): {ms_3d:.0f} ms in the page "
+        f"({wall_3d:.2f} s wall, click to drawn)"
+    )
     # The 3-D canvas is drawn: many colours of the height ramp, not its background alone.
     png = Image.open(io.BytesIO(view.page.locator("#view3d canvas").screenshot()))
     colours = np.unique(np.asarray(png.convert("RGB")).reshape(-1, 3), axis=0)
@@ -210,13 +215,14 @@ def test_viewer_map_epochs_metrics_and_cell_view(
     view.shot("cell-3d-trees")
 
     # Both epochs of the cell overlaid, each with its own tile's point count.
-    view.page.select_option("#colour-by", "epoch")
+    view.page.select_option("#view-layout", "overlay")
     other = cells[(cells["epoch"] == epochs[1]) & (cells["cell_id"] == cell_row["cell_id"])]
     expected = f"{epochs[1]}: {int(other['point_count'].iloc[0]):,} points"
     view.page.wait_for_function("t => document.querySelector('#colour-legend').innerText"
                                 ".includes(t)", arg=expected, timeout=20_000)  # fmt: skip
     assert f"{epochs[0]}: {core:,} points" in view.page.inner_text("#colour-legend")
     view.shot("cell-3d-epochs")
+    view.page.select_option("#view-layout", "single")
 
     # A click on a tree's marker (stem or top): the tree's attributes, its cell's points with
     # the tree's marked, as many as the tile holds with its tree_id.
@@ -258,5 +264,130 @@ def test_viewer_map_epochs_metrics_and_cell_view(
         stand.page.screenshot(path=str(SHOTS / "web-stand.png"), full_page=True)
     assert stand.errors == [] and stand.failed == []
 
+    assert view.errors == []
+    assert view.failed == []
+
+
+def _core_counts(tile: Path) -> tuple[int, Any]:
+    """A tile's core point count and the payload_id of each core point (laspy)."""
+    las = laspy.read(tile)
+    core = ~np.asarray(las.withheld, dtype=bool)
+    return int(core.sum()), np.asarray(las["payload_id"])[core]
+
+
+def _keep_shot(view: Page, tmp_path: Path, name: str) -> Path:
+    """A screenshot in the test's tmp folder, copied to ``SHOTS`` when that folder exists."""
+    path = tmp_path / f"web-{name}.png"
+    view.page.screenshot(path=str(path))
+    if SHOTS.is_dir():
+        shutil.copy(path, SHOTS / path.name)
+    return path
+
+
+def _canvas_colours(locator: Any) -> int:
+    png = Image.open(io.BytesIO(locator.screenshot()))
+    return len(np.unique(np.asarray(png.convert("RGB")).reshape(-1, 3), axis=0))
+
+
+def test_viewer_payload_view_and_epochs_side_by_side(
+    browser: Any, enriched_base: str, enriched_catalog: Path, tmp_path: Path
+) -> None:
+    base, catalog = enriched_base, enriched_catalog
+    payloads = pyogrio.read_dataframe(catalog / "index.gpkg", layer="payloads")
+    view = Page(browser, base)
+    view.open()
+    epoch = view.js("() => window.standgrid.state.epoch")
+
+    # Footprints on, tree markers off (a click near a tree's dot opens the tree): a click at
+    # a payload's pose opens that payload.
+    view.page.check("input[data-layer=payloads]")
+    view.page.uncheck("input[data-layer=trees]")
+    view.idle()
+    row = payloads[payloads["epoch"] == epoch].sort_values("point_count").iloc[-1]
+    ident = int(row["payload_id"])
+    x, y = view.js("i => window.standgrid.payloadPixel(i)", ident)
+    box = view.page.locator("#map").bounding_box()
+    t0 = time.perf_counter()
+    view.page.mouse.click(box["x"] + x, box["y"] + y)
+    view.page.wait_for_function(
+        "i => window.standgrid.state.cellView && window.standgrid.state.cellView.payloadId === i",
+        arg=ident, timeout=20_000)  # fmt: skip
+    wall = time.perf_counter() - t0
+    shown = int(view.page.get_attribute("#panel-count", "data-count") or -1)
+    # The payload's points as the tiles hold them, counted with laspy over every tile of the
+    # epoch: the same number as the payloads layer records, and all of them drawn (under the cap).
+    counted = 0
+    for tile in sorted((catalog / "tiles" / epoch).glob("*.la[sz]")):
+        counted += int((_core_counts(tile)[1] == ident).sum())
+    assert shown == counted == int(row["point_count"]) > 0
+    assert view.page.get_attribute("#panel-count", "data-shown") == str(shown)
+    assert view.page.get_attribute("#panel-count", "data-payload") == str(ident)
+    assert f"{shown:,} points of the payload" in view.page.inner_text("#panel-count")
+    title = view.page.inner_text("#panel-title")
+    assert str(ident) in title and row["mission"] in title
+    attributes = view.page.inner_text("#panel-attributes")
+    assert row["time"] in attributes
+    assert f"pose graph node · node_id\t{row['node_id']}" in attributes
+    assert view.page.locator("#view-layout").is_disabled()  # a payload is of one epoch
+    assert _canvas_colours(view.page.locator("#view3d canvas")) > 50  # the height ramp
+    ms = view.js("() => window.standgrid.state.cellView.ms")
+    print(
+        f"\n3-D view of payload {ident} ({shown} points): {ms:.0f} ms in the page "
+        f"({wall:.2f} s wall, click to drawn)"
+    )
+    _keep_shot(view, tmp_path, "payload-3d")
+    view.page.select_option("#colour-by", "classification")
+    view.page.uncheck("input[data-layer=payloads]")
+    view.idle()
+
+    # A cell with a tile in both epochs, its epochs side by side: two canvases, one per
+    # epoch, each labelled with its tile's core point count (laspy).
+    cells = _cells(catalog)
+    both = cells.groupby("cell_id")["epoch"].nunique()
+    mine = cells[(cells["epoch"] == epoch) & cells["cell_id"].isin(both[both == 2].index)]
+    cell = mine.sort_values("point_count").iloc[-1]
+    x, y = view.js("c => window.standgrid.pixelOf(c)", cell["cell_id"])
+    view.page.mouse.click(box["x"] + x, box["y"] + y)
+    view.page.wait_for_function(
+        "c => window.standgrid.state.cellView && window.standgrid.state.cellView.cellId === c",
+        arg=cell["cell_id"], timeout=20_000)  # fmt: skip
+    view.page.select_option("#colour-by", "height")
+    view.page.select_option("#view-layout", "side")
+    view.page.wait_for_function(
+        "() => document.querySelectorAll('#view3d .viewport-label').length === 2", timeout=20_000
+    )
+    assert view.page.locator("#view3d canvas").count() == 2
+    labels = view.page.locator("#view3d .viewport-label")
+    expected = {}
+    for _, tile_row in cells[cells["cell_id"] == cell["cell_id"]].iterrows():
+        expected[tile_row["epoch"]] = _core_counts(catalog / tile_row["tile_path"])[0]
+        assert expected[tile_row["epoch"]] == int(tile_row["point_count"])
+    got = {labels.nth(k).get_attribute("data-epoch"): int(labels.nth(k).get_attribute("data-count"))
+           for k in range(2)}  # fmt: skip
+    assert got == expected
+    assert labels.nth(0).get_attribute("data-epoch") == epoch  # the clicked epoch first
+    for k in range(2):
+        text = labels.nth(k).inner_text()
+        assert f"{got[labels.nth(k).get_attribute('data-epoch')]:,} points" in text
+    canvases = view.page.locator("#view3d canvas")
+    for k in range(2):
+        assert _canvas_colours(canvases.nth(k)) > 50
+    _keep_shot(view, tmp_path, "side-by-side")
+
+    # One camera: dragging in the left view turns the right one too.
+    right_before = canvases.nth(1).screenshot()
+    left = canvases.nth(0).bounding_box()
+    cx, cy = left["x"] + left["width"] / 2, left["y"] + left["height"] / 2
+    view.page.mouse.move(cx, cy)
+    view.page.mouse.down()
+    view.page.mouse.move(cx + 80, cy + 10, steps=6)
+    view.page.mouse.up()
+    assert canvases.nth(1).screenshot() != right_before
+
+    # Back to one view: one canvas.
+    view.page.select_option("#view-layout", "single")
+    view.page.wait_for_function(
+        "() => document.querySelectorAll('#view3d canvas').length === 1", timeout=20_000
+    )
     assert view.errors == []
     assert view.failed == []

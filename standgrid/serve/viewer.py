@@ -1,6 +1,7 @@
 """The web viewer at ``/``: the built bundle (``serve/static``, made from ``web/`` by vite),
-its start-up description of the catalog (``/viewer/config.json``) and a cell's points for
-the 3-D view (``/viewer/points/{epoch}/{cell_id}``).
+its start-up description of the catalog (``/viewer/config.json``) and the points of a cell
+(``/viewer/points/{epoch}/{cell_id}``) or of a payload (``/viewer/points?payload=<id>``) for
+the 3-D view.
 
 A browser asking for ``/`` (``Accept: text/html``) gets the viewer; any other client gets
 the service's JSON description (``app.py``). Every script and style comes from the package.
@@ -10,10 +11,10 @@ from __future__ import annotations
 
 import json
 from pathlib import Path
-from typing import Any
+from typing import Annotated, Any
 
 import numpy as np
-from fastapi import APIRouter, Request
+from fastapi import APIRouter, Query, Request
 from fastapi.responses import FileResponse, JSONResponse, Response
 
 from standgrid.catalog import Catalog, paths
@@ -30,6 +31,9 @@ POINTS_MEDIA_TYPE = "application/vnd.standgrid.points"
 #: Per-point arrays of the points answer, in order: name, numpy dtype.
 POINT_ARRAYS = (("xyz", "<f4"), ("height_above_ground", "<f4"), ("tree_key", "<u4"),
                 ("classification", "u1"))  # fmt: skip
+#: At most this many points in one points answer: beyond it every k-th point is sent
+#: (evenly strided; ``meta.capped``), so a dense cell or payload stays drawable.
+MAX_VIEW_POINTS = 500_000
 #: Height range of the CHM colour ramp: a raster's percentile (as its QGIS style).
 CHM_PERCENTILE = 98.0
 
@@ -121,15 +125,28 @@ def tree_key(tree_id: Any) -> Any:
 
 
 def encode_points(
-    xyz: np.ndarray, height: np.ndarray, tree_id: np.ndarray, classification: np.ndarray,
+    xyz: np.ndarray,
+    height: np.ndarray,
+    tree_id: np.ndarray,
+    classification: np.ndarray,
     meta: dict[str, Any],
+    limit: int = MAX_VIEW_POINTS,
 ) -> bytes:
-    """A cell's points as one binary answer: a little-endian uint32 byte length, a JSON
-    header (``count``, ``origin`` [x, y, z], ``arrays`` [[name, dtype], ...] and ``meta``)
+    """Points as one binary answer: a little-endian uint32 byte length, a JSON header
+    (``count`` sent, ``origin`` [x, y, z], ``arrays`` [[name, dtype], ...] and ``meta``)
     padded with spaces to a multiple of 4 bytes, then each array of ``POINT_ARRAYS`` in
-    turn: xyz float32 relative to ``origin`` (mm-exact for a 20 m cell), height above
-    ground float32 (NaN before enrichment), the tree id folded to uint32 (a colour key;
-    0 = no tree) and the LAS classification."""
+    turn: xyz float32 relative to ``origin`` (mm-exact within a few tens of metres), height
+    above ground float32 (NaN before enrichment), the tree id folded to uint32 (a colour
+    key; 0 = no tree) and the LAS classification. Beyond ``limit`` points, every k-th is
+    sent (``meta``: ``total`` points, ``capped`` true, ``stride`` k as a float)."""
+    total = len(xyz)
+    meta = {**meta, "total": total, "capped": total > limit}
+    if total > limit:
+        # ``limit`` distinct indices spread evenly over the points, in their order
+        keep = np.linspace(0, total, limit, endpoint=False).astype(np.int64)
+        xyz, height, tree_id, classification = (a[keep] for a in (xyz, height, tree_id,
+                                                                    classification))  # fmt: skip
+        meta["stride"] = total / limit
     count = len(xyz)
     origin = xyz.min(axis=0) if count else np.zeros(3)
     header = json.dumps({"count": count, "origin": [float(v) for v in origin],
@@ -143,9 +160,39 @@ def encode_points(
         keys,
         classification.astype("u1"),
     ]
-    return np.uint32(len(head)).astype("<u4").tobytes() + head + b"".join(
-        np.ascontiguousarray(a).tobytes() for a in body
+    return (
+        np.uint32(len(head)).astype("<u4").tobytes()
+        + head
+        + b"".join(np.ascontiguousarray(a).tobytes() for a in body)
     )
+
+
+#: How many points one answer may hold (a request may ask for fewer).
+Limit = Annotated[int, Query(ge=1, le=MAX_VIEW_POINTS, description="at most this many points "
+                             "are sent (every k-th beyond it)")]  # fmt: skip
+
+
+def _read_tile(path: Path, relative: str) -> Any:
+    import laspy
+
+    try:
+        return laspy.read(path)
+    except (OSError, laspy.errors.LaspyException) as exc:
+        raise Problem(500, f"{relative}: cannot read the tile: {exc}") from exc
+
+
+def _fields(las: Any, keep: np.ndarray) -> tuple[np.ndarray, ...]:
+    """xyz (float64), height above ground (NaN without), tree id (0 without) and
+    classification of the points ``keep`` (a mask) of a tile."""
+    names = set(las.point_format.dimension_names)
+    count = int(keep.sum())
+
+    def field(name: str, fill: float) -> np.ndarray:
+        return np.asarray(las[name])[keep] if name in names else np.full(count, fill)
+
+    xyz = np.column_stack([np.asarray(las.x), np.asarray(las.y), np.asarray(las.z)])[keep]
+    return (xyz, field("height_above_ground", np.nan).astype(np.float64),
+            field("tree_id", 0).astype(np.int64), np.asarray(las.classification)[keep])  # fmt: skip
 
 
 @router.get(
@@ -153,11 +200,15 @@ def encode_points(
     summary="A cell's points for the 3-D view (compact binary; buffer points left out)",
     responses={200: {"content": {POINTS_MEDIA_TYPE: {}}}},
 )  # fmt: skip
-def cell_points(request: Request, epoch: str, cell_id: str, tree: int | None = None) -> Response:
+def cell_points(
+    request: Request,
+    epoch: str,
+    cell_id: str,
+    tree: int | None = None,
+    limit: Limit = MAX_VIEW_POINTS,
+) -> Response:
     """``tree``: the fid of a tree (``trees`` layer) whose points the answer marks
     (``meta.tree``: its id as text, its colour key and its point count in the cell)."""
-    import laspy
-
     with snapshot(request.app.state.catalog_root, with_index=tree is not None) as snap:
         chosen = _tree(snap, tree) if tree is not None else None
         if epoch not in snap.catalog.epochs:
@@ -167,29 +218,82 @@ def cell_points(request: Request, epoch: str, cell_id: str, tree: int | None = N
                          if t in tiles), None)  # fmt: skip
         if relative is None:
             raise Problem(404, f"epoch {epoch!r} has no tile of cell {cell_id!r}")
-        path = snap.catalog.path(relative)
-        try:
-            las = laspy.read(path)
-        except (OSError, laspy.errors.LaspyException) as exc:
-            raise Problem(500, f"{relative}: cannot read the tile: {exc}") from exc
-    names = set(las.point_format.dimension_names)
+        las = _read_tile(snap.catalog.path(relative), relative)
     core = ~np.asarray(las.withheld, dtype=bool)
-    count = int(core.sum())
-    xyz = np.column_stack([np.asarray(las.x), np.asarray(las.y), np.asarray(las.z)])[core]
-
-    def field(name: str, fill: float) -> np.ndarray:
-        return np.asarray(las[name])[core] if name in names else np.full(count, fill)
-
-    tree_ids = field("tree_id", 0).astype(np.int64)
+    xyz, height, tree_ids, classification = _fields(las, core)
     meta: dict[str, Any] = {"tile": f"files/{relative}",
                             "tile_points": int(las.header.point_count),
-                            "buffer_points": int(las.header.point_count) - count}  # fmt: skip
+                            "buffer_points": int(las.header.point_count) - len(xyz)}  # fmt: skip
     if chosen is not None:
         key = int(tree_key(np.array([chosen]))[0])
         meta["tree"] = {"fid": tree, "tree_id": str(chosen), "key": key,
                         "points": int((tree_ids == chosen).sum())}  # fmt: skip
-    body = encode_points(xyz, field("height_above_ground", np.nan), tree_ids,
-                         np.asarray(las.classification)[core], meta)  # fmt: skip
+    body = encode_points(xyz, height, tree_ids, classification, meta, limit)
+    return Response(body, media_type=POINTS_MEDIA_TYPE, headers={"Cache-Control": "no-cache"})
+
+
+@router.get(
+    "/viewer/points",
+    summary="A payload's points for the 3-D view, read from the catalog's tiles",
+    responses={200: {"content": {POINTS_MEDIA_TYPE: {}}}},
+)  # fmt: skip
+def payload_points(request: Request, payload: int, limit: Limit = MAX_VIEW_POINTS) -> Response:
+    """The core points whose ``payload_id`` is ``payload``, gathered from the tiles of the
+    payload's epoch that hold its mission: those under its footprint first, then the
+    others by distance, until the ``point_count`` of its ``payloads`` row is found (each
+    point is the core point of exactly one tile). ``meta.payload`` names the tiles read and
+    whether the count was met (``complete``); the answer never silently falls short."""
+    import shapely
+
+    from standgrid.serve import features
+
+    with snapshot(request.app.state.catalog_root) as snap:
+        if snap.index is None:
+            raise Problem(404, "the catalog has no index yet")
+        found = features.page(snap.index, snap.layer("payloads"),
+                              features.Query(equals={"payload_id": str(payload)}, limit=2),
+                              snap.epoch_dates)  # fmt: skip
+        if not found.fids:
+            raise Problem(404, f"no payload {payload} in the payloads collection")
+        row, footprint = found.properties[0], found.geometries[0]
+        if footprint is None:
+            footprint = shapely.Point(row["x"], row["y"])
+        epoch, mission, expected = str(row["epoch"]), str(row["mission"]), int(row["point_count"])
+        tiles = set(snap.catalog.tiles(epoch)) if epoch in snap.catalog.epochs else set()
+        cells = features.page(snap.index, snap.layer("cells"),
+                              features.Query(equals={"epoch": epoch}, limit=1 << 30),
+                              snap.epoch_dates)  # fmt: skip
+        held = [k for k, p in enumerate(cells.properties) if p["tile_path"] in tiles
+                and mission in str(p.get("missions") or "").split(",")]  # fmt: skip
+        distance = shapely.distance(cells.geometries[held], footprint) if held else []
+        order = sorted(zip(distance, (str(cells.properties[k]["tile_path"]) for k in held),
+                           strict=True))  # fmt: skip
+        parts: list[tuple[np.ndarray, ...]] = []
+        read: list[str] = []
+        count = 0
+        for _, relative in order:
+            if count >= expected:
+                break
+            las = _read_tile(snap.catalog.path(relative), relative)
+            if "payload_id" not in set(las.point_format.dimension_names):
+                raise Problem(409, f"{relative}: the tile has no payload_id dimension, so a "
+                              "payload's points cannot be told apart")  # fmt: skip
+            mine = ~np.asarray(las.withheld, dtype=bool) & (
+                np.asarray(las["payload_id"]) == payload
+            )
+            read.append(relative)
+            if mine.any():
+                parts.append(_fields(las, mine))
+                count += int(mine.sum())
+    meta = {"payload": {"payload_id": payload, "mission": mission, "epoch": epoch,
+                        "point_count": expected, "found": count, "complete": count == expected,
+                        "tiles": [f"files/{t}" for t in read],
+                        "tiles_with_points": len(parts)}}  # fmt: skip
+    none = (np.zeros((0, 3)), np.zeros(0), np.zeros(0, np.int64), np.zeros(0, np.uint8))
+    xyz, height, tree_ids, classification = (
+        np.concatenate(a) for a in zip(*(parts or [none]), strict=True)
+    )
+    body = encode_points(xyz, height, tree_ids, classification, meta, limit)
     return Response(body, media_type=POINTS_MEDIA_TYPE, headers={"Cache-Control": "no-cache"})
 
 
@@ -208,8 +312,11 @@ def install(app: Any, description: dict[str, Any]) -> None:
     viewer for a browser (``Accept: text/html``), else ``description`` (JSON)."""
     from starlette.staticfiles import StaticFiles
 
-    @app.get("/", tags=["Service"],
-             summary="The web viewer (Accept: text/html), else what this service offers")
+    @app.get(
+        "/",
+        tags=["Service"],
+        summary="The web viewer (Accept: text/html), else what this service offers",
+    )
     def index(request: Request) -> Response:
         if "text/html" in request.headers.get("accept", ""):
             return viewer_page()

@@ -1,5 +1,7 @@
-// The side panel of a clicked cell: its attributes and its points in 3-D (three.js), read
-// from /viewer/points/{epoch}/{cell} (standgrid/serve/viewer.py: encode_points).
+// The side panel of a clicked cell, tree or payload: its attributes and its points in 3-D
+// (three.js), read from /viewer/points/{epoch}/{cell} or /viewer/points?payload=<id>
+// (standgrid/serve/viewer.py: encode_points). A cell's epochs are shown overlaid in one view
+// or side by side in synchronised views (one camera for all).
 import * as THREE from 'three';
 import { OrbitControls } from 'three/addons/controls/OrbitControls.js';
 import { VIRIDIS, formatValue, metricLabel } from './scales.js';
@@ -10,6 +12,7 @@ const SHOWN = ['observed_fraction', 'n_points', 'zmax', 'zq95', 'zmean', 'pzabov
 const CLASS_COLOURS = { 2: '#a0522d', 1: '#4f9d4f' };
 // Epochs overlaid: the clicked epoch, then the others.
 const EPOCH_COLOURS = ['#4ea1ff', '#ffb000', '#ff5cc8', '#7ee081'];
+const fmt = (n) => n.toLocaleString('en');
 
 // The binary answer: uint32 header length, JSON header, then the arrays it names.
 export function decodePoints(buffer) {
@@ -30,6 +33,22 @@ export function decodePoints(buffer) {
   return { header, ...arrays };
 }
 
+async function fetchPoints(url, what) {
+  const response = await fetch(url);
+  if (!response.ok) throw new Error(`points of ${what}: HTTP ${response.status}`);
+  return decodePoints(await response.arrayBuffer());
+}
+
+const cellUrl = (epoch, cellId, treeFid = null) => `/viewer/points/${encodeURIComponent(epoch)}/`
+  + `${encodeURIComponent(cellId)}${treeFid === null ? '' : `?tree=${treeFid}`}`;
+
+// "12,345 points" or, when the server capped the answer, "12,345 points (2,000 shown: every 6.2nd)".
+function countText(points, noun = 'points') {
+  const { total, capped, stride } = points.header.meta;
+  return `${fmt(total)} ${noun}` + (capped ? ` (${fmt(points.header.count)} shown: every `
+    + `${stride.toFixed(1)}th, the server's cap)` : '');
+}
+
 function ramp(t) {
   const x = Math.min(1, Math.max(0, t)) * (VIRIDIS.length - 1);
   const k = Math.min(VIRIDIS.length - 2, Math.floor(x));
@@ -37,12 +56,18 @@ function ramp(t) {
   return a.lerp(new THREE.Color(VIRIDIS[k + 1]), x - k);
 }
 
-function colours(points, by, epochIndex = 0) {
+function heightTop(points) {
+  const height = points.height_above_ground;
+  let top = 0;
+  for (let i = 0; i < height.length; i += 1) if (height[i] > top) top = height[i];
+  return top;
+}
+
+// Per-point RGB of ``points`` coloured ``by`` (height ramp from 0 to ``top``).
+function colours(points, by, epochIndex, top) {
   const n = points.header.count;
   const out = new Float32Array(n * 3);
   const height = points.height_above_ground;
-  let top = 0;
-  for (let i = 0; i < n; i += 1) if (height[i] > top) top = height[i];
   const colour = new THREE.Color();
   for (let i = 0; i < n; i += 1) {
     if (by === 'epoch') colour.set(EPOCH_COLOURS[epochIndex % EPOCH_COLOURS.length]);
@@ -56,19 +81,20 @@ function colours(points, by, epochIndex = 0) {
     else colour.copy(ramp(top > 0 ? height[i] / top : 0));
     out.set([colour.r, colour.g, colour.b], i * 3);
   }
-  return { out, top };
+  return out;
 }
 
-function colourLegend(by, top, overlays = []) {
+function colourLegend(by, top, clouds) {
   if (by === 'epoch') {
-    return overlays.map((o, k) => `<span class="swatch" style="background:${EPOCH_COLOURS[k % EPOCH_COLOURS.length]}"></span> `
-      + `${o.epoch}: ${o.count === null ? 'no tile' : `${o.count.toLocaleString('en')} points`}`).join('<br/>');
+    return clouds.map((c, k) => `<span class="swatch" style="background:${EPOCH_COLOURS[k % EPOCH_COLOURS.length]}"></span> `
+      + `${c.epoch}: ${countText(c.points)}`).join('<br/>');
   }
   if (by === 'height') {
     const stops = VIRIDIS.map((c, k) => `${c} ${(100 * k) / (VIRIDIS.length - 1)}%`).join(',');
     return `<div style="height:10px;background:linear-gradient(to right,${stops})"></div>`
       + `<div style="display:flex;justify-content:space-between;font-size:12px"><span>0 m</span>`
-      + `<span>${(top / 2).toFixed(1)} m</span><span>${top.toFixed(1)} m</span></div>`;
+      + `<span>${(top / 2).toFixed(1)} m</span><span>${top.toFixed(1)} m</span></div>`
+      + (clouds.length > 1 ? '<div style="font-size:12px">one ramp for both views</div>' : '');
   }
   if (by === 'selected') {
     return '<span class="swatch" style="background:#ff3b3b"></span> the selected tree '
@@ -79,6 +105,122 @@ function colourLegend(by, top, overlays = []) {
       + '<span class="swatch" style="background:#4f9d4f"></span> other (1)';
   }
   return 'one colour per tree; grey: no tree';
+}
+
+// Points of one or more clouds (each at its origin relative to the first's) drawn in one
+// view, in overlay, or in one view per cloud side by side; every view shares one camera and
+// its controls move all of them.
+class PointsView {
+  constructor(container, first) {
+    this.container = container;
+    this.origin = first.header.origin;
+    this.material = new THREE.PointsMaterial({ size: 2, sizeAttenuation: false, vertexColors: true });
+    this.viewports = [];
+    this.mode = null;
+    this.objects = new Map(); // cloud -> THREE.Points
+    const box = new THREE.Box3().setFromBufferAttribute(new THREE.BufferAttribute(first.xyz, 3));
+    if (box.isEmpty()) box.set(new THREE.Vector3(), new THREE.Vector3(1, 1, 1));
+    const centre = box.getCenter(new THREE.Vector3());
+    const size = box.getSize(new THREE.Vector3());
+    // z up, looking from the south-east and above.
+    this.camera = new THREE.PerspectiveCamera(45, 1, 0.1, 5000);
+    this.camera.up.set(0, 0, 1);
+    const reach = Math.max(size.x, size.y, size.z, 1) * 1.5;
+    this.camera.position.set(centre.x + reach * 0.7, centre.y - reach * 0.9, centre.z + reach * 0.6);
+    this.target = centre;
+  }
+
+  object(cloud) {
+    if (!this.objects.has(cloud)) {
+      const g = new THREE.BufferGeometry();
+      g.setAttribute('position', new THREE.BufferAttribute(cloud.points.xyz, 3));
+      g.setAttribute('color', new THREE.BufferAttribute(new Float32Array(cloud.points.header.count * 3), 3));
+      const points = new THREE.Points(g, this.material);
+      const shift = cloud.points.header.origin.map((v, i) => v - this.origin[i]);
+      points.position.set(shift[0], shift[1], shift[2]);
+      this.objects.set(cloud, points);
+    }
+    return this.objects.get(cloud);
+  }
+
+  // Draws ``clouds`` in ``mode`` (single: the first; overlay; side) coloured ``by``.
+  show(mode, clouds, by) {
+    const shown = mode === 'single' ? clouds.slice(0, 1) : clouds;
+    const top = Math.max(0, ...shown.map((c) => heightTop(c.points)));
+    for (const [k, cloud] of shown.entries()) {
+      const colour = this.object(cloud).geometry.getAttribute('color');
+      colour.copyArray(colours(cloud.points, by, k, top));
+      colour.needsUpdate = true;
+    }
+    const groups = mode === 'side' ? shown.map((c) => [c]) : [shown];
+    const key = `${mode}:${shown.length}`;
+    if (key !== this.mode) this.layout(groups, mode === 'side');
+    this.mode = key;
+    this.render();
+    return top;
+  }
+
+  layout(groups, labelled) {
+    this.clear();
+    const divs = groups.map(() => {
+      const div = document.createElement('div');
+      div.className = 'viewport';
+      this.container.append(div);
+      return div;
+    });
+    const [width, height] = [divs[0].clientWidth, divs[0].clientHeight];
+    this.camera.aspect = width / height;
+    this.camera.updateProjectionMatrix();
+    this.viewports = groups.map((clouds, k) => {
+      const renderer = new THREE.WebGLRenderer({ antialias: true, preserveDrawingBuffer: true });
+      renderer.setPixelRatio(1);
+      renderer.setSize(width, height);
+      divs[k].append(renderer.domElement);
+      const scene = new THREE.Scene();
+      scene.background = new THREE.Color('#1b1f1b');
+      for (const cloud of clouds) scene.add(this.object(cloud));
+      if (labelled) {
+        const label = document.createElement('div');
+        label.className = 'viewport-label';
+        label.dataset.epoch = clouds[0].epoch;
+        label.dataset.count = String(clouds[0].points.header.meta.total);
+        label.dataset.shown = String(clouds[0].points.header.count);
+        label.textContent = `${clouds[0].epoch} · ${countText(clouds[0].points)}`;
+        divs[k].append(label);
+      }
+      const controls = new OrbitControls(this.camera, renderer.domElement);
+      controls.target.copy(this.target);
+      controls.update();
+      // One camera: a move in any view (pan moves its target) is every view's.
+      controls.addEventListener('change', () => {
+        this.target.copy(controls.target);
+        for (const other of this.viewports) if (other.controls !== controls) other.controls.target.copy(controls.target);
+        this.render();
+      });
+      return { renderer, scene, controls };
+    });
+  }
+
+  render() {
+    for (const { renderer, scene } of this.viewports) renderer.render(scene, this.camera);
+  }
+
+  clear() {
+    for (const { renderer, scene, controls } of this.viewports) {
+      controls.dispose();
+      scene.clear();
+      renderer.dispose();
+      renderer.forceContextLoss(); // the browser keeps only a few WebGL contexts
+    }
+    this.viewports = [];
+    this.container.replaceChildren();
+  }
+
+  dispose() {
+    this.clear();
+    for (const points of this.objects.values()) points.geometry.dispose();
+    this.material.dispose();
+  }
 }
 
 const TREE_ROWS = [['height_m', 'tree height (m)', 1], ['dbh_m', 'DBH (cm)', 100], ['dbh_source', 'DBH source'],
@@ -107,118 +249,136 @@ function attributeRows(attributes, tile, tree) {
   return rows.map(([k, v]) => `<tr><td>${k}</td><td>${v}</td></tr>`).join('');
 }
 
-async function fetchPoints(epoch, cellId, treeFid = null) {
-  const query = treeFid === null ? '' : `?tree=${treeFid}`;
-  const response = await fetch(`/viewer/points/${encodeURIComponent(epoch)}/${encodeURIComponent(cellId)}${query}`);
-  if (!response.ok) throw new Error(`points of ${cellId} in ${epoch}: HTTP ${response.status}`);
-  return decodePoints(await response.arrayBuffer());
+const PAYLOAD_ROWS = [['payload_id', 'payload id'], ['mission', 'mission'], ['epoch', 'epoch'],
+  ['node_id', 'pose graph node'], ['time', 'time (UTC)'], ['stamp', 'stamp (s.ns)'],
+  ['point_count', 'points (payloads layer)'], ['x', 'pose x (m)', 3], ['y', 'pose y (m)', 3],
+  ['z', 'pose z (m)', 3], ['yaw', 'heading (° anticlockwise from east)', 1]];
+
+function payloadRows(p) {
+  const values = { ...p, stamp: `${p.stamp_sec}.${String(p.stamp_nsec).padStart(9, '0')}` };
+  return PAYLOAD_ROWS.filter(([key]) => values[key] !== null && values[key] !== undefined && values[key] !== '')
+    .map(([key, label, digits]) => {
+      const v = values[key];
+      const text = digits !== undefined ? v.toFixed(digits) : typeof v === 'number' ? fmt(v) : v;
+      return `<tr><td>${label} · ${key}</td><td>${text}</td></tr>`;
+    }).join('');
 }
 
-// Opens the panel for one cell; resolves when its points are drawn. ``epochs``: every epoch
-// that has a tile of the cell (for the overlay).
+function openPanel(title, rows) {
+  $('panel').hidden = false;
+  $('panel-title').textContent = title;
+  $('panel-count').textContent = 'loading points…';
+  $('panel-attributes').innerHTML = rows;
+  $('panel-count').classList.remove('warning');
+  for (const key of ['count', 'shown', 'treeCount', 'payload']) delete $('panel-count').dataset[key];
+}
+
+function setLayoutOptions(enabled) {
+  const layout = $('view-layout');
+  for (const option of layout.options) option.disabled = option.value !== 'single' && !enabled;
+  layout.disabled = !enabled;
+  if (!enabled) layout.value = 'single';
+}
+
+// Opens the panel for one cell (and a tree of it); resolves when its points are drawn.
+// ``epochs``: every epoch that has a tile of the cell (overlaid or side by side).
 export async function openCellView({ cellId, epoch, attributes, tile, epochs = [epoch], tree = null }) {
   const t0 = performance.now();
-  const panel = $('panel');
-  panel.hidden = false;
-  $('panel-title').textContent = tree ? `tree in ${cellId} · ${epoch}` : `${cellId} · ${epoch}`;
-  $('panel-count').textContent = 'loading points…';
-  $('panel-attributes').innerHTML = attributeRows(attributes, tile, tree?.properties);
+  openPanel(tree ? `tree in ${cellId} · ${epoch}` : `${cellId} · ${epoch}`, attributeRows(attributes, tile, tree?.properties));
   const selectedOption = $('colour-by').querySelector('option[value=selected]');
   selectedOption.disabled = !tree;
   if (tree) $('colour-by').value = 'selected';
   else if ($('colour-by').value === 'selected') $('colour-by').value = 'height';
+  const others = epochs.filter((e) => e !== epoch);
+  setLayoutOptions(others.length > 0);
   window.dispatchEvent(new Event('resize'));
 
-  const points = await fetchPoints(epoch, cellId, tree ? tree.fid : null);
+  const points = await fetchPoints(cellUrl(epoch, cellId, tree ? tree.fid : null), `${cellId} in ${epoch}`);
   const n = points.header.count;
-
-  const container = $('view3d');
-  container.replaceChildren();
-  const renderer = new THREE.WebGLRenderer({ antialias: true, preserveDrawingBuffer: true });
-  renderer.setPixelRatio(1);
-  renderer.setSize(container.clientWidth, container.clientHeight);
-  container.append(renderer.domElement);
-  const scene = new THREE.Scene();
-  scene.background = new THREE.Color('#1b1f1b');
-  const geometry = new THREE.BufferGeometry();
-  geometry.setAttribute('position', new THREE.BufferAttribute(points.xyz, 3));
-  const by = $('colour-by').value;
-  const { out, top } = colours(points, by);
-  geometry.setAttribute('color', new THREE.BufferAttribute(out, 3));
-  geometry.computeBoundingBox();
-  const box = geometry.boundingBox;
-  const centre = box.getCenter(new THREE.Vector3());
-  const size = box.getSize(new THREE.Vector3());
-  const material = new THREE.PointsMaterial({ size: 2, sizeAttenuation: false, vertexColors: true });
-  scene.add(new THREE.Points(geometry, material));
-
-  // z up, looking from the south-east and above.
-  const camera = new THREE.PerspectiveCamera(45, container.clientWidth / container.clientHeight, 0.1, 5000);
-  camera.up.set(0, 0, 1);
-  const reach = Math.max(size.x, size.y, size.z, 1) * 1.5;
-  camera.position.set(centre.x + reach * 0.7, centre.y - reach * 0.9, centre.z + reach * 0.6);
-  const controls = new OrbitControls(camera, renderer.domElement);
-  controls.target.copy(centre);
-  controls.update();
-  const render = () => renderer.render(scene, camera);
-  controls.addEventListener('change', render);
-  render();
-
+  const view = new PointsView($('view3d'), points);
   const buffer = points.header.meta.buffer_points;
-  $('panel-count').textContent = `${n.toLocaleString('en')} points in the cell`
-    + (buffer ? ` (+ ${buffer.toLocaleString('en')} buffer points in the tile, not shown)` : '');
-  $('panel-count').dataset.count = String(n);
+  $('panel-count').textContent = `${countText(points)} in the cell`
+    + (buffer ? ` (+ ${fmt(buffer)} buffer points in the tile, not shown)` : '');
+  $('panel-count').dataset.count = String(points.header.meta.total);
+  $('panel-count').dataset.shown = String(n);
   const marked = points.header.meta.tree;
   if (marked) {
     const all = tree?.properties?.n_points;
-    $('panel-count').textContent += `; ${marked.points.toLocaleString('en')} of them of the selected tree`
-      + (all && all !== marked.points ? ` (of its ${all.toLocaleString('en')}: the rest lie in neighbouring cells)` : '');
+    $('panel-count').textContent += `; ${fmt(marked.points)} of them of the selected tree`
+      + (all && all !== marked.points ? ` (of its ${fmt(all)}: the rest lie in neighbouring cells)` : '');
     $('panel-attributes').insertAdjacentHTML('afterbegin', `<tr><td>tree id · tree_id</td><td>${marked.tree_id}</td></tr>`);
     $('panel-count').dataset.treeCount = String(marked.points);
-  } else delete $('panel-count').dataset.treeCount;
-  $('colour-legend').innerHTML = colourLegend(by, top);
-  // The other epochs' points of the cell, overlaid (fetched on first use), each at its own
-  // origin relative to this epoch's.
-  const others = epochs.filter((e) => e !== epoch);
-  let overlays = null;
-  const overlayGroup = new THREE.Group();
-  scene.add(overlayGroup);
-  async function loadOverlays() {
-    overlays = [{ epoch, count: n }];
-    for (const [k, other] of others.entries()) {
-      const more = await fetchPoints(other, cellId);
-      const g = new THREE.BufferGeometry();
-      g.setAttribute('position', new THREE.BufferAttribute(more.xyz, 3));
-      g.setAttribute('color', new THREE.BufferAttribute(colours(more, 'epoch', k + 1).out, 3));
-      const cloud = new THREE.Points(g, material);
-      const shift = more.header.origin.map((v, i) => v - points.header.origin[i]);
-      cloud.position.set(shift[0], shift[1], shift[2]);
-      overlayGroup.add(cloud);
-      overlays.push({ epoch: other, count: more.header.count });
-    }
   }
-  const recolour = async () => {
-    const by = $('colour-by').value;
-    if (by === 'epoch' && overlays === null) await loadOverlays();
-    overlayGroup.visible = by === 'epoch';
-    const next = colours(points, by);
-    geometry.getAttribute('color').copyArray(next.out);
-    geometry.getAttribute('color').needsUpdate = true;
-    $('colour-legend').innerHTML = colourLegend(by, next.top, overlays || []);
-    render();
+  // This epoch's points, then the other epochs' (fetched on first use).
+  const clouds = [{ epoch, points }];
+  let loading = null;
+  const loadOthers = () => {
+    loading ||= (async () => {
+      for (const other of others) {
+        clouds.push({ epoch: other, points: await fetchPoints(cellUrl(other, cellId), `${cellId} in ${other}`) });
+      }
+    })();
+    return loading;
   };
-  const epochOption = $('colour-by').querySelector('option[value=epoch]');
-  epochOption.disabled = others.length === 0;
-  if (epochOption.disabled && $('colour-by').value === 'epoch') $('colour-by').value = 'height';
-  if ($('colour-by').value === 'epoch') await recolour();
-  $('colour-by').onchange = recolour;
+  let disposed = false;
+  const update = async () => {
+    const mode = $('view-layout').value;
+    $('colour-by').disabled = mode === 'overlay';
+    $('panel').classList.toggle('wide', mode === 'side');
+    window.dispatchEvent(new Event('resize'));
+    if (mode !== 'single') await loadOthers();
+    if (disposed) return;
+    const by = mode === 'overlay' ? 'epoch' : $('colour-by').value;
+    const top = view.show(mode, clouds, by);
+    $('colour-legend').innerHTML = colourLegend(by, top, mode === 'single' ? clouds.slice(0, 1) : clouds);
+  };
+  $('colour-by').onchange = update;
+  $('view-layout').onchange = update;
+  await update();
   const ms = performance.now() - t0;
   return {
     cellId, epoch, count: n, ms, treeFid: tree ? tree.fid : null,
-    recoloured: () => recolour(),
-    dispose() {
-      controls.dispose(); geometry.dispose(); material.dispose(); renderer.dispose();
-      overlayGroup.children.forEach((c) => c.geometry.dispose());
-    },
+    update,
+    dispose() { disposed = true; view.dispose(); },
+  };
+}
+
+// Opens the panel for one payload (its ``payloads`` row): its attributes and its points as
+// the catalog's tiles hold them (georeferenced, enriched); resolves when they are drawn.
+export async function openPayloadView({ properties }) {
+  const t0 = performance.now();
+  const id = properties.payload_id;
+  openPanel(`payload ${id} · ${properties.mission}`, payloadRows(properties));
+  const selectedOption = $('colour-by').querySelector('option[value=selected]');
+  selectedOption.disabled = true;
+  if ($('colour-by').value === 'selected') $('colour-by').value = 'height';
+  setLayoutOptions(false); // a payload is of one epoch
+  $('colour-by').disabled = false;
+  $('panel').classList.remove('wide');
+  window.dispatchEvent(new Event('resize'));
+
+  const points = await fetchPoints(`/viewer/points?payload=${encodeURIComponent(id)}`, `payload ${id}`);
+  const got = points.header.meta.payload;
+  const view = new PointsView($('view3d'), points);
+  $('panel-count').textContent = `${countText(points)} of the payload, from ${got.tiles_with_points} `
+    + `tile${got.tiles_with_points === 1 ? '' : 's'} of ${got.epoch}`
+    + (got.complete ? '' : `; the tiles hold ${fmt(got.found)} of its ${fmt(got.point_count)} points`);
+  $('panel-count').classList.toggle('warning', !got.complete);
+  $('panel-count').dataset.count = String(points.header.meta.total);
+  $('panel-count').dataset.shown = String(points.header.count);
+  $('panel-count').dataset.payload = String(id);
+  const clouds = [{ epoch: got.epoch, points }];
+  const update = () => {
+    const by = $('colour-by').value;
+    const top = view.show('single', clouds, by);
+    $('colour-legend').innerHTML = colourLegend(by, top, clouds);
+  };
+  $('colour-by').onchange = update;
+  $('view-layout').onchange = null;
+  update();
+  return {
+    payloadId: id, epoch: got.epoch, count: points.header.meta.total, ms: performance.now() - t0,
+    update,
+    dispose() { view.dispose(); },
   };
 }

@@ -1,5 +1,5 @@
 // The standgrid viewer: a 2-D stand map (OpenLayers) over the service's OGC API and COGs,
-// and a 3-D view of a clicked cell's points (cell3d.js). Everything it loads comes from
+// and a 3-D view of a clicked cell's, tree's or payload's points (cell3d.js). Everything it loads comes from
 // the service that serves it (no internet), except an optional user-given basemap.
 import 'ol/ol.css';
 import './style.css';
@@ -18,7 +18,7 @@ import { Circle as CircleStyle, Fill, Stroke, Style, Text } from 'ol/style.js';
 import { createEmpty, extend, getCenter, isEmpty } from 'ol/extent.js';
 import Point from 'ol/geom/Point.js';
 import proj4 from 'proj4';
-import { openCellView } from './cell3d.js';
+import { openCellView, openPayloadView } from './cell3d.js';
 import { renderStandPage } from './stand.js';
 import { RDBU, VIRIDIS, classBreaks, divergingBreaks, formatValue, metricLabel, metricName, metricUnit, rampColours } from './scales.js';
 
@@ -248,7 +248,7 @@ async function main() {
     ['CHM (canopy height)', chmLayer, 'chm'], ['20 m cells: metric', cellLayer, 'cells'],
     ['20 m tile cells (outlines)', tileLayer, 'tiles'], ['1 ha stands (outlines)', standLayer, 'stands'],
     ['trees (zoomed in; crown colour: height; ● stem, ○ top: click for the tree; DBH cm, ≈ imputed)', treeLayer, 'trees'], ['trajectories', trajectoryLayer, 'trajectories'],
-    ['payload footprints', payloadLayer, 'payloads'],
+    ['payload footprints (click: the payload and its points)', payloadLayer, 'payloads'],
   ];
   for (const [label, layer, key] of switches) {
     const row = document.createElement('label');
@@ -360,7 +360,8 @@ async function main() {
       const trees = showEpoch();
       restyle();
       await trees;
-      if (state.cellView) await openCell(state.cellView.cellId); // a tree is of one epoch
+      // a tree is of one epoch: its cell is reopened; a payload stays (it names its epoch)
+      if (state.cellView?.cellId) await openCell(state.cellView.cellId);
     })();
   });
   $('metric').addEventListener('change', (e) => { state.metric = e.target.value; restyle(); });
@@ -399,6 +400,31 @@ async function main() {
     });
     return state.cellView;
   }
+
+  // Click a payload footprint: its attributes and its points, as the epoch's tiles hold them.
+  async function openPayload(feature) {
+    state.cellView?.dispose();
+    selectedSource.clear(true);
+    selectedSource.addFeature(feature.clone());
+    const p = feature.getProperties();
+    const stamp = `${p.stamp_sec}_${String(p.stamp_nsec).padStart(9, '0')}`;
+    $('panel-links').innerHTML = `the mission's cloud of this payload: <a href="/missions/${encodeURIComponent(p.mission)}`
+      + `/payloads/${stamp}/cloud.laz" download>LAZ</a> (from the mission folder, when the server has it)`;
+    state.cellView = await openPayloadView({ properties: p });
+    return state.cellView;
+  }
+  // The payload under a pixel: of the footprints there, the one whose pose is nearest.
+  function payloadAt(pixel) {
+    if (!payloadLayer.getVisible()) return null;
+    const [cx, cy] = map.getCoordinateFromPixel(pixel);
+    let best = null;
+    let nearest = Infinity;
+    map.forEachFeatureAtPixel(pixel, (f) => {
+      const d2 = (f.get('x') - cx) ** 2 + (f.get('y') - cy) ** 2;
+      if (d2 < nearest) { nearest = d2; best = f; }
+    }, { layerFilter: (layer) => layer === payloadLayer, hitTolerance: 0 });
+    return best;
+  }
   map.on('singleclick', (event) => {
     // A tree when the click is on its marker (within 8 px; markers are drawn when zoomed
     // in), else the cell under the click.
@@ -415,13 +441,18 @@ async function main() {
       pending = openCell(tree.get('cell_id'), tree);
       return;
     }
+    const payload = payloadAt(event.pixel);
+    if (payload) {
+      pending = openPayload(payload);
+      return;
+    }
     const hit = map.forEachFeatureAtPixel(event.pixel, (f) => f, {
       layerFilter: (layer) => layer === cellLayer || layer === changeLayer || layer === tileLayer,
       hitTolerance: 0,
     });
     if (hit) pending = openCell(hit.get('cell_id'));
   });
-  $('panel-close').addEventListener('click', () => { $('panel').hidden = true; selectedSource.clear(); state.cellView?.dispose(); state.cellView = null; map.updateSize(); });
+  $('panel-close').addEventListener('click', () => { $('panel').hidden = true; $('panel').classList.remove('wide'); selectedSource.clear(); state.cellView?.dispose(); state.cellView = null; map.updateSize(); });
 
   // Test and automation hook (read by tests/test_viewer_browser.py).
   const idle = async () => {
@@ -454,6 +485,12 @@ async function main() {
       return map.getPixelFromCoordinate([(x0 + x1) / 2, (y0 + y1) / 2]);
     },
     openCell,
+    openPayload: (id) => openPayload(payloadLayer.getSource().getFeatures().find((f) => f.get('payload_id') === id)),
+    // The pixel of a payload's pose (inside its footprint), given its payload_id.
+    payloadPixel: (id) => {
+      const f = payloadLayer.getSource().getFeatures().find((g) => g.get('payload_id') === id);
+      return f ? map.getPixelFromCoordinate([f.get('x'), f.get('y')]) : null;
+    },
     // The pixel of a tree's marker (stem or top), given its feature id (the trees layer's fid).
     treePixel: (fid) => {
       const f = treeSource.getFeatureById(fid);

@@ -25,7 +25,8 @@ def stage_epoch_vpc(
         if txn.current(rel) is not None:
             txn.delete(rel)
         return
-    date = txn.state["epochs"].get(epoch, {}).get("date") or None
+    record = txn.epoch_record(epoch)
+    date = record.date if record else None
     stamp = f"{date}T00:00:00Z" if date else None
     entries = sorted(
         (VpcTile(path, info.file_bounds, crs, info.point_count, stamp) for path, info in tiles),

@@ -221,6 +221,10 @@ def out_of_space_error(exc: BaseException, path: str | PathLike[str]) -> OutOfSp
 # --- enrichment --------------------------------------------------------------------------
 
 
+class TilingError(StandgridError, ValueError):
+    """Tiling options that cannot work together (e.g. COPC tiles uncompressed)."""
+
+
 class EnrichError(StandgridError, RuntimeError):
     """Terrain, tree or metric computation cannot proceed."""
 

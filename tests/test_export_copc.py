@@ -15,7 +15,7 @@ import pyproj
 import pytest
 
 from standgrid.errors import CRSError, OutputExistsError, PointCloudFormatError
-from standgrid.export.copc import copc_suffix, octree_nodes, write_copc_tile
+from standgrid.export.copc import is_copc, octree_nodes, write_copc_tile
 from standgrid.export.las import read_tile, snap_to_storage, write_tile
 from standgrid.pointcloud import PointCloud
 
@@ -260,7 +260,7 @@ def test_errors_are_typed_and_leave_nothing(tmp_path: Path) -> None:
         write_copc_tile(path, forest_cloud(300, seed=3), crs=CRS, overwrite=False)
     assert path.read_bytes() == before
     assert [p.name for p in tmp_path.iterdir()] == ["t.copc.laz"]
-    assert copc_suffix(path) and not copc_suffix(tmp_path / "t.laz")
+    assert is_copc(path) and not is_copc(tmp_path / "t.laz")
 
 
 def test_empty_and_single_point_tiles(tmp_path: Path) -> None:

@@ -10,7 +10,7 @@ Stage order: after ``export`` (file writers), before ``enrich``. Only the standa
 imported here, so opening a catalog stays cheap.
 """
 
-from standgrid.catalog.records import EpochRecord, MissionRecord
+from standgrid.catalog.records import EpochRecord, MissionRecord, TilingSettings
 from standgrid.catalog.store import (
     CATALOG_FILE,
     Catalog,
@@ -31,6 +31,7 @@ __all__ = [
     "EpochRecord",
     "FileLock",
     "MissionRecord",
+    "TilingSettings",
     "Transaction",
     "build_folder",
     "grid_fingerprint",

@@ -300,6 +300,7 @@ def write_chunk_tiles(
     A buffer copy whose original is outside the block gets ``missing[name]``. ``targets[k]``
     is where tile k goes (the transaction's staged path). Other fields are kept as read.
     """
+    from standgrid.export.copc import is_copc, rewrite_copc_tile
     from standgrid.export.las import rewrite_tile
 
     for k, (tile, target) in enumerate(zip(points.tiles, targets, strict=True)):
@@ -310,7 +311,8 @@ def write_chunk_tiles(
             out = np.full(len(rows), missing[name], dtype=values.dtype)
             out[found] = values[rows[found]]
             new[name] = out
-        rewrite_tile(tile.record, target, new, source=tile.path, durable=False)
+        rewrite = rewrite_copc_tile if is_copc(target) else rewrite_tile
+        rewrite(tile.record, target, new, source=tile.path, durable=False)
 
 
 def cells_of(records: Any, stand_of: Any = None) -> list[ChunkCell]:

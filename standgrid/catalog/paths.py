@@ -38,9 +38,10 @@ def tiles_folder(epoch: str) -> str:
     return f"tiles/{epoch}"
 
 
-def tile(epoch: str, cell_id: str, *, laz: bool = True) -> str:
-    """One cell's tile in one epoch."""
-    return f"{tiles_folder(epoch)}/{cell_id}.{'laz' if laz else 'las'}"
+def tile(epoch: str, cell_id: str, *, laz: bool = True, copc: bool = False) -> str:
+    """One cell's tile in one epoch (``.copc.laz`` for a COPC tile)."""
+    suffix = "copc.laz" if copc else "laz" if laz else "las"
+    return f"{tiles_folder(epoch)}/{cell_id}.{suffix}"
 
 
 def rasters_folder(epoch: str) -> str:

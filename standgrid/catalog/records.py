@@ -68,6 +68,29 @@ class MissionRecord:
 
 
 @dataclass(frozen=True)
+class TilingSettings:
+    """How tiles are written: the buffer copied around each cell (m) and the file format."""
+
+    buffer: float = 0.0
+    laz: bool = True
+    #: COPC (Cloud Optimized Point Cloud: LAZ 1.4 in octree order, streamable by range
+    #: requests); implies ``laz``
+    copc: bool = False
+
+    @classmethod
+    def from_json(cls, entry: Mapping[str, Any] | None) -> TilingSettings:
+        entry = entry or {}
+        return cls(
+            buffer=float(entry.get("buffer", 0.0)),
+            laz=bool(entry.get("laz", True)),
+            copc=bool(entry.get("copc", False)),
+        )
+
+    def to_json(self) -> dict[str, Any]:
+        return {"buffer": self.buffer, "laz": self.laz, "copc": self.copc}
+
+
+@dataclass(frozen=True)
 class EpochRecord:
     """One epoch (campaign): its date, missions and enrichment state."""
 

@@ -15,9 +15,11 @@ from standgrid.errors import (
     OutputExistsError,
     OutputNotWritableError,
     OutputOverlapsInputError,
+    TilingError,
 )
 
 if TYPE_CHECKING:
+    from standgrid.catalog.records import TilingSettings
     from standgrid.catalog.store import Catalog, FileLock, Transaction
     from standgrid.georeference.placement import Placement
 
@@ -140,11 +142,21 @@ def create_catalog(
     return Catalog.build(path, request.definition(crs), crs, scheme, final=final, held=lock)
 
 
-def settle_tiling(txn: Transaction, buffer: float | None, laz: bool | None) -> tuple[float, bool]:
-    """Unset buffer/compression settings take the catalog's (the last ones given; 0 m and
-    LAZ for a new catalog), which are updated to what this run uses."""
-    stored_buffer, stored_laz = txn.tiling_settings()
-    use_buffer = stored_buffer if buffer is None else float(buffer)
-    use_laz = stored_laz if laz is None else bool(laz)
-    txn.set_tiling_settings(use_buffer, use_laz)
-    return use_buffer, use_laz
+def settle_tiling(
+    txn: Transaction, buffer: float | None, laz: bool | None, copc: bool | None = None
+) -> TilingSettings:
+    """Unset buffer/format settings take the catalog's (the last ones given; 0 m and LAZ for
+    a new catalog), which are updated to what this run uses. COPC is always compressed: LAS
+    given alone leaves COPC; given with COPC, :class:`TilingError`."""
+    from standgrid.catalog.records import TilingSettings
+
+    stored = txn.tiling_settings()
+    if copc and laz is False:
+        raise TilingError("COPC tiles are compressed LAZ: give either COPC or LAS")
+    use_copc = (stored.copc and laz is not False) if copc is None else bool(copc)
+    use_laz = True if use_copc else stored.laz if laz is None else bool(laz)
+    settings = TilingSettings(
+        buffer=stored.buffer if buffer is None else float(buffer), laz=use_laz, copc=use_copc
+    )
+    txn.set_tiling_settings(settings)
+    return settings

@@ -47,7 +47,7 @@ from typing import Any
 
 from standgrid._atomic import exchange, fsync_path, fsync_tree, temporary_sibling, write_text_atomic
 from standgrid.catalog.paths import CATALOG_FILE
-from standgrid.catalog.records import EpochRecord, MissionRecord
+from standgrid.catalog.records import EpochRecord, MissionRecord, TilingSettings
 from standgrid.errors import (
     CatalogBusyError,
     CatalogConflictError,
@@ -734,29 +734,28 @@ class Transaction:
         """Mission name -> its record as this transaction has it."""
         return {n: MissionRecord.from_json(n, e) for n, e in self.state["missions"].items()}
 
-    def tiling_settings(self) -> tuple[float, bool]:
-        """The buffer (m) and compression tiles were last written with (0 m, LAZ if never)."""
-        stored = self.state.get("tiling") or {}
-        return float(stored.get("buffer", 0.0)), bool(stored.get("laz", True))
+    def tiling_settings(self) -> TilingSettings:
+        """How tiles were last written (0 m buffer, LAZ, not COPC if never)."""
+        return TilingSettings.from_json(self.state.get("tiling"))
 
-    def set_tiling_settings(self, buffer: float, laz: bool) -> None:
-        """Record the buffer and compression this run writes tiles with."""
-        self.state["tiling"] = {"buffer": float(buffer), "laz": bool(laz)}
+    def set_tiling_settings(self, settings: TilingSettings) -> None:
+        """Record how this run writes tiles."""
+        self.state["tiling"] = settings.to_json()
 
     def set_mission_tiles(self, name: str, tiles: Iterable[str]) -> None:
         """The tiles a recorded mission's points are in (after its epoch was re-tiled)."""
         self.state["missions"][name]["tiles"] = sorted({_relative(t) for t in tiles})
 
-    def settle_epoch(self, label: str, *, buffer: float, laz: bool) -> EpochRecord | None:
+    def settle_epoch(self, label: str, tiling: TilingSettings) -> EpochRecord | None:
         """After tiling: the epoch's date is its missions' earliest, it is not enriched, and
-        its tiles were written with ``buffer`` and ``laz``; None when no mission is left."""
+        its tiles were written as ``tiling`` says; None when no mission is left."""
         entry = self.state["epochs"].get(label)
         if entry is None:
             return None
         dates = [self.state["missions"][n]["date"] for n in entry["missions"]]
         entry["date"] = min(d for d in dates if d) if any(dates) else ""
         entry["enriched"] = False
-        entry["tiling"] = {"buffer": float(buffer), "laz": bool(laz)}
+        entry["tiling"] = tiling.to_json()
         return EpochRecord.from_json(label, entry)
 
     def begin_enrichment(self, label: str) -> EpochRecord:

@@ -101,6 +101,11 @@ def _human(report: dict[str, Any]) -> str:
     help="Uncompressed LAS or LAZ tiles (default LAZ; an existing catalog keeps its own).",
 )  # fmt: skip
 @click.option(
+    "--copc/--no-copc", "copc", default=None,
+    help="COPC tiles (*.copc.laz: LAZ that QGIS 3.26+, PDAL and web viewers stream by range"
+    " requests; 2-5x slower to write). Default: not COPC; an existing catalog keeps its own.",
+)  # fmt: skip
+@click.option(
     "--method", type=click.Choice(["yaw2d", "rigid3d"]), default="yaw2d", show_default=True,
     help="Georeference fit: rotation about z only, or full 3-D.",
 )  # fmt: skip
@@ -127,6 +132,7 @@ def tile(
     crs_spec: str,
     buffer: float | None,
     las: bool | None,
+    copc: bool | None,
     method: str,
     anchor: tuple[float, float, float, float] | None,
     epoch: str | None,
@@ -155,6 +161,7 @@ def tile(
     Example:
       standgrid tile data/missions/* -o catalog
       standgrid tile M1 M2 -o catalog --grid 100 --crs EPSG:25832 --buffer 5 --las
+      standgrid tile data/missions/* -o catalog --copc
       standgrid tile NO_GNSS -o catalog --anchor 51.7733 -1.3372 147.6 78.1
       standgrid tile UTM_PCD_MISSION -o catalog --crs EPSG:32630
     """
@@ -168,6 +175,7 @@ def tile(
         crs=crs_spec,
         buffer=buffer,
         laz=None if las is None else not las,
+        copc=copc,
         method=method,
         anchor=anchor,
         epoch=epoch,

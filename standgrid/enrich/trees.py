@@ -515,6 +515,9 @@ def fit_stems(
     bounds = np.concatenate([[0], np.cumsum(sizes)])
     for c in np.flatnonzero(sizes >= min_points):
         members = local[order[bounds[c] : bounds[c + 1]]]
+        # RANSAC samples by index: points in a canonical order, so the fit does not depend
+        # on the order the tile stores them in
+        members = members[np.lexsort(members.T[::-1])]
         fit = fit_circle(members, inlier_tolerance=inlier_tolerance)
         if fit is None:
             continue

@@ -45,7 +45,7 @@ from numpy.typing import NDArray
 
 from standgrid._atomic import atomic_output, temporary_sibling
 from standgrid.errors import PointCloudFormatError
-from standgrid.export.las import SCALE, TileInfo, write_tile
+from standgrid.export.las import SCALE, TileInfo, rewrite_tile, write_tile
 from standgrid.pointcloud import PointCloud
 
 #: Cells per axis of the sampling grid of every node (PDAL/untwine use 128).
@@ -63,7 +63,7 @@ _EVLR_HEADER = 60
 _ENTRY = struct.Struct("<4iQii")  # hierarchy entry: key (d, x, y, z), offset, bytes, points
 
 
-def copc_suffix(path: str | os.PathLike[str]) -> bool:
+def is_copc(path: str | os.PathLike[str]) -> bool:
     """True when a tile path names a COPC file (``*.copc.laz``)."""
     return Path(path).name.lower().endswith(".copc.laz")
 
@@ -175,12 +175,14 @@ def write_copc_tile(
     lattice_origin: tuple[float, float] = (0.0, 0.0),
     resolution: int = RESOLUTION,
     leaf_points: int = LEAF_POINTS,
+    durable: bool = True,
 ) -> TileInfo:
     """Write ``core`` (+ ``buffer`` points flagged withheld) as one COPC 1.0 tile.
 
     The arguments are :func:`~standgrid.export.las.write_tile`'s (``laz`` must be None or
     True: COPC is compressed), plus the octree's ``resolution`` (sampling cells per node
     axis) and ``leaf_points``. Returns the :class:`TileInfo` a plain tile would have.
+    Fsynced unless ``durable=False`` (a tile staged in a transaction: its commit fsyncs).
     """
     out = Path(path)
     if laz is False:
@@ -208,12 +210,41 @@ def write_copc_tile(
             overwrite=True,
             lattice_origin=lattice_origin,
         )
-        with atomic_output(out, overwrite=overwrite) as tmp:
+        with atomic_output(out, overwrite=overwrite, durable=durable) as tmp:
             _scratch_to_copc(scratch, raw, tmp, resolution=resolution, leaf_points=leaf_points)
     finally:
         scratch.unlink(missing_ok=True)
         raw.unlink(missing_ok=True)
     return replace(info, path=out, compressed=True)
+
+
+def rewrite_copc_tile(
+    record: Any,
+    path: str | os.PathLike[str],
+    fields: dict[str, NDArray[Any]],
+    *,
+    source: str | os.PathLike[str],
+    durable: bool = True,
+) -> None:
+    """:func:`~standgrid.export.las.rewrite_tile` for a COPC tile: the stored record with
+    ``fields`` set, indexed again into an octree (the same nodes: the points have not moved)."""
+    out = Path(path)
+    header = record.header
+    header.vlrs = [v for v in header.vlrs if _user_id(v) != COPC_USER_ID.decode()]
+    header.evlrs = [v for v in (header.evlrs or []) if _user_id(v) != COPC_USER_ID.decode()]
+    scratch = temporary_sibling(out, "scratch")
+    raw = temporary_sibling(out, "copclib")
+    try:
+        rewrite_tile(record, scratch, fields, source=source, laz=False, durable=False)
+        with atomic_output(out, overwrite=True, durable=durable) as tmp:
+            _scratch_to_copc(scratch, raw, tmp, resolution=RESOLUTION, leaf_points=LEAF_POINTS)
+    finally:
+        scratch.unlink(missing_ok=True)
+        raw.unlink(missing_ok=True)
+
+
+def _user_id(vlr: Any) -> str:
+    return str(getattr(vlr, "user_id", "")).rstrip("\x00")
 
 
 def _scratch_to_copc(

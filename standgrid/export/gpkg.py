@@ -393,12 +393,20 @@ def write_vpc(vpc_path: str | os.PathLike[str], tiles: Iterable[VpcTile | Sequen
             relative = Path(tile.path).as_posix()
         href = "./" + relative
         laz = relative.lower().endswith(".laz")
+        copc = relative.lower().endswith(".copc.laz")  # streamable by QGIS 3.26+ and PDAL
+        encoding = (
+            "application/vnd.laszip+copc"
+            if copc
+            else "application/vnd.laszip"
+            if laz
+            else "application/vnd.las"
+        )
         properties: dict[str, Any] = {
             "datetime": tile.datetime
             or datetime.fromtimestamp(0, UTC).strftime("%Y-%m-%dT%H:%M:%SZ"),
             "pc:count": int(tile.point_count),
             "pc:type": "lidar",
-            "pc:encoding": "application/vnd.laszip" if laz else "application/vnd.las",
+            "pc:encoding": encoding,
             "pc:schemas": [],
             "proj:bbox": [xmin, ymin, zmin, xmax, ymax, zmax],
             "proj:geometry": {"type": "Polygon", "coordinates": [_ring(xmin, ymin, xmax, ymax)]},
@@ -407,7 +415,7 @@ def write_vpc(vpc_path: str | os.PathLike[str], tiles: Iterable[VpcTile | Sequen
         epsg = crs.to_epsg()
         if epsg is not None:
             properties["proj:epsg"] = epsg
-        rel_id = str(Path(relative).with_suffix("").as_posix())
+        rel_id = relative.removesuffix(".copc.laz").removesuffix(".laz").removesuffix(".las")
         feature: dict[str, Any] = {
             "type": "Feature",
             "stac_version": "1.0.0",

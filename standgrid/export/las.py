@@ -401,12 +401,14 @@ def rewrite_tile(
     fields: dict[str, NDArray[Any]],
     *,
     source: str | os.PathLike[str],
+    laz: bool | None = None,
     durable: bool = True,
 ) -> None:
     """Write a tile read with :func:`read_tile_record` (from ``source``) to ``path`` with
     ``fields`` (one value per stored point, withheld included) set, added when missing; every
     other dimension, the header's offsets and the points' order are kept as stored, so
-    :func:`read_tile` of the result equals :func:`write_tile` of the same cloud and fields."""
+    :func:`read_tile` of the result equals :func:`write_tile` of the same cloud and fields.
+    ``laz`` defaults to the suffix of ``path``."""
     import laspy
 
     out, src = Path(path), Path(source)
@@ -443,7 +445,9 @@ def rewrite_tile(
             data = json.loads(bytes(vlr.record_data).decode())
             data["fields"] = manifest
             vlr.record_data = json.dumps(data).encode()
-    _write_las(record, out, laz=out.suffix.lower() == ".laz", overwrite=True, durable=durable)
+    if laz is None:
+        laz = out.suffix.lower() == ".laz"
+    _write_las(record, out, laz=laz, overwrite=True, durable=durable)
 
 
 def _manifest(las: Any, path: Path) -> dict[str, str] | None:

@@ -11,6 +11,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+from standgrid.export.copc import is_copc, write_copc_tile
 from standgrid.export.las import TileInfo, write_tile
 from standgrid.partition.spill import CellExtents, read_cell
 from standgrid.pointcloud import PointCloud
@@ -30,10 +31,12 @@ class CellTile:
 
 
 def write_cell(task: CellTile) -> TileInfo:
-    """Write one cell's tile; its ``core_bounds`` is the cell polygon (or the points' box)."""
+    """Write one cell's tile (COPC when its name ends ``.copc.laz``); its ``core_bounds`` is
+    the cell polygon (or the points' box)."""
     import shapely
 
-    info = write_tile(
+    writer = write_copc_tile if is_copc(task.path) else write_tile
+    info = writer(
         task.path,
         task.core,
         crs=task.crs,

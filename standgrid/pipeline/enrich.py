@@ -183,7 +183,7 @@ def _enrich_epoch(
     )
     # the buffer must reach every copy a tile holds, so those get heights and ids too; and
     # be wider than the coverage closing (2 x radius), so chunks agree with the whole epoch
-    tiling_buffer, _ = txn.tiling_settings()
+    tiling_buffer = txn.tiling_settings().buffer
     # and hold every point CSF sees around the ground squares of the cells it owns
     halo = max(
         options.halo,

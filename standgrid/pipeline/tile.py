@@ -59,6 +59,9 @@ class TileOptions:
     buffer: float | None = None
     #: ``None``: the catalog's setting (LAZ for a new catalog).
     laz: bool | None = None
+    #: COPC tiles (streamable LAZ; writing costs 2-5x a LAZ tile). ``None``: the catalog's
+    #: setting (not COPC for a new catalog).
+    copc: bool | None = None
     method: str = "yaw2d"
     #: ``(lat, lon, alt, yaw_deg)``: place the map frame by hand, no GNSS fit
     #: (:func:`standgrid.georeference.fit_from_anchor`); one mission per run.
@@ -233,8 +236,8 @@ def _ingest(
     report.workers = executor.workers
     with catalog.transaction() as txn:
         index = CatalogIndex(catalog, txn)  # under the writer lock: no commit can intervene
-        buffer, laz = settle_tiling(txn, options.buffer, options.laz)
-        settings = EpochSettings(buffer, laz, options.memory_budget)
+        tiling = settle_tiling(txn, options.buffer, options.laz, options.copc)
+        settings = EpochSettings(tiling, options.memory_budget)
         for ingest in ingests:
             ingest.number = txn.mission_number(ingest.mission.name)
             ingest.to_catalog = ingest.placement.to_catalog(catalog.crs, ingest.mission.name)

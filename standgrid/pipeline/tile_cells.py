@@ -44,6 +44,7 @@ class EpochWork:
     final_partition: Callable[[], Partition]
     crs: str
     laz: bool
+    copc: bool
     memory_budget: MemoryBudget
 
 
@@ -98,7 +99,7 @@ def _in_this_process(
         def cells() -> Any:
             for cell in engine.finalise():
                 cell_id = partition.cell_id(cell.key)
-                rel = paths.tile(epoch, cell_id, laz=work.laz)
+                rel = paths.tile(epoch, cell_id, laz=work.laz, copc=work.copc)
                 names.append((cell_id, rel))
                 polygon = partition.polygon(cell.key)
                 yield CellTile(txn.stage(rel), cell.core, cell.buffer, work.crs, polygon, origin)
@@ -143,7 +144,7 @@ def _on_cluster(work: EpochWork, txn: Transaction, executor: Executor, progress:
         cells = []
         for extents in cell_extents(runs, buffered=buffer is not None):
             cell_id = partition.cell_id(extents.key)
-            rel = paths.tile(epoch, cell_id, laz=work.laz)
+            rel = paths.tile(epoch, cell_id, laz=work.laz, copc=work.copc)
             polygon = partition.polygon(extents.key)
             cells.append(
                 (cell_id, rel, RunCellTile(txn.stage(rel), extents, work.crs, polygon, origin))

@@ -14,7 +14,7 @@ from standgrid.engine import MemoryBudget, Progress
 from standgrid.pipeline.tile_cells import EpochWork, write_cells
 
 if TYPE_CHECKING:
-    from standgrid.catalog import Catalog, Transaction
+    from standgrid.catalog import Catalog, TilingSettings, Transaction
     from standgrid.catalog.index import CatalogIndex
     from standgrid.engine import Executor
     from standgrid.export.las import TileInfo
@@ -37,8 +37,7 @@ class Ingest:
 
 @dataclass(frozen=True)
 class EpochSettings:
-    buffer: float
-    laz: bool
+    tiling: TilingSettings
     memory_budget: MemoryBudget
 
 
@@ -101,11 +100,12 @@ def tile_epoch(
         kept=[KeptTiles(catalog.path(rel), tuple(renewed), origin, schema) for rel in previous],
         payloads=tasks,
         partition=partition,
-        buffer=partition.buffer(settings.buffer) if settings.buffer else None,
+        buffer=partition.buffer(settings.tiling.buffer) if settings.tiling.buffer else None,
         on_payload=on_payload,
         final_partition=lambda: catalog_partition(catalog, payloads=_sites(others, rows)),
         crs=catalog.crs,
-        laz=settings.laz,
+        laz=settings.tiling.laz,
+        copc=settings.tiling.copc,
         memory_budget=settings.memory_budget,
     )
     done = write_cells(work, txn, executor, progress)
@@ -169,7 +169,7 @@ def tile_epoch(
         "gnss_fixes", pd.concat(fixes, ignore_index=True) if fixes else [], missions=names
     )
     index.replace("missions", mission_rows, missions=names)
-    settled = txn.settle_epoch(epoch, buffer=settings.buffer, laz=settings.laz)
+    settled = txn.settle_epoch(epoch, settings.tiling)
     result.report = {
         "date": settled.date or "" if settled else "",  # None: every mission moved out
         "points_in": fed,

@@ -15,7 +15,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from standgrid.catalog import Catalog, grid_fingerprint, recover
+from standgrid.catalog import Catalog, TilingSettings, grid_fingerprint, recover
 from standgrid.errors import (
     CatalogBusyError,
     CatalogConflictError,
@@ -528,14 +528,14 @@ def test_a_live_transaction_is_not_discarded_by_another_open(tmp_path: Path) -> 
 def test_typed_transaction_writes_commit_and_read_back(tmp_path: Path) -> None:
     catalog = make(tmp_path)
     with catalog.transaction() as txn:
-        assert txn.tiling_settings() == (0.0, True)  # a new catalog's defaults
-        txn.set_tiling_settings(2.5, False)
+        assert txn.tiling_settings() == TilingSettings(0.0, True, False)  # a new catalog's
+        txn.set_tiling_settings(TilingSettings(2.5, False))
         txn.record_mission("m1", epoch="2024", date="2024-05-14", tiles=["tiles/2024/a.las"])
         txn.record_mission("m2", epoch="2024", date="2024-05-12")
         txn.set_mission_tiles("m2", ["tiles/2024/b.las", "tiles/2024/a.las"])
-        settled = txn.settle_epoch("2024", buffer=2.5, laz=False)
+        settled = txn.settle_epoch("2024", TilingSettings(2.5, False))
         assert settled is not None and settled.date == "2024-05-12"  # the earliest mission
-        assert txn.settle_epoch("1999", buffer=0.0, laz=True) is None
+        assert txn.settle_epoch("1999", TilingSettings()) is None
         txn.mark_enriched("2024", {"cells": 3, "observed_fraction": np.float64(0.5)})
         txn.record_comparison("2024__2028", {"from": "2024", "to": "2028", "outputs": {}})
     again = Catalog.open(catalog.root)
@@ -545,6 +545,7 @@ def test_typed_transaction_writes_commit_and_read_back(tmp_path: Path) -> None:
     assert again.mission_records["m2"].tiles == ("tiles/2024/a.las", "tiles/2024/b.las")
     assert again.comparisons["2024__2028"]["from"] == "2024"
     with again.transaction() as txn:
-        assert txn.tiling_settings() == (2.5, False)
+        assert txn.tiling_settings() == TilingSettings(2.5, False)
+        assert again.epoch("2024").tiling == TilingSettings(2.5, False)
         before = txn.begin_enrichment("2024")
         assert before.enriched  # what it was: enriching it again recomputes

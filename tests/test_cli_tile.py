@@ -46,7 +46,7 @@ def test_json_output_is_conserved(runner: CliRunner, tmp_path: Path) -> None:
         written += int((~np.asarray(las.withheld, dtype=bool)).sum())
     assert written == report["points_out"]
     state = json.loads((catalog / "catalog.json").read_text())
-    assert state["tiling"] == {"buffer": 1.0, "laz": False}
+    assert state["tiling"] == {"buffer": 1.0, "laz": False, "copc": False}
 
 
 def test_human_output_names_the_catalog(runner: CliRunner, tmp_path: Path) -> None:

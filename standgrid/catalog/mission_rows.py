@@ -4,15 +4,27 @@ and its row of the ``missions`` layer (all geometry in the catalog CRS)."""
 from __future__ import annotations
 
 import math
-from typing import TYPE_CHECKING, Any
+from collections.abc import Sequence
+from typing import TYPE_CHECKING, Any, Protocol
 
 import numpy as np
 
 from standgrid.errors import CatalogError, GeoreferenceError
 
 if TYPE_CHECKING:
+    from standgrid.catalog.store import Catalog
     from standgrid.georeference.placement import Placement, ToCatalog
     from standgrid.mission.model import Mission, Payload
+    from standgrid.partition.schema import Schema
+
+
+class PlacedMission(Protocol):
+    """A mission on its way into the catalog, with its number and recipe into the CRS."""
+
+    mission: Mission
+    number: int
+    to_catalog: ToCatalog | None
+
 
 #: Payload ids are ``mission_number << 16 | payload index``: stable on re-ingest, no registry.
 PAYLOAD_INDEX_BITS = 16
@@ -163,3 +175,63 @@ def mission_row(
         "grid_fingerprint": catalog.fingerprint,
         "crs": catalog.crs,
     }
+
+
+def epoch_sites(others: Any, rows: list[dict[str, Any]]) -> Any:
+    """The epoch's payload rows: those of missions not re-ingested, then this run's."""
+    import pandas as pd
+
+    new = pd.DataFrame(rows, columns=["mission", "stamp_sec", "stamp_nsec", "x", "y", "geometry"])
+    if not len(others):
+        return new
+    return pd.concat([pd.DataFrame(others[list(new.columns)]), new], ignore_index=True)
+
+
+def payload_rows(
+    group: Sequence[PlacedMission], epoch: str
+) -> tuple[list[dict[str, Any]], list[dict[str, Any]]]:
+    """One ``payloads`` row and one payload task's arguments (but the epoch's lattice origin
+    and schema) per cloud payload of the group's missions."""
+    from standgrid.georeference.placement import cloud_payloads
+    from standgrid.stamps import unix_ns_to_adjusted_gps_time
+
+    rows, sources = [], []
+    for ingest in group:
+        mission, to_catalog = ingest.mission, ingest.to_catalog
+        assert to_catalog is not None
+        for k, payload in enumerate(cloud_payloads(mission)):
+            ident = payload_id(ingest.number, k, mission)
+            row = payload_row(mission, to_catalog, ident, payload, epoch)
+            fitted = to_catalog.fit is not None
+            sources.append(
+                {
+                    "path": payload.path,
+                    "frame": payload.frame,
+                    "file_to_base": mission.file_to_base(payload),
+                    "pose": mission.pose_of(payload) if fitted else None,
+                    "to_catalog": to_catalog,
+                    "gps_time": float(unix_ns_to_adjusted_gps_time(payload.stamp.ns)),
+                    "point_source_id": ingest.number,
+                    "payload_id": ident,
+                    "fallback_footprint": row["geometry"],
+                }
+            )
+            rows.append(row)
+    return rows, sources
+
+
+def tiling_schema(catalog: Catalog, previous: list[str], group: Sequence[PlacedMission]) -> Schema:
+    """The epoch's field schema: from its first existing tile and each mission's first payload."""
+    from standgrid.export.las import read_tile
+    from standgrid.georeference.placement import cloud_payloads
+    from standgrid.partition.schema import epoch_schema
+
+    samples = [read_tile(catalog.path(previous[0]))] if previous else []
+    for ingest in group:
+        payloads = cloud_payloads(ingest.mission)
+        if payloads:
+            first = payloads[0]
+            mission = ingest.mission
+            load = mission.load_projected if first.frame == "utm" else mission.load_base
+            samples.append(load(first))
+    return epoch_schema(samples, catalog.root)

@@ -101,6 +101,8 @@ class EpochRecord:
     enrichment: Mapping[str, Any] | None = None
     invalidated: Mapping[str, Any] | None = None
     comparisons_invalidated: Mapping[str, Mapping[str, Any]] = field(default_factory=dict)
+    #: how its tiles were written (None: not recorded, an older catalog)
+    tiling: TilingSettings | None = None
 
     @classmethod
     def from_json(cls, label: str, entry: Mapping[str, Any]) -> EpochRecord:
@@ -116,6 +118,7 @@ class EpochRecord:
             enrichment=optional("enrichment"),
             invalidated=optional("invalidated"),
             comparisons_invalidated=copy.deepcopy(dict(entry.get("comparisons_invalidated") or {})),
+            tiling=TilingSettings.from_json(entry["tiling"]) if entry.get("tiling") else None,
         )
 
     @property

@@ -24,10 +24,13 @@ class KeptTiles:
     renewed: tuple[int, ...]
     lattice_origin: tuple[float, float]
     schema: dict[str, np.dtype]
+    #: Payload ids whose old points are dropped too (an in-place re-tile).
+    dropped_payloads: tuple[int, ...] = ()
 
 
 def kept_points(task: KeptTiles) -> PointCloud:
-    """The tile's core points of missions not renewed, ready for the partition engine."""
+    """The tile's core points of missions not renewed and payloads not dropped, ready for the
+    partition engine."""
     from standgrid.catalog.invalidate import without_enrichment
     from standgrid.export.las import read_tile
     from standgrid.partition.lattice import snap_to_storage
@@ -35,6 +38,8 @@ def kept_points(task: KeptTiles) -> PointCloud:
 
     cloud = read_tile(task.path)
     keep = ~np.isin(cloud.fields["point_source_id"], task.renewed)
+    if task.dropped_payloads:
+        keep &= ~np.isin(cloud.fields["payload_id"], task.dropped_payloads)
     kept = cloud.select(keep)
     # heights and tree ids of the old enrichment do not survive a re-tile
     kept = PointCloud(

@@ -746,15 +746,19 @@ class Transaction:
         """The tiles a recorded mission's points are in (after its epoch was re-tiled)."""
         self.state["missions"][name]["tiles"] = sorted({_relative(t) for t in tiles})
 
-    def settle_epoch(self, label: str, tiling: TilingSettings) -> EpochRecord | None:
-        """After tiling: the epoch's date is its missions' earliest, it is not enriched, and
-        its tiles were written as ``tiling`` says; None when no mission is left."""
+    def settle_epoch(
+        self, label: str, tiling: TilingSettings, *, changed: bool = True
+    ) -> EpochRecord | None:
+        """After tiling: the epoch's date is its missions' earliest, it is not enriched (unless
+        no point ``changed``), and its tiles were written as ``tiling`` says; None when no
+        mission is left."""
         entry = self.state["epochs"].get(label)
         if entry is None:
             return None
         dates = [self.state["missions"][n]["date"] for n in entry["missions"]]
         entry["date"] = min(d for d in dates if d) if any(dates) else ""
-        entry["enriched"] = False
+        if changed:
+            entry["enriched"] = False
         entry["tiling"] = tiling.to_json()
         return EpochRecord.from_json(label, entry)
 

@@ -263,7 +263,8 @@ def _ingest(
                 and i.mission.name in known
                 and known[i.mission.name].epoch == epoch
             ]
-            reasons[epoch] = retile_reason([i.mission.name for i in group], moved)
+            if done.changed:  # else its enrichment and comparisons still hold
+                reasons[epoch] = retile_reason([i.mission.name for i in group], moved)
         index.save()
         cells = len(index.read("cells"))
         # the re-tiled epochs' enrichment and comparisons describe points that are gone

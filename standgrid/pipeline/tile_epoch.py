@@ -20,7 +20,8 @@ if TYPE_CHECKING:
     from standgrid.export.las import TileInfo
     from standgrid.georeference.placement import Placement, ToCatalog
     from standgrid.mission.model import Mission
-    from standgrid.partition.schema import Schema
+    from standgrid.partition.chunks import PayloadTask
+    from standgrid.partition.protocol import Partition
 
 
 @dataclass
@@ -48,6 +49,8 @@ class EpochResult:
     report: dict[str, Any]
     missions: dict[str, dict[str, Any]] = field(default_factory=dict)
     tiles: list[tuple[str, TileInfo]] = field(default_factory=list)
+    #: False when every point stayed where it was (a re-tile of unchanged missions)
+    changed: bool = True
 
 
 def tile_epoch(
@@ -65,10 +68,19 @@ def tile_epoch(
     mission in ``renewed`` (this run's missions) are taken out of the old tiles first."""
     import pandas as pd
 
+    from standgrid.catalog.increment import (
+        kept_tile_info,
+        plan_increment,
+        source_digest,
+        tiles_holding,
+    )
     from standgrid.catalog.mission_rows import (
+        epoch_sites,
         gnss_rows,
         metadata_extra,
         mission_row,
+        payload_rows,
+        tiling_schema,
         trajectory_rows,
     )
     from standgrid.catalog.partition import catalog_partition
@@ -80,29 +92,55 @@ def tile_epoch(
 
     names = {i.mission.name for i in group}
     previous = sorted(catalog.tiles(epoch)) if epoch in catalog.epochs else []
-    schema = _schema(catalog, previous, group)
-    rows, sources = _payload_rows(group, epoch)
-    others = index.read("payloads", epoch)
-    others = others[~others["mission"].astype(str).isin(names)]
-    partition = catalog_partition(catalog, payloads=_sites(others, rows), coverage=False)
+    schema = tiling_schema(catalog, previous, group)
+    rows, sources = payload_rows(group, epoch)
+    placements = {i.mission.name: i.placement.record() for i in group}
+    for row, source in zip(rows, sources, strict=True):
+        row["source_digest"] = source_digest(source, placements[row["mission"]], schema)
+    stored = index.read("payloads", epoch)
+    mine = stored["mission"].astype(str).isin(names)
+    others = stored[~mine]
+    partition = catalog_partition(catalog, payloads=epoch_sites(others, rows), coverage=False)
     origin = partition.lattice_origin
     tasks = [PayloadTask(**given, lattice_origin=origin, schema=schema) for given in sources]
+    run_missions = {n for n, r in catalog.mission_records.items() if r.number in renewed}
+    increment = plan_increment(
+        catalog, epoch, names, rows, stored[mine], settings.tiling, run_missions
+    )
+    if increment is None:  # the whole epoch
+        read = list(range(len(rows)))
+        rewrite, drop = previous, {"renewed": tuple(renewed)}
+    else:  # in place: the tiles holding dropped payloads or receiving changed ones
+        read = [k for k, r in enumerate(rows) if r["payload_id"] not in increment.unchanged]
+        landing = _landing_tiles([tasks[k] for k in read], partition, epoch, settings, executor)
+        holding = tiles_holding(catalog.root, previous, increment.dropped)
+        rewrite = sorted((landing | holding) & set(previous))
+        drop = {"renewed": (), "dropped_payloads": tuple(sorted(increment.dropped))}
+        _keep_rows(rows, increment.kept_rows)
+        progress.status(
+            f"{epoch}: {len(increment.unchanged)} payloads unchanged, {len(read)} to read; "
+            f"{len(rewrite)} of {len(previous)} tiles rewritten"
+        )
 
     new_in: dict[str, int] = dict.fromkeys(names, 0)
 
     def on_payload(k: int, points: int, footprint: Any) -> None:
-        rows[k]["point_count"] = points
-        rows[k]["geometry"] = footprint
-        new_in[rows[k]["mission"]] += points
+        row = rows[read[k]]
+        row["point_count"] = points
+        row["geometry"] = footprint
+        new_in[row["mission"]] += points
 
     work = EpochWork(
         epoch=epoch,
-        kept=[KeptTiles(catalog.path(rel), tuple(renewed), origin, schema) for rel in previous],
-        payloads=tasks,
+        kept=[
+            KeptTiles(catalog.path(rel), lattice_origin=origin, schema=schema, **drop)
+            for rel in rewrite
+        ],
+        payloads=[tasks[k] for k in read],
         partition=partition,
         buffer=partition.buffer(settings.tiling.buffer) if settings.tiling.buffer else None,
         on_payload=on_payload,
-        final_partition=lambda: catalog_partition(catalog, payloads=_sites(others, rows)),
+        final_partition=lambda: catalog_partition(catalog, payloads=epoch_sites(others, rows)),
         crs=catalog.crs,
         laz=settings.tiling.laz,
         copc=settings.tiling.copc,
@@ -123,6 +161,15 @@ def tile_epoch(
                        tile_path=rel)  # fmt: skip
         cell_rows.append(row)
         result.tiles.append((rel, info))
+    untouched, left_in = set(previous) - set(rewrite), 0
+    for row in index.read("cells", epoch).to_dict("records"):
+        if row["tile_path"] in untouched:  # left as it is, with its row
+            left_in += int(row["point_count"])
+            for name in filter(None, str(row["missions"]).split(",")):
+                tiles_of.setdefault(name, set()).add(row["tile_path"])
+            cell_rows.append(row)
+            result.tiles.append((row["tile_path"], kept_tile_info(
+                catalog.path(row["tile_path"]), row, catalog.crs)))  # fmt: skip
 
     fed = kept_in + sum(new_in.values())
     if done.points_in != fed or done.points_out != fed:
@@ -144,7 +191,8 @@ def tile_epoch(
         record = txn.record_mission(
             mission.name, epoch=epoch, date=ingest.date, path=str(mission.path.resolve()),
             georeference=ingest.placement.record(),
-            payload_count=len(cloud_payloads(mission)), point_count=new_in[mission.name],
+            payload_count=len(cloud_payloads(mission)),
+            point_count=sum(r["point_count"] for r in rows if r["mission"] == mission.name),
             tiles=sorted(tiles_of.get(mission.name, ())), **metadata_extra(mission),
         )  # fmt: skip
         result.missions[mission.name] = {
@@ -169,77 +217,53 @@ def tile_epoch(
         "gnss_fixes", pd.concat(fixes, ignore_index=True) if fixes else [], missions=names
     )
     index.replace("missions", mission_rows, missions=names)
-    settled = txn.settle_epoch(epoch, settings.tiling)
+    result.changed = increment is None or bool(read or rewrite)
+    settled = txn.settle_epoch(epoch, settings.tiling, changed=result.changed)
     result.report = {
         "date": settled.date or "" if settled else "",  # None: every mission moved out
-        "points_in": fed,
-        "points_kept_from_catalog": kept_in,
+        "points_in": fed + left_in,
+        "points_kept_from_catalog": kept_in + left_in,
         "points_new": sum(new_in.values()),
-        "points_out": done.points_out,
+        "points_out": done.points_out + left_in,
+        "points_rewritten": done.points_out,
         "buffer_points": done.buffer_points,
         "cells": len(result.tiles),
+        "cells_rewritten": len(done.tiles),
         "cells_removed": len(set(previous) - rels),
+        "payloads_unchanged": len(increment.unchanged) if increment else 0,
         "bytes_spilled": done.bytes_spilled,
     }
     return result
 
 
-def _sites(others: Any, rows: list[dict[str, Any]]) -> Any:
-    """The epoch's payload rows: those of missions not re-ingested, then this run's."""
-    import pandas as pd
+def _landing_tiles(
+    tasks: list[PayloadTask],
+    partition: Partition,
+    epoch: str,
+    settings: EpochSettings,
+    executor: Executor,
+) -> set[str]:
+    """The tiles (catalog-relative) the payloads' points fall in (their points are read
+    here only to place them; the partition engine reads them again)."""
+    import numpy as np
 
-    new = pd.DataFrame(rows, columns=["mission", "stamp_sec", "stamp_nsec", "x", "y", "geometry"])
-    if not len(others):
-        return new
-    return pd.concat([pd.DataFrame(others[list(new.columns)]), new], ignore_index=True)
+    from standgrid.catalog import paths
+    from standgrid.engine.ordered import ordered_map
+    from standgrid.partition.chunks import payload_chunk
 
-
-def _payload_rows(
-    group: list[Ingest], epoch: str
-) -> tuple[list[dict[str, Any]], list[dict[str, Any]]]:
-    """One ``payloads`` row and one payload task's arguments (but the epoch's lattice origin
-    and schema) per cloud payload of the group's missions."""
-    from standgrid.catalog.mission_rows import payload_id, payload_row
-    from standgrid.georeference.placement import cloud_payloads
-    from standgrid.stamps import unix_ns_to_adjusted_gps_time
-
-    rows, sources = [], []
-    for ingest in group:
-        mission, to_catalog = ingest.mission, ingest.to_catalog
-        assert to_catalog is not None
-        for k, payload in enumerate(cloud_payloads(mission)):
-            ident = payload_id(ingest.number, k, mission)
-            row = payload_row(mission, to_catalog, ident, payload, epoch)
-            fitted = to_catalog.fit is not None
-            sources.append(
-                {
-                    "path": payload.path,
-                    "frame": payload.frame,
-                    "file_to_base": mission.file_to_base(payload),
-                    "pose": mission.pose_of(payload) if fitted else None,
-                    "to_catalog": to_catalog,
-                    "gps_time": float(unix_ns_to_adjusted_gps_time(payload.stamp.ns)),
-                    "point_source_id": ingest.number,
-                    "payload_id": ident,
-                    "fallback_footprint": row["geometry"],
-                }
-            )
-            rows.append(row)
-    return rows, sources
+    keys: set[int] = set()
+    for chunk in ordered_map(executor, payload_chunk, tasks):
+        xyz = chunk.cloud.xyz
+        keys.update(np.unique(partition.assign(xyz[:, 0], xyz[:, 1])).tolist())
+    tiling = settings.tiling
+    return {paths.tile(epoch, partition.cell_id(k), laz=tiling.laz, copc=tiling.copc) for k in keys}
 
 
-def _schema(catalog: Catalog, previous: list[str], group: list[Ingest]) -> Schema:
-    """The epoch's field schema: from its first existing tile and each mission's first payload."""
-    from standgrid.export.las import read_tile
-    from standgrid.georeference.placement import cloud_payloads
-    from standgrid.partition.schema import epoch_schema
-
-    samples = [read_tile(catalog.path(previous[0]))] if previous else []
-    for ingest in group:
-        payloads = cloud_payloads(ingest.mission)
-        if payloads:
-            first = payloads[0]
-            mission = ingest.mission
-            load = mission.load_projected if first.frame == "utm" else mission.load_base
-            samples.append(load(first))
-    return epoch_schema(samples, catalog.root)
+def _keep_rows(rows: list[dict[str, Any]], kept: Any) -> None:
+    """Unchanged payloads keep their stored point count and footprint."""
+    stored = {int(r["payload_id"]): r for r in kept.to_dict("records")}
+    for row in rows:
+        found = stored.get(int(row["payload_id"]))
+        if found is not None:
+            row["point_count"] = int(found["point_count"])
+            row["geometry"] = found["geometry"]

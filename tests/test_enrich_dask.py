@@ -165,6 +165,18 @@ def test_dask_scheduler_and_worker_give_the_same_catalog(
     _assert_same(single, out)
 
 
+def _laz_threads(_: int) -> str | None:
+    return os.environ.get("RAYON_NUM_THREADS")
+
+
+def test_workers_started_by_hand_compress_laz_on_one_thread(scheduler: str) -> None:
+    from standgrid.engine import open_executor
+
+    with open_executor(scheduler=scheduler) as executor:
+        found = dict(executor.map(_laz_threads, list(range(6))))
+    assert found == dict.fromkeys(range(6), "1")
+
+
 def test_another_chunk_layout_changes_numbers_only_within_tolerance(
     tiled: Path, single: Path
 ) -> None:

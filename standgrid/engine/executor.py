@@ -62,10 +62,16 @@ _LIMITED: list[object] = []
 
 def _limit_this_process() -> None:
     """BLAS/OpenMP pools of this (worker) process limited to one thread, once: entering
-    ``threadpool_limits`` inspects every loaded library (~15 ms), too much per task."""
+    ``threadpool_limits`` inspects every loaded library (~15 ms), too much per task. LAZ
+    (lazrs' rayon pool, built at its first use) gets one thread too, unless the worker was
+    started with ``RAYON_NUM_THREADS`` set: a worker started by hand (``dask worker``) runs
+    its tasks on one core each, as a LocalCluster's do."""
     if not _LIMITED:
+        import os
+
         from threadpoolctl import threadpool_limits
 
+        os.environ.setdefault("RAYON_NUM_THREADS", "1")
         _LIMITED.append(threadpool_limits(1))  # kept for the life of the worker
 
 

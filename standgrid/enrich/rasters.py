@@ -173,10 +173,11 @@ def height_above_ground(
         raise EnrichError(f"DTM shape {dtm.shape} does not match the raster grid {grid.shape}")
     if len(xyz) == 0:
         return np.zeros(0, dtype=np.float32)
-    # axis 0 = column index (x), axis 1 = row index counted from the south (y), in pixel units
-    u = grid._pixel_units(xyz[:, 0], grid.x0)
-    v = grid._pixel_units(xyz[:, 1], grid.y0)
-    if u.min() < 0 or u.max() >= grid.ncols or v.min() < 0 or v.max() >= grid.nrows:
+    x, y = xyz[:, 0], xyz[:, 1]
+    # pixel units grow with the coordinates: the extreme points tell whether any is outside
+    u_range = grid._pixel_units(np.array([x.min(), x.max()]), grid.x0)
+    v_range = grid._pixel_units(np.array([y.min(), y.max()]), grid.y0)
+    if u_range[0] < 0 or u_range[1] >= grid.ncols or v_range[0] < 0 or v_range[1] >= grid.nrows:
         grid._flat_index(xyz)  # raises, counting the points outside
     table = np.ascontiguousarray(np.asarray(dtm, dtype=np.float64)[::-1, :].T)  # south first
     if not np.isfinite(table).all():
@@ -186,10 +187,13 @@ def height_above_ground(
     heights = np.empty(len(xyz), dtype=np.float32)
     for start in range(0, len(xyz), _BLOCK):  # blocks that stay in the CPU's cache
         rows = slice(start, start + _BLOCK)
-        # between the centres: clamped at the edge half-pixel
-        u_block = np.clip(u[rows] - 0.5, 0, grid.ncols - 1)
-        v_block = np.clip(v[rows] - 0.5, 0, grid.nrows - 1)
-        ground_z = _bilinear(table, u_block, v_block)
+        # axis 0 = column index (x), axis 1 = row index counted from the south (y), in pixel
+        # units from the first centre, clamped at the edge half-pixel
+        u = grid._pixel_units(x[rows], grid.x0)
+        u -= 0.5
+        v = grid._pixel_units(y[rows], grid.y0)
+        v -= 0.5
+        ground_z = _bilinear(table, np.clip(u, 0, grid.ncols - 1), np.clip(v, 0, grid.nrows - 1))
         np.subtract(xyz[rows, 2], ground_z, out=ground_z)
         heights[rows] = ground_z
     return heights

@@ -19,6 +19,7 @@ would, whatever the chunk layout (the memory budget) is.
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -116,13 +117,26 @@ def _lattice_index(values: NDArray[np.float64], origin: float, size: float) -> N
 
 def _bins(xy: NDArray[np.float64], size: float, lattice: tuple[float, float]) -> NDArray[np.int64]:
     """Per point, its ``size`` square on ``lattice``, as one integer key."""
-    col = _lattice_index(xy[:, 0], lattice[0], size)
-    row = _lattice_index(xy[:, 1], lattice[1], size)
-    col -= col.min()  # the key's range only; the squares stay the lattice's
-    row -= row.min()
-    col *= int(row.max()) + 1
-    col += row
-    return col
+    xy = np.asarray(xy, dtype=np.float64)
+    x, y = xy[:, 0], xy[:, 1]
+    # a square's index grows with the coordinate: the extreme points give the key's range
+    # (only the key's: the squares stay the lattice's)
+    col0 = math.floor((float(x.min()) - lattice[0]) / size)
+    row0 = math.floor((float(y.min()) - lattice[1]) / size)
+    rows = math.floor((float(y.max()) - lattice[1]) / size) - row0 + 1
+    key = np.empty(len(xy), dtype=np.int64)
+    for start in range(0, len(xy), _BLOCK):  # blocks that stay in the CPU's cache
+        part = slice(start, start + _BLOCK)
+        col = _lattice_index(x[part], lattice[0], size)
+        col -= col0
+        col *= rows
+        col += _lattice_index(y[part], lattice[1], size)
+        np.subtract(col, row0, out=key[part])
+    return key
+
+
+#: Points per block of element-wise arithmetic over a whole block of points.
+_BLOCK = 1 << 16
 
 
 def _lowest(

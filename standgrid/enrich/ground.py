@@ -9,9 +9,11 @@ on the real ``las_chablais3`` scan they find > 99 % of the producer's ground poi
 from __future__ import annotations
 
 import contextlib
+import functools
 import os
 import sys
 from collections.abc import Iterator
+from typing import Any
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
@@ -32,6 +34,20 @@ def as_xyz(points: PointsLike) -> NDArray[np.float64]:
             f"{int((~np.isfinite(xyz).all(axis=1)).sum())} points have non-finite coordinates"
         )
     return np.ascontiguousarray(xyz, dtype=np.float64)
+
+
+def one_thread(user_api: str) -> contextlib.AbstractContextManager[Any]:
+    """Limit the ``user_api`` ("openmp" or "blas") thread pools to one thread for the
+    duration. The libraries are looked up once per process and API (that costs
+    milliseconds per lookup): call it after importing the library it should limit."""
+    return _thread_pools(user_api).limit(limits=1, user_api=user_api)
+
+
+@functools.cache
+def _thread_pools(user_api: str) -> Any:
+    from threadpoolctl import ThreadpoolController
+
+    return ThreadpoolController().select(user_api=user_api)
 
 
 @contextlib.contextmanager
@@ -98,11 +114,9 @@ def classify_ground(
     csf.params.time_step = float(time_step)
     csf.setPointCloud(local)
     ground, off_ground = CSF.VecInt(), CSF.VecInt()
-    from threadpoolctl import threadpool_limits
-
     # One OpenMP thread: CSF's parallel cloth update is not deterministic (the same points
     # get different labels from run to run with two threads).
-    with _quiet_stdout(), threadpool_limits(1, user_api="openmp"):
+    with _quiet_stdout(), one_thread("openmp"):
         csf.do_filtering(ground, off_ground, False)  # False: do not write cloth_nodes.txt
     if len(ground) + len(off_ground) != len(xyz):
         raise EnrichError(

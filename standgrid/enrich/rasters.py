@@ -17,7 +17,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from standgrid._atomic import atomic_output
-from standgrid.enrich.ground import PointsLike, as_xyz
+from standgrid.enrich.ground import PointsLike, as_xyz, one_thread
 from standgrid.errors import EnrichError, FormatError, GridError
 
 _TOL = 1e-9
@@ -108,9 +108,15 @@ class RasterGrid:
         self, x: NDArray[np.float64], y: NDArray[np.float64]
     ) -> tuple[NDArray[np.int64], NDArray[np.int64]]:
         """(row, col) of the pixel containing each point (may be outside ``shape``)."""
-        col = np.floor((np.asarray(x) - self.x0) / self.pixel_size).astype(np.int64)
-        row_from_south = np.floor((np.asarray(y) - self.y0) / self.pixel_size).astype(np.int64)
+        col = np.floor(self._pixel_units(x, self.x0)).astype(np.int64)
+        row_from_south = np.floor(self._pixel_units(y, self.y0)).astype(np.int64)
         return self.nrows - 1 - row_from_south, col
+
+    def _pixel_units(self, values: NDArray[np.floating], origin: float) -> NDArray[np.floating]:
+        """(values - origin) / pixel_size (a new array): pixel units from the corner."""
+        units = np.asarray(values) - origin
+        units /= self.pixel_size
+        return units
 
     def centers(self) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
         """Pixel-centre coordinates, each of ``shape``."""
@@ -120,12 +126,16 @@ class RasterGrid:
 
     def _flat_index(self, xyz: NDArray[np.float64]) -> NDArray[np.int64]:
         row, col = self.pixel_of(xyz[:, 0], xyz[:, 1])
-        outside = (row < 0) | (row >= self.nrows) | (col < 0) | (col >= self.ncols)
-        if outside.any():
+        if len(row) and (
+            row.min() < 0 or row.max() >= self.nrows or col.min() < 0 or col.max() >= self.ncols
+        ):
+            outside = (row < 0) | (row >= self.nrows) | (col < 0) | (col >= self.ncols)
             raise EnrichError(
                 f"{int(outside.sum())} of {len(xyz)} points fall outside the raster {self.bounds}"
             )
-        return row * self.ncols + col
+        row *= self.ncols
+        row += col
+        return row
 
 
 def dtm_from_ground(ground: PointsLike, grid: RasterGrid) -> NDArray[np.float32]:
@@ -142,7 +152,9 @@ def dtm_from_ground(ground: PointsLike, grid: RasterGrid) -> NDArray[np.float32]
     query = np.column_stack([cx.ravel() - grid.x0, cy.ravel() - grid.y0])
     values = np.full(len(query), np.nan)
     if len(xyz) >= 3:
-        with contextlib.suppress(QhullError):  # collinear/duplicate-only: nearest below
+        # one BLAS thread: the triangles' barycentric transforms are thousands of 2x2
+        # LAPACK calls, each 10x slower when it wakes a thread pool on shared cores
+        with contextlib.suppress(QhullError), one_thread("blas"):  # collinear: nearest below
             values = LinearNDInterpolator(local, xyz[:, 2])(query)
     missing = ~np.isfinite(values)
     if missing.any():
@@ -161,24 +173,57 @@ def height_above_ground(
         raise EnrichError(f"DTM shape {dtm.shape} does not match the raster grid {grid.shape}")
     if len(xyz) == 0:
         return np.zeros(0, dtype=np.float32)
-    grid._flat_index(xyz)  # raises when outside
-    ps = grid.pixel_size
-    # axis 0 = column index (x), axis 1 = row index counted from the south (y), in pixel units
-    u = np.clip((xyz[:, 0] - grid.x0) / ps - 0.5, 0, grid.ncols - 1)
-    v = np.clip((xyz[:, 1] - grid.y0) / ps - 0.5, 0, grid.nrows - 1)
+    x, y = xyz[:, 0], xyz[:, 1]
+    # pixel units grow with the coordinates: the extreme points tell whether any is outside
+    u_range = grid._pixel_units(np.array([x.min(), x.max()]), grid.x0)
+    v_range = grid._pixel_units(np.array([y.min(), y.max()]), grid.y0)
+    if u_range[0] < 0 or u_range[1] >= grid.ncols or v_range[0] < 0 or v_range[1] >= grid.nrows:
+        grid._flat_index(xyz)  # raises, counting the points outside
     table = np.ascontiguousarray(np.asarray(dtm, dtype=np.float64)[::-1, :].T)  # south first
     if not np.isfinite(table).all():
         raise EnrichError("the DTM has empty (non-finite) pixels")
     if grid.ncols == 1 or grid.nrows == 1:  # degenerate axis: interpolate along the other only
         table = np.pad(table, ((0, grid.ncols == 1), (0, grid.nrows == 1)), mode="edge")
-    # bilinear between the four pixel centres around each point
+    heights = np.empty(len(xyz), dtype=np.float32)
+    for start in range(0, len(xyz), _BLOCK):  # blocks that stay in the CPU's cache
+        rows = slice(start, start + _BLOCK)
+        # axis 0 = column index (x), axis 1 = row index counted from the south (y), in pixel
+        # units from the first centre, clamped at the edge half-pixel
+        u = grid._pixel_units(x[rows], grid.x0)
+        u -= 0.5
+        v = grid._pixel_units(y[rows], grid.y0)
+        v -= 0.5
+        ground_z = _bilinear(table, np.clip(u, 0, grid.ncols - 1), np.clip(v, 0, grid.nrows - 1))
+        np.subtract(xyz[rows, 2], ground_z, out=ground_z)
+        heights[rows] = ground_z
+    return heights
+
+
+#: Points per block of the element-wise arithmetic of :func:`height_above_ground`.
+_BLOCK = 1 << 16
+
+
+def _bilinear(
+    table: NDArray[np.float64], u: NDArray[np.float64], v: NDArray[np.float64]
+) -> NDArray[np.float64]:
+    """Bilinear interpolation of ``table`` (values at pixel centres; ``u`` along axis 0,
+    ``v`` along axis 1, in pixels from the first centre) between the four centres around
+    each point."""
     i = np.minimum(np.floor(u).astype(np.int64), table.shape[0] - 2)
     j = np.minimum(np.floor(v).astype(np.int64), table.shape[1] - 2)
     fu, fv = u - i, v - j
-    ground_z = (1.0 - fv) * ((1.0 - fu) * table[i, j] + fu * table[i + 1, j]) + fv * (
-        (1.0 - fu) * table[i, j + 1] + fu * table[i + 1, j + 1]
-    )
-    return (xyz[:, 2] - ground_z).astype(np.float32)
+    step = table.shape[1]  # (i + 1, j) is this far on from (i, j) in the flat table
+    corner = i * step + j
+    values = table.ravel()
+    gu = 1.0 - fu
+    south = gu * values[corner]
+    south += fu * values[corner + step]
+    north = gu * values[corner + 1]
+    north += fu * values[corner + (step + 1)]
+    south *= 1.0 - fv
+    north *= fv
+    south += north
+    return south
 
 
 def chm(

@@ -19,6 +19,7 @@ would, whatever the chunk layout (the memory budget) is.
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -86,33 +87,56 @@ def _classify(
     ground = np.zeros(len(xyz), dtype=bool)
     if len(xyz) < 3:
         return ground
-    x, y = xyz[:, 0], xyz[:, 1]
-    kx = np.floor((x - lattice[0]) / GROUND_SQUARE_M).astype(np.int64)
-    ky = np.floor((y - lattice[1]) / GROUND_SQUARE_M).astype(np.int64)
+    # CSF sees the points sorted by x, y, z: its result may depend on their order, which
+    # the block layout would otherwise set. One sort serves every square: a square's
+    # points are a run of it in x, filtered by y (a stable sort, so the same order)
+    by_xyz = np.lexsort((xyz[:, 2], xyz[:, 1], xyz[:, 0]))
+    x, y = xyz[by_xyz, 0], xyz[by_xyz, 1]
+    kx = _lattice_index(x, lattice[0], GROUND_SQUARE_M)
+    ky = _lattice_index(y, lattice[1], GROUND_SQUARE_M)
     h = GROUND_HALO_M
     for ix, iy in sorted(set(zip(kx.tolist(), ky.tolist(), strict=True))):
         x0 = lattice[0] + ix * GROUND_SQUARE_M
         y0 = lattice[1] + iy * GROUND_SQUARE_M
         x1, y1 = x0 + GROUND_SQUARE_M, y0 + GROUND_SQUARE_M
-        near = np.flatnonzero((x >= x0 - h) & (x < x1 + h) & (y >= y0 - h) & (y < y1 + h))
-        # CSF sees the points sorted by x, y, z: its result may depend on their order,
-        # which the block layout would otherwise set
-        order = near[np.lexsort((xyz[near, 2], xyz[near, 1], xyz[near, 0]))]
-        square = np.zeros(len(xyz), dtype=bool)
-        square[order] = _csf(xyz[order], cloth_resolution, rigidness, source)
-        mine = order[(kx[order] == ix) & (ky[order] == iy)]
-        ground[mine] = square[mine]
+        start, stop = np.searchsorted(x, [x0 - h, x1 + h])  # x0 - h <= x < x1 + h
+        run = slice(start, stop)
+        near = start + np.flatnonzero((y[run] >= y0 - h) & (y[run] < y1 + h))
+        labels = _csf(xyz[by_xyz[near]], cloth_resolution, rigidness, source)
+        mine = (kx[near] == ix) & (ky[near] == iy)
+        ground[by_xyz[near[mine]]] = labels[mine]
     return ground
 
 
-def _bins(
-    xy: NDArray[np.float64], size: float, lattice: tuple[float, float]
-) -> NDArray[np.int64]:
+def _lattice_index(values: NDArray[np.float64], origin: float, size: float) -> NDArray[np.int64]:
+    """Per value, its ``size`` interval on the lattice of ``origin``: floor((v - o) / size)."""
+    index = values - origin
+    index /= size
+    return np.floor(index, out=index).astype(np.int64)
+
+
+def _bins(xy: NDArray[np.float64], size: float, lattice: tuple[float, float]) -> NDArray[np.int64]:
     """Per point, its ``size`` square on ``lattice``, as one integer key."""
-    cell = np.floor((xy - np.asarray(lattice)) / size).astype(np.int64)
-    cell -= cell.min(axis=0)  # the key's range only; the squares stay the lattice's
-    key: NDArray[np.int64] = cell[:, 0] * (int(cell[:, 1].max()) + 1) + cell[:, 1]
+    xy = np.asarray(xy, dtype=np.float64)
+    x, y = xy[:, 0], xy[:, 1]
+    # a square's index grows with the coordinate: the extreme points give the key's range
+    # (only the key's: the squares stay the lattice's)
+    col0 = math.floor((float(x.min()) - lattice[0]) / size)
+    row0 = math.floor((float(y.min()) - lattice[1]) / size)
+    rows = math.floor((float(y.max()) - lattice[1]) / size) - row0 + 1
+    key = np.empty(len(xy), dtype=np.int64)
+    for start in range(0, len(xy), _BLOCK):  # blocks that stay in the CPU's cache
+        part = slice(start, start + _BLOCK)
+        col = _lattice_index(x[part], lattice[0], size)
+        col -= col0
+        col *= rows
+        col += _lattice_index(y[part], lattice[1], size)
+        np.subtract(col, row0, out=key[part])
     return key
+
+
+#: Points per block of element-wise arithmetic over a whole block of points.
+_BLOCK = 1 << 16
 
 
 def _lowest(
@@ -165,6 +189,11 @@ def thin(
     centre = np.floor((points[:, :2] - np.asarray(lattice)) / spacing) + 0.5
     offset = (points[:, :2] - np.asarray(lattice)) / spacing - centre
     dist = (offset**2).sum(axis=1)
-    order = np.lexsort((points[:, 2], points[:, 1], points[:, 0], dist, key))
+    nearest = np.full(int(key.max()) + 1, np.inf)
+    np.minimum.at(nearest, key, dist)
+    # only the points nearest their square's centre can be first: sort those alone
+    tied = np.flatnonzero(dist <= nearest[key])
+    by = points[tied]
+    order = tied[np.lexsort((by[:, 2], by[:, 1], by[:, 0], dist[tied], key[tied]))]
     first = np.r_[True, key[order][1:] != key[order][:-1]]
     return points[np.sort(order[first])]

@@ -25,7 +25,7 @@ they stand (or within ``max_stem_offset``).
 
 from __future__ import annotations
 
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from typing import Any
 
@@ -364,12 +364,66 @@ def fit_circle(
     """Robust circle: RANSAC over 3-point circles scored by MSAC (truncated squared residual),
     then geometric least squares (soft-L1) on the inliers of the best circle, started from
     their algebraic fit. ``None`` when fewer than 3 points."""
-    pts = np.asarray(xy, dtype=np.float64)
-    if len(pts) < 3:
-        return None
-    mean = pts.mean(axis=0)
-    local = pts - mean
+    return fit_circles(
+        [xy],
+        inlier_tolerance=inlier_tolerance,
+        iterations=iterations,
+        seed=seed,
+        max_ransac_points=max_ransac_points,
+    )[0]
+
+
+def fit_circles(
+    point_sets: Sequence[NDArray[np.float64]],
+    *,
+    inlier_tolerance: float = 0.02,
+    iterations: int = 300,
+    seed: int = 0,
+    max_ransac_points: int = 1500,
+) -> list[CircleFit | None]:
+    """:func:`fit_circle` of each point set (each with the same ``seed``), the geometric
+    refinements of all of them iterated together."""
     rng = np.random.default_rng(seed)
+    seeded = rng.bit_generator.state
+    found: list[tuple[NDArray[np.float64], NDArray[np.float64], tuple[float, float, float]]] = []
+    for xy in point_sets:
+        pts = np.asarray(xy, dtype=np.float64)
+        if len(pts) < 3:
+            continue
+        rng.bit_generator.state = seeded  # as a fresh default_rng(seed)
+        mean = pts.mean(axis=0)
+        local = pts - mean
+        best = _ransac_circle(local, rng, inlier_tolerance, iterations, max_ransac_points)
+        found.append((mean, local, best))
+    # geometric fits on the inliers of the RANSAC circles, started from their Kasa fits
+    refine, inlier_sets, starts = [], [], []
+    for k, (_, local, (cx, cy, r)) in enumerate(found):
+        inliers = np.abs(np.hypot(local[:, 0] - cx, local[:, 1] - cy) - r) < inlier_tolerance
+        if inliers.sum() >= 3:
+            refine.append(k)
+            inlier_sets.append(local[inliers])
+            starts.append(kasa_circle(local[inliers]))
+    circles = [circle for _, _, circle in found]
+    if refine:
+        refined = _geometric_circles(inlier_sets, np.array(starts), inlier_tolerance / 2.0)
+        for k, (cx, cy, r) in zip(refine, refined.tolist(), strict=True):
+            circles[k] = (cx, cy, r)
+    fits = iter(
+        _circle_fit(local, mean, circle, inlier_tolerance)
+        for (mean, local, _), circle in zip(found, circles, strict=True)
+    )
+    return [next(fits) if len(xy) >= 3 else None for xy in point_sets]
+
+
+def _ransac_circle(
+    local: NDArray[np.float64],
+    rng: np.random.Generator,
+    inlier_tolerance: float,
+    iterations: int,
+    max_ransac_points: int,
+) -> tuple[float, float, float]:
+    """The MSAC-best of ``iterations`` 3-point circles (x, y, r); the Kasa fit of all points
+    when none has 3 inliers."""
     score_pts = (
         local
         if len(local) <= max_ransac_points
@@ -383,72 +437,110 @@ def fit_circle(
     )
     centres, radii = _circles_through(local[samples[distinct]])
     good = np.isfinite(radii) & (radii < 5.0)
-    best = kasa_circle(local)
     if good.any():
+        c, radius = centres[good], radii[good]
         # distances of every scored point to every candidate centre, |p - c|^2 expanded
-        # (one matrix product; local coordinates of a stem keep it exact to ~1e-16 m^2)
-        c = centres[good]
-        squared = (
-            (score_pts**2).sum(axis=1)[None, :]
-            - 2.0 * (c @ score_pts.T)
-            + (c**2).sum(axis=1)[:, None]
-        )
-        resid = np.abs(np.sqrt(np.maximum(squared, 0.0)) - radii[good, None])
+        # (one matrix product; local coordinates of a stem keep it exact to ~1e-16 m^2),
+        # then |distance - radius|, in place
+        resid = c @ score_pts.T
+        resid *= -2.0
+        resid += (score_pts**2).sum(axis=1)[None, :]
+        resid += (c**2).sum(axis=1)[:, None]
+        np.maximum(resid, 0.0, out=resid)
+        np.sqrt(resid, out=resid)
+        resid -= radius[:, None]
+        np.abs(resid, out=resid)
         # MSAC: truncated squared residuals, so a tight circle beats a loose one that
         # happens to touch as many points
-        cost = np.minimum(resid, inlier_tolerance) ** 2
+        cost = np.minimum(resid, inlier_tolerance)
+        cost *= cost
         k = int(np.argmin(cost.sum(axis=1)))
         if (resid[k] < inlier_tolerance).sum() >= 3:
-            best = (float(centres[good][k, 0]), float(centres[good][k, 1]), float(radii[good][k]))
-    cx, cy, r = best
-    inliers = np.abs(np.hypot(local[:, 0] - cx, local[:, 1] - cy) - r) < inlier_tolerance
-    if inliers.sum() >= 3:
-        # Kasa on the inliers is a good start for the geometric fit
-        start = np.array(kasa_circle(local[inliers]))
-        cx, cy, r = _geometric_circle(local[inliers], start, inlier_tolerance / 2.0)
+            return float(c[k, 0]), float(c[k, 1]), float(radius[k])
+    return kasa_circle(local)
+
+
+def _circle_fit(
+    local: NDArray[np.float64],
+    mean: NDArray[np.float64],
+    circle: tuple[float, float, float],
+    inlier_tolerance: float,
+) -> CircleFit:
+    """``circle`` (in ``local`` coordinates) with its inliers' RMSE, count and arc."""
+    cx, cy, r = circle
     dist = np.hypot(local[:, 0] - cx, local[:, 1] - cy) - r
     inliers = np.abs(dist) < inlier_tolerance
     n_in = int(inliers.sum())
     rmse = float(np.sqrt(np.mean(dist[inliers] ** 2))) if n_in else float("inf")
     angles = np.arctan2(local[inliers, 1] - cy, local[inliers, 0] - cx)
-    sectors = np.unique(np.floor((angles + np.pi) / (2 * np.pi) * 36).astype(np.int64) % 36)
-    return CircleFit(cx + mean[0], cy + mean[1], r, rmse, n_in, 10.0 * len(sectors))
+    sectors = np.floor((angles + np.pi) / (2 * np.pi) * 36).astype(np.int64) % 36
+    n_sectors = int(np.count_nonzero(np.bincount(sectors, minlength=36)))
+    return CircleFit(cx + mean[0], cy + mean[1], r, rmse, n_in, 10.0 * n_sectors)
 
 
-def _geometric_circle(
-    xy: NDArray[np.float64], start: NDArray[np.float64], scale: float, iterations: int = 50
-) -> tuple[float, float, float]:
-    """Geometric circle fit with the soft-L1 loss of scale ``scale`` (the minimiser of
-    ``sum(2 * scale^2 * (sqrt(1 + (d_i / scale)^2) - 1))``, d_i = distance to the circle, as
-    ``scipy.optimize.least_squares(loss="soft_l1")``), by iteratively reweighted
-    Gauss-Newton from ``start`` = (x, y, r)."""
-    p = np.asarray(start, dtype=np.float64).copy()
+def _geometric_circles(
+    point_sets: Sequence[NDArray[np.float64]],
+    starts: NDArray[np.float64],
+    scale: float,
+    iterations: int = 50,
+) -> NDArray[np.float64]:
+    """Geometric circle fits (x, y, r per row) with the soft-L1 loss of scale ``scale`` (the
+    minimiser of ``sum(2 * scale^2 * (sqrt(1 + (d_i / scale)^2) - 1))``, d_i = distance to
+    the circle, as ``scipy.optimize.least_squares(loss="soft_l1")``), by iteratively
+    reweighted Gauss-Newton from ``starts``, all point sets at once: a set stops when its
+    step is below 1e-10 (or its normal equations are singular)."""
+    p = np.array(starts, dtype=np.float64).reshape(-1, 3)
+    xy = np.concatenate(point_sets)
     x, y = xy[:, 0], xy[:, 1]
+    owner = np.repeat(np.arange(len(p)), [len(s) for s in point_sets])  # row of p
+    active = np.arange(len(p))  # the rows still iterating; owner indexes into active
     for _ in range(iterations):
-        dx, dy = x - p[0], y - p[1]
+        if not len(active):
+            break
+        q = p[active][owner]
+        dx, dy = x - q[:, 0], y - q[:, 1]
         dist = np.maximum(np.sqrt(dx * dx + dy * dy), 1e-12)
-        resid = dist - p[2]
+        resid = dist - q[:, 2]
         weight = 1.0 / np.sqrt(1.0 + (resid / scale) ** 2)
-        # Jacobian rows (-ux, -uy, -1): the 3 x 3 normal equations by sums
+        # Jacobian rows (-ux, -uy, -1): the 3 x 3 normal equations by sums per set
         ux, uy = dx / dist, dy / dist
         wx, wy = weight * ux, weight * uy
-        sw = weight.sum()
-        normal = np.array(
-            [
-                [wx @ ux, wx @ uy, wx.sum()],
-                [wx @ uy, wy @ uy, wy.sum()],
-                [wx.sum(), wy.sum(), sw],
-            ]
-        )
-        rhs = np.array([wx @ resid, wy @ resid, weight @ resid])
-        try:
-            step = np.linalg.solve(normal, rhs)
-        except np.linalg.LinAlgError:
-            break
-        p += step
-        if np.abs(step).max() < 1e-10:
-            break
-    return float(p[0]), float(p[1]), abs(float(p[2]))
+        terms = (wx * ux, wx * uy, wx, wy * uy, wy, weight, wx * resid, wy * resid, weight * resid)
+        sums = np.stack(
+            [np.bincount(owner, weights=t, minlength=len(active)) for t in terms], -1
+        ).astype(np.float64)
+        normal = sums[:, [[0, 1, 2], [1, 3, 4], [2, 4, 5]]]  # (sets, 3, 3)
+        step, solved = _solve_each(normal, sums[:, 6:])
+        p[active[solved]] += step[solved]
+        done = ~solved | (np.abs(step).max(axis=1) < 1e-10)
+        if done.any():
+            keep = ~done
+            kept = keep[owner]
+            x, y = x[kept], y[kept]
+            owner = (np.cumsum(keep) - 1)[owner[kept]]
+            active = active[keep]
+    p[:, 2] = np.abs(p[:, 2])
+    return p
+
+
+def _solve_each(
+    a: NDArray[np.float64], b: NDArray[np.float64]
+) -> tuple[NDArray[np.float64], NDArray[np.bool_]]:
+    """Solutions of the stacked systems ``a[i] x = b[i]`` and which were solvable (not
+    singular; the others' solution is 0)."""
+    step = np.zeros(b.shape)
+    try:
+        step[:] = np.linalg.solve(a, b[..., None])[..., 0]
+        return step, np.ones(len(a), dtype=bool)
+    except np.linalg.LinAlgError:
+        solved = np.zeros(len(a), dtype=bool)
+        for i in range(len(a)):
+            try:
+                step[i] = np.linalg.solve(a[i], b[i])
+                solved[i] = True
+            except np.linalg.LinAlgError:
+                pass
+        return step, solved
 
 
 def _circles_through(tri: NDArray[np.float64]) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
@@ -513,9 +605,11 @@ def fit_stems(
     rows = []
     order = np.argsort(comp, kind="stable")
     bounds = np.concatenate([[0], np.cumsum(sizes)])
-    for c in np.flatnonzero(sizes >= min_points):
-        members = local[order[bounds[c] : bounds[c + 1]]]
-        fit = fit_circle(members, inlier_tolerance=inlier_tolerance)
+    clusters = [
+        local[order[bounds[c] : bounds[c + 1]]] for c in np.flatnonzero(sizes >= min_points)
+    ]
+    fits = fit_circles(clusters, inlier_tolerance=inlier_tolerance)
+    for members, fit in zip(clusters, fits, strict=True):
         if fit is None:
             continue
         reason = None
@@ -558,18 +652,18 @@ def fit_stems(
 
 
 def link_clusters(
-    xy: NDArray[np.float64], distance: float, neighbours: int = 16
+    xy: NDArray[np.float64], distance: float, neighbours: int = 6
 ) -> tuple[int, NDArray[np.int64]]:
     """Connected components of the points linked when within ``distance`` (single linkage),
     numbered in the order of their first point: ``(count, label per point)``.
 
     Exact, without listing every pair (dense stem slices have ~100 neighbours per point):
     the components of the ``neighbours``-nearest graph, then any two of them whose points
-    come within ``distance`` of each other are merged.
+    come within ``distance`` of each other are merged. Any ``neighbours`` gives the same
+    components; 6 is the fastest on stem slices (fewer and the graph falls apart into many
+    pieces to merge, more and the nearest-neighbour query dominates).
     """
     import shapely
-    from scipy.sparse import coo_matrix
-    from scipy.sparse.csgraph import connected_components
     from scipy.spatial import cKDTree
 
     n = len(xy)
@@ -581,11 +675,7 @@ def link_clusters(
     dist, near = dist.reshape(n, k), near.reshape(n, k)
     linked = np.isfinite(dist) & (dist <= distance)
     rows = np.repeat(np.arange(n), k)[linked.ravel()]
-    cols = near[linked]
-    edges = [(rows, cols)]
-    _, comp = connected_components(
-        coo_matrix((np.ones(len(rows)), (rows, cols)), shape=(n, n)), directed=False
-    )
+    _, comp = _components(n, rows, near[linked])
     # components the k-nearest graph left apart but that come within the distance
     order = np.argsort(comp, kind="stable")
     starts = np.flatnonzero(np.r_[True, np.diff(comp[order]) != 0])
@@ -594,15 +684,29 @@ def link_clusters(
     boxes = shapely.box(lo[:, 0], lo[:, 1], hi[:, 0], hi[:, 1])
     a, b = shapely.STRtree(boxes).query(boxes, predicate="intersects")
     members = np.split(order, starts[1:])
+    touching = []
     for i, j in zip(a[a < b], b[a < b], strict=True):
-        d, idx = cKDTree(xy[members[j]]).query(xy[members[i]], distance_upper_bound=distance)
-        hit = np.flatnonzero(d <= distance)
-        if len(hit):
-            edges.append((members[i][hit[:1]], members[j][idx[hit[:1]]]))
-    rows = np.concatenate([e[0] for e in edges])
-    cols = np.concatenate([e[1] for e in edges])
+        d, _ = cKDTree(xy[members[j]]).query(xy[members[i]], distance_upper_bound=distance)
+        if (d <= distance).any():
+            touching.append((i, j))
+    if not touching:
+        return len(starts), comp
+    # merge on the graph of the components: they are numbered in the order of their first
+    # point, so the merged ones are too
+    pairs = np.array(touching, dtype=np.int64)
+    count, merged = _components(len(starts), pairs[:, 0], pairs[:, 1])
+    return count, merged[comp]
+
+
+def _components(
+    n: int, rows: NDArray[np.int64], cols: NDArray[np.int64]
+) -> tuple[int, NDArray[np.int64]]:
+    """Connected components of the undirected graph on ``n`` nodes with edges ``rows``-``cols``,
+    numbered in the order of their first node."""
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components
+
     count, comp = connected_components(
         coo_matrix((np.ones(len(rows)), (rows, cols)), shape=(n, n)), directed=False
     )
     return int(count), comp.astype(np.int64)
-

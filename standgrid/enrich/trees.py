@@ -141,14 +141,15 @@ def segment_trees(
         return TreeSegmentation(_empty_table(), labels)
 
     # 1. CHM on a lattice aligned to multiples of the pixel size (same pixels in every block)
-    cx, cy = xyz[canopy, 0], xyz[canopy, 1]
+    canopy_xyz = xyz[canopy]
+    cx, cy = canopy_xyz[:, 0], canopy_xyz[:, 1]
     grid = RasterGrid.covering(
         (cx.min(), cy.min(), cx.max(), cy.max()),
         origin=(0.0, 0.0),
         cell_size=pixel_size,
         pixel_size=pixel_size,
     )
-    raw = chm(xyz[canopy], h[canopy], grid, fill_empty=True, subcircle=CHM_SUBCIRCLE_M)
+    raw = chm(canopy_xyz, h[canopy], grid, fill_empty=True, subcircle=CHM_SUBCIRCLE_M)
     raw = np.nan_to_num(raw, nan=0.0).astype(np.float64)
     smooth = ndimage.gaussian_filter(raw, sigma=0.5, truncate=2.0)
 
@@ -176,8 +177,9 @@ def segment_trees(
     # 4. points by pixel; a tree is its canopy points (top = highest point)
     row, col = grid.pixel_of(xyz[:, 0], xyz[:, 1])
     inside = (row >= 0) & (row < grid.nrows) & (col >= 0) & (col < grid.ncols)
-    pixel_label = np.zeros(len(xyz), dtype=np.int64)
-    pixel_label[inside] = crowns[row[inside], col[inside]]
+    # one lookup: the points outside the raster read the 0 appended after its pixels
+    crown_of_pixel = np.append(crowns.ravel(), 0).astype(np.int64)
+    pixel_label = crown_of_pixel[np.where(inside, row * grid.ncols + col, crowns.size)]
     in_tree = (pixel_label > 0) & canopy
     if not in_tree.any():
         return TreeSegmentation(_empty_table(), labels)
@@ -227,13 +229,12 @@ def segment_trees(
     table["dbh_n_points"] = 0
     table["dbh_arc_deg"] = np.nan
     if fit_dbh:
-        near = np.ones(len(xyz), dtype=bool)
+        within = None
         if keep_bounds is not None:  # only stems that can belong to the block's own trees
             x0, y0, x1, y1 = keep_bounds
             m = STEM_SEARCH_MARGIN_M
-            x, y = xyz[:, 0], xyz[:, 1]
-            near = (x >= x0 - m) & (x < x1 + m) & (y >= y0 - m) & (y < y1 + m)
-        stems = fit_stems(xyz[near], h[near], **(stem_options or {}))
+            within = (x0 - m, y0 - m, x1 + m, y1 + m)
+        stems = fit_stems(xyz, h, within=within, **(stem_options or {}))
         _attach_stems(table, stems, crowns, row_of_seed, grid, max_stem_offset)
     return TreeSegmentation(table[TREE_COLUMNS], labels)
 
@@ -381,11 +382,11 @@ def fit_circles(
     seed: int = 0,
     max_ransac_points: int = 1500,
 ) -> list[CircleFit | None]:
-    """:func:`fit_circle` of each point set (each with the same ``seed``), the geometric
-    refinements of all of them iterated together."""
+    """:func:`fit_circle` of each point set (each with the same ``seed``); the 3-point circles
+    of all sets computed together, and their geometric refinements iterated together."""
     rng = np.random.default_rng(seed)
     seeded = rng.bit_generator.state
-    found: list[tuple[NDArray[np.float64], NDArray[np.float64], tuple[float, float, float]]] = []
+    means, locals_, scored, triples = [], [], [], []
     for xy in point_sets:
         pts = np.asarray(xy, dtype=np.float64)
         if len(pts) < 3:
@@ -393,57 +394,64 @@ def fit_circles(
         rng.bit_generator.state = seeded  # as a fresh default_rng(seed)
         mean = pts.mean(axis=0)
         local = pts - mean
-        best = _ransac_circle(local, rng, inlier_tolerance, iterations, max_ransac_points)
-        found.append((mean, local, best))
+        n = len(local)
+        scored.append(
+            local if n <= max_ransac_points else local[rng.choice(n, max_ransac_points, False)]
+        )
+        samples = rng.integers(0, n, size=(iterations, 3))
+        distinct = (
+            (samples[:, 0] != samples[:, 1])
+            & (samples[:, 0] != samples[:, 2])
+            & (samples[:, 1] != samples[:, 2])
+        )
+        triples.append(local[samples[distinct]])
+        means.append(mean)
+        locals_.append(local)
+    if not locals_:
+        return [None] * len(point_sets)
+    centres, radii = _circles_through(np.concatenate(triples))
+    cut = np.cumsum([len(t) for t in triples])[:-1]
+    circles = [
+        _msac_circle(local, score_pts, c, r, inlier_tolerance)
+        for local, score_pts, c, r in zip(
+            locals_, scored, np.split(centres, cut), np.split(radii, cut), strict=True
+        )
+    ]
     # geometric fits on the inliers of the RANSAC circles, started from their Kasa fits
     refine, inlier_sets, starts = [], [], []
-    for k, (_, local, (cx, cy, r)) in enumerate(found):
+    for k, (local, (cx, cy, r)) in enumerate(zip(locals_, circles, strict=True)):
         inliers = np.abs(np.hypot(local[:, 0] - cx, local[:, 1] - cy) - r) < inlier_tolerance
         if inliers.sum() >= 3:
             refine.append(k)
             inlier_sets.append(local[inliers])
             starts.append(kasa_circle(local[inliers]))
-    circles = [circle for _, _, circle in found]
     if refine:
         refined = _geometric_circles(inlier_sets, np.array(starts), inlier_tolerance / 2.0)
         for k, (cx, cy, r) in zip(refine, refined.tolist(), strict=True):
             circles[k] = (cx, cy, r)
     fits = iter(
         _circle_fit(local, mean, circle, inlier_tolerance)
-        for (mean, local, _), circle in zip(found, circles, strict=True)
+        for local, mean, circle in zip(locals_, means, circles, strict=True)
     )
     return [next(fits) if len(xy) >= 3 else None for xy in point_sets]
 
 
-def _ransac_circle(
+def _msac_circle(
     local: NDArray[np.float64],
-    rng: np.random.Generator,
+    score_pts: NDArray[np.float64],
+    centres: NDArray[np.float64],
+    radii: NDArray[np.float64],
     inlier_tolerance: float,
-    iterations: int,
-    max_ransac_points: int,
 ) -> tuple[float, float, float]:
-    """The MSAC-best of ``iterations`` 3-point circles (x, y, r); the Kasa fit of all points
-    when none has 3 inliers."""
-    score_pts = (
-        local
-        if len(local) <= max_ransac_points
-        else local[rng.choice(len(local), max_ransac_points, replace=False)]
-    )
-    samples = rng.integers(0, len(local), size=(iterations, 3))
-    distinct = (
-        (samples[:, 0] != samples[:, 1])
-        & (samples[:, 0] != samples[:, 2])
-        & (samples[:, 1] != samples[:, 2])
-    )
-    centres, radii = _circles_through(local[samples[distinct]])
+    """The candidate circle (x, y, r) of least MSAC cost on ``score_pts``; the Kasa fit of
+    ``local`` when none (of radius < 5 m) has 3 inliers."""
     good = np.isfinite(radii) & (radii < 5.0)
     if good.any():
         c, radius = centres[good], radii[good]
         # distances of every scored point to every candidate centre, |p - c|^2 expanded
         # (one matrix product; local coordinates of a stem keep it exact to ~1e-16 m^2),
-        # then |distance - radius|, in place
-        resid = c @ score_pts.T
-        resid *= -2.0
+        # then |distance - radius|, in place (-2 c exactly scales the product by -2)
+        resid = (c * -2.0) @ score_pts.T
         resid += (score_pts**2).sum(axis=1)[None, :]
         resid += (c**2).sum(axis=1)[:, None]
         np.maximum(resid, 0.0, out=resid)
@@ -575,6 +583,7 @@ def fit_stems(
     max_radius: float = 0.6,
     check_height: float = 2.3,
     min_check_points: int = 5,
+    within: tuple[float, float, float, float] | None = None,
 ) -> pd.DataFrame:
     """Stems at breast height: one row per point cluster of the slice, with the circle fit.
 
@@ -585,15 +594,24 @@ def fit_stems(
 
     Columns: x, y, dbh_m, rmse_m, n_points, n_inliers, arc_deg, ok, reason (why a fit was
     rejected). Clusters are connected components of the slice points within
-    ``link_distance`` of each other.
+    ``link_distance`` of each other. ``within``: only the points in these half-open bounds
+    (xmin, ymin, xmax, ymax).
     """
     from scipy.spatial import cKDTree
 
     xyz = as_xyz(points)
     h = np.asarray(heights, dtype=np.float64)
-    in_slice = np.isfinite(h) & (np.abs(h - breast_height) <= slice_half_width)
-    xy = xyz[in_slice, :2]
-    above = xyz[np.isfinite(h) & (np.abs(h - check_height) <= slice_half_width), :2]
+
+    def slice_at(height: float) -> NDArray[np.float64]:
+        xy = xyz[np.abs(h - height) <= slice_half_width, :2]  # NaN heights are in no slice
+        if within is None:
+            return xy
+        x0, y0, x1, y1 = within
+        x, y = xy[:, 0], xy[:, 1]
+        return xy[(x >= x0) & (x < x1) & (y >= y0) & (y < y1)]
+
+    xy = slice_at(breast_height)
+    above = slice_at(check_height)
     columns = ["x", "y", "dbh_m", "rmse_m", "n_points", "n_inliers", "arc_deg", "ok", "reason"]
     if len(xy) < min_points:
         return pd.DataFrame({c: [] for c in columns})

@@ -186,10 +186,12 @@ def segment_trees(
     idx = np.flatnonzero(in_tree)
     # highest point per crown; ties broken by x then y (deterministic across blocks): only
     # the points as high as their crown's highest are sorted
+    crown_of, height_of = pixel_label[idx], h[idx]
     highest = np.full(n_seeds + 1, -np.inf)
-    np.maximum.at(highest, pixel_label[idx], h[idx])
-    idx = idx[h[idx] >= highest[pixel_label[idx]]]
-    order = idx[np.lexsort((xyz[idx, 1], xyz[idx, 0], pixel_label[idx]))]
+    np.maximum.at(highest, crown_of, height_of)
+    at_top = height_of >= highest[crown_of]
+    idx = idx[at_top]
+    order = idx[np.lexsort((xyz[idx, 1], xyz[idx, 0], crown_of[at_top]))]
     seg = pixel_label[order]
     first = np.concatenate([[True], seg[1:] != seg[:-1]])
     tops = order[first]
@@ -602,13 +604,17 @@ def fit_stems(
     xyz = as_xyz(points)
     h = np.asarray(heights, dtype=np.float64)
 
-    def slice_at(height: float) -> NDArray[np.float64]:
-        xy = xyz[np.abs(h - height) <= slice_half_width, :2]  # NaN heights are in no slice
-        if within is None:
-            return xy
+    # the points of both slices (and between: a margin far wider than rounding), in bounds
+    low = min(breast_height, check_height) - slice_half_width - 1e-6
+    high = max(breast_height, check_height) + slice_half_width + 1e-6
+    band = np.flatnonzero((h >= low) & (h <= high))  # NaN heights are in no slice
+    if within is not None:
         x0, y0, x1, y1 = within
-        x, y = xy[:, 0], xy[:, 1]
-        return xy[(x >= x0) & (x < x1) & (y >= y0) & (y < y1)]
+        x, y = xyz[band, 0], xyz[band, 1]
+        band = band[(x >= x0) & (x < x1) & (y >= y0) & (y < y1)]
+
+    def slice_at(height: float) -> NDArray[np.float64]:
+        return xyz[band[np.abs(h[band] - height) <= slice_half_width], :2]
 
     xy = slice_at(breast_height)
     above = slice_at(check_height)
@@ -669,17 +675,14 @@ def fit_stems(
     return table
 
 
-def link_clusters(
-    xy: NDArray[np.float64], distance: float, neighbours: int = 6
-) -> tuple[int, NDArray[np.int64]]:
+def link_clusters(xy: NDArray[np.float64], distance: float) -> tuple[int, NDArray[np.int64]]:
     """Connected components of the points linked when within ``distance`` (single linkage),
     numbered in the order of their first point: ``(count, label per point)``.
 
     Exact, without listing every pair (dense stem slices have ~100 neighbours per point):
-    the components of the ``neighbours``-nearest graph, then any two of them whose points
-    come within ``distance`` of each other are merged. Any ``neighbours`` gives the same
-    components; 6 is the fastest on stem slices (fewer and the graph falls apart into many
-    pieces to merge, more and the nearest-neighbour query dominates).
+    two points in squares of side ``distance / sqrt(5)`` that share an edge are within the
+    distance, so the components of the occupied squares' edge graph are parts of clusters;
+    any two of those whose points come within the distance of each other are then merged.
     """
     import shapely
     from scipy.spatial import cKDTree
@@ -687,14 +690,23 @@ def link_clusters(
     n = len(xy)
     if n == 0:
         return 0, np.zeros(0, dtype=np.int64)
-    tree = cKDTree(xy)
-    k = min(neighbours + 1, n)
-    dist, near = tree.query(xy, k=k, distance_upper_bound=distance)
-    dist, near = dist.reshape(n, k), near.reshape(n, k)
-    linked = np.isfinite(dist) & (dist <= distance)
-    rows = np.repeat(np.arange(n), k)[linked.ravel()]
-    _, comp = _components(n, rows, near[linked])
-    # components the k-nearest graph left apart but that come within the distance
+    if distance > 0:
+        side = distance / np.sqrt(5.0) * (1.0 - 1e-9)  # the margin covers rounding
+        square = np.floor(xy / side).astype(np.int64)
+        square -= square.min(axis=0)
+        stride = int(square[:, 1].max()) + 2  # key of the square (i, j): i * stride + j
+        squares, of_point = np.unique(square[:, 0] * stride + square[:, 1], return_inverse=True)
+        rows, cols = [], []
+        for step in (stride, 1):  # the next square in x, in y
+            pos = np.minimum(np.searchsorted(squares, squares + step), len(squares) - 1)
+            hit = squares[pos] == squares + step
+            rows.append(np.flatnonzero(hit))
+            cols.append(pos[hit])
+        _, part = _components(len(squares), np.concatenate(rows), np.concatenate(cols))
+        comp = part[of_point.ravel()]
+    else:
+        comp = np.arange(n)
+    # parts that come within the distance of each other
     order = np.argsort(comp, kind="stable")
     starts = np.flatnonzero(np.r_[True, np.diff(comp[order]) != 0])
     lo = np.minimum.reduceat(xy[order], starts) - distance
@@ -707,13 +719,15 @@ def link_clusters(
         d, _ = cKDTree(xy[members[j]]).query(xy[members[i]], distance_upper_bound=distance)
         if (d <= distance).any():
             touching.append((i, j))
-    if not touching:
-        return len(starts), comp
-    # merge on the graph of the components: they are numbered in the order of their first
-    # point, so the merged ones are too
-    pairs = np.array(touching, dtype=np.int64)
+    pairs = np.array(touching, dtype=np.int64).reshape(-1, 2)
     count, merged = _components(len(starts), pairs[:, 0], pairs[:, 1])
-    return count, merged[comp]
+    comp = merged[comp]
+    # number the clusters in the order of their first point
+    first = np.full(count, n)
+    np.minimum.at(first, comp, np.arange(n))
+    rank = np.empty(count, dtype=np.int64)
+    rank[np.argsort(first)] = np.arange(count)
+    return count, rank[comp]
 
 
 def _components(

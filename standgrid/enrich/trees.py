@@ -201,8 +201,10 @@ def segment_trees(
     n_trees = len(tops)
     row_of_seed = np.zeros(n_seeds + 1, dtype=np.int64)
     row_of_seed[seeds] = np.arange(1, n_trees + 1)
-    labelled = (pixel_label > 0) & np.isfinite(h) & (h >= point_min_height)
-    labels[labelled] = row_of_seed[pixel_label[labelled]].astype(np.uint32)
+    # crowns without a tree and the points outside any crown (pixel label 0) read 0
+    labels = np.where(
+        np.isfinite(h) & (h >= point_min_height), row_of_seed.astype(np.uint32)[pixel_label], 0
+    ).astype(np.uint32)
 
     crown_pixels = np.bincount(crowns.ravel(), minlength=n_seeds + 1)[seeds]
     table = pd.DataFrame(
@@ -502,12 +504,13 @@ def _geometric_circles(
     p = np.array(starts, dtype=np.float64).reshape(-1, 3)
     xy = np.concatenate(point_sets)
     x, y = xy[:, 0], xy[:, 1]
-    owner = np.repeat(np.arange(len(p)), [len(s) for s in point_sets])  # row of p
-    active = np.arange(len(p))  # the rows still iterating; owner indexes into active
+    active = np.arange(len(p))  # the sets still iterating, their points one after the other
+    sizes = np.array([len(s) for s in point_sets])
     for _ in range(iterations):
         if not len(active):
             break
-        q = p[active][owner]
+        first = np.concatenate([[0], np.cumsum(sizes[:-1])])
+        q = np.repeat(p[active], sizes, axis=0)
         dx, dy = x - q[:, 0], y - q[:, 1]
         dist = np.maximum(np.sqrt(dx * dx + dy * dy), 1e-12)
         resid = dist - q[:, 2]
@@ -516,19 +519,15 @@ def _geometric_circles(
         ux, uy = dx / dist, dy / dist
         wx, wy = weight * ux, weight * uy
         terms = (wx * ux, wx * uy, wx, wy * uy, wy, weight, wx * resid, wy * resid, weight * resid)
-        sums = np.stack(
-            [np.bincount(owner, weights=t, minlength=len(active)) for t in terms], -1
-        ).astype(np.float64)
+        sums = np.stack([np.add.reduceat(t, first) for t in terms], -1)
         normal = sums[:, [[0, 1, 2], [1, 3, 4], [2, 4, 5]]]  # (sets, 3, 3)
         step, solved = _solve_each(normal, sums[:, 6:])
         p[active[solved]] += step[solved]
         done = ~solved | (np.abs(step).max(axis=1) < 1e-10)
         if done.any():
-            keep = ~done
-            kept = keep[owner]
+            kept = np.repeat(~done, sizes)
             x, y = x[kept], y[kept]
-            owner = (np.cumsum(keep) - 1)[owner[kept]]
-            active = active[keep]
+            active, sizes = active[~done], sizes[~done]
     p[:, 2] = np.abs(p[:, 2])
     return p
 

@@ -454,20 +454,20 @@ def _msac_circle(
         c, radius = centres[good], radii[good]
         # distances of every scored point to every candidate centre, |p - c|^2 expanded
         # (one matrix product; local coordinates of a stem keep it exact to ~1e-16 m^2),
-        # then |distance - radius|, in place (-2 c exactly scales the product by -2)
+        # then distance - radius, in place (-2 c exactly scales the product by -2)
         resid = (c * -2.0) @ score_pts.T
         resid += (score_pts**2).sum(axis=1)[None, :]
         resid += (c**2).sum(axis=1)[:, None]
         np.maximum(resid, 0.0, out=resid)
         np.sqrt(resid, out=resid)
         resid -= radius[:, None]
-        np.abs(resid, out=resid)
         # MSAC: truncated squared residuals, so a tight circle beats a loose one that
-        # happens to touch as many points
-        cost = np.minimum(resid, inlier_tolerance)
-        cost *= cost
+        # happens to touch as many points; min(d^2, tol^2) is min(|d|, tol)^2 to the bit
+        # (rounding a square is monotonic)
+        cost = np.square(resid)
+        np.minimum(cost, inlier_tolerance * inlier_tolerance, out=cost)
         k = int(np.argmin(cost.sum(axis=1)))
-        if (resid[k] < inlier_tolerance).sum() >= 3:
+        if (np.abs(resid[k]) < inlier_tolerance).sum() >= 3:
             return float(c[k, 0]), float(c[k, 1]), float(radius[k])
     return kasa_circle(local)
 

@@ -11,8 +11,10 @@ from standgrid.enrich.ground import classify_ground
 from standgrid.enrich.rasters import RasterGrid, dtm_from_ground, height_above_ground
 from standgrid.enrich.trees import (
     fit_circle,
+    fit_circles,
     fit_stems,
     kasa_circle,
+    link_clusters,
     segment_trees,
     tree_id_from_xy,
     xy_from_tree_id,
@@ -226,6 +228,59 @@ def test_fit_stems_rejects_implausible_clusters() -> None:
     assert len(shrub_row) == 1 and not shrub_row["ok"].iloc[0]
     assert "no stem at" in str(shrub_row["reason"].iloc[0])
     assert stems.loc[~stems["ok"], "reason"].notna().all() and (~stems["ok"]).any()
+
+
+def single_linkage(xy: np.ndarray, distance: float) -> tuple[int, np.ndarray]:
+    """Reference: components of every pair within ``distance``, numbered by first point."""
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components
+
+    pairs = cKDTree(xy).query_pairs(distance, output_type="ndarray")
+    graph = coo_matrix((np.ones(len(pairs)), (pairs[:, 0], pairs[:, 1])), (len(xy), len(xy)))
+    count, comp = connected_components(graph, directed=False)
+    return count, comp
+
+
+@pytest.mark.parametrize("distance", [0.2, 0.05, 0.5])
+def test_link_clusters_is_single_linkage(distance: float) -> None:
+    rng = np.random.default_rng(3)
+    stems = [arc_points(rng, X0 + rng.uniform(0, 8), Y0 + rng.uniform(0, 8), 0.2, 360, 300,
+                        0.01) for _ in range(12)]  # fmt: skip
+    scatter = np.column_stack([X0 + rng.uniform(0, 8, 800), Y0 + rng.uniform(0, 8, 800)])
+    # a chain of points just within ``distance`` of the next, and one just beyond its end
+    step = np.arange(7) * 0.999 * distance
+    step[-1] = step[-2] + 1.001 * distance
+    chain = np.column_stack([X0 - 3.0 + step, np.full(7, Y0 - 3.0)])
+    xy = np.concatenate([*stems, scatter, chain])
+    xy = xy[rng.permutation(len(xy))] - np.array([X0 - 4.0, Y0 - 4.0])
+    count, comp = link_clusters(xy, distance)
+    want_count, want = single_linkage(xy, distance)
+    assert count == want_count and np.array_equal(comp, want)
+    assert np.array_equal(np.unique(comp, return_index=True)[1], np.sort(
+        np.unique(comp, return_index=True)[1]))  # fmt: skip
+    assert link_clusters(xy[:0], distance)[0] == 0
+
+
+def test_fit_circles_fits_each_set_as_fit_circle() -> None:
+    rng = np.random.default_rng(5)
+    sets = [arc_points(rng, rng.uniform(-5, 5), rng.uniform(-5, 5), rng.uniform(0.05, 0.4),
+                       rng.uniform(60, 360), int(rng.integers(3, 400)), 0.005)
+            for _ in range(30)]  # fmt: skip
+    sets.insert(3, sets[0][:2])  # too few points: None
+    sets.insert(7, np.zeros((5, 2)))  # degenerate: singular normal equations
+    together = fit_circles(sets)
+    assert together == [fit_circle(xy) for xy in sets]
+    assert together[3] is None and together[0] is not None
+
+
+def test_fit_stems_within_bounds_is_fit_stems_on_the_points_inside() -> None:
+    xyz, h, _ = synthetic_stand(4, stems=True)
+    bounds = (X0 + 10.0, Y0 + 12.0, X0 + 40.0, Y0 + 35.0)
+    x, y = xyz[:, 0], xyz[:, 1]
+    inside = (x >= bounds[0]) & (x < bounds[2]) & (y >= bounds[1]) & (y < bounds[3])
+    within = fit_stems(xyz, h, within=bounds)
+    assert within["ok"].sum() >= 3
+    pd.testing.assert_frame_equal(within, fit_stems(xyz[inside], h[inside]))
 
 
 @pytest.mark.realdata

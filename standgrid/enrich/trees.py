@@ -25,7 +25,7 @@ they stand (or within ``max_stem_offset``).
 
 from __future__ import annotations
 
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from typing import Any
 
@@ -141,14 +141,15 @@ def segment_trees(
         return TreeSegmentation(_empty_table(), labels)
 
     # 1. CHM on a lattice aligned to multiples of the pixel size (same pixels in every block)
-    cx, cy = xyz[canopy, 0], xyz[canopy, 1]
+    canopy_xyz = xyz[canopy]
+    cx, cy = canopy_xyz[:, 0], canopy_xyz[:, 1]
     grid = RasterGrid.covering(
         (cx.min(), cy.min(), cx.max(), cy.max()),
         origin=(0.0, 0.0),
         cell_size=pixel_size,
         pixel_size=pixel_size,
     )
-    raw = chm(xyz[canopy], h[canopy], grid, fill_empty=True, subcircle=CHM_SUBCIRCLE_M)
+    raw = chm(canopy_xyz, h[canopy], grid, fill_empty=True, subcircle=CHM_SUBCIRCLE_M)
     raw = np.nan_to_num(raw, nan=0.0).astype(np.float64)
     smooth = ndimage.gaussian_filter(raw, sigma=0.5, truncate=2.0)
 
@@ -176,18 +177,21 @@ def segment_trees(
     # 4. points by pixel; a tree is its canopy points (top = highest point)
     row, col = grid.pixel_of(xyz[:, 0], xyz[:, 1])
     inside = (row >= 0) & (row < grid.nrows) & (col >= 0) & (col < grid.ncols)
-    pixel_label = np.zeros(len(xyz), dtype=np.int64)
-    pixel_label[inside] = crowns[row[inside], col[inside]]
+    # one lookup: the points outside the raster read the 0 appended after its pixels
+    crown_of_pixel = np.append(crowns.ravel(), 0).astype(np.int64)
+    pixel_label = crown_of_pixel[np.where(inside, row * grid.ncols + col, crowns.size)]
     in_tree = (pixel_label > 0) & canopy
     if not in_tree.any():
         return TreeSegmentation(_empty_table(), labels)
     idx = np.flatnonzero(in_tree)
     # highest point per crown; ties broken by x then y (deterministic across blocks): only
     # the points as high as their crown's highest are sorted
+    crown_of, height_of = pixel_label[idx], h[idx]
     highest = np.full(n_seeds + 1, -np.inf)
-    np.maximum.at(highest, pixel_label[idx], h[idx])
-    idx = idx[h[idx] >= highest[pixel_label[idx]]]
-    order = idx[np.lexsort((xyz[idx, 1], xyz[idx, 0], pixel_label[idx]))]
+    np.maximum.at(highest, crown_of, height_of)
+    at_top = height_of >= highest[crown_of]
+    idx = idx[at_top]
+    order = idx[np.lexsort((xyz[idx, 1], xyz[idx, 0], crown_of[at_top]))]
     seg = pixel_label[order]
     first = np.concatenate([[True], seg[1:] != seg[:-1]])
     tops = order[first]
@@ -197,8 +201,10 @@ def segment_trees(
     n_trees = len(tops)
     row_of_seed = np.zeros(n_seeds + 1, dtype=np.int64)
     row_of_seed[seeds] = np.arange(1, n_trees + 1)
-    labelled = (pixel_label > 0) & np.isfinite(h) & (h >= point_min_height)
-    labels[labelled] = row_of_seed[pixel_label[labelled]].astype(np.uint32)
+    # crowns without a tree and the points outside any crown (pixel label 0) read 0
+    labels = np.where(
+        np.isfinite(h) & (h >= point_min_height), row_of_seed.astype(np.uint32)[pixel_label], 0
+    ).astype(np.uint32)
 
     crown_pixels = np.bincount(crowns.ravel(), minlength=n_seeds + 1)[seeds]
     table = pd.DataFrame(
@@ -227,13 +233,12 @@ def segment_trees(
     table["dbh_n_points"] = 0
     table["dbh_arc_deg"] = np.nan
     if fit_dbh:
-        near = np.ones(len(xyz), dtype=bool)
+        within = None
         if keep_bounds is not None:  # only stems that can belong to the block's own trees
             x0, y0, x1, y1 = keep_bounds
             m = STEM_SEARCH_MARGIN_M
-            x, y = xyz[:, 0], xyz[:, 1]
-            near = (x >= x0 - m) & (x < x1 + m) & (y >= y0 - m) & (y < y1 + m)
-        stems = fit_stems(xyz[near], h[near], **(stem_options or {}))
+            within = (x0 - m, y0 - m, x1 + m, y1 + m)
+        stems = fit_stems(xyz, h, within=within, **(stem_options or {}))
         _attach_stems(table, stems, crowns, row_of_seed, grid, max_stem_offset)
     return TreeSegmentation(table[TREE_COLUMNS], labels)
 
@@ -364,91 +369,187 @@ def fit_circle(
     """Robust circle: RANSAC over 3-point circles scored by MSAC (truncated squared residual),
     then geometric least squares (soft-L1) on the inliers of the best circle, started from
     their algebraic fit. ``None`` when fewer than 3 points."""
-    pts = np.asarray(xy, dtype=np.float64)
-    if len(pts) < 3:
-        return None
-    mean = pts.mean(axis=0)
-    local = pts - mean
+    return fit_circles(
+        [xy],
+        inlier_tolerance=inlier_tolerance,
+        iterations=iterations,
+        seed=seed,
+        max_ransac_points=max_ransac_points,
+    )[0]
+
+
+def fit_circles(
+    point_sets: Sequence[NDArray[np.float64]],
+    *,
+    inlier_tolerance: float = 0.02,
+    iterations: int = 300,
+    seed: int = 0,
+    max_ransac_points: int = 1500,
+) -> list[CircleFit | None]:
+    """:func:`fit_circle` of each point set (each with the same ``seed``); the 3-point circles
+    of all sets computed together, and their geometric refinements iterated together."""
     rng = np.random.default_rng(seed)
-    score_pts = (
-        local
-        if len(local) <= max_ransac_points
-        else local[rng.choice(len(local), max_ransac_points, replace=False)]
-    )
-    samples = rng.integers(0, len(local), size=(iterations, 3))
-    distinct = (
-        (samples[:, 0] != samples[:, 1])
-        & (samples[:, 0] != samples[:, 2])
-        & (samples[:, 1] != samples[:, 2])
-    )
-    centres, radii = _circles_through(local[samples[distinct]])
-    good = np.isfinite(radii) & (radii < 5.0)
-    best = kasa_circle(local)
-    if good.any():
-        # distances of every scored point to every candidate centre, |p - c|^2 expanded
-        # (one matrix product; local coordinates of a stem keep it exact to ~1e-16 m^2)
-        c = centres[good]
-        squared = (
-            (score_pts**2).sum(axis=1)[None, :]
-            - 2.0 * (c @ score_pts.T)
-            + (c**2).sum(axis=1)[:, None]
+    seeded = rng.bit_generator.state
+    means, locals_, scored, triples = [], [], [], []
+    for xy in point_sets:
+        pts = np.asarray(xy, dtype=np.float64)
+        if len(pts) < 3:
+            continue
+        rng.bit_generator.state = seeded  # as a fresh default_rng(seed)
+        mean = pts.mean(axis=0)
+        local = pts - mean
+        n = len(local)
+        scored.append(
+            local if n <= max_ransac_points else local[rng.choice(n, max_ransac_points, False)]
         )
-        resid = np.abs(np.sqrt(np.maximum(squared, 0.0)) - radii[good, None])
+        samples = rng.integers(0, n, size=(iterations, 3))
+        distinct = (
+            (samples[:, 0] != samples[:, 1])
+            & (samples[:, 0] != samples[:, 2])
+            & (samples[:, 1] != samples[:, 2])
+        )
+        triples.append(local[samples[distinct]])
+        means.append(mean)
+        locals_.append(local)
+    if not locals_:
+        return [None] * len(point_sets)
+    centres, radii = _circles_through(np.concatenate(triples))
+    cut = np.cumsum([len(t) for t in triples])[:-1]
+    circles = [
+        _msac_circle(local, score_pts, c, r, inlier_tolerance)
+        for local, score_pts, c, r in zip(
+            locals_, scored, np.split(centres, cut), np.split(radii, cut), strict=True
+        )
+    ]
+    # geometric fits on the inliers of the RANSAC circles, started from their Kasa fits
+    refine, inlier_sets, starts = [], [], []
+    for k, (local, (cx, cy, r)) in enumerate(zip(locals_, circles, strict=True)):
+        inliers = np.abs(np.hypot(local[:, 0] - cx, local[:, 1] - cy) - r) < inlier_tolerance
+        if inliers.sum() >= 3:
+            refine.append(k)
+            inlier_sets.append(local[inliers])
+            starts.append(kasa_circle(local[inliers]))
+    if refine:
+        refined = _geometric_circles(inlier_sets, np.array(starts), inlier_tolerance / 2.0)
+        for k, (cx, cy, r) in zip(refine, refined.tolist(), strict=True):
+            circles[k] = (cx, cy, r)
+    fits = iter(
+        _circle_fit(local, mean, circle, inlier_tolerance)
+        for local, mean, circle in zip(locals_, means, circles, strict=True)
+    )
+    return [next(fits) if len(xy) >= 3 else None for xy in point_sets]
+
+
+def _msac_circle(
+    local: NDArray[np.float64],
+    score_pts: NDArray[np.float64],
+    centres: NDArray[np.float64],
+    radii: NDArray[np.float64],
+    inlier_tolerance: float,
+) -> tuple[float, float, float]:
+    """The candidate circle (x, y, r) of least MSAC cost on ``score_pts``; the Kasa fit of
+    ``local`` when none (of radius < 5 m) has 3 inliers."""
+    good = np.isfinite(radii) & (radii < 5.0)
+    if good.any():
+        c, radius = centres[good], radii[good]
+        # distances of every scored point to every candidate centre, |p - c|^2 expanded
+        # (one matrix product; local coordinates of a stem keep it exact to ~1e-16 m^2),
+        # then distance - radius, in place (-2 c exactly scales the product by -2)
+        resid = (c * -2.0) @ score_pts.T
+        resid += (score_pts**2).sum(axis=1)[None, :]
+        resid += (c**2).sum(axis=1)[:, None]
+        np.maximum(resid, 0.0, out=resid)
+        np.sqrt(resid, out=resid)
+        resid -= radius[:, None]
         # MSAC: truncated squared residuals, so a tight circle beats a loose one that
-        # happens to touch as many points
-        cost = np.minimum(resid, inlier_tolerance) ** 2
+        # happens to touch as many points; min(d^2, tol^2) is min(|d|, tol)^2 to the bit
+        # (rounding a square is monotonic)
+        cost = np.square(resid)
+        np.minimum(cost, inlier_tolerance * inlier_tolerance, out=cost)
         k = int(np.argmin(cost.sum(axis=1)))
-        if (resid[k] < inlier_tolerance).sum() >= 3:
-            best = (float(centres[good][k, 0]), float(centres[good][k, 1]), float(radii[good][k]))
-    cx, cy, r = best
-    inliers = np.abs(np.hypot(local[:, 0] - cx, local[:, 1] - cy) - r) < inlier_tolerance
-    if inliers.sum() >= 3:
-        # Kasa on the inliers is a good start for the geometric fit
-        start = np.array(kasa_circle(local[inliers]))
-        cx, cy, r = _geometric_circle(local[inliers], start, inlier_tolerance / 2.0)
+        if (np.abs(resid[k]) < inlier_tolerance).sum() >= 3:
+            return float(c[k, 0]), float(c[k, 1]), float(radius[k])
+    return kasa_circle(local)
+
+
+def _circle_fit(
+    local: NDArray[np.float64],
+    mean: NDArray[np.float64],
+    circle: tuple[float, float, float],
+    inlier_tolerance: float,
+) -> CircleFit:
+    """``circle`` (in ``local`` coordinates) with its inliers' RMSE, count and arc."""
+    cx, cy, r = circle
     dist = np.hypot(local[:, 0] - cx, local[:, 1] - cy) - r
     inliers = np.abs(dist) < inlier_tolerance
     n_in = int(inliers.sum())
     rmse = float(np.sqrt(np.mean(dist[inliers] ** 2))) if n_in else float("inf")
     angles = np.arctan2(local[inliers, 1] - cy, local[inliers, 0] - cx)
-    sectors = np.unique(np.floor((angles + np.pi) / (2 * np.pi) * 36).astype(np.int64) % 36)
-    return CircleFit(cx + mean[0], cy + mean[1], r, rmse, n_in, 10.0 * len(sectors))
+    sectors = np.floor((angles + np.pi) / (2 * np.pi) * 36).astype(np.int64) % 36
+    n_sectors = int(np.count_nonzero(np.bincount(sectors, minlength=36)))
+    return CircleFit(cx + mean[0], cy + mean[1], r, rmse, n_in, 10.0 * n_sectors)
 
 
-def _geometric_circle(
-    xy: NDArray[np.float64], start: NDArray[np.float64], scale: float, iterations: int = 50
-) -> tuple[float, float, float]:
-    """Geometric circle fit with the soft-L1 loss of scale ``scale`` (the minimiser of
-    ``sum(2 * scale^2 * (sqrt(1 + (d_i / scale)^2) - 1))``, d_i = distance to the circle, as
-    ``scipy.optimize.least_squares(loss="soft_l1")``), by iteratively reweighted
-    Gauss-Newton from ``start`` = (x, y, r)."""
-    p = np.asarray(start, dtype=np.float64).copy()
+def _geometric_circles(
+    point_sets: Sequence[NDArray[np.float64]],
+    starts: NDArray[np.float64],
+    scale: float,
+    iterations: int = 50,
+) -> NDArray[np.float64]:
+    """Geometric circle fits (x, y, r per row) with the soft-L1 loss of scale ``scale`` (the
+    minimiser of ``sum(2 * scale^2 * (sqrt(1 + (d_i / scale)^2) - 1))``, d_i = distance to
+    the circle, as ``scipy.optimize.least_squares(loss="soft_l1")``), by iteratively
+    reweighted Gauss-Newton from ``starts``, all point sets at once: a set stops when its
+    step is below 1e-10 (or its normal equations are singular)."""
+    p = np.array(starts, dtype=np.float64).reshape(-1, 3)
+    xy = np.concatenate(point_sets)
     x, y = xy[:, 0], xy[:, 1]
+    active = np.arange(len(p))  # the sets still iterating, their points one after the other
+    sizes = np.array([len(s) for s in point_sets])
     for _ in range(iterations):
-        dx, dy = x - p[0], y - p[1]
+        if not len(active):
+            break
+        first = np.concatenate([[0], np.cumsum(sizes[:-1])])
+        q = np.repeat(p[active], sizes, axis=0)
+        dx, dy = x - q[:, 0], y - q[:, 1]
         dist = np.maximum(np.sqrt(dx * dx + dy * dy), 1e-12)
-        resid = dist - p[2]
+        resid = dist - q[:, 2]
         weight = 1.0 / np.sqrt(1.0 + (resid / scale) ** 2)
-        # Jacobian rows (-ux, -uy, -1): the 3 x 3 normal equations by sums
+        # Jacobian rows (-ux, -uy, -1): the 3 x 3 normal equations by sums per set
         ux, uy = dx / dist, dy / dist
         wx, wy = weight * ux, weight * uy
-        sw = weight.sum()
-        normal = np.array(
-            [
-                [wx @ ux, wx @ uy, wx.sum()],
-                [wx @ uy, wy @ uy, wy.sum()],
-                [wx.sum(), wy.sum(), sw],
-            ]
-        )
-        rhs = np.array([wx @ resid, wy @ resid, weight @ resid])
-        try:
-            step = np.linalg.solve(normal, rhs)
-        except np.linalg.LinAlgError:
-            break
-        p += step
-        if np.abs(step).max() < 1e-10:
-            break
-    return float(p[0]), float(p[1]), abs(float(p[2]))
+        terms = (wx * ux, wx * uy, wx, wy * uy, wy, weight, wx * resid, wy * resid, weight * resid)
+        sums = np.stack([np.add.reduceat(t, first) for t in terms], -1)
+        normal = sums[:, [[0, 1, 2], [1, 3, 4], [2, 4, 5]]]  # (sets, 3, 3)
+        step, solved = _solve_each(normal, sums[:, 6:])
+        p[active[solved]] += step[solved]
+        done = ~solved | (np.abs(step).max(axis=1) < 1e-10)
+        if done.any():
+            kept = np.repeat(~done, sizes)
+            x, y = x[kept], y[kept]
+            active, sizes = active[~done], sizes[~done]
+    p[:, 2] = np.abs(p[:, 2])
+    return p
+
+
+def _solve_each(
+    a: NDArray[np.float64], b: NDArray[np.float64]
+) -> tuple[NDArray[np.float64], NDArray[np.bool_]]:
+    """Solutions of the stacked systems ``a[i] x = b[i]`` and which were solvable (not
+    singular; the others' solution is 0)."""
+    step = np.zeros(b.shape)
+    try:
+        step[:] = np.linalg.solve(a, b[..., None])[..., 0]
+        return step, np.ones(len(a), dtype=bool)
+    except np.linalg.LinAlgError:
+        solved = np.zeros(len(a), dtype=bool)
+        for i in range(len(a)):
+            try:
+                step[i] = np.linalg.solve(a[i], b[i])
+                solved[i] = True
+            except np.linalg.LinAlgError:
+                pass
+        return step, solved
 
 
 def _circles_through(tri: NDArray[np.float64]) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
@@ -483,6 +584,7 @@ def fit_stems(
     max_radius: float = 0.6,
     check_height: float = 2.3,
     min_check_points: int = 5,
+    within: tuple[float, float, float, float] | None = None,
 ) -> pd.DataFrame:
     """Stems at breast height: one row per point cluster of the slice, with the circle fit.
 
@@ -493,32 +595,51 @@ def fit_stems(
 
     Columns: x, y, dbh_m, rmse_m, n_points, n_inliers, arc_deg, ok, reason (why a fit was
     rejected). Clusters are connected components of the slice points within
-    ``link_distance`` of each other.
+    ``link_distance`` of each other. ``within``: only the points in these half-open bounds
+    (xmin, ymin, xmax, ymax).
     """
     from scipy.spatial import cKDTree
 
     xyz = as_xyz(points)
     h = np.asarray(heights, dtype=np.float64)
-    in_slice = np.isfinite(h) & (np.abs(h - breast_height) <= slice_half_width)
-    xy = xyz[in_slice, :2]
-    above = xyz[np.isfinite(h) & (np.abs(h - check_height) <= slice_half_width), :2]
+
+    # the points of both slices (and between: a margin far wider than rounding), in bounds
+    low = min(breast_height, check_height) - slice_half_width - 1e-6
+    high = max(breast_height, check_height) + slice_half_width + 1e-6
+    band = np.flatnonzero((h >= low) & (h <= high))  # NaN heights are in no slice
+    if within is not None:
+        x0, y0, x1, y1 = within
+        x, y = xyz[band, 0], xyz[band, 1]
+        band = band[(x >= x0) & (x < x1) & (y >= y0) & (y < y1)]
+
+    def slice_at(height: float) -> NDArray[np.float64]:
+        return xyz[band[np.abs(h[band] - height) <= slice_half_width], :2]
+
+    xy = slice_at(breast_height)
+    above = slice_at(check_height)
     columns = ["x", "y", "dbh_m", "rmse_m", "n_points", "n_inliers", "arc_deg", "ok", "reason"]
     if len(xy) < min_points:
         return pd.DataFrame({c: [] for c in columns})
     origin = xy.min(axis=0)
     local = xy - origin
-    above_tree = cKDTree(above - origin) if len(above) else None
+    # built once and queried a few times: the unbalanced tree builds in half the time and
+    # finds the same points
+    above_tree = (
+        cKDTree(above - origin, balanced_tree=False, compact_nodes=False) if len(above) else None
+    )
     n_comp, comp = link_clusters(local, link_distance)
     sizes = np.bincount(comp, minlength=n_comp)
     rows = []
     order = np.argsort(comp, kind="stable")
     bounds = np.concatenate([[0], np.cumsum(sizes)])
-    for c in np.flatnonzero(sizes >= min_points):
-        members = local[order[bounds[c] : bounds[c + 1]]]
-        # RANSAC samples by index: points in a canonical order, so the fit does not depend
-        # on the order the tile stores them in
-        members = members[np.lexsort(members.T[::-1])]
-        fit = fit_circle(members, inlier_tolerance=inlier_tolerance)
+    # RANSAC samples by index: each cluster's points in a canonical order, so a fit does not
+    # depend on the order the tile stores them in
+    clusters = [
+        local[order[bounds[c] : bounds[c + 1]]] for c in np.flatnonzero(sizes >= min_points)
+    ]
+    clusters = [members[np.lexsort(members.T[::-1])] for members in clusters]
+    fits = fit_circles(clusters, inlier_tolerance=inlier_tolerance)
+    for members, fit in zip(clusters, fits, strict=True):
         if fit is None:
             continue
         reason = None
@@ -560,36 +681,38 @@ def fit_stems(
     return table
 
 
-def link_clusters(
-    xy: NDArray[np.float64], distance: float, neighbours: int = 16
-) -> tuple[int, NDArray[np.int64]]:
+def link_clusters(xy: NDArray[np.float64], distance: float) -> tuple[int, NDArray[np.int64]]:
     """Connected components of the points linked when within ``distance`` (single linkage),
     numbered in the order of their first point: ``(count, label per point)``.
 
     Exact, without listing every pair (dense stem slices have ~100 neighbours per point):
-    the components of the ``neighbours``-nearest graph, then any two of them whose points
-    come within ``distance`` of each other are merged.
+    two points in squares of side ``distance / sqrt(5)`` that share an edge are within the
+    distance, so the components of the occupied squares' edge graph are parts of clusters;
+    any two of those whose points come within the distance of each other are then merged.
     """
     import shapely
-    from scipy.sparse import coo_matrix
-    from scipy.sparse.csgraph import connected_components
     from scipy.spatial import cKDTree
 
     n = len(xy)
     if n == 0:
         return 0, np.zeros(0, dtype=np.int64)
-    tree = cKDTree(xy)
-    k = min(neighbours + 1, n)
-    dist, near = tree.query(xy, k=k, distance_upper_bound=distance)
-    dist, near = dist.reshape(n, k), near.reshape(n, k)
-    linked = np.isfinite(dist) & (dist <= distance)
-    rows = np.repeat(np.arange(n), k)[linked.ravel()]
-    cols = near[linked]
-    edges = [(rows, cols)]
-    _, comp = connected_components(
-        coo_matrix((np.ones(len(rows)), (rows, cols)), shape=(n, n)), directed=False
-    )
-    # components the k-nearest graph left apart but that come within the distance
+    if distance > 0:
+        side = distance / np.sqrt(5.0) * (1.0 - 1e-9)  # the margin covers rounding
+        square = np.floor(xy / side).astype(np.int64)
+        square -= square.min(axis=0)
+        stride = int(square[:, 1].max()) + 2  # key of the square (i, j): i * stride + j
+        squares, of_point = np.unique(square[:, 0] * stride + square[:, 1], return_inverse=True)
+        rows, cols = [], []
+        for step in (stride, 1):  # the next square in x, in y
+            pos = np.minimum(np.searchsorted(squares, squares + step), len(squares) - 1)
+            hit = squares[pos] == squares + step
+            rows.append(np.flatnonzero(hit))
+            cols.append(pos[hit])
+        _, part = _components(len(squares), np.concatenate(rows), np.concatenate(cols))
+        comp = part[of_point.ravel()]
+    else:
+        comp = np.arange(n)
+    # parts that come within the distance of each other
     order = np.argsort(comp, kind="stable")
     starts = np.flatnonzero(np.r_[True, np.diff(comp[order]) != 0])
     lo = np.minimum.reduceat(xy[order], starts) - distance
@@ -597,15 +720,31 @@ def link_clusters(
     boxes = shapely.box(lo[:, 0], lo[:, 1], hi[:, 0], hi[:, 1])
     a, b = shapely.STRtree(boxes).query(boxes, predicate="intersects")
     members = np.split(order, starts[1:])
+    touching = []
     for i, j in zip(a[a < b], b[a < b], strict=True):
-        d, idx = cKDTree(xy[members[j]]).query(xy[members[i]], distance_upper_bound=distance)
-        hit = np.flatnonzero(d <= distance)
-        if len(hit):
-            edges.append((members[i][hit[:1]], members[j][idx[hit[:1]]]))
-    rows = np.concatenate([e[0] for e in edges])
-    cols = np.concatenate([e[1] for e in edges])
+        d, _ = cKDTree(xy[members[j]]).query(xy[members[i]], distance_upper_bound=distance)
+        if (d <= distance).any():
+            touching.append((i, j))
+    pairs = np.array(touching, dtype=np.int64).reshape(-1, 2)
+    count, merged = _components(len(starts), pairs[:, 0], pairs[:, 1])
+    comp = merged[comp]
+    # number the clusters in the order of their first point
+    first = np.full(count, n)
+    np.minimum.at(first, comp, np.arange(n))
+    rank = np.empty(count, dtype=np.int64)
+    rank[np.argsort(first)] = np.arange(count)
+    return count, rank[comp]
+
+
+def _components(
+    n: int, rows: NDArray[np.int64], cols: NDArray[np.int64]
+) -> tuple[int, NDArray[np.int64]]:
+    """Connected components of the undirected graph on ``n`` nodes with edges ``rows``-``cols``,
+    numbered in the order of their first node."""
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components
+
     count, comp = connected_components(
         coo_matrix((np.ones(len(rows)), (rows, cols)), shape=(n, n)), directed=False
     )
     return int(count), comp.astype(np.int64)
-

@@ -415,13 +415,13 @@ def rewrite_tile(
     manifest = _manifest(record, src)
     if manifest is None:
         raise PointCloudFormatError("not a standgrid tile (no field manifest)", path=src)
+    added = []
     for name, values in fields.items():
         if len(values) != len(record.points) or values.ndim != 1:
             raise PointCloudFormatError(
                 f"field {name!r} has {values.shape} values for {len(record.points)} points",
                 path=src,
             )
-        stored = values.astype(np.uint8) if values.dtype == np.bool_ else values
         if name in _STANDARD_FIELDS:
             if name in _RANGES:
                 _check_range(name, values, out)
@@ -431,14 +431,27 @@ def rewrite_tile(
             if name in manifest and manifest[name] != values.dtype.str:
                 record.remove_extra_dim(name)  # stored with another type: stored anew
             if name not in record.point_format.extra_dimension_names:
-                record.add_extra_dim(
+                added.append(
                     laspy.ExtraBytesParams(
                         name=name,
                         type=_extra_type(name, values, out),
                         description="bool" if values.dtype == np.bool_ else "",
                     )
                 )
-        record[name] = stored
+    if added:  # one new record, the stored bytes copied field by field of the raw array
+        stored_points = record.points.array
+        record.header.add_extra_dims(added)
+        points = laspy.ScaleAwarePointRecord.zeros(len(stored_points), header=record.header)
+        for name in stored_points.dtype.names:
+            points.array[name] = stored_points[name]
+        record.points = points
+    raw = record.points.array
+    for name, values in fields.items():
+        stored = values.astype(np.uint8) if values.dtype == np.bool_ else values
+        if name in raw.dtype.names and raw.dtype[name].shape == ():  # a whole field: no packing
+            raw[name] = stored
+        else:
+            record[name] = stored
         manifest[name] = values.dtype.str
     for vlr in record.header.vlrs:
         if getattr(vlr, "user_id", None) == VLR_USER_ID and vlr.record_id == VLR_RECORD_ID:

@@ -291,3 +291,28 @@ def test_re_enriching_an_epoch_removes_its_comparisons(pair: EnrichedPair, tmp_p
     assert PAIR in state["epochs"]["2028"]["comparisons_invalidated"]
     assert any(PAIR in m and "compare again" in m for m in messages)
     assert catalog_status(root)["comparisons"][PAIR]["state"] == "invalidated"
+
+
+def test_an_epoch_whose_dbh_model_pooled_a_re_tiled_epoch_is_invalidated_too(
+    tmp_path: Path,
+) -> None:
+    from standgrid.catalog import Catalog
+    from standgrid.catalog.invalidate import POOLED_MODEL, invalidate_epochs
+
+    grid = {"crs": "EPSG:32632", "cell_size": 20.0, "origin": [0.0, 0.0], "levels": 2}
+    catalog = Catalog.create(tmp_path / "c", grid, "EPSG:32632")
+    with catalog.transaction() as txn:
+        for epoch in ("2024", "2028", "2032"):
+            txn.record_mission(f"m{epoch}", epoch=epoch, date=f"{epoch}-05-01")
+        txn.mark_enriched("2024", {"height_diameter_model": {"source": "epoch 2024"}})
+        txn.mark_enriched("2028", {"height_diameter_model": {"source": POOLED_MODEL}})
+        txn.mark_enriched("2032", {"height_diameter_model": {"source": "epoch 2032"}})
+    catalog = Catalog.open(catalog.root)
+    with catalog.transaction() as txn:
+        invalidate_epochs(catalog, txn, {"2024": "re-tiled: missions m2024"})
+    epochs = Catalog.open(catalog.root).epoch_records
+    assert epochs["2024"].state == "stale"
+    assert epochs["2028"].state == "stale"  # its imputed DBH used 2024's old trees
+    assert epochs["2028"].invalidated is not None
+    assert "pooled the trees of re-tiled epochs 2024" in epochs["2028"].invalidated["reason"]
+    assert epochs["2032"].state == "enriched"  # its own model: untouched

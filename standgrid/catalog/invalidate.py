@@ -72,6 +72,7 @@ def invalidate_epochs(
     results, what was removed: ``files`` (relative paths), ``rows`` (per table and layer) and
     ``comparisons`` (keys); epochs without results are left out.
     """
+    reasons = {**pooled_dependents(txn, reasons), **reasons}
     epochs = set(reasons)
     comparisons = _comparisons_of(txn.state, epochs)
     done: dict[str, dict[str, Any]] = {}
@@ -180,6 +181,25 @@ def retile_reason(tiled: list[str], moved_out: list[str]) -> str:
     if moved_out:
         parts.append(f"missions moved to another epoch: {', '.join(moved_out)}")
     return "re-tiled: " + "; ".join(parts)
+
+
+#: The ``source`` of a height-diameter model fitted to every epoch's measured trees.
+POOLED_MODEL = "catalog (all epochs)"
+
+
+def pooled_dependents(txn: Transaction, reasons: Mapping[str, str]) -> dict[str, str]:
+    """Other enriched epochs whose DBH imputation used a height-diameter model pooled over
+    the catalog's epochs, so over the trees of the epochs in ``reasons`` too (epoch -> why)."""
+    changed = sorted(reasons)
+    found = {}
+    for epoch, entry in txn.state["epochs"].items():
+        model = ((entry.get("enrichment") or {}).get("height_diameter_model")) or {}
+        if epoch not in reasons and entry.get("enriched") and model.get("source") == POOLED_MODEL:
+            found[epoch] = (
+                "its height-diameter model pooled the trees of re-tiled epochs "
+                + ", ".join(changed)
+            )
+    return found
 
 
 def enrichment_note(before: EpochRecord) -> str:

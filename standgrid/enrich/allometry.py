@@ -160,6 +160,7 @@ def height_diameter_models(
     import pandas as pd
 
     from standgrid.catalog import paths
+    from standgrid.catalog.invalidate import POOLED_MODEL
 
     measured = {e: t[np.isfinite(t["dbh_m"].to_numpy(np.float64))] for e, t in trees.items()}
     for epoch in catalog.epochs:  # measured trees of epochs enriched before
@@ -173,7 +174,7 @@ def height_diameter_models(
     pooled = None
     if pooled_trees is not None:
         pooled = fit_height_diameter(
-            pooled_trees["height_m"], pooled_trees["dbh_m"], source="catalog (all epochs)"
+            pooled_trees["height_m"], pooled_trees["dbh_m"], source=POOLED_MODEL
         )
     models: dict[str, HeightDiameterModel | None] = {}
     for epoch in trees:

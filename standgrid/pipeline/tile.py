@@ -96,6 +96,9 @@ class TileReport:
     epochs: dict[str, dict[str, Any]] = field(default_factory=dict)
     #: Processes the per-payload and per-cell work ran on (1: this one).
     workers: int = 1
+    #: Epochs not tiled whose results were removed too (their DBH imputation pooled the trees
+    #: of re-tiled epochs): epoch -> what was removed.
+    also_invalidated: dict[str, dict[str, Any]] = field(default_factory=dict)
 
     @property
     def points_in(self) -> int:
@@ -116,6 +119,7 @@ class TileReport:
             "conserved": self.points_in == self.points_out,
             "workers": self.workers,
             "epochs": self.epochs,
+            "also_invalidated": self.also_invalidated,
             "missions": self.missions,
         }
 
@@ -270,6 +274,9 @@ def _ingest(
         # the re-tiled epochs' enrichment and comparisons describe points that are gone
         removed_by_epoch = invalidate_epochs(catalog, txn, reasons, status=progress.status)
         for epoch, removed in removed_by_epoch.items():
-            report.epochs[epoch]["invalidated"] = removed
+            if epoch in report.epochs:
+                report.epochs[epoch]["invalidated"] = removed
+            else:  # not tiled, but computed from the re-tiled epochs' trees
+                report.also_invalidated[epoch] = removed
     progress.status(f"tiled {report.points_out} points into {cells} cells")
     return report

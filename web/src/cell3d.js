@@ -83,7 +83,7 @@ const cellUrl = (epoch, cellId, treeFid = null) => `/viewer/points/${encodeURICo
 function countText(points, noun = 'points') {
   const { total, capped, stride } = points.header.meta;
   return `${fmt(total)} ${noun}` + (capped ? ` (${fmt(points.header.count)} shown: every `
-    + `${stride.toFixed(1)}th, the server's cap)` : '');
+    + `${stride.toFixed(1)}th, the ${points.header.meta.copc ? "view's" : "server's"} cap)` : '');
 }
 
 function ramp(t) {
@@ -325,6 +325,8 @@ function setLayoutOptions(enabled) {
 // ``streams``: epoch -> what streamCell needs, for each epoch whose tile is COPC.
 export async function openCellView({ cellId, epoch, attributes, tile, epochs = [epoch], tree = null, streams = {} }) {
   const t0 = performance.now();
+  // The points asked for first: they travel while the panel is laid out.
+  const loaded = cellPoints(epoch, cellId, streams[epoch], tree ? tree.fid : null);
   openPanel(tree ? `tree in ${cellId} · ${epoch}` : `${cellId} · ${epoch}`, attributeRows(attributes, tile, tree?.properties));
   const selectedOption = $('colour-by').querySelector('option[value=selected]');
   selectedOption.disabled = !tree;
@@ -334,7 +336,7 @@ export async function openCellView({ cellId, epoch, attributes, tile, epochs = [
   setLayoutOptions(others.length > 0);
   window.dispatchEvent(new Event('resize'));
 
-  const points = await cellPoints(epoch, cellId, streams[epoch], tree ? tree.fid : null);
+  const points = await loaded;
   const n = points.header.count;
   showSource(points, streams[epoch]?.expected);
   const view = new PointsView($('view3d'), points);
@@ -357,7 +359,13 @@ export async function openCellView({ cellId, epoch, attributes, tile, epochs = [
   const loadOthers = () => {
     loading ||= (async () => {
       for (const other of others) {
-        clouds.push({ epoch: other, points: await cellPoints(other, cellId, streams[other]) });
+        const more = await cellPoints(other, cellId, streams[other]);
+        clouds.push({ epoch: other, points: more });
+        if (more.header.meta.complete === false) {
+          $('panel-source').classList.add('warning');
+          $('panel-source').textContent += `; ${other}: the tile holds ${fmt(more.header.meta.total)} `
+            + `core points where the cells layer counts ${fmt(streams[other].expected)}`;
+        }
       }
     })();
     return loading;

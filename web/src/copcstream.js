@@ -75,6 +75,25 @@ class RangeReader {
   };
 }
 
+// A node's LAZ chunk decoded to its point records: copc.js's decompressChunk, but each point
+// decoded straight into one output block of laz-perf's heap (copc.js copies every point out
+// through a new view: 2-3x slower on a 30 k point node).
+function decodeNode(lp, compressed, { pointDataRecordFormat, pointDataRecordLength }, pointCount) {
+  const input = lp._malloc(compressed.byteLength);
+  const output = lp._malloc(pointCount * pointDataRecordLength);
+  const decoder = new lp.ChunkDecoder();
+  try {
+    lp.HEAPU8.set(compressed, input); // HEAPU8 read after the allocations (they may grow it)
+    decoder.open(pointDataRecordFormat, pointDataRecordLength, input);
+    for (let i = 0; i < pointCount; i += 1) decoder.getPoint(output + i * pointDataRecordLength);
+    return lp.HEAPU8.slice(output, output + pointCount * pointDataRecordLength);
+  } finally {
+    decoder.delete();
+    lp._free(input);
+    lp._free(output);
+  }
+}
+
 // The nodes (key -> {pointCount, pointDataOffset, pointDataLength}) whose bounds meet
 // ``bounds`` ([minx, miny, maxx, maxy]; null: every node), reading only the hierarchy pages
 // that do; and how many nodes with points the pages read hold.
@@ -154,8 +173,11 @@ export async function streamCell({ url, bounds = null, limit, expected = null })
     else runs.push({ begin: node.pointDataOffset, end });
   }
   await Promise.all(runs.map(({ begin, end }) => get(begin, end)));
-  const buffers = await Promise.all(Object.values(wanted).map((node) => (
-    Copc.loadPointDataBuffer(get, header, node, lp))));
+  const buffers = [];
+  for (const node of Object.values(wanted)) {
+    const compressed = await Copc.loadCompressedPointDataBuffer(get, node);
+    buffers.push(decodeNode(lp, compressed, header, node.pointCount));
+  }
   const t3 = performance.now();
   const parts = [];
   let total = 0;

@@ -518,6 +518,29 @@ def test_viewer_streams_a_copc_cell_from_its_tile(
     assert not [r for r in overlaid if "/viewer/points" in r["url"]]
     view.page.select_option("#view-layout", "single")
 
+    # A click on a tree's marker: its cell streamed too, the tree's points told by its exact
+    # 64-bit id (read from the feature's JSON text), as many as laspy finds in the tile.
+    trees = pyogrio.read_dataframe(catalog / "index.gpkg", layer="trees", fid_as_index=True)
+    tree = trees[trees["epoch"] == epoch].sort_values("n_points").iloc[-1]
+    before = len(requests)
+    x, y = view.js("f => window.standgrid.treePixel(f)", int(tree.name))
+    box = view.page.locator("#map").bounding_box()
+    view.page.mouse.click(box["x"] + x, box["y"] + y)
+    view.page.wait_for_function(
+        "() => document.querySelector('#panel-count').dataset.treeCount !== undefined",
+        timeout=20_000)  # fmt: skip
+    assert view.js("() => window.standgrid.state.cellView.treeFid") == int(tree.name)
+    tree_las = laspy.read(catalog / "tiles" / epoch / f"{tree['cell_id']}.copc.laz")
+    tree_core = ~np.asarray(tree_las.withheld, dtype=bool)
+    of_tree = int((np.asarray(tree_las["tree_id"])[tree_core] == int(tree["tree_id"])).sum())
+    assert of_tree > 0
+    assert int(view.page.get_attribute("#panel-count", "data-tree-count") or -1) == of_tree
+    assert view.page.get_attribute("#panel-count", "data-count") == str(int(tree_core.sum()))
+    assert str(int(tree["tree_id"])) in view.page.inner_text("#panel-attributes")  # exact
+    assert view.page.get_attribute("#panel-source", "data-source") == "copc"
+    assert not [r for r in requests[before:] if "/viewer/points" in r["url"]]
+    view.shot("copc-tree-3d")
+
     # The same cell read by the server (the LAS/LAZ path): the same count; then the time to
     # the 3-D view both ways, alternated on the same page (warm: laz-perf started).
     def open_cell(stream: bool) -> tuple[float, str, int]:

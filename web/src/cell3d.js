@@ -45,10 +45,11 @@ async function fetchPoints(url, what) {
 const kB = (n) => `${fmt(Math.round(n / 1024))} kB`;
 
 // A cell's points in one epoch: streamed from its COPC tile when ``stream`` names one (see
-// streamCell), else the server's answer (a tree's cell: the server marks the tree's points).
-function cellPoints(epoch, cellId, stream, treeFid = null) {
-  if (stream && treeFid === null) return streamCell(stream);
-  return fetchPoints(cellUrl(epoch, cellId, treeFid), `${cellId} in ${epoch}`);
+// streamCell), else the server's answer; ``tree`` ({fid, id}: its exact id as text) has its
+// points marked (meta.tree).
+function cellPoints(epoch, cellId, stream, tree = null) {
+  if (stream) return streamCell({ ...stream, tree });
+  return fetchPoints(cellUrl(epoch, cellId, tree ? tree.fid : null), `${cellId} in ${epoch}`);
 }
 
 // Where the points came from: a COPC tile streamed by this page (bytes fetched of the
@@ -322,11 +323,12 @@ function setLayoutOptions(enabled) {
 
 // Opens the panel for one cell (and a tree of it); resolves when its points are drawn.
 // ``epochs``: every epoch that has a tile of the cell (overlaid or side by side);
-// ``streams``: epoch -> what streamCell needs, for each epoch whose tile is COPC.
+// ``streams``: epoch -> what streamCell needs, for each epoch whose tile is COPC; ``tree``:
+// {fid, properties, id} (id: its exact tree_id as text, for a streamed cell).
 export async function openCellView({ cellId, epoch, attributes, tile, epochs = [epoch], tree = null, streams = {} }) {
   const t0 = performance.now();
   // The points asked for first: they travel while the panel is laid out.
-  const loaded = cellPoints(epoch, cellId, streams[epoch], tree ? tree.fid : null);
+  const loaded = cellPoints(epoch, cellId, streams[epoch], tree);
   openPanel(tree ? `tree in ${cellId} · ${epoch}` : `${cellId} · ${epoch}`, attributeRows(attributes, tile, tree?.properties));
   const selectedOption = $('colour-by').querySelector('option[value=selected]');
   selectedOption.disabled = !tree;

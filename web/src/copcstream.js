@@ -144,8 +144,9 @@ function treeKey(lo, hi) {
 // The core points (not withheld: buffer copies of the neighbours' points are left out) of a
 // COPC tile within ``bounds`` (the cell, in the tile's CRS; null: the whole tile), at most
 // ``limit`` of them (every k-th beyond, as the server's cap). ``expected``: the cells
-// layer's point_count, checked (meta.complete).
-export async function streamCell({ url, bounds = null, limit, expected = null }) {
+// layer's point_count, checked (meta.complete). ``tree``: {fid, id} (the exact tree_id as
+// decimal text): its points are counted by their full 64-bit id (meta.tree, as the server's).
+export async function streamCell({ url, bounds = null, limit, expected = null, tree = null }) {
   const t0 = performance.now();
   const reader = new RangeReader(url);
   const get = reader.get;
@@ -163,6 +164,9 @@ export async function streamCell({ url, bounds = null, limit, expected = null })
   const treeAt = extraOffset(header, eb, 'tree_id');
   const treeLength = eb.find((e) => e.name === 'tree_id')?.length;
   if (treeAt !== null && treeLength !== 8) throw new Error(`${url}: tree_id of ${treeLength} bytes (8 expected)`);
+  const chosen = tree && BigInt.asUintN(64, BigInt(tree.id));
+  const [chosenLo, chosenHi] = chosen === null ? [0, 0] : [Number(chosen & 0xffffffffn), Number(chosen >> 32n)];
+  let ofTree = 0;
   // The nodes' bytes fetched at once, a run of nodes adjacent in the file in one request;
   // then each node decoded from memory.
   const runs = [];
@@ -203,7 +207,9 @@ export async function streamCell({ url, bounds = null, limit, expected = null })
       classes[m] = cls(i);
       if (treeAt !== null) {
         const at = i * header.pointDataRecordLength + treeAt;
-        keys[m] = treeKey(dv.getUint32(at, true), dv.getUint32(at + 4, true));
+        const [lo, hi] = [dv.getUint32(at, true), dv.getUint32(at + 4, true)];
+        keys[m] = treeKey(lo, hi);
+        if (chosen !== null && lo === chosenLo && hi === chosenHi) ofTree += 1;
       }
       m += 1;
     }
@@ -254,5 +260,8 @@ export async function streamCell({ url, bounds = null, limit, expected = null })
     },
   };
   if (capped) meta.stride = total / limit;
+  if (chosen !== null) {
+    meta.tree = { fid: tree.fid, tree_id: tree.id, key: treeKey(chosenLo, chosenHi), points: ofTree };
+  }
   return { header: { count, origin, meta }, ...points };
 }

@@ -32,6 +32,16 @@ const NO_DATA = '#c8c8c8';
 // The CHM in greys: a backdrop the cells' viridis reads over.
 const CHM_RAMP = ['#f4f4f4', '#a9a9a9', '#5e5e5e', '#1e1e1e'];
 
+// A tree's tree_id exactly, as decimal text: from the feature's GeoJSON text.
+async function exactTreeId(fid) {
+  const url = `/ogc/collections/trees/items/${encodeURIComponent(fid)}`;
+  const response = await fetch(url, { headers: { Accept: 'application/geo+json' } });
+  if (!response.ok) throw new Error(`${url}: HTTP ${response.status}`);
+  const found = /"tree_id"\s*:\s*(-?\d+)/.exec(await response.text());
+  if (!found) throw new Error(`${url}: no tree_id`);
+  return found[1];
+}
+
 async function getJson(url) {
   const response = await fetch(url, { headers: { Accept: 'application/json' } });
   if (!response.ok) throw new Error(`${url}: HTTP ${response.status}`);
@@ -408,9 +418,12 @@ async function main() {
       streams[e] = { url: `/files/${path}`, bounds: crsUri ? t.getGeometry().getExtent() : null,
         expected: t.get('point_count'), limit: config.max_view_points };
     }
+    // A tree in a streamed cell: its points told by its exact 64-bit id, read from the
+    // feature's JSON text (a JS number keeps only 53 bits).
+    const id = tree && streams[state.epoch] ? await exactTreeId(tree.getId()) : null;
     state.cellView = await openCellView({
       cellId, epoch: state.epoch, attributes: attributes?.getProperties(), tile: tile?.getProperties(), epochs,
-      tree: tree ? { fid: tree.getId(), properties: tree.getProperties() } : null, streams,
+      tree: tree ? { fid: tree.getId(), properties: tree.getProperties(), id } : null, streams,
     });
     return state.cellView;
   }

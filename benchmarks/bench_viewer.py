@@ -6,7 +6,9 @@ A real ``standgrid serve`` (uvicorn in a thread) on CATALOG; Playwright drives D
 the page, the OGC layers, the CHM tiles drawn) and the trees, then for ``--cells`` cells
 picked across the catalog the 3-D view (points fetched, decoded, drawn) with the point
 count, then the same for ``--payloads`` payloads (their points gathered from the tiles);
-baselines: the same OGC layers and points fetched by httpx in this process.
+baselines: the same OGC layers and points fetched by httpx in this process. On a COPC
+catalog (``standgrid tile --copc``) each cell is opened both ways, alternately: streamed by
+the page from its COPC tile, and read by the server (``/viewer/points``); both printed.
 
 Example (a 1,024-cell, ~20 M point catalog):
     standgrid simulate /tmp/big --epochs 1 --area 640 --points-per-payload 20000
@@ -77,24 +79,45 @@ def main() -> None:
         picks = cells[cells["epoch"] == epoch].sort_values("point_count")
         picks = picks.iloc[[round(k * (len(picks) - 1) / max(1, args.cells - 1))
                             for k in range(args.cells)]]  # fmt: skip
-        in_page, fetched = [], []
+        in_page, fetched, streamed = [], [], []
+        copc = page.evaluate("() => window.standgrid.state.streamCopc")
+        open_cell = (
+            "([c, s]) => { window.standgrid.state.streamCopc = s; return window.standgrid"
+            ".openCell(c).then(v => [v.count, v.ms, v.points.header.meta.copc || null]); }"
+        )
         for _, row in picks.iterrows():
             t0 = time.perf_counter()
             httpx.get(f"{base}/viewer/points/{epoch}/{row['cell_id']}", timeout=60)
             fetched.append(1000 * (time.perf_counter() - t0))
-            view = page.evaluate("c => window.standgrid.openCell(c).then(v => [v.count, v.ms])",
-                                 row["cell_id"])  # fmt: skip
+            view = page.evaluate(open_cell, [row["cell_id"], False])
             assert view[0] == row["point_count"], (row["cell_id"], view[0], row["point_count"])
             in_page.append(view[1])
             print(
                 f"  3-D view of {row['cell_id']}: {view[0]:,} points in {view[1]:.0f} ms "
                 f"(points by httpx: {fetched[-1]:.0f} ms)"
             )
+            if copc:
+                view = page.evaluate(open_cell, [row["cell_id"], True])
+                assert view[0] == row["point_count"], (row["cell_id"], view[0])
+                streamed.append(view[1])
+                got = view[2]
+                print(
+                    f"    streamed from its COPC tile: {view[1]:.0f} ms, {got['bytes']:,} of "
+                    f"{got['file_size']:,} bytes in {got['requests']} range requests, "
+                    f"{got['nodes_read']} of {got['nodes']} nodes"
+                )
         ratio = statistics.median(in_page) / statistics.median(fetched)
         print(
             f"3-D view: median {statistics.median(in_page):.0f} ms, max {max(in_page):.0f} ms; "
             f"{ratio:.1f}x the points' fetch alone"
         )
+        if streamed:
+            ratio = statistics.median(streamed) / statistics.median(in_page)
+            print(
+                f"3-D view streamed from COPC: median {statistics.median(streamed):.0f} ms, max "
+                f"{max(streamed):.0f} ms; {ratio:.2f}x the /viewer/points median (same cells, "
+                "alternated)"
+            )
         if args.screenshot:
             page.screenshot(path=str(args.screenshot.with_stem(args.screenshot.stem + "-3d")))
 

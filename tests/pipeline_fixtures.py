@@ -56,6 +56,20 @@ def enriched_pair(factory: pytest.TempPathFactory) -> EnrichedPair:
     return pair
 
 
+def copc_pair(factory: pytest.TempPathFactory) -> Path:
+    """Both bundled missions tiled as COPC (20 m grid, 2 m buffer), enriched and compared,
+    once (the same options as :func:`enriched_pair` but ``copc=True``)."""
+    if "copc" not in _cache:
+        from standgrid.pipeline.run import run_pipeline
+        from standgrid.pipeline.tile import TileOptions
+
+        folder = factory.mktemp("copc") / "catalog"
+        run_pipeline([BUNDLED_MISSIONS], folder, TileOptions(buffer=BUFFER_M, copc=True))
+        _cache["copc"] = folder
+    path: Path = _cache["copc"]
+    return path
+
+
 def tiled_grid25(factory: pytest.TempPathFactory) -> Path:
     """Both bundled missions tiled on a 25 m grid, not enriched (a few seconds), once."""
     if "grid25" not in _cache:

@@ -17,19 +17,13 @@ from standgrid.catalog import Catalog, TilingSettings
 from standgrid.catalog.setup import settle_tiling
 from standgrid.errors import TilingError
 from standgrid.export.las import read_tile
-from tests.conftest import BUNDLED_MISSIONS
-from tests.pipeline_fixtures import BUFFER_M, enriched_pair
+from tests.pipeline_fixtures import BUFFER_M, copc_pair, enriched_pair
 
 
 @pytest.fixture(scope="module")
 def copc_catalog(tmp_path_factory: pytest.TempPathFactory) -> Path:
-    """The bundled pair tiled as COPC (2 m buffer), enriched and compared."""
-    from standgrid.pipeline.run import run_pipeline
-    from standgrid.pipeline.tile import TileOptions
-
-    folder = tmp_path_factory.mktemp("copc") / "catalog"
-    run_pipeline([BUNDLED_MISSIONS], folder, TileOptions(buffer=BUFFER_M, copc=True))
-    return folder
+    """The bundled pair tiled as COPC (2 m buffer), enriched and compared (shared)."""
+    return copc_pair(tmp_path_factory)
 
 
 @pytest.fixture(scope="module")
@@ -132,6 +126,26 @@ def test_a_served_catalog_tile_answers_a_bounds_query_over_http(
         return table[np.lexsort(table.T[::-1])]
 
     np.testing.assert_array_equal(rows(got), rows(local.points[inside]))
+
+
+def test_the_viewer_is_told_to_stream_and_the_server_reads_copc_cells_too(
+    copc_catalog: Path, served: str
+) -> None:
+    import httpx
+    import pyogrio
+
+    config = httpx.get(f"{served}/viewer/config.json").json()
+    assert config["tiles"] == "copc" and {e["tiles"] for e in config["epochs"]} == {"copc"}
+    cells = pyogrio.read_dataframe(copc_catalog / "index.gpkg", layer="cells")
+    row = cells.sort_values("point_count").iloc[-1]
+    answer = httpx.get(f"{served}/viewer/points/{row['epoch']}/{row['cell_id']}")
+    assert answer.status_code == 200
+    length = int.from_bytes(answer.content[:4], "little")
+    header = json.loads(answer.content[4 : 4 + length])
+    las = laspy.read(copc_catalog / row["tile_path"])
+    core = int((~np.asarray(las.withheld, dtype=bool)).sum())
+    assert header["count"] == core == int(row["point_count"])
+    assert header["meta"]["tile"] == f"files/{row['tile_path']}"
 
 
 def test_tiling_settings_keep_the_catalogs_format_unless_told(tmp_path: Path) -> None:

@@ -40,6 +40,13 @@ def test_root_is_the_viewer_for_browsers_and_json_for_clients(enriched_base: str
     asset = httpx.get(f"{enriched_base}{script}")
     assert asset.status_code == 200
     assert "javascript" in asset.headers["content-type"]
+    # laz-perf's WebAssembly (COPC tiles are decoded in the browser) is in the bundle
+    from standgrid.serve.viewer import STATIC
+
+    (wasm,) = (STATIC / "assets").glob("laz-perf-*.wasm")
+    served = httpx.get(f"{enriched_base}/viewer/assets/{wasm.name}")
+    assert served.status_code == 200 and served.content == wasm.read_bytes()
+    assert served.headers["content-type"] == "application/wasm"
     service = httpx.get(f"{enriched_base}/").json()
     assert {link["rel"] for link in service["links"]} >= {"ogc", "files", "viewer"}
 
@@ -60,6 +67,9 @@ def test_config_names_the_crs_epochs_and_chm_ranges(
             valid = src.read(1, masked=True).compressed()
         assert epoch["chm_max"] == pytest.approx(np.percentile(valid, 98.0), abs=1e-4)
     assert {"cells", "stand_metrics", "trees"} <= set(config["layers"])
+    # LAZ tiles: the page asks the server for a cell's points (COPC: tests/test_tile_copc.py)
+    assert config["tiles"] == "laz" and {e["tiles"] for e in config["epochs"]} == {"laz"}
+    assert config["max_view_points"] > 0
 
 
 def test_cell_points_are_the_tiles_core_points(enriched_base: str, enriched_catalog: Path) -> None:

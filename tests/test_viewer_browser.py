@@ -201,6 +201,7 @@ def test_viewer_map_epochs_metrics_and_cell_view(
     assert shown == core == int(cell_row["point_count"])
     assert f"{core:,} points in the cell" in view.page.inner_text("#panel-count")
     assert cell_row["cell_id"] in view.page.inner_text("#panel-title")
+    assert view.page.get_attribute("#panel-source", "data-source") == "server"  # LAZ tiles
     ms_3d = view.js("() => window.standgrid.state.cellView.ms")
     print(
         f"3-D view of {cell_row['cell_id']} ({core} points): {ms_3d:.0f} ms in the page "
@@ -388,6 +389,237 @@ def test_viewer_payload_view_and_epochs_side_by_side(
     view.page.select_option("#view-layout", "single")
     view.page.wait_for_function(
         "() => document.querySelectorAll('#view3d canvas').length === 1", timeout=20_000
+    )
+    assert view.errors == []
+    assert view.failed == []
+
+
+@pytest.fixture(scope="module")
+def copc_catalog(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """The bundled pair tiled as COPC (2 m buffer), enriched and compared (shared)."""
+    from tests.pipeline_fixtures import copc_pair
+
+    return copc_pair(tmp_path_factory)
+
+
+@pytest.fixture(scope="module")
+def copc_base(copc_catalog: Path) -> Iterator[str]:
+    from standgrid.serve import create_app
+    from standgrid.serve.server import running
+
+    with running(create_app(copc_catalog)) as server:
+        assert server.base_url is not None
+        yield server.base_url
+
+
+#: What the page computes from the points it draws (the 3-D view's arrays), for laspy to check.
+POINTS_SUMMARY = """() => {
+  const p = window.standgrid.state.cellView.points;
+  const n = p.header.count;
+  let ground = 0, top = -Infinity;
+  const max = [-Infinity, -Infinity, -Infinity];
+  for (let i = 0; i < n; i += 1) {
+    if (p.classification[i] === 2) ground += 1;
+    if (p.height_above_ground[i] > top) top = p.height_above_ground[i];
+    for (let d = 0; d < 3; d += 1) max[d] = Math.max(max[d], p.xyz[3 * i + d]);
+  }
+  return { n, ground, top, origin: p.header.origin, max,
+           trees: new Set(Array.from(p.tree_key).filter((k) => k !== 0)).size };
+}"""
+
+
+def test_viewer_streams_a_copc_cell_from_its_tile(
+    browser: Any, copc_base: str, copc_catalog: Path, tmp_path: Path
+) -> None:
+    base, catalog = copc_base, copc_catalog
+    cells = _cells(catalog)
+    view = Page(browser, base)
+    requests: list[dict[str, Any]] = []
+
+    def record(response: Any) -> None:
+        requests.append({"url": response.url, "status": response.status,
+                         "range": response.request.headers.get("range"),
+                         "length": int(response.headers.get("content-length") or -1)})  # fmt: skip
+
+    view.page.on("response", record)
+    view.open()
+    assert view.js("() => window.standgrid.state.config.tiles") == "copc"
+    assert view.js("() => window.standgrid.state.streamCopc") is True
+    epoch = view.js("() => window.standgrid.state.epoch")
+
+    # A click on the densest cell with a tile in both epochs.
+    both = cells.groupby("cell_id")["epoch"].nunique()
+    mine = cells[(cells["epoch"] == epoch) & cells["cell_id"].isin(both[both == 2].index)]
+    cell = mine.sort_values("point_count").iloc[-1]
+    tile = catalog / cell["tile_path"]
+    assert cell["tile_path"].endswith(".copc.laz")
+    before = len(requests)
+    x, y = view.js("c => window.standgrid.pixelOf(c)", cell["cell_id"])
+    box = view.page.locator("#map").bounding_box()
+    t0 = time.perf_counter()
+    view.page.mouse.click(box["x"] + x, box["y"] + y)
+    view.page.wait_for_function(
+        "c => window.standgrid.state.cellView && window.standgrid.state.cellView.cellId === c",
+        arg=cell["cell_id"], timeout=20_000)  # fmt: skip
+    wall = time.perf_counter() - t0
+
+    # Exactly the cell's core points: the cells layer's count and laspy's non-withheld points.
+    las = laspy.read(tile)
+    core = ~np.asarray(las.withheld, dtype=bool)
+    shown = int(view.page.get_attribute("#panel-count", "data-count") or -1)
+    assert shown == int(core.sum()) == int(cell["point_count"])
+    assert f"{shown:,} points in the cell" in view.page.inner_text("#panel-count")
+    # ... decoded right: extremes, ground returns, heights and trees as laspy reads them.
+    got = view.js(POINTS_SUMMARY)
+    assert got["n"] == shown
+    xyz = np.column_stack([las.x, las.y, las.z])[core]
+    np.testing.assert_allclose(got["origin"], xyz.min(axis=0), rtol=0, atol=1e-9)
+    # float32 offsets from the origin: within a float32 step of a few tens of metres
+    np.testing.assert_allclose(np.add(got["origin"], got["max"]), xyz.max(axis=0), atol=1e-5)
+    assert got["ground"] == int((np.asarray(las.classification)[core] == 2).sum()) > 0
+    assert got["top"] == pytest.approx(float(np.max(las["height_above_ground"][core])), abs=0)
+    tree_ids = np.asarray(las["tree_id"])[core]
+    assert got["trees"] == len(np.unique(tree_ids[tree_ids != 0])) > 0
+
+    # Streamed by the page: range requests answered 206 for that tile, all the bytes it says
+    # it fetched, and no /viewer/points call.
+    clicked = requests[before:]
+    assert not [r for r in clicked if "/viewer/points" in r["url"]]
+    ranged = [r for r in clicked if r["url"].endswith(f"/files/{cell['tile_path']}")]
+    assert ranged and all(r["status"] == 206 and r["range"] for r in ranged)
+    source = view.page.locator("#panel-source")
+    assert source.get_attribute("data-source") == "copc"
+    assert int(source.get_attribute("data-bytes") or -1) == sum(r["length"] for r in ranged)
+    assert int(source.get_attribute("data-requests") or -1) == len(ranged)
+    assert int(source.get_attribute("data-file-size") or -1) == tile.stat().st_size
+    # no byte twice: the head and tail read ahead (64 + 8 kB) are not fetched again
+    assert tile.stat().st_size > (64 + 8) * 1024
+    assert sum(r["length"] for r in ranged) <= tile.stat().st_size
+    assert "streamed from the COPC tile" in source.inner_text()
+    assert _canvas_colours(view.page.locator("#view3d canvas")) > 50  # the height ramp
+    ms = view.js("() => window.standgrid.state.cellView.ms")
+    print(f"\nCOPC 3-D view of {cell['cell_id']} ({shown} points, first click): {ms:.0f} ms "
+          f"in the page ({wall:.2f} s wall, click to drawn); {source.inner_text()}")  # fmt: skip
+    path = _keep_shot(view, tmp_path, "copc-3d")
+    assert path.stat().st_size > 0
+
+    # The other epoch overlaid: streamed from its own COPC tile, its own core count.
+    other = cells[(cells["cell_id"] == cell["cell_id"]) & (cells["epoch"] != epoch)].iloc[0]
+    before = len(requests)
+    view.page.select_option("#view-layout", "overlay")
+    expected = f"{other['epoch']}: {int(other['point_count']):,} points"
+    view.page.wait_for_function("t => document.querySelector('#colour-legend').innerText"
+                                ".includes(t)", arg=expected, timeout=20_000)  # fmt: skip
+    other_las = laspy.read(catalog / other["tile_path"])
+    assert int((~np.asarray(other_las.withheld, dtype=bool)).sum()) == int(other["point_count"])
+    overlaid = requests[before:]
+    assert [r for r in overlaid if r["url"].endswith(f"/files/{other['tile_path']}")]
+    assert all(r["status"] == 206 for r in overlaid if "/files/tiles/" in r["url"])
+    assert not [r for r in overlaid if "/viewer/points" in r["url"]]
+    view.page.select_option("#view-layout", "single")
+
+    # A click on a tree's marker: its cell streamed too, the tree's points told by its exact
+    # 64-bit id (read from the feature's JSON text), as many as laspy finds in the tile.
+    trees = pyogrio.read_dataframe(catalog / "index.gpkg", layer="trees", fid_as_index=True)
+    tree = trees[trees["epoch"] == epoch].sort_values("n_points").iloc[-1]
+    before = len(requests)
+    x, y = view.js("f => window.standgrid.treePixel(f)", int(tree.name))
+    box = view.page.locator("#map").bounding_box()
+    view.page.mouse.click(box["x"] + x, box["y"] + y)
+    view.page.wait_for_function(
+        "() => document.querySelector('#panel-count').dataset.treeCount !== undefined",
+        timeout=20_000)  # fmt: skip
+    assert view.js("() => window.standgrid.state.cellView.treeFid") == int(tree.name)
+    tree_las = laspy.read(catalog / "tiles" / epoch / f"{tree['cell_id']}.copc.laz")
+    tree_core = ~np.asarray(tree_las.withheld, dtype=bool)
+    of_tree = int((np.asarray(tree_las["tree_id"])[tree_core] == int(tree["tree_id"])).sum())
+    assert of_tree > 0
+    assert int(view.page.get_attribute("#panel-count", "data-tree-count") or -1) == of_tree
+    assert view.page.get_attribute("#panel-count", "data-count") == str(int(tree_core.sum()))
+    assert str(int(tree["tree_id"])) in view.page.inner_text("#panel-attributes")  # exact
+    assert view.page.get_attribute("#panel-source", "data-source") == "copc"
+    assert not [r for r in requests[before:] if "/viewer/points" in r["url"]]
+    view.shot("copc-tree-3d")
+
+    # The same cell read by the server (the LAS/LAZ path): the same count; then the time to
+    # the 3-D view both ways, alternated on the same page (warm: laz-perf started).
+    def open_cell(stream: bool) -> tuple[float, str, int]:
+        view.js("s => { window.standgrid.state.streamCopc = s; }", stream)
+        done = view.js("c => window.standgrid.openCell(c).then(v => [v.ms, v.source, v.count])",
+                       cell["cell_id"])  # fmt: skip
+        return float(done[0]), str(done[1]), int(done[2])
+
+    times: dict[str, list[float]] = {"copc": [], "server": []}
+    for _ in range(3):
+        for stream in (True, False):
+            ms_taken, how, count = open_cell(stream)
+            assert count == shown
+            times[how].append(ms_taken)
+    assert view.page.get_attribute("#panel-source", "data-source") == "server"
+    print(
+        "time to the 3-D view of the cell, median of 3 (warm): "
+        f"COPC streamed {np.median(times['copc']):.0f} ms, /viewer/points "
+        f"{np.median(times['server']):.0f} ms"
+    )
+    assert view.errors == []
+    assert view.failed == []
+
+
+@pytest.fixture(scope="module")
+def deep_copc(copc_catalog: Path, tmp_path_factory: pytest.TempPathFactory) -> Iterator[Any]:
+    """A copy of the COPC catalog whose densest 2024 tile is indexed again into a deep octree
+    (4 sampling cells per node axis, leaves of at most 256 points: nodes a few metres wide,
+    some wholly in the buffer ring), served: (base URL, catalog, that tile's cells row)."""
+    from standgrid.export.copc import write_copc_tile
+    from standgrid.export.las import read_tile
+    from standgrid.pointcloud import PointCloud
+    from standgrid.serve import create_app
+    from standgrid.serve.server import running
+    from tests.pipeline_fixtures import CRS, copy_catalog
+
+    catalog = copy_catalog(copc_catalog, tmp_path_factory.mktemp("deep") / "catalog")
+    cells = _cells(catalog)
+    row = cells[cells["epoch"] == "2024"].sort_values("point_count").iloc[-1]
+    tile = catalog / row["tile_path"]
+    cloud = read_tile(tile, include_withheld=True)
+    withheld = np.asarray(cloud.fields["withheld"], dtype=bool)
+    points = PointCloud(cloud.xyz, {k: v for k, v in cloud.fields.items() if k != "withheld"})
+    write_copc_tile(tile, points.select(~withheld), buffer=points.select(withheld), crs=CRS,
+                    resolution=4, leaf_points=256)  # fmt: skip
+    with running(create_app(catalog)) as server:
+        yield server.base_url, catalog, row
+
+
+def test_viewer_streams_only_the_octree_nodes_a_cell_needs(browser: Any, deep_copc: Any) -> None:
+    import copclib
+
+    base, catalog, row = deep_copc
+    tile = catalog / row["tile_path"]
+    reader = copclib.FileReader(str(tile))
+    try:
+        nodes = len([n for n in reader.GetAllNodes() if n.point_count > 0])
+    finally:
+        reader.Close()
+    view = Page(browser, base)
+    ranged: list[Any] = []
+    view.page.on("response", lambda r: r.url.endswith(row["tile_path"]) and ranged.append(r))
+    view.open()
+    got = view.js("c => window.standgrid.openCell(c).then(v => ({count: v.count, source: "
+                  "v.source, copc: v.points.header.meta.copc}))", row["cell_id"])  # fmt: skip
+    las = laspy.read(tile)
+    core = int((~np.asarray(las.withheld, dtype=bool)).sum())
+    assert got["source"] == "copc"
+    assert got["count"] == core == int(row["point_count"])
+    streamed = got["copc"]
+    assert streamed["nodes"] == nodes > 50
+    # the nodes wholly in the buffer ring are left out, and their bytes are not fetched
+    assert streamed["nodes_read"] < nodes
+    assert streamed["bytes"] < tile.stat().st_size == streamed["file_size"]
+    assert ranged and all(r.status == 206 for r in ranged)
+    assert streamed["requests"] == len(ranged) < streamed["nodes_read"]  # runs coalesced
+    print(
+        f"\ndeep octree: {streamed['nodes_read']} of {nodes} nodes, {streamed['bytes']} of "
+        f"{tile.stat().st_size} bytes in {streamed['requests']} range requests"
     )
     assert view.errors == []
     assert view.failed == []

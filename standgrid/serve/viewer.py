@@ -10,6 +10,7 @@ the service's JSON description (``app.py``). Every script and style comes from t
 from __future__ import annotations
 
 import json
+from collections.abc import Iterable
 from pathlib import Path
 from typing import Annotated, Any
 
@@ -63,10 +64,19 @@ def _raster_max(path: Path) -> float | None:
     return float(np.percentile(np.abs(valid), CHM_PERCENTILE)) if valid.size else None
 
 
+def tile_format(tiles: Iterable[str]) -> str:
+    """``copc``, ``laz`` or ``las`` when every tile is of that format, ``mixed`` for several,
+    ``none`` without tiles."""
+    kinds = {"copc" if t.endswith(".copc.laz") else Path(t).suffix.lstrip(".") for t in tiles}
+    return kinds.pop() if len(kinds) == 1 else "mixed" if kinds else "none"
+
+
 def viewer_config(catalog: Catalog, layers: set[str]) -> dict[str, Any]:
     """What the viewer needs to start: the CRS (EPSG code and WKT2, which proj4js reads to
-    draw in it), the epochs, the comparisons, the served CHMs (and CHM differences) with
-    their colour ramp tops, and which layers exist."""
+    draw in it), the epochs (each with its tiles' format), the comparisons, the served CHMs
+    (and CHM differences) with their colour ramp tops, which layers exist, the tiles' format
+    (``tiles``: with ``copc`` the page streams a cell's points from its tile itself) and the
+    most points one 3-D view draws."""
     import pyproj
 
     crs = pyproj.CRS.from_user_input(catalog.crs)
@@ -83,6 +93,7 @@ def viewer_config(catalog: Catalog, layers: set[str]) -> dict[str, Any]:
             "state": record.state,
             "chm": f"files/{chm}" if has_chm else None,
             "chm_max": _raster_max(chm_path) if has_chm else None,
+            "tiles": tile_format(catalog.tiles(label)),
         })  # fmt: skip
     comparisons = []
     for key, entry in catalog.comparisons.items():
@@ -105,6 +116,8 @@ def viewer_config(catalog: Catalog, layers: set[str]) -> dict[str, Any]:
         "epochs": epochs,
         "comparisons": comparisons,
         "layers": sorted(layers),
+        "tiles": tile_format(t for label in catalog.epochs for t in catalog.tiles(label)),
+        "max_view_points": MAX_VIEW_POINTS,
     }
 
 
@@ -214,8 +227,11 @@ def cell_points(
         if epoch not in snap.catalog.epochs:
             raise Problem(404, f"no epoch {epoch!r}; epochs: {sorted(snap.catalog.epochs)}")
         tiles = set(snap.catalog.tiles(epoch))
-        relative = next((t for t in (paths.tile(epoch, cell_id, laz=laz) for laz in (True, False))
-                         if t in tiles), None)  # fmt: skip
+        candidates = (
+            paths.tile(epoch, cell_id, laz=laz, copc=copc)
+            for laz, copc in ((True, True), (True, False), (False, False))
+        )
+        relative = next((t for t in candidates if t in tiles), None)
         if relative is None:
             raise Problem(404, f"epoch {epoch!r} has no tile of cell {cell_id!r}")
         las = _read_tile(snap.catalog.path(relative), relative)
@@ -310,7 +326,12 @@ def _tree(snap: Any, fid: int) -> int:
 def install(app: Any, description: dict[str, Any]) -> None:
     """The viewer's routes and static assets (``/viewer/...``) on ``app``, and ``/``: the
     viewer for a browser (``Accept: text/html``), else ``description`` (JSON)."""
+    import mimetypes
+
     from starlette.staticfiles import StaticFiles
+
+    # laz-perf's WebAssembly: compiled while it streams only when sent as application/wasm
+    mimetypes.add_type("application/wasm", ".wasm")
 
     @app.get(
         "/",

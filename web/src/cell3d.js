@@ -1,9 +1,12 @@
 // The side panel of a clicked cell, tree or payload: its attributes and its points in 3-D
-// (three.js), read from /viewer/points/{epoch}/{cell} or /viewer/points?payload=<id>
-// (standgrid/serve/viewer.py: encode_points). A cell's epochs are shown overlaid in one view
-// or side by side in synchronised views (one camera for all).
+// (three.js). A cell whose tile is COPC is streamed by the browser from the tile itself
+// (copcstream.js: range requests, only the octree nodes the cell needs); otherwise, and for a
+// tree or a payload, the points are read from /viewer/points/{epoch}/{cell} or
+// /viewer/points?payload=<id> (standgrid/serve/viewer.py: encode_points). A cell's epochs are
+// shown overlaid in one view or side by side in synchronised views (one camera for all).
 import * as THREE from 'three';
 import { OrbitControls } from 'three/addons/controls/OrbitControls.js';
+import { streamCell } from './copcstream.js';
 import { VIRIDIS, formatValue, metricLabel } from './scales.js';
 
 const $ = (id) => document.getElementById(id);
@@ -39,6 +42,41 @@ async function fetchPoints(url, what) {
   return decodePoints(await response.arrayBuffer());
 }
 
+const kB = (n) => `${fmt(Math.round(n / 1024))} kB`;
+
+// A cell's points in one epoch: streamed from its COPC tile when ``stream`` names one (see
+// streamCell), else the server's answer; ``tree`` ({fid, id}: its exact id as text) has its
+// points marked (meta.tree).
+function cellPoints(epoch, cellId, stream, tree = null) {
+  if (stream) return streamCell({ ...stream, tree });
+  return fetchPoints(cellUrl(epoch, cellId, tree ? tree.fid : null), `${cellId} in ${epoch}`);
+}
+
+// Where the points came from: a COPC tile streamed by this page (bytes fetched of the
+// file's), or the server; a streamed cell whose core points miss the cells layer's count warns.
+function showSource(points, expected) {
+  const source = $('panel-source');
+  const streamed = points.header.meta.copc;
+  source.dataset.source = streamed ? 'copc' : 'server';
+  source.classList.remove('warning');
+  if (!streamed) {
+    source.textContent = 'points read by the server (/viewer/points)';
+    return;
+  }
+  const { bytes, file_size: size, requests, nodes_read: nodes, nodes: all } = streamed;
+  source.dataset.bytes = String(bytes);
+  source.dataset.fileSize = String(size);
+  source.dataset.requests = String(requests);
+  source.textContent = `streamed from the COPC tile by this page: ${kB(bytes)} fetched of its `
+    + `${kB(size)} (${(100 * bytes / size).toFixed(0)} %) in ${requests} range requests, `
+    + `${nodes} of its ${all} octree node${all === 1 ? '' : 's'} decoded`;
+  if (!points.header.meta.complete) {
+    source.classList.add('warning');
+    source.textContent += `; the tile holds ${fmt(points.header.meta.total)} core points where the `
+      + `cells layer counts ${fmt(expected)}`;
+  }
+}
+
 const cellUrl = (epoch, cellId, treeFid = null) => `/viewer/points/${encodeURIComponent(epoch)}/`
   + `${encodeURIComponent(cellId)}${treeFid === null ? '' : `?tree=${treeFid}`}`;
 
@@ -46,7 +84,7 @@ const cellUrl = (epoch, cellId, treeFid = null) => `/viewer/points/${encodeURICo
 function countText(points, noun = 'points') {
   const { total, capped, stride } = points.header.meta;
   return `${fmt(total)} ${noun}` + (capped ? ` (${fmt(points.header.count)} shown: every `
-    + `${stride.toFixed(1)}th, the server's cap)` : '');
+    + `${stride.toFixed(1)}th, the ${points.header.meta.copc ? "view's" : "server's"} cap)` : '');
 }
 
 function ramp(t) {
@@ -271,6 +309,9 @@ function openPanel(title, rows) {
   $('panel-attributes').innerHTML = rows;
   $('panel-count').classList.remove('warning');
   for (const key of ['count', 'shown', 'treeCount', 'payload']) delete $('panel-count').dataset[key];
+  $('panel-source').textContent = '';
+  $('panel-source').classList.remove('warning');
+  for (const key of ['source', 'bytes', 'fileSize', 'requests']) delete $('panel-source').dataset[key];
 }
 
 function setLayoutOptions(enabled) {
@@ -281,9 +322,13 @@ function setLayoutOptions(enabled) {
 }
 
 // Opens the panel for one cell (and a tree of it); resolves when its points are drawn.
-// ``epochs``: every epoch that has a tile of the cell (overlaid or side by side).
-export async function openCellView({ cellId, epoch, attributes, tile, epochs = [epoch], tree = null }) {
+// ``epochs``: every epoch that has a tile of the cell (overlaid or side by side);
+// ``streams``: epoch -> what streamCell needs, for each epoch whose tile is COPC; ``tree``:
+// {fid, properties, id} (id: its exact tree_id as text, for a streamed cell).
+export async function openCellView({ cellId, epoch, attributes, tile, epochs = [epoch], tree = null, streams = {} }) {
   const t0 = performance.now();
+  // The points asked for first: they travel while the panel is laid out.
+  const loaded = cellPoints(epoch, cellId, streams[epoch], tree);
   openPanel(tree ? `tree in ${cellId} · ${epoch}` : `${cellId} · ${epoch}`, attributeRows(attributes, tile, tree?.properties));
   const selectedOption = $('colour-by').querySelector('option[value=selected]');
   selectedOption.disabled = !tree;
@@ -293,8 +338,9 @@ export async function openCellView({ cellId, epoch, attributes, tile, epochs = [
   setLayoutOptions(others.length > 0);
   window.dispatchEvent(new Event('resize'));
 
-  const points = await fetchPoints(cellUrl(epoch, cellId, tree ? tree.fid : null), `${cellId} in ${epoch}`);
+  const points = await loaded;
   const n = points.header.count;
+  showSource(points, streams[epoch]?.expected);
   const view = new PointsView($('view3d'), points);
   const buffer = points.header.meta.buffer_points;
   $('panel-count').textContent = `${countText(points)} in the cell`
@@ -315,7 +361,13 @@ export async function openCellView({ cellId, epoch, attributes, tile, epochs = [
   const loadOthers = () => {
     loading ||= (async () => {
       for (const other of others) {
-        clouds.push({ epoch: other, points: await fetchPoints(cellUrl(other, cellId), `${cellId} in ${other}`) });
+        const more = await cellPoints(other, cellId, streams[other]);
+        clouds.push({ epoch: other, points: more });
+        if (more.header.meta.complete === false) {
+          $('panel-source').classList.add('warning');
+          $('panel-source').textContent += `; ${other}: the tile holds ${fmt(more.header.meta.total)} `
+            + `core points where the cells layer counts ${fmt(streams[other].expected)}`;
+        }
       }
     })();
     return loading;
@@ -337,7 +389,8 @@ export async function openCellView({ cellId, epoch, attributes, tile, epochs = [
   await update();
   const ms = performance.now() - t0;
   return {
-    cellId, epoch, count: n, ms, treeFid: tree ? tree.fid : null,
+    cellId, epoch, count: n, ms, treeFid: tree ? tree.fid : null, source: $('panel-source').dataset.source,
+    points, // as drawn (read by the tests)
     update,
     dispose() { disposed = true; view.dispose(); },
   };
@@ -359,6 +412,7 @@ export async function openPayloadView({ properties }) {
 
   const points = await fetchPoints(`/viewer/points?payload=${encodeURIComponent(id)}`, `payload ${id}`);
   const got = points.header.meta.payload;
+  showSource(points);
   const view = new PointsView($('view3d'), points);
   $('panel-count').textContent = `${countText(points)} of the payload, from ${got.tiles_with_points} `
     + `tile${got.tiles_with_points === 1 ? '' : 's'} of ${got.epoch}`

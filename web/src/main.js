@@ -19,6 +19,7 @@ import { createEmpty, extend, getCenter, isEmpty } from 'ol/extent.js';
 import Point from 'ol/geom/Point.js';
 import proj4 from 'proj4';
 import { openCellView, openPayloadView } from './cell3d.js';
+import { startDecoder } from './copcstream.js';
 import { renderStandPage } from './stand.js';
 import { RDBU, VIRIDIS, classBreaks, divergingBreaks, formatValue, metricLabel, metricName, metricUnit, rampColours } from './scales.js';
 
@@ -30,6 +31,16 @@ const DEFAULT_METRIC = 'zq95';
 const NO_DATA = '#c8c8c8';
 // The CHM in greys: a backdrop the cells' viridis reads over.
 const CHM_RAMP = ['#f4f4f4', '#a9a9a9', '#5e5e5e', '#1e1e1e'];
+
+// A tree's tree_id exactly, as decimal text: from the feature's GeoJSON text.
+async function exactTreeId(fid) {
+  const url = `/ogc/collections/trees/items/${encodeURIComponent(fid)}`;
+  const response = await fetch(url, { headers: { Accept: 'application/geo+json' } });
+  if (!response.ok) throw new Error(`${url}: HTTP ${response.status}`);
+  const found = /"tree_id"\s*:\s*(-?\d+)/.exec(await response.text());
+  if (!found) throw new Error(`${url}: no tree_id`);
+  return found[1];
+}
 
 async function getJson(url) {
   const response = await fetch(url, { headers: { Accept: 'application/json' } });
@@ -197,6 +208,9 @@ async function main() {
   }
   state.projection = dataProjection;
   const query = new URLSearchParams(window.location.search);
+  // COPC tiles: a cell's points are streamed from its tile by this page (?points=server: by
+  // the server, as for LAS/LAZ tiles).
+  state.streamCopc = ['copc', 'mixed'].includes(config.tiles) && query.get('points') !== 'server';
   if (query.get('stand')) {
     const attributesOnly = (name, params) => collection(name, null, params);
     attributesOnly.catalog = config.catalog;
@@ -394,9 +408,22 @@ async function main() {
     const page = (id) => `/?stand=${encodeURIComponent(id)}&epoch=${encodeURIComponent(state.epoch)}`;
     $('panel-links').innerHTML = `stand page: <a href="${page(cellId)}" target="_blank">this cell</a>`
       + (stand ? ` · <a href="${page(stand.get('cell_id'))}" target="_blank" id="stand-link">its 1 ha stand ${stand.get('cell_id')}</a>` : '');
+    // Each epoch's COPC tile of the cell, streamed within the cell's bounds (in the catalog
+    // CRS; the whole tile when the map is not in it).
+    const streams = {};
+    for (const e of state.streamCopc ? epochs : []) {
+      const t = cells.find((f) => f.get('cell_id') === cellId && f.get('epoch') === e);
+      const path = t?.get('tile_path');
+      if (!path?.endsWith('.copc.laz')) continue;
+      streams[e] = { url: `/files/${path}`, bounds: crsUri ? t.getGeometry().getExtent() : null,
+        expected: t.get('point_count'), limit: config.max_view_points };
+    }
+    // A tree in a streamed cell: its points told by its exact 64-bit id, read from the
+    // feature's JSON text (a JS number keeps only 53 bits).
+    const id = tree && streams[state.epoch] ? await exactTreeId(tree.getId()) : null;
     state.cellView = await openCellView({
       cellId, epoch: state.epoch, attributes: attributes?.getProperties(), tile: tile?.getProperties(), epochs,
-      tree: tree ? { fid: tree.getId(), properties: tree.getProperties() } : null,
+      tree: tree ? { fid: tree.getId(), properties: tree.getProperties(), id } : null, streams,
     });
     return state.cellView;
   }
@@ -464,6 +491,8 @@ async function main() {
   pending = firstTrees;
   await firstTrees;
   const treesMs = performance.now();
+  // COPC tiles: the LAZ decoder ready before the first click.
+  if (state.streamCopc) await startDecoder();
   $('status').textContent = `${metrics.filter((f) => f.get('level') === 0 && f.get('epoch') === state.epoch).length} cells · `
     + `map in ${(navigationMs / 1000).toFixed(2)} s, trees in ${(treesMs / 1000).toFixed(2)} s`;
   window.standgrid = {

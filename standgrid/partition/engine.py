@@ -389,7 +389,11 @@ class PartitionEngine:
         return self._dtype
 
     def add(self, chunk: PointCloud) -> None:
-        """Partition one chunk (in the output CRS; any fields, the same for every chunk)."""
+        """Partition one chunk (in the output CRS; any fields, the same for every chunk).
+
+        The chunk's arrays are held as they are, not copied, and made read-only (views of
+        larger arrays are copied): change them after adding and numpy raises.
+        """
         if self._state != "open":
             raise RuntimeError(f"cannot add points: the engine is {self._state}")
         dtype = self._schema(chunk)

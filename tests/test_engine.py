@@ -278,3 +278,33 @@ def test_five_thousand_cells_under_a_low_open_file_limit(tmp_path: Path):
     assert out.returncode == 0, out.stderr
     cells, flushes, limit = map(int, out.stdout.split())
     assert cells == 5000 and flushes > 1 and limit == 256
+
+
+@pytest.mark.parametrize("span", [3, 40, 400])  # cells per side; 400: > 2**16 cells, int64 sort
+def test_chunk_order_is_the_stable_sort_of_the_keys(span: int):
+    from standgrid.partition.engine import _stable_order
+
+    rng = np.random.default_rng(span)
+    ix = rng.integers(-span // 2, span - span // 2, 50_000)  # negative columns too
+    iy = rng.integers(-span // 2, span - span // 2, 50_000)
+    x, y = GRID.origin[0] + (ix + 0.5) * 20.0, GRID.origin[1] + (iy + 0.5) * 20.0
+    keys = GRID.cell_keys(x, y)
+    order = _stable_order(keys)
+    assert order is not None
+    assert np.array_equal(order, np.argsort(keys, kind="stable"))
+    assert _stable_order(np.full(10, keys[0])) is None
+
+
+def test_added_arrays_are_held_read_only_and_cells_are_fresh(tmp_path: Path, chunks):
+    engine = PartitionEngine(GRID.cell_keys, tmp_path, memory_budget_bytes=10**9)
+    chunk = chunks[0]
+    expected = chunk.fields["serial"].copy()
+    engine.add(chunk)
+    with pytest.raises(ValueError):  # a change after add would silently change the cells
+        chunk.fields["serial"][0] = -1
+    cells = list(engine.finalise())
+    serials = np.concatenate([c.core.fields["serial"] for c in cells])
+    assert np.array_equal(np.sort(serials), np.sort(expected))
+    for cell in cells:  # the cells' arrays are their own, writable
+        cell.core.xyz[:1] += 0.0
+        cell.core.fields["serial"][:1] += 0

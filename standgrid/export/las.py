@@ -145,14 +145,57 @@ def _column_bounds(xyz: NDArray[np.float64]) -> tuple[NDArray[np.float64], NDArr
     return columns.min(axis=1), columns.max(axis=1)
 
 
-def _check_range(name: str, values: NDArray[Any], path: Path) -> None:
+def _check_range(name: str, parts: list[NDArray[Any]], path: Path) -> None:
+    """Every value of a standard field (given in parts) fits its LAS dimension."""
     lo, hi = _RANGES[name]
-    if values.size and (np.nanmin(values) < lo or np.nanmax(values) > hi):
+    filled = [v for v in parts if v.size]
+    if not filled:
+        return
+    low = min(np.nanmin(v) for v in filled)
+    high = max(np.nanmax(v) for v in filled)
+    if low < lo or high > hi:
         raise PointCloudFormatError(
-            f"field {name!r} has values in [{np.nanmin(values)}, {np.nanmax(values)}], "
-            f"outside the LAS range [{lo:g}, {hi:g}]",
+            f"field {name!r} has values in [{low}, {high}], outside the LAS range [{lo:g}, {hi:g}]",
             path=path,
         )
+
+
+def _probe(core: NDArray[Any], buffer: NDArray[Any] | None) -> NDArray[Any]:
+    """A zero-length array of the dtype and per-point shape a field is written with (the
+    core's, promoted with the buffer's as concatenating them would)."""
+    dtype = core.dtype if buffer is None else np.result_type(core, buffer)
+    return np.empty((0, *core.shape[1:]), dtype=dtype)
+
+
+def _blank_record(point_format: Any, n_core: int, n_buffer: int) -> NDArray[np.void]:
+    """A point record of zeros but return number and number of returns 1, and the withheld
+    flag on the ``n_buffer`` points after the core ones (bytes set by laspy's own packing)."""
+    import laspy
+
+    template = laspy.PackedPointRecord.zeros(2, point_format)
+    template["return_number"] = np.ones(2, np.uint8)
+    template["number_of_returns"] = np.ones(2, np.uint8)
+    template["withheld"] = np.array([0, 1], np.uint8)
+    pattern = template.array.view(np.uint8).reshape(2, -1)
+    record = np.zeros(n_core + n_buffer, dtype=point_format.dtype())
+    as_bytes = record.view(np.uint8).reshape(len(record), record.dtype.itemsize)
+    for row, rows in ((0, slice(0, n_core)), (1, slice(n_core, None))):
+        for column in np.flatnonzero(pattern[row]):
+            as_bytes[rows, column] = pattern[row, column]
+    return record
+
+
+def _storage_ints(values: NDArray[np.float64], offset: float) -> NDArray[np.float64]:
+    """``round((values - offset) / SCALE)``: the stored integer coordinates (as floats)."""
+    scaled = np.subtract(values, offset)
+    scaled /= SCALE
+    return np.round(scaled, out=scaled)
+
+
+def _scaled_intensity(values: NDArray[Any], intensity_scale: float) -> NDArray[np.uint16]:
+    """Non-native intensities as LAS intensities: rounded, scaled, clipped to 16 bits."""
+    scaled = np.round(values.astype(np.float64) * intensity_scale)
+    return np.clip(np.nan_to_num(scaled), 0, 65535).astype(np.uint16)
 
 
 def _intensity_is_native(values: NDArray[Any]) -> bool:
@@ -222,11 +265,14 @@ def write_tile(
             path=out,
         )
     n_core, n_buffer = len(core), len(buffer)
-    xyz = np.concatenate([core.xyz, buffer.xyz]) if n_buffer else core.xyz
-    if not np.all(np.isfinite(xyz)):
-        raise PointCloudFormatError("non-finite coordinates", path=out)
+    n = n_core + n_buffer
+    # The core and buffer parts go straight into the record: no concatenated copies.
+    parts = [(0, core.xyz, core_fields)]
+    if n_buffer:
+        parts.append((n_core, buffer.xyz, buffer_fields))
+    #: Each field as a zero-length array of the dtype (and per-point shape) it is written as.
     fields: dict[str, NDArray[Any]] = {
-        name: (np.concatenate([values, buffer_fields[name]]) if n_buffer else values)
+        name: _probe(values, buffer_fields[name] if n_buffer else None)
         for name, values in core_fields.items()
     }
     has_colour = all(c in fields for c in _COLOUR_FIELDS)
@@ -246,12 +292,17 @@ def write_tile(
     all_lo, all_hi = core_lo, core_hi
     if n_buffer:
         buffer_lo, buffer_hi = _column_bounds(buffer.xyz)
-        all_lo, all_hi = np.fmin(core_lo, buffer_lo), np.fmax(core_hi, buffer_hi)
+        all_lo, all_hi = buffer_lo, buffer_hi
+        if n_core:
+            all_lo, all_hi = np.minimum(core_lo, buffer_lo), np.maximum(core_hi, buffer_hi)
+    # min and max propagate NaN and reach +-inf: finite extremes mean finite coordinates
+    if n and not (np.all(np.isfinite(all_lo)) and np.all(np.isfinite(all_hi))):
+        raise PointCloudFormatError("non-finite coordinates", path=out)
     # Offsets are whole metres from the grid's origin: the stored 1 mm lattice is then the
     # one snap_to_storage(origin) snaps to, whatever the origin.
     lattice = np.array([float(lattice_origin[0]), float(lattice_origin[1]), 0.0])
-    offsets = lattice + np.floor(all_lo - lattice) if len(xyz) else np.zeros(3)
-    if len(xyz):
+    offsets = lattice + np.floor(all_lo - lattice) if n else np.zeros(3)
+    if n:
         span = np.round((all_hi - offsets) / SCALE)
         if np.any(span > INT32_MAX):
             raise PointCloudFormatError(
@@ -265,18 +316,19 @@ def write_tile(
     # Decide where every field goes before allocating the record.
     manifest: dict[str, str] = {}
     extra: dict[str, NDArray[Any]] = {}
+    source_of: dict[str, str] = {}  # the field each extra dimension is filled from
     for name, values in fields.items():
         manifest[name] = (
             values.dtype.str if values.ndim == 1 else f"{values.shape[1]}{values.dtype.str}"
         )
         if name == "intensity":
             if not _intensity_is_native(values):
-                extra["intensity_raw"] = values
+                extra["intensity_raw"], source_of["intensity_raw"] = values, name
         elif name in _COLOUR_FIELDS:
             if not has_colour:
-                extra[name] = values
+                extra[name], source_of[name] = values, name
         elif name not in _LAS_DIMENSION_NAMES:
-            extra[name] = values
+            extra[name], source_of[name] = values, name
     for name, values in extra.items():
         if len(name.encode()) > 32:
             raise PointCloudFormatError(
@@ -298,32 +350,40 @@ def write_tile(
         )
     )
 
-    n = len(xyz)
-    las = laspy.LasData(header, laspy.ScaleAwarePointRecord.zeros(n, header=header))
-    las.X = np.round((xyz[:, 0] - offsets[0]) / SCALE).astype(np.int32)
-    las.Y = np.round((xyz[:, 1] - offsets[1]) / SCALE).astype(np.int32)
-    las.Z = np.round((xyz[:, 2] - offsets[2]) / SCALE).astype(np.int32)
-    las.return_number = np.ones(n, np.uint8)
-    las.number_of_returns = np.ones(n, np.uint8)
+    record = _blank_record(header.point_format, n_core, n_buffer)
+    points = laspy.PackedPointRecord(record, header.point_format)
+
+    def put(target: str, name: str, convert: Any = None) -> None:
+        """Field ``name`` of every part into dimension ``target`` (cast to the field's dtype)."""
+        dtype = fields[name].dtype
+        for start, _, part_fields in parts:
+            values = part_fields[name].astype(dtype, copy=False)
+            record[target][start : start + len(values)] = (
+                values if convert is None else convert(values)
+            )
+
+    for axis, upper in enumerate("XYZ"):
+        for start, part_xyz, _ in parts:
+            record[upper][start : start + len(part_xyz)] = _storage_ints(
+                part_xyz[:, axis], offsets[axis]
+            )
     for name in (*_STANDARD_FIELDS, *(_COLOUR_FIELDS if has_colour else ())):
         if name in fields:
-            values = fields[name]
             if name in _RANGES:
-                _check_range(name, values, out)
-            las[name] = values
+                _check_range(name, [f[name] for _, _, f in parts], out)
+            if name in (record.dtype.names or ()):
+                put(name, name)
+            else:  # a bit field: laspy packs it
+                points[name] = np.concatenate([f[name] for _, _, f in parts])
     if "intensity" in fields:
-        values = fields["intensity"]
-        if _intensity_is_native(values):
-            las.intensity = values.astype(np.uint16)
+        if _intensity_is_native(fields["intensity"]):
+            put("intensity", "intensity")
         else:
-            scaled = np.round(values.astype(np.float64) * intensity_scale)
-            las.intensity = np.clip(np.nan_to_num(scaled), 0, 65535).astype(np.uint16)
+            put("intensity", "intensity", lambda v: _scaled_intensity(v, intensity_scale))
     for name, values in extra.items():
-        las[name] = values.astype(np.uint8) if values.dtype == np.bool_ else values
-    if n_buffer:
-        withheld = np.zeros(n, dtype=np.uint8)
-        withheld[n_core:] = 1
-        las.withheld = withheld
+        to_bytes = (lambda v: v.astype(np.uint8)) if values.dtype == np.bool_ else None
+        put(name, source_of[name], to_bytes)
+    las = laspy.LasData(header, points)
 
     _write_las(las, out, laz=bool(laz), overwrite=overwrite, durable=durable)
 

@@ -73,7 +73,9 @@ def payload_chunk(task: PayloadTask) -> PayloadChunk:
             cloud = cloud.transformed(task.file_to_base)
         assert task.pose is not None
         xyz = task.to_catalog.base_points(cloud.xyz, task.pose)
-    xyz = snap_to_storage(xyz, task.lattice_origin)
+    # the projected points are this function's own (never the caller's): snapped in place
+    own = xyz is not cloud.xyz and xyz.dtype == np.float64 and xyz.flags.c_contiguous
+    xyz = snap_to_storage(xyz, task.lattice_origin, out=xyz if own else None)
     n = len(xyz)
     fields = dict(cloud.fields)
     if "gps_time" not in fields:  # per-point times of the source win over the payload stamp

@@ -274,6 +274,9 @@ def test_rewrite_tile_refuses_wrong_lengths_and_foreign_files(tmp_path: Path) ->
     with pytest.raises(PointCloudFormatError, match="99"):
         rewrite_tile(record, tmp_path / "out.laz", {"tree_id": np.zeros(99, np.uint32)},
                      source=source)  # fmt: skip
+    with pytest.raises(PointCloudFormatError, match="outside the LAS range"):
+        rewrite_tile(record, tmp_path / "out.laz", {"classification": np.full(100, 300, np.uint16)},
+                     source=source)  # fmt: skip
     with pytest.raises(PointCloudFormatError, match="cannot be rewritten"):
         rewrite_tile(record, tmp_path / "out.laz", {"x": np.zeros(100)}, source=source)
     foreign = tmp_path / "foreign.las"

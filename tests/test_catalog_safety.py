@@ -293,15 +293,19 @@ def test_7_minus_o_dot_in_an_empty_folder_makes_the_catalog_there(tmp_path: Path
 
 
 def test_7_a_symlinked_epoch_folder_is_not_written_through(tmp_path: Path) -> None:
+    mission = shutil.copytree(M1, tmp_path / M1.name)
     out = tmp_path / "cat"
-    tile_missions([M1], out)
+    tile_missions([mission], out)
     outside = tmp_path / "elsewhere"
     shutil.move(out / "tiles" / "2024", outside)
     (out / "tiles" / "2024").symlink_to(outside, target_is_directory=True)
-    before = sorted(p.name for p in outside.iterdir())
+    before = {p.name: p.read_bytes() for p in outside.iterdir()}
+    tile_missions([mission], out)  # unchanged: re-tiled in place, no tile written
+    assert {p.name: p.read_bytes() for p in outside.iterdir()} == before
+    sorted((mission / "payload_clouds").glob("*.pcd"))[2].unlink()  # a payload dropped
     with pytest.raises(CatalogError, match="symlink"):
-        tile_missions([M1], out)
-    assert sorted(p.name for p in outside.iterdir()) == before
+        tile_missions([mission], out)
+    assert {p.name: p.read_bytes() for p in outside.iterdir()} == before
 
 
 # --- 8. every failure a one-line typed error ----------------------------------------------

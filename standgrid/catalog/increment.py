@@ -38,10 +38,18 @@ def source_digest(source: dict[str, Any], placement: dict[str, Any], schema: Any
     """What a payload's points in the catalog depend on, hashed: its cloud file's bytes,
     frame, file -> base transform and node pose (to 1e-9), stamp (GPS time), mission number,
     payload id, the mission's placement and the epoch's field schema."""
+    from standgrid.errors import PointCloudFormatError
+    from standgrid.mission.clouds import check_cloud_file
+
+    path = Path(source["path"])
+    check_cloud_file(path)
     digest = hashlib.blake2b(digest_size=16)
-    with open(source["path"], "rb") as stream:
-        for block in iter(lambda: stream.read(1 << 20), b""):
-            digest.update(block)
+    try:
+        with open(path, "rb") as stream:
+            for block in iter(lambda: stream.read(1 << 20), b""):
+                digest.update(block)
+    except OSError as exc:
+        raise PointCloudFormatError(f"cannot read: {exc.strerror or exc}", path=path) from exc
     for key in ("file_to_base", "pose"):
         value = source[key]
         # to 1e-9 (m, and rotation entries): a graph written again as text may move a pose

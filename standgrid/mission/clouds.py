@@ -96,7 +96,8 @@ def _suffix(path: Path) -> str:
     return path.suffix.lower()
 
 
-def _check_exists(path: Path) -> None:
+def check_cloud_file(path: Path) -> None:
+    """A typed error unless ``path`` is a file (a folder, or nothing, named like a cloud)."""
     if path.is_dir():
         raise PointCloudFormatError("is a folder, not a point-cloud file", path=path)
     if not path.is_file():
@@ -147,7 +148,7 @@ def _select(fields: dict[str, NDArray[Any]], wanted: Sequence[str] | None, path:
 def read_cloud(path: str | Path, *, fields: Sequence[str] | None = None) -> PointCloud:
     """Read a ``.pcd``, ``.ply``, ``.las`` or ``.laz`` file (``fields``: keep only these)."""
     src = Path(path)
-    _check_exists(src)
+    check_cloud_file(src)
     ext = _suffix(src)
     if ext in PCD_EXTENSIONS:
         cloud = _read_pcd(src)
@@ -166,7 +167,7 @@ def read_cloud(path: str | Path, *, fields: Sequence[str] | None = None) -> Poin
 def read_cloud_header(path: str | Path) -> CloudHeader:
     """Point count, field names and viewpoint of a cloud file, from its header only."""
     src = Path(path)
-    _check_exists(src)
+    check_cloud_file(src)
     ext = _suffix(src)
     if ext in PCD_EXTENSIONS:
         return _pcd_header(src).to_cloud_header()
@@ -228,7 +229,7 @@ def iter_cloud_chunks(path: str | Path, chunk_points: int) -> Iterator[PointClou
     if chunk_points < 1:
         raise ValueError("chunk_points must be >= 1")
     src = Path(path)
-    _check_exists(src)
+    check_cloud_file(src)
     if _suffix(src) in LAS_EXTENSIONS:
         import laspy
 

@@ -623,3 +623,209 @@ def test_viewer_streams_only_the_octree_nodes_a_cell_needs(browser: Any, deep_co
     )
     assert view.errors == []
     assert view.failed == []
+
+
+# --- the basemap field: an XYZ template or a WMTS capabilities URL -------------------------
+
+#: Web Mercator: half the world's width (m), and the scale denominator of zoom 0 (256 px tiles).
+MERCATOR_HALF = 20037508.342789244
+ZOOM0_SCALE = 559082264.0287178
+WMTS_COLOUR, XYZ_COLOUR = (196, 48, 112), (40, 150, 210)
+
+
+def _capabilities(base: str, zooms: int = 23) -> str:
+    """A WMTS 1.0.0 capabilities document: one layer ``ortho`` in the GoogleMapsCompatible
+    EPSG:3857 tile matrix set, tiles by a RESTful ResourceURL template."""
+    matrices = "".join(
+        f"<TileMatrix><ows:Identifier>{z}</ows:Identifier>"
+        f"<ScaleDenominator>{ZOOM0_SCALE / 2**z!r}</ScaleDenominator>"
+        f"<TopLeftCorner>{-MERCATOR_HALF!r} {MERCATOR_HALF!r}</TopLeftCorner>"
+        "<TileWidth>256</TileWidth><TileHeight>256</TileHeight>"
+        f"<MatrixWidth>{2**z}</MatrixWidth><MatrixHeight>{2**z}</MatrixHeight></TileMatrix>"
+        for z in range(zooms)
+    )
+    return f"""<?xml version="1.0" encoding="UTF-8"?>
+<Capabilities xmlns="http://www.opengis.net/wmts/1.0" xmlns:ows="http://www.opengis.net/ows/1.1"
+    xmlns:xlink="http://www.w3.org/1999/xlink" version="1.0.0">
+  <ows:ServiceIdentification>
+    <ows:Title>test tiles</ows:Title>
+    <ows:ServiceType>OGC WMTS</ows:ServiceType>
+    <ows:ServiceTypeVersion>1.0.0</ows:ServiceTypeVersion>
+  </ows:ServiceIdentification>
+  <ows:OperationsMetadata>
+    <ows:Operation name="GetTile"><ows:DCP><ows:HTTP>
+      <ows:Get xlink:href="{base}/wmts/"><ows:Constraint name="GetEncoding">
+        <ows:AllowedValues><ows:Value>RESTful</ows:Value></ows:AllowedValues>
+      </ows:Constraint></ows:Get>
+    </ows:HTTP></ows:DCP></ows:Operation>
+  </ows:OperationsMetadata>
+  <Contents>
+    <Layer>
+      <ows:Title>ortho</ows:Title>
+      <ows:WGS84BoundingBox>
+        <ows:LowerCorner>-180 -85.0511287798</ows:LowerCorner>
+        <ows:UpperCorner>180 85.0511287798</ows:UpperCorner>
+      </ows:WGS84BoundingBox>
+      <ows:Identifier>ortho</ows:Identifier>
+      <Style isDefault="true"><ows:Identifier>default</ows:Identifier></Style>
+      <Format>image/png</Format>
+      <TileMatrixSetLink><TileMatrixSet>GoogleMapsCompatible</TileMatrixSet></TileMatrixSetLink>
+      <ResourceURL format="image/png" resourceType="tile"
+        template="{base}/wmts/ortho/{{Style}}/{{TileMatrixSet}}/{{TileMatrix}}/{{TileRow}}/{{TileCol}}.png"/>
+    </Layer>
+    <TileMatrixSet>
+      <ows:Identifier>GoogleMapsCompatible</ows:Identifier>
+      <ows:SupportedCRS>urn:ogc:def:crs:EPSG::3857</ows:SupportedCRS>
+      <WellKnownScaleSet>urn:ogc:def:wkss:OGC:1.0:GoogleMapsCompatible</WellKnownScaleSet>
+      {matrices}
+    </TileMatrixSet>
+  </Contents>
+</Capabilities>
+"""
+
+
+def _png(colour: tuple[int, int, int]) -> bytes:
+    out = io.BytesIO()
+    Image.fromarray(np.full((256, 256, 3), colour, dtype=np.uint8)).save(out, format="PNG")
+    return out.getvalue()
+
+
+@pytest.fixture(scope="module")
+def tile_server() -> Iterator[tuple[str, list[str]]]:
+    """A real HTTP server on 127.0.0.1 (another origin than the viewer's, CORS allowed):
+    ``/WMTSCapabilities.xml``, WMTS tiles of one colour and ``/xyz/{z}/{x}/{y}.png`` tiles of
+    another. Yields its base URL and the paths it was asked for."""
+    import threading
+    from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
+
+    asked: list[str] = []
+    tiles = {"wmts": _png(WMTS_COLOUR), "xyz": _png(XYZ_COLOUR)}
+
+    class Handler(BaseHTTPRequestHandler):
+        def do_GET(self) -> None:
+            asked.append(self.path)
+            route = self.path.strip("/").split("/")[0]
+            if self.path == "/WMTSCapabilities.xml":
+                body, kind = _capabilities(base).encode(), "application/xml"
+            elif route in tiles and self.path.endswith(".png"):
+                body, kind = tiles[route], "image/png"
+            else:
+                self.send_error(404)
+                return
+            self.send_response(200)
+            self.send_header("Content-Type", kind)
+            self.send_header("Content-Length", str(len(body)))
+            self.send_header("Access-Control-Allow-Origin", "*")
+            self.end_headers()
+            self.wfile.write(body)
+
+        def log_message(self, *args: Any) -> None:
+            pass
+
+    server = ThreadingHTTPServer(("127.0.0.1", 0), Handler)
+    base = f"http://127.0.0.1:{server.server_address[1]}"
+    thread = threading.Thread(target=server.serve_forever, daemon=True)
+    thread.start()
+    try:
+        yield base, asked
+    finally:
+        server.shutdown()
+        server.server_close()
+        thread.join(10)
+
+
+def _set_basemap(view: Page, text: str) -> str:
+    """Type into the basemap field (committed by leaving it); the note shown next to it."""
+    view.page.fill("#basemap", text)
+    view.page.press("#basemap", "Tab")
+    view.idle()
+    return view.page.inner_text("#basemap-status")
+
+
+def _corner_colour(view: Page) -> np.ndarray:
+    """The median colour of a 5x5 patch in the map's top-left padding: outside the cells
+    (the view is fitted to them with 20 px of padding), where only a basemap draws."""
+    png = np.asarray(Image.open(io.BytesIO(view.map_png())).convert("RGB"))
+    return np.median(png[6:11, 6:11].reshape(-1, 3), axis=0)
+
+
+def _tiles_asked(asked: list[str], prefix: str) -> list[tuple[int, int, int]]:
+    """(z, x, y) of the tiles asked for under a route (the WMTS path ends .../z/row/col.png)."""
+    found = []
+    for path in asked:
+        parts = path.removesuffix(".png").split("/")
+        if path.startswith(prefix):
+            z, a, b = (int(p) for p in parts[-3:])
+            found.append((z, b, a) if prefix.startswith("/wmts") else (z, a, b))
+    return found
+
+
+def _covers(tiles: list[tuple[int, int, int]], x: float, y: float) -> bool:
+    """Whether a Web Mercator point is in one of the tiles of the deepest zoom asked for."""
+    z = max(t[0] for t in tiles)
+    size = 2 * MERCATOR_HALF / 2**z
+    col, row = int((x + MERCATOR_HALF) // size), int((MERCATOR_HALF - y) // size)
+    return (z, col, row) in set(tiles)
+
+
+def test_viewer_basemap_from_wmts_capabilities_and_xyz(
+    browser: Any,
+    enriched_base: str,
+    enriched_catalog: Path,
+    tile_server: tuple[str, list[str]],
+    tmp_path: Path,
+) -> None:
+    from pyproj import Transformer
+
+    tiles_base, asked = tile_server
+    cells = _cells(enriched_catalog)
+    x0, y0, x1, y1 = cells.total_bounds
+    to_mercator = Transformer.from_crs(cells.crs, "EPSG:3857", always_xy=True)
+    centre = to_mercator.transform((x0 + x1) / 2, (y0 + y1) / 2)
+    view = Page(browser, enriched_base)
+    view.open()
+    background = _corner_colour(view)
+    assert np.abs(background - WMTS_COLOUR).max() > 40
+
+    # WMTS: the capabilities read, the first layer's EPSG:3857 tiles asked for where the
+    # catalog is (reprojected to the catalog's CRS), their colour on the map.
+    note = _set_basemap(view, f"{tiles_base}/WMTSCapabilities.xml")
+    assert note == "WMTS layer ortho, tile matrix set GoogleMapsCompatible"
+    assert "/WMTSCapabilities.xml" in asked
+    wmts = _tiles_asked(asked, "/wmts/ortho/default/GoogleMapsCompatible/")
+    assert wmts and _covers(wmts, *centre), wmts
+    assert np.abs(_corner_colour(view) - WMTS_COLOUR).max() <= 2
+    _keep_shot(view, tmp_path, "wmts")
+
+    # The layer named after '#', and one that is not there: said next to the field.
+    asked.clear()
+    assert _set_basemap(view, f"{tiles_base}/WMTSCapabilities.xml#layer=ortho").startswith(
+        "WMTS layer ortho"
+    )
+    note = _set_basemap(view, f"{tiles_base}/WMTSCapabilities.xml#layer=roads")
+    assert note == f"basemap: {tiles_base}/WMTSCapabilities.xml: no layer roads (layers: ortho)"
+    assert np.abs(_corner_colour(view) - background).max() <= 2
+
+    # XYZ: the same server's {z}/{x}/{y} route, the other colour.
+    asked.clear()
+    assert _set_basemap(view, f"{tiles_base}/xyz/{{z}}/{{x}}/{{y}}.png") == "XYZ tiles"
+    xyz = _tiles_asked(asked, "/xyz/")
+    assert xyz and _covers(xyz, *centre), xyz
+    assert np.abs(_corner_colour(view) - XYZ_COLOUR).max() <= 2
+    _keep_shot(view, tmp_path, "xyz")
+
+    # Cleared: no basemap.
+    assert _set_basemap(view, "") == ""
+    assert np.abs(_corner_colour(view) - background).max() <= 2
+    assert view.errors == []
+    assert view.failed == []
+
+    # Neither a template nor capabilities, and an unreachable server: said next to the field,
+    # nothing uncaught (the browser's own log of the refused connection aside).
+    assert "not an XYZ template" in _set_basemap(view, "https://example.invalid/tiles.png")
+    unreachable = "http://127.0.0.1:9/WMTSCapabilities.xml"
+    note = _set_basemap(view, unreachable)
+    assert note.startswith(f"basemap: {unreachable}: unreachable"), note
+    assert view.js("() => document.getElementById('basemap-status').classList.contains('warning')")
+    _keep_shot(view, tmp_path, "basemap-error")
+    assert [e for e in view.errors if "Failed to load resource" not in e] == []

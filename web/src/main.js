@@ -13,11 +13,11 @@ import WebGLTileLayer from 'ol/layer/WebGLTile.js';
 import { register } from 'ol/proj/proj4.js';
 import GeoTIFF from 'ol/source/GeoTIFF.js';
 import VectorSource from 'ol/source/Vector.js';
-import XYZ from 'ol/source/XYZ.js';
 import { Circle as CircleStyle, Fill, Stroke, Style, Text } from 'ol/style.js';
 import { createEmpty, extend, getCenter, isEmpty } from 'ol/extent.js';
 import Point from 'ol/geom/Point.js';
 import proj4 from 'proj4';
+import { basemapSource } from './basemap.js';
 import { openCellView, openPayloadView } from './cell3d.js';
 import { startDecoder } from './copcstream.js';
 import { renderStandPage } from './stand.js';
@@ -379,10 +379,33 @@ async function main() {
     })();
   });
   $('metric').addEventListener('change', (e) => { state.metric = e.target.value; restyle(); });
+  // The basemap: an XYZ template or a WMTS capabilities URL; what goes wrong is said next to
+  // the field (the map keeps working without it).
+  let basemapRequest = 0;
   $('basemap').addEventListener('change', (e) => {
-    const url = e.target.value.trim();
-    basemapLayer.setSource(url ? new XYZ({ url, crossOrigin: 'anonymous' }) : null);
-    basemapLayer.setVisible(Boolean(url));
+    const request = ++basemapRequest;
+    const note = $('basemap-status');
+    note.classList.remove('warning');
+    note.textContent = e.target.value.trim() ? 'loading…' : '';
+    basemapLayer.setSource(null);
+    basemapLayer.setVisible(false);
+    pending = basemapSource(e.target.value, state.projection).then((source) => {
+      if (request !== basemapRequest) return;
+      basemapLayer.setSource(source);
+      basemapLayer.setVisible(Boolean(source));
+      if (!source) return;
+      note.textContent = source.get('description');
+      let failed = 0;
+      source.on('tileloaderror', () => {
+        failed += 1;
+        note.classList.add('warning');
+        note.textContent = `${source.get('description')}: ${failed} tile(s) failed to load`;
+      });
+    }).catch((error) => {
+      if (request !== basemapRequest) return;
+      note.classList.add('warning');
+      note.textContent = `basemap: ${error.message}`;
+    });
   });
 
   const firstTrees = showEpoch();

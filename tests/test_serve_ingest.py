@@ -218,6 +218,28 @@ def _start(catalog: Path, missions: Path, token_file: Path, env: dict[str, str])
     return proc, json.loads(proc.stdout.readline())["service"].rstrip("/")
 
 
+def _children(pid: int) -> list[int]:
+    """Processes whose parent is ``pid`` (Linux /proc)."""
+    found = []
+    for stat in Path("/proc").glob("[0-9]*/stat"):
+        try:
+            fields = stat.read_text().rsplit(")", 1)[1].split()
+        except OSError:
+            continue
+        if int(fields[1]) == pid:
+            found.append(int(stat.parent.name))
+    return found
+
+
+def _wait_gone(pids: list[int], timeout: float = 10.0) -> None:
+    import time
+
+    deadline = time.monotonic() + timeout
+    while any(Path(f"/proc/{p}").exists() for p in pids):
+        assert time.monotonic() < deadline, f"processes {pids} outlived the server"
+        time.sleep(0.05)
+
+
 def test_a_tiler_killed_while_committing_then_the_server_restart_consistent(
     tmp_path: Path,
 ) -> None:
@@ -256,9 +278,16 @@ def test_a_tiler_killed_while_committing_then_the_server_restart_consistent(
         assert httpx.get(f"{base}/ogc/conformance").status_code == 200
         assert proc.poll() is None
         assert list(catalog.rglob(JOURNAL_FILE))  # the dead commit, not finished yet
+        # a write starts the mission folders' worker; killed with the server, it leaves none
+        other = {"name": "another-mission", "date": "2024-05-15"}
+        created = httpx.post(f"{base}/missions", json=other, headers=AUTH, timeout=60)
+        assert created.status_code == 201, created.text
+        workers = _children(proc.pid)
+        assert workers
         proc.kill()
         proc.wait(timeout=60)
         assert proc.returncode == -signal.SIGKILL
+        _wait_gone(workers)
     finally:
         if proc.poll() is None:
             proc.kill()

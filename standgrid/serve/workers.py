@@ -4,11 +4,12 @@ A robot's requests parse clouds and pose graphs (``LiveMission``: ~10-30 ms of P
 payload) and its ``tile`` runs :func:`~standgrid.pipeline.tile.tile_missions` (seconds of
 Python); in threads of the server they held the GIL that every read needs. Here each runs
 in a :class:`WorkerProcess` (one ``spawn`` process, started at its first call, stopped with
-the app): one for the mission folders, one for tiling, so a payload lands while a mission
-tiles. Workers take the mission folder's lock and the catalog's writer lock themselves (both
-``flock``: safe across processes). A library error comes back as the problem it maps to; a
-worker that dies (killed, out of memory) is replaced at the next call, and the commit it
-was writing is finished or discarded by the catalog's recovery, as for a killed server.
+the app, killed with the server): one for the mission folders, one for tiling, so a
+payload lands while a mission tiles. Workers take the mission folder's lock and the
+catalog's writer lock themselves (both ``flock``: safe across processes). A library error
+comes back as the problem it maps to; a worker that dies (killed, out of memory) is
+replaced at the next call, and the commit it was writing is finished or discarded by the
+catalog's recovery, as for a killed server.
 """
 
 from __future__ import annotations
@@ -16,6 +17,7 @@ from __future__ import annotations
 import asyncio
 import logging
 import multiprocessing
+import os
 import threading
 from collections.abc import Callable
 from concurrent.futures import ProcessPoolExecutor
@@ -67,10 +69,23 @@ def tile_mission(folder: str, catalog: str) -> dict[str, Any]:
     return result
 
 
-def _lower_priority(niceness: int) -> None:
-    """In the worker, as it starts: yield the CPU to the server's readers (``nice``)."""
+def _start_worker(parent: int, niceness: int) -> None:
+    """In the worker, as it starts: leave Ctrl-C to the server (which stops its workers after
+    their running call), die with the server as a thread of it would (Linux: a killed
+    server leaves no worker behind; a commit cut short is recovered, as for the server), and
+    yield the CPU to the server's readers (``nice``)."""
     import os
+    import signal
+    import sys
 
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    if sys.platform.startswith("linux"):
+        import ctypes
+
+        pr_set_pdeathsig = 1
+        ctypes.CDLL(None, use_errno=True).prctl(pr_set_pdeathsig, signal.SIGKILL)
+        if os.getppid() != parent:  # the server died before the line above
+            os._exit(1)
     if niceness:
         os.nice(niceness)
 
@@ -92,7 +107,7 @@ class WorkerProcess:
                 context = multiprocessing.get_context("spawn")
                 self._pool = ProcessPoolExecutor(
                     max_workers=1, mp_context=context,
-                    initializer=_lower_priority, initargs=(self.niceness,),
+                    initializer=_start_worker, initargs=(os.getpid(), self.niceness),
                 )  # fmt: skip
             return self._pool
 

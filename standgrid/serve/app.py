@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import contextlib
+import gc
 import os
 from collections.abc import AsyncIterator
 from pathlib import Path
@@ -49,6 +50,11 @@ def create_app(
 
     @contextlib.asynccontextmanager
     async def lifespan(_: Any) -> AsyncIterator[None]:
+        # what exists now (modules, the app) lives as long as the server: out of the cyclic
+        # collector's way, a full collection walks only what requests made (~80 ms -> less,
+        # and every reader waits for it)
+        gc.collect()
+        gc.freeze()
         try:
             yield
         finally:

@@ -10,10 +10,13 @@ workload at a time:
 - ``range``: a range read of a random tile (``/files/tiles/...``, random 4 KiB window);
 - ``ping``: ``/ogc/conformance`` (a constant document: the HTTP + framework floor).
 
-For each it prints requests/s, p50 / p95 / max latency and errors (any non-2xx, or a page
-whose numberReturned disagrees with its features). Baselines measured in the same run: the
-same items page read in this process straight from the GeoPackage (``features.page``), and
-``ping`` for the HTTP floor; ratios are printed against both.
+For each it prints requests/s, p50 / p95 / max latency, errors (any non-2xx, or a page
+whose numberReturned disagrees with its features) and the server process's CPU time per
+request (all its threads; with ``--stream`` it includes the robot's requests, and not the
+tiling, which runs in the server's worker process). On a shared machine latencies swing with
+the load of others; the server's CPU per request is the steadier figure. Baselines measured
+in the same run: the same items page read in this process straight from the GeoPackage
+(``features.page``), and ``ping`` for the HTTP floor; ratios are printed against both.
 
 ``--stream``: while the readers run, one robot streams the bundled 2024 mission (under a new
 name) over HTTP: create, pose graph, every payload, GNSS fixes in chunks, then ``tile``
@@ -30,6 +33,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import random
 import re
 import shutil
@@ -40,6 +44,7 @@ import threading
 import time
 from collections.abc import Callable
 from pathlib import Path
+from typing import Any
 
 import httpx
 import numpy as np
@@ -75,14 +80,20 @@ def start_server(catalog: Path, token_file: Path) -> tuple[subprocess.Popen[str]
 
 def run(readers: int, seconds: float, request: Callable[[httpx.Client, random.Random], bool],
         base: str) -> tuple[list[float], int]:  # fmt: skip
+    """``readers`` threads sending ``request`` for ``seconds``. The clients are made before
+    the clock starts: making one (its SSL context) holds this process's GIL for tens of ms,
+    which the first requests of the other threads would count as the server's latency."""
     latencies: list[list[float]] = [[] for _ in range(readers)]
     errors = [0] * readers
-    stop = time.perf_counter() + seconds
+    clients = [httpx.Client(base_url=base, timeout=30) for _ in range(readers)]
+    start = threading.Barrier(readers + 1)
+    stop = [0.0]
 
     def reader(i: int) -> None:
         rng = random.Random(i)
-        with httpx.Client(base_url=base, timeout=30) as client:
-            while time.perf_counter() < stop:
+        start.wait()
+        with clients[i] as client:
+            while time.perf_counter() < stop[0]:
                 t0 = time.perf_counter()
                 try:
                     ok = request(client, rng)
@@ -94,54 +105,82 @@ def run(readers: int, seconds: float, request: Callable[[httpx.Client, random.Ra
     threads = [threading.Thread(target=reader, args=(i,)) for i in range(readers)]
     for t in threads:
         t.start()
+    stop[0] = time.perf_counter() + seconds
+    start.wait()
     for t in threads:
         t.join()
     return [x for per in latencies for x in per], sum(errors)
 
 
-def stream_mission(base: str, result: dict[str, float]) -> None:
-    """One robot: the bundled 2024 mission, renamed, sent piece by piece, then tiled."""
+def robot_requests() -> list[tuple[str, str, dict[str, Any]]]:
+    """The robot's requests (method, path, httpx arguments) for the bundled 2024 mission,
+    renamed: create, pose graph, every payload and a chunk of GNSS fixes after each. Built
+    before the clocks start: reading the mission in this process holds its GIL for a second
+    or two, which would stall the reader threads and count as the server's latency."""
     import yaml
 
     from standgrid.geometry import translation_quat
     from standgrid.mission.model import open_mission
 
-    auth = {"Authorization": f"Bearer {TOKEN}"}
     meta = yaml.safe_load((SOURCE / "metadata.yaml").read_text())
     mission = open_mission(SOURCE, strict=False)
+    url = f"/missions/{STREAMED}"
+    requests: list[tuple[str, str, dict[str, Any]]] = [
+        ("POST", "/missions", {"json": {
+            "name": STREAMED, "date": "2024-05-15", "place": meta["place"],
+            "robot": meta["robot"], "sensors": meta["sensors"]}}),
+        ("PUT", f"{url}/graph", {"content": (SOURCE / "slam_pose_graph.g2o").read_bytes()}),
+    ]  # fmt: skip
+    lines = (SOURCE / "gnss" / "fixes.txt").read_text().splitlines()
+    chunk = max(1, (len(lines) - 1) // len(mission.payloads))
+    for k, payload in enumerate(mission.payloads):
+        t, q = translation_quat(mission.pose_of(payload))
+        requests.append(("POST", f"{url}/payloads", {
+            "content": payload.path.read_bytes(),
+            "params": {"stamp": f"{payload.stamp.sec}_{payload.stamp.nsec:09d}",
+                       "pose": ",".join(repr(float(v)) for v in (*t, *q))}}))  # fmt: skip
+        rows = lines[1 + k * chunk : 1 + (k + 1) * chunk]
+        if k == len(mission.payloads) - 1:
+            rows = lines[1 + k * chunk :]
+        requests.append(("POST", f"{url}/gnss",
+                         {"content": "\n".join([lines[0], *rows]) + "\n"}))  # fmt: skip
+    return requests
+
+
+def stream_mission(
+    base: str, requests: list[tuple[str, str, dict[str, Any]]], result: dict[str, float]
+) -> None:
+    """One robot: sends ``requests`` (:func:`robot_requests`) in order, then ``tile``."""
+    auth = {"Authorization": f"Bearer {TOKEN}"}
     t0 = time.perf_counter()
     with httpx.Client(base_url=base, timeout=600, headers=auth) as client:
-        url = f"/missions/{STREAMED}"
-        client.post("/missions", json={
-            "name": STREAMED, "date": "2024-05-15", "place": meta["place"],
-            "robot": meta["robot"], "sensors": meta["sensors"]}).raise_for_status()
-        client.put(f"{url}/graph",
-                   content=(SOURCE / "slam_pose_graph.g2o").read_bytes()).raise_for_status()
-        lines = (SOURCE / "gnss" / "fixes.txt").read_text().splitlines()
-        chunk = max(1, (len(lines) - 1) // len(mission.payloads))
-        for k, payload in enumerate(mission.payloads):
-            pose = mission.pose_of(payload)
-            t, q = translation_quat(pose)
-            client.post(f"{url}/payloads", content=payload.path.read_bytes(), params={
-                "stamp": f"{payload.stamp.sec}_{payload.stamp.nsec:09d}",
-                "pose": ",".join(repr(float(v)) for v in (*t, *q))}).raise_for_status()
-            rows = lines[1 + k * chunk: 1 + (k + 1) * chunk]
-            if k == len(mission.payloads) - 1:
-                rows = lines[1 + k * chunk:]
-            client.post(f"{url}/gnss", content="\n".join([lines[0], *rows]) + "\n"
-                        ).raise_for_status()
+        for method, path, arguments in requests:
+            client.request(method, path, **arguments).raise_for_status()
         result["sent_s"] = time.perf_counter() - t0
+        url = f"/missions/{STREAMED}"
         client.post(f"{url}/tile").raise_for_status()
         result["tiled_s"] = time.perf_counter() - t0
-        result["payloads_sent"] = len(mission.payloads)
+        result["payloads_sent"] = sum(path.endswith("/payloads") for _, path, _ in requests)
         result["payloads_in_catalog"] = client.get(url).json()["payload_count"]
 
 
-def report(name: str, latencies: list[float], errors: int, seconds: float) -> float:
+def cpu_seconds(pid: int) -> float:
+    """User + system CPU time of process ``pid`` (its threads, not its children); NaN
+    where /proc is missing."""
+    try:
+        fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
+    except OSError:
+        return float("nan")
+    return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
+
+
+def report(name: str, latencies: list[float], errors: int, seconds: float,
+           server_cpu: float) -> float:  # fmt: skip
     ms = np.asarray(latencies) * 1000.0
     p50, p95 = np.percentile(ms, [50, 95])
     print(f"{name:7} {len(ms) / seconds:8.1f} req/s  p50 {p50:7.1f} ms  p95 {p95:7.1f} ms  "
-          f"max {ms.max():7.1f} ms  errors {errors}/{len(ms)}")  # fmt: skip
+          f"max {ms.max():7.1f} ms  errors {errors}/{len(ms)}  "
+          f"server CPU {server_cpu * 1000 / len(ms):5.2f} ms/req")  # fmt: skip
     return float(p50)
 
 
@@ -229,15 +268,18 @@ def main() -> None:
 
         proc, base = start_server(catalog, token_file)
         robot: dict[str, float] = {}
-        writer = threading.Thread(target=stream_mission, args=(base, robot))
+        sent = robot_requests() if args.stream else []
+        writer = threading.Thread(target=stream_mission, args=(base, sent, robot))
         try:
             p50 = {}
             for name, request in (("ping", ping), ("items", items), ("bbox", bbox),
                                   ("range", range_read)):  # fmt: skip
                 if args.stream and name == "items":
                     writer.start()
+                before = cpu_seconds(proc.pid)
                 latencies, errors = run(args.readers, args.seconds, request, base)
-                p50[name] = report(name, latencies, errors, args.seconds)
+                used = cpu_seconds(proc.pid) - before
+                p50[name] = report(name, latencies, errors, args.seconds, used)
             if args.stream:
                 writer.join()
         finally:

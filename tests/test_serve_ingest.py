@@ -218,14 +218,40 @@ def _start(catalog: Path, missions: Path, token_file: Path, env: dict[str, str])
     return proc, json.loads(proc.stdout.readline())["service"].rstrip("/")
 
 
-def test_a_server_killed_while_committing_restarts_consistent(tmp_path: Path) -> None:
-    """SIGKILL in the middle of the tile commit's renames (after its journal): the restarted
-    server rolls the commit forward and serves the whole mission, every tile complete."""
+def _children(pid: int) -> list[int]:
+    """Processes whose parent is ``pid`` (Linux /proc)."""
+    found = []
+    for stat in Path("/proc").glob("[0-9]*/stat"):
+        try:
+            fields = stat.read_text().rsplit(")", 1)[1].split()
+        except OSError:
+            continue
+        if int(fields[1]) == pid:
+            found.append(int(stat.parent.name))
+    return found
+
+
+def _wait_gone(pids: list[int], timeout: float = 10.0) -> None:
+    import time
+
+    deadline = time.monotonic() + timeout
+    while any(Path(f"/proc/{p}").exists() for p in pids):
+        assert time.monotonic() < deadline, f"processes {pids} outlived the server"
+        time.sleep(0.05)
+
+
+def test_a_tiler_killed_while_committing_then_the_server_restart_consistent(
+    tmp_path: Path,
+) -> None:
+    """SIGKILL of the tiling worker in the middle of the tile commit's renames (after its
+    journal): the server answers a problem document and keeps serving; the server is then
+    killed too (before any read finished the commit) and the restarted server rolls the
+    commit forward and serves the whole mission, every tile complete."""
     import shutil
     import signal
 
     from standgrid.catalog import Catalog
-    from standgrid.catalog.store import CRASH_ENV
+    from standgrid.catalog.store import CRASH_ENV, JOURNAL_FILE
     from standgrid.mission.metadata import read_metadata
     from standgrid.partition import StandGrid
 
@@ -244,10 +270,24 @@ def test_a_server_killed_while_committing_restarts_consistent(tmp_path: Path) ->
 
     proc, base = _start(catalog, missions, token_file, {CRASH_ENV: "rename-1"})
     try:
-        with pytest.raises(httpx.HTTPError):
-            httpx.post(f"{base}/missions/{NAME}/tile", headers=AUTH, timeout=300)
+        r = httpx.post(f"{base}/missions/{NAME}/tile", headers=AUTH, timeout=300)
+        assert r.status_code == 500, r.text
+        assert r.headers["content-type"] == "application/problem+json"
+        assert "tiling worker died" in r.json()["detail"]
+        # the server lives on (the constant conformance document reads no catalog state)
+        assert httpx.get(f"{base}/ogc/conformance").status_code == 200
+        assert proc.poll() is None
+        assert list(catalog.rglob(JOURNAL_FILE))  # the dead commit, not finished yet
+        # a write starts the mission folders' worker; killed with the server, it leaves none
+        other = {"name": "another-mission", "date": "2024-05-15"}
+        created = httpx.post(f"{base}/missions", json=other, headers=AUTH, timeout=60)
+        assert created.status_code == 201, created.text
+        workers = _children(proc.pid)
+        assert workers
+        proc.kill()
         proc.wait(timeout=60)
         assert proc.returncode == -signal.SIGKILL
+        _wait_gone(workers)
     finally:
         if proc.poll() is None:
             proc.kill()

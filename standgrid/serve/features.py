@@ -1,19 +1,22 @@
 """Features of the catalog's GeoPackage index, read with SQLite.
 
 A ``bbox`` is answered from the layer's R-tree (``rtree_<table>_<geom>``, the GeoPackage
-spatial index extension): the candidates are the features whose envelope meets the box's,
-found through the R-tree virtual table (:func:`select_sql`; ``EXPLAIN QUERY PLAN`` shows a
-``VIRTUAL TABLE INDEX`` search, never a scan of the layer), then the exact test keeps those
-whose geometry intersects it. Property filters and the time filter are SQL; features come in
-``fid`` order, so pages of one snapshot of the index never overlap or skip.
+spatial index extension; ``EXPLAIN QUERY PLAN`` shows a ``VIRTUAL TABLE INDEX`` search,
+never a scan of the layer) and paged in SQL (:func:`bbox_sql`). A feature whose R-tree box
+lies inside a box inscribed in the query area meets the area without a test; only the
+candidates whose box crosses that inner box's edge are read and tested exactly (shapely),
+so a page reads its own rows and the few edge candidates, never every candidate. Property
+filters and the time filter are SQL; features come in ``fid`` order, so pages of one
+snapshot of the index never overlap or skip.
 """
 
 from __future__ import annotations
 
 import datetime as dt
-import math
+import functools
+import json
 import sqlite3
-from collections.abc import Iterator, Mapping, Sequence
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -53,9 +56,17 @@ class Layer:
     rtree: str | None = None
     description: str = ""
 
-    @property
+    @functools.cached_property
     def column_types(self) -> dict[str, str]:
         return {c.name: c.type for c in self.columns}
+
+    @functools.cached_property
+    def property_names(self) -> tuple[str, ...]:
+        return tuple(c.name for c in self.columns)
+
+    @functools.cached_property
+    def boolean_names(self) -> tuple[str, ...]:
+        return tuple(c.name for c in self.columns if c.type == "boolean")
 
     @property
     def temporal(self) -> str | None:
@@ -86,6 +97,9 @@ class Query:
 
 @dataclass
 class Page:
+    """Features in fid order: booleans as bool, other values as SQLite gives them (a
+    non-finite number is written as JSON null)."""
+
     number_matched: int
     fids: list[int]
     properties: list[dict[str, Any]]
@@ -98,7 +112,11 @@ def connect(path: str | Path) -> sqlite3.Connection:
     if not path.is_file():
         raise CatalogError("the catalog has no index yet", path=path)
     try:
-        conn = sqlite3.connect(f"{path.absolute().as_uri()}?mode=ro", uri=True)
+        # check_same_thread=False: a pooled connection serves one request at a time, but
+        # not always in the thread that opened it (:mod:`standgrid.serve.snapshot`)
+        conn = sqlite3.connect(
+            f"{path.absolute().as_uri()}?mode=ro", uri=True, check_same_thread=False
+        )
         conn.execute("SELECT 1 FROM gpkg_contents LIMIT 1").fetchall()
     except sqlite3.Error as exc:
         raise CatalogError(f"unreadable GeoPackage index ({exc})", path=path) from exc
@@ -267,63 +285,111 @@ def where_sql(
     return " AND ".join(clauses) or "1", params
 
 
-def select_sql(
-    layer: Layer, query: Query, epoch_dates: Mapping[str, str]
-) -> tuple[str, list[Any]]:
-    """``SELECT fid, <geometry>`` of the bbox candidates (through the R-tree) that pass the
-    other filters, in fid order. Only for a query with an ``area``."""
+def _inner_box(area: Any) -> tuple[float, float, float, float] | None:
+    """An axis-aligned box inside ``area`` (its bounds when it is a box, else the largest of
+    its bounds shrunk about their centre that ``area`` contains), None when it has no
+    area: a geometry inside this box meets ``area`` for certain."""
+    import shapely
+
+    xmin, ymin, xmax, ymax = (float(v) for v in area.bounds)
+    if not (xmax > xmin and ymax > ymin):
+        return None
+    cx, cy, hw, hh = (xmin + xmax) / 2, (ymin + ymax) / 2, (xmax - xmin) / 2, (ymax - ymin) / 2
+    scales = np.linspace(1.0, 0.5, 26)
+    boxes = shapely.box(cx - hw * scales, cy - hh * scales, cx + hw * scales, cy + hh * scales)
+    boxes[0] = shapely.box(xmin, ymin, xmax, ymax)  # the bounds exactly
+    inside = np.flatnonzero(shapely.contains(area, boxes))
+    if not len(inside):
+        return None
+    x0, y0, x1, y1 = (float(v) for v in boxes[inside[0]].bounds)
+    return x0, y0, x1, y1
+
+
+@dataclass(frozen=True)
+class BboxSql:
+    """The statements of a bbox query, each ``(sql, params)``. ``edges``: ``fid`` and
+    geometry of the candidates to test exactly; ``inside_count``: how many match without a
+    test; :meth:`page`: the page's rows, given the edge candidates that passed the test."""
+
+    edges: tuple[str, list[Any]]
+    inside_count: tuple[str, list[Any]]
+    page_sql: str
+    page_params: tuple[list[Any], list[Any]]  # before and after the edge fids
+
+    def page(self, passed: Sequence[int]) -> tuple[str, list[Any]]:
+        before, after = self.page_params
+        return self.page_sql, [*before, json.dumps([int(f) for f in passed]), *after]
+
+
+def bbox_sql(layer: Layer, query: Query, epoch_dates: Mapping[str, str]) -> BboxSql:
+    """The SQL of a query with an ``area``: candidates are the R-tree boxes meeting the
+    area's bounds; those inside :func:`_inner_box` match as they are."""
     if layer.geometry_column is None or layer.rtree is None:
         raise CatalogError(f"layer {layer.name!r} has no spatial index")
     where, params = where_sql(layer, query, epoch_dates)
+    table, rtree = _quote(layer.name), _quote(layer.rtree)
     xmin, ymin, xmax, ymax = (float(v) for v in query.area.bounds)
-    sql = (
-        f"SELECT fid, {_quote(layer.geometry_column)} FROM {_quote(layer.name)} "
-        f"WHERE fid IN (SELECT id FROM {_quote(layer.rtree)} "
-        "WHERE minx <= ? AND maxx >= ? AND miny <= ? AND maxy >= ?) "
-        f"AND ({where}) ORDER BY fid"
+    meets = "minx <= ? AND maxx >= ? AND miny <= ? AND maxy >= ?"
+    meets_params: list[Any] = [xmax, xmin, ymax, ymin]
+    inner = _inner_box(query.area)
+    within = "minx >= ? AND maxx <= ? AND miny >= ? AND maxy <= ?"
+    if inner is None:  # no area: every candidate is tested
+        within, within_params = "0", []
+    else:
+        within_params = [inner[0], inner[2], inner[1], inner[3]]
+    inside = f"SELECT id FROM {rtree} WHERE {meets} AND {within}"
+    inside_params = [*meets_params, *within_params]
+    edges = (
+        f"SELECT fid, {_quote(layer.geometry_column)} FROM {table} "
+        f"WHERE fid IN (SELECT id FROM {rtree} WHERE {meets} AND NOT ({within})) AND ({where})",
+        [*meets_params, *within_params, *params],
     )
-    return sql, [xmax, xmin, ymax, ymin, *params]
+    inside_count = (
+        f"SELECT COUNT(*) FROM {table} WHERE fid IN ({inside}) AND ({where})",
+        [*inside_params, *params],
+    )
+    page_sql = (
+        f"SELECT {_columns_sql(layer)} FROM {table} "
+        f"WHERE fid IN ({inside} UNION ALL SELECT value FROM json_each(?)) AND ({where}) "
+        "ORDER BY fid LIMIT ? OFFSET ?"
+    )
+    return BboxSql(edges, inside_count, page_sql,
+                   (inside_params, [*params, query.limit, query.offset]))  # fmt: skip
 
 
-def _bbox_fids(
+def _bbox_page(
     conn: sqlite3.Connection, layer: Layer, query: Query, epoch_dates: Mapping[str, str]
-) -> list[int]:
+) -> Page:
     import shapely
 
     if layer.geometry_column is None:  # attribute rows have no place: none meets a bbox
-        return []
+        return Page(0, [], [], np.zeros(0, dtype=object))
     if layer.rtree is None:
         raise CatalogError(f"layer {layer.name!r} of the index has no R-tree spatial index")
-    sql, params = select_sql(layer, query, epoch_dates)
-    rows = conn.execute(sql, params).fetchall()
-    if not rows:
-        return []
-    geoms = decode_geometries([r[1] for r in rows])
-    hit = shapely.intersects(geoms, query.area)
-    return [int(r[0]) for r, ok in zip(rows, hit, strict=True) if ok]
+    statements = bbox_sql(layer, query, epoch_dates)
+    edges = conn.execute(*statements.edges).fetchall()
+    passed: list[int] = []
+    if edges:
+        hit = shapely.intersects(decode_geometries([r[1] for r in edges]), query.area)
+        passed = sorted(int(r[0]) for r, ok in zip(edges, hit, strict=True) if ok)
+    inside = int(conn.execute(*statements.inside_count).fetchone()[0])
+    result = _rows(conn, layer, *statements.page(passed))
+    result.number_matched = inside + len(passed)
+    return result
 
 
 def _rows(conn: sqlite3.Connection, layer: Layer, sql: str, params: list[Any]) -> Page:
-    cursor = conn.execute(sql, params)
-    names = [d[0] for d in cursor.description]
-    types = layer.column_types
-    fids: list[int] = []
-    props: list[dict[str, Any]] = []
-    blobs: list[bytes | None] = []
-    for row in cursor:
-        record = dict(zip(names, row, strict=True))
-        fids.append(int(record.pop("fid")))
-        blobs.append(record.pop(layer.geometry_column) if layer.geometry_column else None)
-        props.append({k: _json_value(v, types.get(k)) for k, v in record.items()})
-    return Page(0, fids, props, decode_geometries(blobs))
-
-
-def _json_value(value: Any, kind: str | None) -> Any:
-    if kind == "boolean" and value is not None:
-        return bool(value)
-    if isinstance(value, float) and not math.isfinite(value):
-        return None
-    return value
+    rows = conn.execute(sql, params).fetchall()
+    first = 2 if layer.geometry_column else 1
+    names = layer.property_names
+    properties = [dict(zip(names, row[first:], strict=True)) for row in rows]
+    for name in layer.boolean_names:
+        for record in properties:
+            value = record[name]
+            if value is not None:
+                record[name] = bool(value)
+    blobs = [row[1] for row in rows] if layer.geometry_column else [None] * len(rows)
+    return Page(0, [int(row[0]) for row in rows], properties, decode_geometries(blobs))
 
 
 def _columns_sql(layer: Layer) -> str:
@@ -336,13 +402,9 @@ def page(
     conn: sqlite3.Connection, layer: Layer, query: Query, epoch_dates: Mapping[str, str]
 ) -> Page:
     """One page of a layer's features matching ``query`` and how many match in all."""
-    columns, table = _columns_sql(layer), _quote(layer.name)
     if query.area is not None:
-        fids = _bbox_fids(conn, layer, query, epoch_dates)
-        chosen = fids[query.offset : query.offset + query.limit]
-        result = _chunked_rows(conn, layer, columns, table, chosen)
-        result.number_matched = len(fids)
-        return result
+        return _bbox_page(conn, layer, query, epoch_dates)
+    columns, table = _columns_sql(layer), _quote(layer.name)
     where, params = where_sql(layer, query, epoch_dates)
     matched = int(conn.execute(f"SELECT COUNT(*) FROM {table} WHERE {where}", params).fetchone()[0])
     result = _rows(
@@ -352,34 +414,6 @@ def page(
     )  # fmt: skip
     result.number_matched = matched
     return result
-
-
-def _chunked_rows(
-    conn: sqlite3.Connection, layer: Layer, columns: str, table: str, fids: list[int]
-) -> Page:
-    pages = [
-        _rows(
-            conn,
-            layer,
-            f"SELECT {columns} FROM {table} WHERE fid IN ({', '.join('?' * len(chunk))}) "
-            "ORDER BY fid",
-            list(chunk),
-        )
-        for chunk in _chunks(fids, 500)
-    ]
-    if not pages:
-        return Page(0, [], [], np.zeros(0, dtype=object))
-    return Page(
-        0,
-        [f for p in pages for f in p.fids],
-        [r for p in pages for r in p.properties],
-        np.concatenate([p.geometries for p in pages]),
-    )
-
-
-def _chunks(values: list[int], size: int) -> Iterator[list[int]]:
-    for i in range(0, len(values), size):
-        yield values[i : i + size]
 
 
 def feature(conn: sqlite3.Connection, layer: Layer, fid: int) -> Page:

@@ -5,14 +5,14 @@ Every route here is a write: the write guard (:mod:`standgrid.serve.auth`) has a
 checked the bearer token. Files go into a canonical mission folder under the server's
 missions folder through :class:`~standgrid.mission.live.LiveMission` (atomic, locked,
 idempotent); tiling is :func:`~standgrid.pipeline.tile.tile_missions`, one catalog
-transaction under the catalog's writer lock. A mission name from the request becomes a
-folder name only after :func:`check_name`.
+transaction under the catalog's writer lock. Both run in worker processes
+(:mod:`standgrid.serve.workers`), not in the server's threads. A mission name from the
+request becomes a folder name only after :func:`check_name`.
 """
 
 from __future__ import annotations
 
 import datetime as dt
-import json
 import re
 from pathlib import Path
 from typing import Annotated, Any
@@ -20,10 +20,10 @@ from typing import Annotated, Any
 from fastapi import APIRouter, Query, Request
 from fastapi.responses import JSONResponse
 from pydantic import BaseModel, Field
-from starlette.concurrency import run_in_threadpool
 
 from standgrid.serve.problems import Problem
 from standgrid.serve.snapshot import snapshot
+from standgrid.serve.workers import WorkerProcess, live_mission, tile_mission
 
 router = APIRouter(prefix="/missions", tags=["Ingest (bearer token)"])
 _NAME = re.compile(r"^[A-Za-z0-9][A-Za-z0-9._-]{0,127}$")
@@ -74,6 +74,12 @@ def _live(request: Request, name: str) -> Any:
     return LiveMission(root / check_name(name))
 
 
+async def _write(request: Request, live: Any, method: str, *args: Any) -> Any:
+    """``live.<method>(*args)`` in the mission folders' worker process."""
+    writer: WorkerProcess = request.app.state.mission_writer
+    return await writer.call(live_mission, str(live.path.absolute()), method, *args)
+
+
 def _answer(outcome: str, status_created: int = 201, **extra: Any) -> JSONResponse:
     return JSONResponse({"outcome": outcome, **extra},
                         status_code=200 if outcome == "unchanged" else status_created)  # fmt: skip
@@ -97,7 +103,7 @@ async def create(request: Request, mission: NewMission) -> JSONResponse:
             mission.gnss.latitude, mission.gnss.longitude, mission.gnss.altitude),
     )  # fmt: skip
     live.path.parent.mkdir(parents=True, exist_ok=True)
-    outcome = await run_in_threadpool(live.create, metadata)
+    outcome = await _write(request, live, "create", metadata)
     return _answer(outcome, name=mission.name)
 
 
@@ -141,7 +147,7 @@ async def payload(
     if not data:
         raise Problem(400, "empty body: send the cloud file")
     at = Stamp(int(match[1]), int(match[2]))
-    outcome = await run_in_threadpool(live.add_payload, at, data, format, _pose(pose))
+    outcome = await _write(request, live, "add_payload", at, data, format, _pose(pose))
     return _answer(outcome, stamp=stamp, bytes=len(data))
 
 
@@ -152,7 +158,7 @@ async def payload(
 )
 async def graph(request: Request, name: str) -> JSONResponse:
     live = _live(request, name)
-    outcome = await run_in_threadpool(live.set_graph, await request.body())
+    outcome = await _write(request, live, "set_graph", await request.body())
     return _answer(outcome, status_created=200)
 
 
@@ -164,13 +170,14 @@ async def graph(request: Request, name: str) -> JSONResponse:
 )  # fmt: skip
 async def gnss(request: Request, name: str) -> JSONResponse:
     live = _live(request, name)
-    outcome, new = await run_in_threadpool(live.add_gnss, await request.body())
+    outcome, new = await _write(request, live, "add_gnss", await request.body())
     return _answer(outcome, status_created=200, new_fixes=new)
 
 
 @router.post(
     "/{name}/tile",
-    summary="Tile the mission into the catalog (one transaction under the writer lock)",
+    summary="Tile the mission into the catalog (one transaction under the writer lock, in "
+    "the server's tiling worker process; one mission at a time)",
     openapi_extra={"security": [{"bearer": []}]},
 )
 async def tile(request: Request, name: str) -> JSONResponse:
@@ -182,13 +189,5 @@ async def tile(request: Request, name: str) -> JSONResponse:
         record = snap.catalog.mission_records.get(name)
     if record is not None and record.path and Path(record.path) != live.path.absolute():
         raise Problem(409, f"the catalog holds a mission {name!r} tiled from another folder")
-
-    def run() -> dict[str, Any]:
-        from standgrid.pipeline.tile import TileOptions, tile_missions
-
-        with live.locked():  # no payload lands half-way through the tiling
-            report = tile_missions([live.path.absolute()], root, TileOptions())
-        result: dict[str, Any] = json.loads(json.dumps(report.to_dict(), default=str))
-        return result
-
-    return JSONResponse(await run_in_threadpool(run))
+    tiler: WorkerProcess = request.app.state.tiler
+    return JSONResponse(await tiler.call(tile_mission, str(live.path.absolute()), str(root)))

@@ -124,6 +124,8 @@ def enrich_block(points: ChunkPoints, context: BlockContext) -> BlockResult:
     for cell, sample in zip(chunk.cells, samples, strict=True):
         if cell.stand_id is None or not sample.measured(rule):
             sample.release_heights()  # only a coarser stand of measured cells needs them
+        else:  # sorted here (on the worker): the stand merges its cells' runs
+            sample.heights = np.sort(sample.heights)
     fields: dict[str, NDArray[Any]] = {
         "classification": np.where(ground, GROUND, OTHER).astype(np.uint8),
         "height_above_ground": hag,

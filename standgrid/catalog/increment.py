@@ -1,7 +1,7 @@
 """Re-tiling an epoch in place: only the tiles whose points change are rewritten.
 
 When missions already in an epoch are tiled again (a robot that sent more payloads, a
-re-run), a payload whose source is unchanged (the same cloud bytes, frame, node pose, stamp,
+re-run), a payload whose source is unchanged (the same cloud file, frame, node pose, stamp,
 payload id, mission placement and field schema: :func:`source_digest`, stored in the
 ``payloads`` layer) has its points in the tiles already, exactly as they would be written
 again. Only tiles holding points of changed or dropped payloads (found by their
@@ -35,21 +35,23 @@ if TYPE_CHECKING:
 
 
 def source_digest(source: dict[str, Any], placement: dict[str, Any], schema: Any) -> str:
-    """What a payload's points in the catalog depend on, hashed: its cloud file's bytes,
-    frame, file -> base transform and node pose (to 1e-9), stamp (GPS time), mission number,
-    payload id, the mission's placement and the epoch's field schema."""
+    """What a payload's points in the catalog depend on, hashed: its cloud file (by identity:
+    device, inode, size, modification and change times, as git and make tell a changed file;
+    any write changes them, a copied folder has new ones), frame, file -> base transform and
+    node pose (to 1e-9), stamp (GPS time), mission number, payload id, the mission's
+    placement and the epoch's field schema."""
     from standgrid.errors import PointCloudFormatError
     from standgrid.mission.clouds import check_cloud_file
 
     path = Path(source["path"])
     check_cloud_file(path)
-    digest = hashlib.blake2b(digest_size=16)
     try:
-        with open(path, "rb") as stream:
-            for block in iter(lambda: stream.read(1 << 20), b""):
-                digest.update(block)
+        st = path.stat()
     except OSError as exc:
         raise PointCloudFormatError(f"cannot read: {exc.strerror or exc}", path=path) from exc
+    digest = hashlib.blake2b(digest_size=16)
+    identity = (st.st_dev, st.st_ino, st.st_size, st.st_mtime_ns, st.st_ctime_ns)
+    digest.update(repr(identity).encode())
     for key in ("file_to_base", "pose"):
         value = source[key]
         # to 1e-9 (m, and rotation entries): a graph written again as text may move a pose

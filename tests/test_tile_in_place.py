@@ -131,19 +131,20 @@ def test_a_buffered_catalog_is_re_tiled_whole(tmp_path: Path) -> None:
 def test_a_cloud_rewritten_with_its_old_size_and_mtime_is_still_a_change(tmp_path: Path) -> None:
     import os
 
-    from standgrid.catalog.increment import source_digest
+    from standgrid.catalog.increment import placement_digest, source_digest
 
+    placement = placement_digest({"method": "anchor"})
     cloud = tmp_path / "cloud.pcd"
     cloud.write_bytes(b"A" * 64)
     source = {"path": cloud, "frame": "base", "file_to_base": None, "pose": np.eye(4),
               "gps_time": 1.5, "point_source_id": 1, "payload_id": 65536}  # fmt: skip
-    before = source_digest(source, {"method": "anchor"}, {"intensity": np.float32})
-    assert source_digest(source, {"method": "anchor"}, {"intensity": np.float32}) == before
+    before = source_digest(source, placement, {"intensity": np.float32})
+    assert source_digest(source, placement, {"intensity": np.float32}) == before
     st = cloud.stat()
     cloud.write_bytes(b"B" * 64)  # same size
     os.utime(cloud, ns=(st.st_atime_ns, st.st_mtime_ns))  # and the old modification time
-    assert source_digest(source, {"method": "anchor"}, {"intensity": np.float32}) != before
+    assert source_digest(source, placement, {"intensity": np.float32}) != before
     moved = dict(source, pose=np.eye(4))
     moved["pose"][0, 3] = 0.001  # a node moved by 1 mm
-    changed = source_digest(moved, {"method": "anchor"}, {"intensity": np.float32})
-    assert changed != source_digest(source, {"method": "anchor"}, {"intensity": np.float32})
+    changed = source_digest(moved, placement, {"intensity": np.float32})
+    assert changed != source_digest(source, placement, {"intensity": np.float32})

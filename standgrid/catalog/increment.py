@@ -34,12 +34,18 @@ if TYPE_CHECKING:
     from standgrid.export.las import TileInfo
 
 
-def source_digest(source: dict[str, Any], placement: dict[str, Any], schema: Any) -> str:
+def placement_digest(placement: dict[str, Any]) -> str:
+    """A mission placement's record (:meth:`Placement.record`), hashed once per mission."""
+    text = json.dumps(placement, sort_keys=True, default=str)
+    return hashlib.blake2b(text.encode(), digest_size=16).hexdigest()
+
+
+def source_digest(source: dict[str, Any], placement: str, schema: Any) -> str:
     """What a payload's points in the catalog depend on, hashed: its cloud file (by identity:
     device, inode, size, modification and change times, as git and make tell a changed file;
     any write changes them, a copied folder has new ones), frame, file -> base transform and
     node pose (to 1e-9), stamp (GPS time), mission number, payload id, the mission's
-    placement and the epoch's field schema."""
+    placement (:func:`placement_digest`) and the epoch's field schema."""
     from standgrid.errors import PointCloudFormatError
     from standgrid.mission.clouds import check_cloud_file
 

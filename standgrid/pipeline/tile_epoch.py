@@ -70,6 +70,7 @@ def tile_epoch(
 
     from standgrid.catalog.increment import (
         kept_tile_info,
+        placement_digest,
         plan_increment,
         source_digest,
         tiles_holding,
@@ -94,7 +95,7 @@ def tile_epoch(
     previous = sorted(catalog.tiles(epoch)) if epoch in catalog.epochs else []
     schema = tiling_schema(catalog, previous, group)
     rows, sources = payload_rows(group, epoch)
-    placements = {i.mission.name: i.placement.record() for i in group}
+    placements = {i.mission.name: placement_digest(i.placement.record()) for i in group}
     for row, source in zip(rows, sources, strict=True):
         row["source_digest"] = source_digest(source, placements[row["mission"]], schema)
     stored = index.read("payloads", epoch)

@@ -148,3 +148,25 @@ def test_a_cloud_rewritten_with_its_old_size_and_mtime_is_still_a_change(tmp_pat
     moved["pose"][0, 3] = 0.001  # a node moved by 1 mm
     changed = source_digest(moved, placement, {"intensity": np.float32})
     assert changed != source_digest(source, placement, {"intensity": np.float32})
+
+
+def test_an_enriched_epoch_is_re_tiled_in_place_and_kept_when_nothing_changed(
+    tmp_path: Path,
+) -> None:
+    from standgrid.pipeline.enrich import enrich_catalog
+
+    (tmp_path / "missions").mkdir()
+    live = LiveMission(tmp_path / "missions" / SOURCE.name)
+    live.create(read_metadata(SOURCE / "metadata.yaml"))
+    _grow(live, 6)
+    catalog, options = tmp_path / "c", TileOptions(anchor=ANCHOR)
+    tile_missions([live.path], catalog, options)
+    enrich_catalog(catalog)  # adds classification, heights and tree ids to every tile
+    chm = catalog / "rasters" / "2024" / "chm.tif"
+    again = tile_missions([live.path], catalog, options).to_dict()["epochs"]["2024"]
+    assert again["payloads_unchanged"] == 6 and again["cells_rewritten"] == 0
+    assert Catalog.open(catalog).epoch("2024").state == "enriched" and chm.exists()
+    _grow(live, 8)
+    grown = tile_missions([live.path], catalog, options).to_dict()["epochs"]["2024"]
+    assert grown["payloads_unchanged"] == 6 and 0 < grown["cells_rewritten"] < grown["cells"]
+    assert Catalog.open(catalog).epoch("2024").state == "stale" and not chm.exists()

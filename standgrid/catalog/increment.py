@@ -26,12 +26,17 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
+from standgrid.catalog.invalidate import ENRICH_POINT_FIELDS
+
 if TYPE_CHECKING:
     import pandas as pd
+    from numpy.typing import NDArray
 
     from standgrid.catalog.records import TilingSettings
     from standgrid.catalog.store import Catalog
     from standgrid.export.las import TileInfo
+    from standgrid.partition.chunks import PayloadTask
+    from standgrid.partition.protocol import Partition
 
 
 def placement_digest(placement: dict[str, Any]) -> str:
@@ -70,7 +75,13 @@ def source_digest(source: dict[str, Any], placement: str, schema: Any) -> str:
         "point_source_id": int(source["point_source_id"]),
         "payload_id": int(source["payload_id"]),
         "placement": placement,
-        "schema": {name: np.dtype(dtype).str for name, dtype in dict(schema).items()},
+        # the fields the points are written with; enrichment's own fields (reset in every
+        # rewritten tile, added to the epoch's schema by enrich) are not the payload's
+        "schema": {
+            name: np.dtype(dtype).str
+            for name, dtype in dict(schema).items()
+            if name not in (*ENRICH_POINT_FIELDS, "classification")
+        },
     }
     digest.update(json.dumps(described, sort_keys=True, default=str).encode())
     return digest.hexdigest()
@@ -125,6 +136,15 @@ def plan_increment(
     return Increment(unchanged, dropped, kept.reset_index(drop=True))
 
 
+def landing_keys(job: tuple[PayloadTask, Partition]) -> NDArray[np.int64]:
+    """The cell keys a payload's points fall in (a pure task: runs on a worker)."""
+    from standgrid.partition.chunks import payload_chunk
+
+    task, partition = job
+    xyz = payload_chunk(task).cloud.xyz
+    return np.unique(partition.assign(xyz[:, 0], xyz[:, 1]))
+
+
 def tiles_holding(root: Path, tiles: Sequence[str], payload_ids: Iterable[int]) -> set[str]:
     """The tiles (catalog-relative, under ``root``) with at least one point (buffer copies
     included) of ``payload_ids``; only the extra-bytes layer of a LAZ tile is decompressed."""
@@ -157,6 +177,10 @@ def kept_tile_info(path: Path, cell: dict[str, Any], crs: str) -> TileInfo:
         point_format = int(header.point_format.id)
         compressed = bool(header.are_points_compressed)
     core = int(cell["point_count"])
+    if core > total:
+        from standgrid.errors import CatalogError
+
+        raise CatalogError(f"the cells layer says {core} points, the tile holds {total}", path=path)
     nan = float("nan")
     return TileInfo(
         path=path,

@@ -237,6 +237,9 @@ def aggregate(
     stand_id: str, cell_size: float, area_m2: float, members: list[StandSample]
 ) -> StandSample:
     """A coarser stand from its measured member cells (the others contribute no area)."""
+    released = [m.stand_id for m in members if len(m.heights) != m.n_on_observed]
+    if released:
+        raise EnrichError(f"stand {stand_id}: cells {released[:3]} no longer hold their heights")
     frames = [m.trees for m in members if len(m.trees)]
     return StandSample(
         stand_id=stand_id,

@@ -484,7 +484,7 @@ def rewrite_tile(
             )
         if name in _STANDARD_FIELDS:
             if name in _RANGES:
-                _check_range(name, [values], out)
+                _check_range(name, [values], src)
         elif name in _LAS_DIMENSION_NAMES or name == "intensity_raw":
             raise PointCloudFormatError(f"field {name!r} cannot be rewritten", path=src)
         else:

@@ -86,7 +86,7 @@ def tile_epoch(
     )
     from standgrid.catalog.partition import catalog_partition
     from standgrid.catalog.retile import KeptTiles
-    from standgrid.errors import ConservationError
+    from standgrid.errors import CatalogError, ConservationError
     from standgrid.export.gpkg import cell_row
     from standgrid.georeference.placement import cloud_payloads
     from standgrid.partition.chunks import PayloadTask
@@ -163,8 +163,17 @@ def tile_epoch(
         cell_rows.append(row)
         result.tiles.append((rel, info))
     untouched, left_in = set(previous) - set(rewrite), 0
+    clash = sorted(untouched & {rel for _, rel, _ in done.tiles})
+    if clash:  # a payload read twice, changed in between: nothing may be overwritten
+        raise ConservationError(
+            f"epoch {epoch}: points landed in {clash[0]}, which was to stay as it is (a "
+            "payload changed while it was tiled?): nothing was written; tile again",
+            path=catalog.root,
+        )
+    rowless = set(untouched)
     for row in index.read("cells", epoch).to_dict("records"):
         if row["tile_path"] in untouched:  # left as it is, with its row
+            rowless.discard(row["tile_path"])
             left_in += int(row["point_count"])
             for name in filter(None, str(row["missions"]).split(",")):
                 tiles_of.setdefault(name, set()).add(row["tile_path"])
@@ -172,6 +181,12 @@ def tile_epoch(
             result.tiles.append((row["tile_path"], kept_tile_info(
                 catalog.path(row["tile_path"]), row, catalog.crs)))  # fmt: skip
 
+    if rowless:
+        raise CatalogError(
+            f"epoch {epoch}: tiles without a row in the index's cells layer: "
+            f"{', '.join(sorted(rowless)[:3])}",
+            path=catalog.root,
+        )
     fed = kept_in + sum(new_in.values())
     if done.points_in != fed or done.points_out != fed:
         raise ConservationError(
@@ -220,6 +235,9 @@ def tile_epoch(
     index.replace("missions", mission_rows, missions=names)
     result.changed = increment is None or bool(read or rewrite)
     settled = txn.settle_epoch(epoch, settings.tiling, changed=result.changed)
+    if not result.changed and settled and before and settled.date != before.date:
+        result.changed = True  # the epoch's date moved: what was computed for it is stale
+        settled = txn.settle_epoch(epoch, settings.tiling, changed=True)
     result.report = {
         "date": settled.date or "" if settled else "",  # None: every mission moved out
         "points_in": fed + left_in,
@@ -244,18 +262,16 @@ def _landing_tiles(
     settings: EpochSettings,
     executor: Executor,
 ) -> set[str]:
-    """The tiles (catalog-relative) the payloads' points fall in (their points are read
-    here only to place them; the partition engine reads them again)."""
-    import numpy as np
-
+    """The tiles (catalog-relative) the payloads' points fall in (each payload is read where
+    the executor runs it, only its cells come back; the partition engine reads it again)."""
     from standgrid.catalog import paths
+    from standgrid.catalog.increment import landing_keys
     from standgrid.engine.ordered import ordered_map
-    from standgrid.partition.chunks import payload_chunk
 
     keys: set[int] = set()
-    for chunk in ordered_map(executor, payload_chunk, tasks):
-        xyz = chunk.cloud.xyz
-        keys.update(np.unique(partition.assign(xyz[:, 0], xyz[:, 1])).tolist())
+    jobs = [(task, partition) for task in tasks]
+    for found in ordered_map(executor, landing_keys, jobs):  # keys only come back
+        keys.update(found.tolist())
     tiling = settings.tiling
     return {paths.tile(epoch, partition.cell_id(k), laz=tiling.laz, copc=tiling.copc) for k in keys}
 

@@ -136,17 +136,37 @@ def canonical(element: ET.Element | None) -> bytes:
 
 
 def test_styles_are_the_catalogs_own(pair: EnrichedPair) -> None:
-    """Rasters embed their .qml sidecar's renderer; stand_changes its default layer style."""
+    """Rasters embed their .qml sidecar's renderer, but the CHMs share one range (the same
+    colour is the same height in every epoch); stand_changes its default layer style."""
     project = read_project(pair.path)
     layers = map_layers(project)
     rasters = [m for m in layers.values() if m.findtext("provider") == "gdal"]
     assert len(rasters) == 2 * 4 + 1
+    chm_tops, chm_ranges = [], set()
     for layer in rasters:
         path, _ = split_source(layer.findtext("datasource", ""))
         sidecar = (pair.path / path).with_suffix(".qml").read_text("utf-8")
         expected = ET.fromstring(sidecar.split("\n", 1)[1]).find("pipe/rasterrenderer")
         assert expected is not None
-        assert canonical(layer.find("pipe/rasterrenderer")) == canonical(expected)
+        got = layer.find("pipe/rasterrenderer")
+        assert got is not None
+        if Path(path).name == "chm.tif":
+            chm_tops.append(float(expected.get("classificationMax", "nan")))
+            chm_ranges.add((got.get("classificationMin"), got.get("classificationMax")))
+            for key in ("classificationMin", "classificationMax"):
+                expected.attrib.pop(key)
+                got.attrib.pop(key)
+            for node in (expected, got):  # the shader and its stops follow the range
+                for shader in node.iter("colorrampshader"):
+                    shader.attrib.pop("minimumValue", None)
+                    shader.attrib.pop("maximumValue", None)
+                for item in node.iter("item"):
+                    item.attrib.pop("value", None)
+                    item.attrib.pop("label", None)
+        assert canonical(got) == canonical(expected)
+    assert len(chm_tops) == 2 and len(set(chm_tops)) == 2  # the sidecars: each its own
+    ((low, high),) = chm_ranges  # the project: one range
+    assert float(low) == 0.0 and float(high) == pytest.approx(max(chm_tops))
     with sqlite3.connect(pair.path / "index.gpkg") as db:
         qml = db.execute(
             "SELECT styleQML FROM layer_styles WHERE f_table_name = 'tree_changes' AND useAsDefault"

@@ -129,15 +129,17 @@ class _Layers:
             )
         )
 
-    def raster(self, name: str, tif: str, style: str, visible: bool) -> None:
+    def raster(
+        self, name: str, tif: str, style: str, visible: bool, qml_text: str | None = None
+    ) -> None:
+        """A raster layer styled by its sidecar ``style`` (or by ``qml_text`` when given)."""
         from standgrid.export.qgis_project import ProjectLayer
 
         qml = self.txn.current(style)
         if self.txn.current(tif) is None or qml is None:
             return
-        self.layers.append(
-            ProjectLayer(name, tif, qml.read_text("utf-8"), provider="gdal", visible=visible)
-        )
+        text = qml_text if qml_text is not None else qml.read_text("utf-8")
+        self.layers.append(ProjectLayer(name, tif, text, provider="gdal", visible=visible))
 
 
 def _grid_words(state: dict[str, Any]) -> tuple[str, str | None]:
@@ -156,6 +158,7 @@ def _epoch_group(
     epoch: str,
     visible: bool,
     choropleth: Callable[[str], str | None],
+    chm_style: str | None = None,
 ) -> ProjectGroup:
     from standgrid.export import styles
     from standgrid.export.qgis_project import ProjectGroup
@@ -225,7 +228,8 @@ def _epoch_group(
         ("chm", "CHM (m)", True),
         ("dtm", "DTM (m)", False),
     ):
-        layers.raster(label, paths.raster(epoch, name), paths.raster_style(epoch, name), on)
+        shared = chm_style if name == "chm" else None
+        layers.raster(label, paths.raster(epoch, name), paths.raster_style(epoch, name), on, shared)
     return ProjectGroup(epoch, tuple(layers.layers), visible)
 
 
@@ -287,10 +291,26 @@ def project_groups(txn: Transaction, index_path: Path) -> list[ProjectGroup]:
         _change_group(txn, index, str(c["from"]), str(c["to"]))
         for _, c in sorted(state.get("comparisons", {}).items())
     ]
+    chm_style = _shared_chm_style(txn, epochs)
     groups += [
-        _epoch_group(txn, index, epoch, i == 0, choropleth) for i, epoch in enumerate(epochs)
+        _epoch_group(txn, index, epoch, i == 0, choropleth, chm_style)
+        for i, epoch in enumerate(epochs)
     ]
     return [g for g in groups if g.layers]
+
+
+def _shared_chm_style(txn: Transaction, epochs: Sequence[str]) -> str | None:
+    """One CHM colour range (0 to the highest epoch's p98) for every epoch, so the same colour
+    is the same height in each; None without a CHM. The sidecar ``chm.qml`` beside each
+    raster keeps its own range (a raster dragged in alone)."""
+    from standgrid.export import styles
+
+    tops = [
+        styles.raster_range(found, "chm")[1]
+        for found in (txn.current(paths.raster(epoch, "chm")) for epoch in epochs)
+        if found is not None
+    ]
+    return styles.raster_style("chm", 0.0, max(tops)) if tops else None
 
 
 def write_catalog_project(txn: Transaction) -> Path | None:

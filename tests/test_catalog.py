@@ -385,6 +385,33 @@ for k in range(1, 16):
     assert proc.returncode == 0 and len(seen) >= 2
 
 
+def test_readers_are_held_off_only_for_the_journal_and_renames(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """The staged files reach the disk before the commit takes the readers lock: a reader
+    arriving meanwhile reads the last commit at once (it waited for the whole fsync)."""
+    import standgrid.catalog.store as store
+
+    catalog = make(tmp_path)
+    ingest(catalog, "m-a", "e1", {"tiles/e1/a.laz": b"old"})
+    seen: list[object] = []
+    real_fsync_tree = store.fsync_tree
+
+    def fsync_tree_then_read(root: Path) -> None:
+        real_fsync_tree(root)
+        if not seen:  # the staged files, synced: a reader comes in now
+            with Catalog.reading(catalog.root, lock_timeout=0.5) as snapshot:
+                seen.append(snapshot.missions["m-a"].get("round"))
+
+    monkeypatch.setattr(store, "fsync_tree", fsync_tree_then_read)
+    with catalog.transaction() as txn:
+        txn.stage("tiles/e1/a.laz").write_bytes(b"new")
+        txn.record_mission("m-a", epoch="e1", date="e1", round=2, tiles=["tiles/e1/a.laz"])
+    assert seen == [None]  # the old record, read without waiting for the commit
+    assert Catalog.open(catalog.root).missions["m-a"]["round"] == 2
+    assert catalog.path("tiles/e1/a.laz").read_bytes() == b"new"
+
+
 def test_transaction_current_and_bad_paths(tmp_path: Path) -> None:
     catalog = make(tmp_path)
     ingest(catalog, "m-a", "e1", {"tiles/e1/x.laz": b"old"})

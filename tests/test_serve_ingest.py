@@ -333,3 +333,62 @@ def test_concurrent_senders_are_serialised(tmp_path: Path) -> None:
     assert outcomes == ["stored"] * len(others)
     graph = read_pose_graph(live.path / "slam_pose_graph.g2o")
     assert sorted(v.stamp for v in graph.vertices.values()) == sorted(p.stamp for p in others)
+
+
+def test_a_mission_tiling_does_not_hold_up_another_missions_writes(tmp_path: Path) -> None:
+    """While mission A tiles (here it waits for the catalog, which another writer holds), A's
+    next write waits for its turn in the server, and mission B's writes pass at once (they
+    used to queue in the writer process behind A's write, itself waiting for A's folder)."""
+    import fcntl
+    import time
+    from concurrent.futures import ThreadPoolExecutor
+
+    from standgrid.catalog import Catalog
+    from standgrid.mission.model import open_mission
+    from standgrid.partition import StandGrid
+    from standgrid.serve import create_app
+    from standgrid.serve.server import running
+
+    catalog, missions = tmp_path / "catalog", tmp_path / "inbox"
+    Catalog.create(catalog, StandGrid(CRS, 20.0).to_dict(), CRS, "grid")
+    source = open_mission(SOURCE, strict=False)
+    first = source.payloads[0]
+    stamp = {"stamp": f"{first.stamp.sec}_{first.stamp.nsec:09d}", "format": "pcd"}
+    with running(create_app(catalog, token=TOKEN, missions=missions)) as server:
+        url = f"{server.base_url}/missions"
+        assert httpx.post(url, json=_metadata(), headers=AUTH).status_code == 201
+        graph = (SOURCE / "slam_pose_graph.g2o").read_bytes()
+        assert httpx.put(f"{url}/{NAME}/graph", content=graph, headers=AUTH).status_code == 200
+        r = httpx.post(f"{url}/{NAME}/payloads", params=stamp, content=first.path.read_bytes(),
+                       headers=AUTH)  # fmt: skip
+        assert r.status_code == 201, r.text
+        early = httpx.post(f"{url}/{NAME}/tile", headers=AUTH, timeout=120)
+        assert early.status_code == 409 and "GNSS" in early.json()["detail"]  # not yet
+        fixes = (SOURCE / "gnss/fixes.txt").read_bytes()
+        assert httpx.post(f"{url}/{NAME}/gnss", content=fixes, headers=AUTH).status_code == 200
+        a_folder = LiveMission(missions / NAME)
+        with ThreadPoolExecutor(2) as pool, Catalog.writing(catalog):
+            tiling = pool.submit(httpx.post, f"{url}/{NAME}/tile", headers=AUTH, timeout=120)
+            deadline = time.monotonic() + 60
+            with open(a_folder.lock_path, "a+b") as handle:  # wait until the tiler holds A
+                while True:
+                    try:
+                        fcntl.flock(handle, fcntl.LOCK_EX | fcntl.LOCK_NB)
+                    except BlockingIOError:
+                        break
+                    fcntl.flock(handle, fcntl.LOCK_UN)
+                    assert time.monotonic() < deadline, "the tiler never took mission A"
+                    time.sleep(0.05)
+            resent = pool.submit(
+                httpx.post, f"{url}/{NAME}/payloads", params=stamp,
+                content=first.path.read_bytes(), headers=AUTH, timeout=120,
+            )  # fmt: skip
+            time.sleep(0.5)  # A's write is in first
+            other = {**_metadata(), "name": "another-robot-mission"}
+            created = httpx.post(url, json=other, headers=AUTH, timeout=15)
+            assert created.status_code == 201, created.text
+            assert not tiling.done() and not resent.done()  # A still waits for the catalog
+        assert tiling.result().status_code == 200, tiling.result().text
+        assert resent.result().status_code == 200 and resent.result().json()["outcome"] == (
+            "unchanged"
+        )

@@ -3,10 +3,12 @@
 A *chunk* owns a block of cells (a square of ``side`` metres of the stand grid, or the
 Voronoi cells whose centre falls in it) and sees, besides their tiles, every neighbour's
 core points within ``buffer`` metres: what a computation needs to be right at the chunk's
-edges. Each tile is decoded once for its chunk (neighbours are re-read only for their points
-in the buffer). A per-chunk function receives :class:`ChunkPoints` and returns per-point
-fields over the block's rows; :func:`write_chunk_tiles` maps them back onto the owned tiles
-(their buffer copies included) and writes the new tiles where the transaction staged them.
+edges; and, given a *reach*, the lowest points of a wider ring (a ground classification
+that looks further than the buffer). Each tile is decoded once for its chunk (neighbours are
+re-read only for their coordinates). A per-chunk function receives :class:`ChunkPoints` and
+returns per-point fields over the block's rows; :func:`write_chunk_tiles` maps them back onto
+the owned tiles (their buffer copies included) and writes the new tiles where the transaction
+staged them.
 
 Everything here is plain, picklable data, so chunks run on dask workers as well as here.
 """
@@ -15,13 +17,15 @@ from __future__ import annotations
 
 import threading
 from collections import OrderedDict
-from collections.abc import Mapping, Sequence
-from dataclasses import dataclass
+from collections.abc import Callable, Mapping, Sequence
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
+
+from standgrid.partition.lattice import lowest_in_squares
 
 #: Bytes a chunk's computation holds per point of its block (the decoded tiles, the block's
 #: coordinates and every per-point array a pass keeps), used to size chunks to the budget.
@@ -55,6 +59,10 @@ class Chunk:
     cells: tuple[ChunkCell, ...]
     neighbours: tuple[ChunkCell, ...]
     buffer: float
+    #: the wider extent whose lowest points the block's ground classification sees, and the
+    #: further cells (not neighbours) that hold some of them
+    reach_bounds: tuple[float, float, float, float] | None = None
+    far: tuple[ChunkCell, ...] = ()
 
     @property
     def bounds(self) -> tuple[float, float, float, float]:
@@ -94,9 +102,12 @@ def plan_chunks(
     side: float,
     origin: tuple[float, float],
     buffer: float,
+    reach: Callable[[tuple[float, float, float, float]], tuple[float, float, float, float]]
+    | None = None,
 ) -> list[Chunk]:
     """Group ``cells`` into square chunks of ``side`` metres (by the cell's centre, on the
-    lattice of ``origin``), each with the neighbours within ``buffer`` of its cells."""
+    lattice of ``origin``), each with the neighbours within ``buffer`` of its cells; and,
+    given ``reach`` (buffered bounds -> wider bounds), the further cells within those."""
     import shapely
 
     if not cells:
@@ -120,7 +131,13 @@ def plan_chunks(
         neighbours = tuple(
             ordered[j] for j in sorted(int(j) for j in near) if ordered[j].cell_id not in owned_ids
         )
-        chunks.append(Chunk(index, own, neighbours, buffer))
+        reach_bounds, far = None, tuple[ChunkCell, ...]()
+        if reach is not None:
+            reach_bounds = reach(probe.buffered_bounds)
+            seen = owned_ids | {c.cell_id for c in neighbours}
+            further = sorted(int(j) for j in tree.query(shapely.box(*reach_bounds)))
+            far = tuple(ordered[j] for j in further if ordered[j].cell_id not in seen)
+        chunks.append(Chunk(index, own, neighbours, buffer, reach_bounds, far))
     return chunks
 
 
@@ -149,6 +166,9 @@ class ChunkPoints:
     xyz: NDArray[np.float64]
     cell_rows: list[slice]
     tiles: list[OwnedTile]
+    #: the lowest point of every ``ring_square`` square within ``chunk.reach_bounds`` and
+    #: outside the buffered bounds (empty without a reach)
+    ring_xyz: NDArray[np.float64] = field(default_factory=lambda: np.zeros((0, 3)))
 
     @property
     def n_core(self) -> int:
@@ -161,10 +181,15 @@ def read_chunk(
     lattice_origin: tuple[float, float],
     *,
     cache_bytes: int = 0,
+    ring_square: float | None = None,
+    ring_lattice: tuple[float, float] = (0.0, 0.0),
 ) -> ChunkPoints:
     """Decode the chunk's own tiles and its neighbours' points in the buffer; tiles' core
-    coordinates stay in this process's cache (up to ``cache_bytes``) for later chunks."""
+    coordinates stay in this process's cache (up to ``cache_bytes``) for later chunks.
+    Given ``ring_square``, also the lowest point of each such square (on ``ring_lattice``)
+    in the ring out to ``chunk.reach_bounds``."""
     _CORES.resize(cache_bytes // CACHED_BYTES_PER_POINT)
+    _LOWEST.resize(cache_bytes // 10 // CACHED_BYTES_PER_POINT)
     from standgrid.export.las import read_tile_record, snap_to_storage
 
     tiles, parts, rows, start = [], [], [], 0
@@ -180,16 +205,47 @@ def read_chunk(
         rows.append(slice(start, start + len(core)))
         start += len(core)
     xmin, ymin, xmax, ymax = chunk.buffered_bounds
+    ring = []
     for cell in chunk.neighbours:
-        path = Path(root) / cell.tile
-        xyz = _CORES.get(path)
-        if xyz is None:
-            xyz = snap_to_storage(_core_xyz(path), lattice_origin)
-            _CORES.put(path, xyz)
+        xyz = _neighbour_xyz(Path(root) / cell.tile, lattice_origin)
         x, y = xyz[:, 0], xyz[:, 1]
         parts.append(xyz[(x >= xmin) & (x < xmax) & (y >= ymin) & (y < ymax)])
+    if ring_square is not None and chunk.reach_bounds is not None:
+        for cell in (*chunk.neighbours, *chunk.far):
+            path = Path(root) / cell.tile
+            lowest = _LOWEST.get(path, ring_square)
+            if lowest is None:
+                # the squares are on the lattice, inside a tile: its lowest are the epoch's
+                xyz = _neighbour_xyz(path, lattice_origin)
+                lowest = xyz[lowest_in_squares(xyz, ring_square, ring_lattice)]
+                _LOWEST.put(path, lowest, ring_square)
+            ring.append(_in_ring(lowest, chunk.buffered_bounds, chunk.reach_bounds))
     xyz = np.concatenate(parts) if parts else np.zeros((0, 3))
-    return ChunkPoints(chunk, xyz, rows, tiles)
+    ring_xyz = np.concatenate(ring) if ring else np.zeros((0, 3))
+    return ChunkPoints(chunk, xyz, rows, tiles, ring_xyz)
+
+
+def _neighbour_xyz(path: Path, lattice_origin: tuple[float, float]) -> NDArray[np.float64]:
+    """A neighbour tile's core coordinates, from this process's cache or decoded."""
+    from standgrid.export.las import snap_to_storage
+
+    xyz = _CORES.get(path)
+    if xyz is None:
+        xyz = snap_to_storage(_core_xyz(path), lattice_origin)
+        _CORES.put(path, xyz)
+    return xyz
+
+
+def _in_ring(
+    xyz: NDArray[np.float64],
+    inner: tuple[float, float, float, float],
+    outer: tuple[float, float, float, float],
+) -> NDArray[np.float64]:
+    """The points inside ``outer`` and outside ``inner`` (both half-open boxes)."""
+    x, y = xyz[:, 0], xyz[:, 1]
+    in_outer = (x >= outer[0]) & (x < outer[2]) & (y >= outer[1]) & (y < outer[3])
+    in_inner = (x >= inner[0]) & (x < inner[2]) & (y >= inner[1]) & (y < inner[3])
+    return xyz[in_outer & ~in_inner]
 
 
 class _CoreCache:
@@ -204,20 +260,20 @@ class _CoreCache:
         self._lock = threading.Lock()  # a dask worker may run tasks on several threads
 
     @staticmethod
-    def _key(path: Path) -> tuple[Any, ...]:
+    def _key(path: Path, tag: float) -> tuple[Any, ...]:
         st = path.stat()
-        return (str(path), st.st_ino, st.st_size, st.st_mtime_ns)
+        return (str(path), st.st_ino, st.st_size, st.st_mtime_ns, tag)
 
-    def get(self, path: Path) -> NDArray[np.float64] | None:
-        key = self._key(path)
+    def get(self, path: Path, tag: float = 0.0) -> NDArray[np.float64] | None:
+        key = self._key(path, tag)
         with self._lock:
             found = self._items.get(key)
             if found is not None:
                 self._items.move_to_end(key)
         return found
 
-    def put(self, path: Path, xyz: NDArray[np.float64]) -> None:
-        key = self._key(path)
+    def put(self, path: Path, xyz: NDArray[np.float64], tag: float = 0.0) -> None:
+        key = self._key(path, tag)
         with self._lock:
             if key not in self._items and len(xyz) <= self.max_points:
                 self._items[key] = xyz
@@ -237,8 +293,10 @@ class _CoreCache:
 
 #: Bytes a cached point takes (x, y, z as float64).
 CACHED_BYTES_PER_POINT = 24
-#: This process's cache of tiles' core coordinates (sized by each read_chunk call).
+#: This process's cache of tiles' core coordinates (sized by each read_chunk call) ...
 _CORES = _CoreCache(0)
+#: ... and of their lowest points per square (keyed by the square's side), a tenth of it.
+_LOWEST = _CoreCache(0)
 
 
 def _core_xyz(path: Path) -> NDArray[np.float64]:

@@ -575,6 +575,7 @@ class Transaction:
         self._staged: dict[str, Path] = {}
         self._deletes: set[str] = set()
         self._done = False
+        self._synced = False  # the staged files were fsynced (before the readers lock)
         self._lock: FileLock | None = None
 
     def __enter__(self) -> Transaction:
@@ -807,7 +808,11 @@ class Transaction:
             json.dumps(self.state, indent=2, sort_keys=True) + "\n", encoding="utf-8"
         )
         crash_point("staged")
-        fsync_tree(self.folder / "files")
+        if self._synced:  # only the state is new since
+            fsync_path(staged_state)
+            fsync_path(staged_state.parent)
+        else:
+            fsync_tree(self.folder / "files")
         for rel in self._staged:  # target folders exist before the journal: renames need no space
             (root / rel).parent.mkdir(parents=True, exist_ok=True)
         body = {
@@ -832,6 +837,10 @@ class Transaction:
     def commit(self) -> None:
         if self._done:
             return
+        # the slow part first: readers never look at the staging, so they need not wait
+        # while its files reach the disk; they wait only for the journal and the renames
+        fsync_tree(self.folder / "files")
+        self._synced = True
         with _readers_excluded(self.catalog._lock_root):
             self.prepare()
             self.apply()

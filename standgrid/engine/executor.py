@@ -35,10 +35,11 @@ class Executor(Protocol):
 
 
 def run_limited(func: Callable[[T], R], item: T) -> R:
-    """``func(item)`` with BLAS/OpenMP pools limited to one thread (one task per core)."""
-    from threadpoolctl import threadpool_limits
+    """``func(item)`` with BLAS/OpenMP pools limited to one thread (one task per core; the
+    limit holds for the whole process while any thread runs a task)."""
+    from standgrid.engine.shared import ONE_THREAD_POOLS
 
-    with threadpool_limits(1):
+    with ONE_THREAD_POOLS.held():
         return func(item)
 
 

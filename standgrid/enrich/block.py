@@ -75,6 +75,7 @@ def enrich_block(points: ChunkPoints, context: BlockContext) -> BlockResult:
         cloth_resolution=options.cloth_resolution,
         rigidness=options.rigidness,
         source=chunk.cells[0].tile,
+        ring=points.ring_xyz,
     )
     ground, dtm, hag = terrain.ground, terrain.dtm, terrain.heights
     polygons = [c.polygon for c in (*chunk.cells, *chunk.neighbours)]

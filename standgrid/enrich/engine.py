@@ -9,6 +9,7 @@ and collects the rest, so one process and a cluster give the same result.
 
 from __future__ import annotations
 
+import functools
 from collections.abc import Iterator, Sequence
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any
@@ -16,6 +17,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 from numpy.typing import NDArray
 
+from standgrid.engine.executor import SerialExecutor, run_limited
 from standgrid.enrich.block import RASTERS, BlockContext, BlockResult, enrich_block, paste
 
 if TYPE_CHECKING:
@@ -40,8 +42,17 @@ class BlockJob:
 def run_block(job: BlockJob) -> BlockResult:
     """Read, enrich and rewrite one chunk's tiles (runs on a worker)."""
     from standgrid.catalog.chunks import read_chunk, write_chunk_tiles
+    from standgrid.enrich.terrain import ring_bin
 
-    points = read_chunk(job.root, job.chunk, job.lattice_origin, cache_bytes=job.cache_bytes)
+    grid = job.context.grid
+    points = read_chunk(
+        job.root,
+        job.chunk,
+        job.lattice_origin,
+        cache_bytes=job.cache_bytes,
+        ring_square=ring_bin(job.context.options.cloth_resolution),
+        ring_lattice=(grid.x0, grid.y0),
+    )
     result = enrich_block(points, job.context)
     write_chunk_tiles(
         points,
@@ -80,7 +91,14 @@ def apply_blocks(
     jobs: Sequence[BlockJob], executor: Executor, progress: Progress, desc: str
 ) -> Iterator[tuple[BlockJob, BlockResult]]:
     """Run every job; yield ``(job, result)`` in the jobs' order (results that finish early
-    wait, so merging is deterministic whatever the executor)."""
+    wait, so merging is deterministic whatever the executor). In this process, jobs run
+    :data:`~standgrid.engine.ordered.AHEAD` at once on threads (see :func:`chunks_at_once`)."""
+    from standgrid.engine.ordered import ordered_map
+
+    if isinstance(executor, SerialExecutor):
+        in_order = ordered_map(executor, functools.partial(run_limited, run_block), jobs)
+        yield from zip(jobs, progress.track(in_order, len(jobs), desc), strict=True)
+        return
     done: dict[int, BlockResult] = {}
     next_index = 0
     results = progress.track(executor.map(run_block, jobs), len(jobs), desc)
@@ -90,3 +108,9 @@ def apply_blocks(
             yield jobs[next_index], done.pop(next_index)
             next_index += 1
 
+
+def chunks_at_once(executor: Executor) -> int:
+    """How many chunks one process holds at once: each gets that share of the budget."""
+    from standgrid.engine.ordered import AHEAD
+
+    return AHEAD if isinstance(executor, SerialExecutor) else 1

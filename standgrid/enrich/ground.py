@@ -12,12 +12,13 @@ import contextlib
 import functools
 import os
 import sys
-from collections.abc import Iterator
+from collections.abc import Callable
 from typing import Any
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
+from standgrid.engine.shared import ProcessWide
 from standgrid.errors import EnrichError
 from standgrid.pointcloud import PointCloud
 
@@ -38,37 +39,42 @@ def as_xyz(points: PointsLike) -> NDArray[np.float64]:
 
 def one_thread(user_api: str) -> contextlib.AbstractContextManager[Any]:
     """Limit the ``user_api`` ("openmp" or "blas") thread pools to one thread for the
-    duration. The libraries are looked up once per process and API (that costs
-    milliseconds per lookup): call it after importing the library it should limit."""
-    return _thread_pools(user_api).limit(limits=1, user_api=user_api)
+    duration, for every thread of the process (held until the last concurrent user leaves).
+    The libraries are looked up once per process and API (that costs milliseconds per
+    lookup): call it after importing the library it should limit."""
+    return _one_thread(user_api).held()
 
 
 @functools.cache
-def _thread_pools(user_api: str) -> Any:
+def _one_thread(user_api: str) -> ProcessWide:
     from threadpoolctl import ThreadpoolController
 
-    return ThreadpoolController().select(user_api=user_api)
+    pools = ThreadpoolController().select(user_api=user_api)
+    return ProcessWide(lambda: pools.limit(limits=1, user_api=user_api).restore_original_limits)
 
 
-@contextlib.contextmanager
-def _quiet_stdout() -> Iterator[None]:
-    """Send C-level writes to file descriptor 1 to /dev/null for the duration (CSF prints)."""
+def _silence_stdout() -> Callable[[], None]:
+    """Send C-level writes to file descriptor 1 to /dev/null; returns the undo."""
     sys.stdout.flush()
     try:
         saved = os.dup(1)
     except OSError:  # no fd 1 (embedded interpreter): nothing to silence
-        yield
-        return
+        return lambda: None
     devnull = os.open(os.devnull, os.O_WRONLY)
-    try:
-        os.dup2(devnull, 1)
-        yield
-    finally:
+    os.dup2(devnull, 1)
+
+    def undo() -> None:
         with contextlib.suppress(Exception):
             sys.stdout.flush()
         os.dup2(saved, 1)
         os.close(saved)
         os.close(devnull)
+
+    return undo
+
+
+#: C-level standard output silenced while any thread runs CSF (it prints).
+_QUIET_STDOUT = ProcessWide(_silence_stdout)
 
 
 def classify_ground(
@@ -116,7 +122,7 @@ def classify_ground(
     ground, off_ground = CSF.VecInt(), CSF.VecInt()
     # One OpenMP thread: CSF's parallel cloth update is not deterministic (the same points
     # get different labels from run to run with two threads).
-    with _quiet_stdout(), one_thread("openmp"):
+    with _QUIET_STDOUT.held(), one_thread("openmp"):
         csf.do_filtering(ground, off_ground, False)  # False: do not write cloth_nodes.txt
     if len(ground) + len(off_ground) != len(xyz):
         raise EnrichError(

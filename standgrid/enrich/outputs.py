@@ -62,7 +62,9 @@ def tree_table(frames: list[pd.DataFrame], epoch: str) -> pd.DataFrame:
     import pandas as pd
 
     table = pd.concat(frames, ignore_index=True) if frames else pd.DataFrame()
-    if "tree_id" in table.columns:  # a top on a shared Voronoi edge: the first cell keeps it
+    if "tree_id" in table.columns:  # by cell, then tree: the same rows whatever the chunks
+        table = table.sort_values(["cell_id", "tree_id"], kind="stable")
+        # a top on a shared Voronoi edge: the first cell keeps it
         table = table.drop_duplicates("tree_id").reset_index(drop=True)
     table.insert(2 if "stand_id" in table.columns else 1, "epoch", epoch)
     return table

@@ -138,11 +138,16 @@ class RasterGrid:
         return row
 
 
-def dtm_from_ground(ground: PointsLike, grid: RasterGrid) -> NDArray[np.float32]:
+def dtm_from_ground(
+    ground: PointsLike, grid: RasterGrid, *, max_edge: float | None = None
+) -> NDArray[np.float32]:
     """Digital terrain model: Delaunay (TIN) linear interpolation of the ground points at pixel
-    centres, nearest ground point outside their convex hull."""
+    centres, nearest ground point outside their convex hull and, given ``max_edge`` (m, as
+    lidR's ``tin(max_edge=)``), inside triangles with a longer edge: a pixel's value then
+    depends only on the ground within ``max_edge`` of it (or, past that, on the nearest),
+    not on how far the survey's hull reaches."""
     from scipy.interpolate import LinearNDInterpolator
-    from scipy.spatial import QhullError, cKDTree
+    from scipy.spatial import Delaunay, QhullError, cKDTree
 
     xyz = as_xyz(ground)
     if len(xyz) == 0:
@@ -155,12 +160,24 @@ def dtm_from_ground(ground: PointsLike, grid: RasterGrid) -> NDArray[np.float32]
         # one BLAS thread: the triangles' barycentric transforms are thousands of 2x2
         # LAPACK calls, each 10x slower when it wakes a thread pool on shared cores
         with contextlib.suppress(QhullError), one_thread("blas"):  # collinear: nearest below
-            values = LinearNDInterpolator(local, xyz[:, 2])(query)
+            tin = Delaunay(local)
+            values = LinearNDInterpolator(tin, xyz[:, 2])(query)
+            if max_edge is not None:
+                values[_in_long_triangles(tin, query, max_edge)] = np.nan
     missing = ~np.isfinite(values)
     if missing.any():
         _, nearest = cKDTree(local).query(query[missing])
         values[missing] = xyz[nearest, 2]
     return values.reshape(grid.shape).astype(np.float32)
+
+
+def _in_long_triangles(tin: Any, query: NDArray[np.float64], max_edge: float) -> NDArray[np.bool_]:
+    """Which ``query`` points fall in a triangle of ``tin`` with an edge over ``max_edge``."""
+    corners = tin.points[tin.simplices]  # (triangles, 3, 2)
+    edges = corners - np.roll(corners, 1, axis=1)
+    long = ((edges**2).sum(axis=2) > max_edge**2).any(axis=1)
+    simplex = tin.find_simplex(query)
+    return (simplex >= 0) & long[np.maximum(simplex, 0)]
 
 
 def height_above_ground(

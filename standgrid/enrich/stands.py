@@ -305,7 +305,8 @@ class StandAggregator:
         size = self.stand_size or 0.0  # complete stands exist only with a stand size
         done = []
         for stand_id in complete:
-            members = self._members.pop(stand_id)
+            # in id order, not arrival order: a stand's sums are the same whatever the chunks
+            members = sorted(self._members.pop(stand_id), key=lambda m: m.stand_id)
             done.append(aggregate(stand_id, size, size * size, members))
             for member in members:
                 member.release_heights()  # the stand holds a copy

@@ -48,24 +48,37 @@ def classify_terrain(
     cloth_resolution: float = 0.5,
     rigidness: int = 1,
     source: str | None = None,
+    ring: NDArray[np.float64] | None = None,
 ) -> Terrain:
     """Ground, terrain model and heights of ``xyz`` (all inside ``window``); bins and CSF
-    squares sit on ``lattice`` (the same for every block, so blocks agree)."""
-    lowest = _lowest(xyz, cloth_resolution / 2, lattice)
-    cloth = lowest[_classify(xyz[lowest], lattice, cloth_resolution, rigidness, source)]
+    squares sit on ``lattice`` (the same for every block, so blocks agree). ``ring`` holds
+    the lowest point of each bin (:func:`ring_bin`) around the block out to
+    :func:`ground_reach` of it: the ground squares the block touches then see all they
+    would in the whole epoch."""
+    candidates = xyz[_lowest(xyz, ring_bin(cloth_resolution), lattice)]
+    in_block = len(candidates)
+    if ring is not None and len(ring):
+        candidates = np.concatenate([candidates, ring])
+    ground = _classify(candidates, lattice, cloth_resolution, rigidness, source, in_block)
+    cloth = candidates[ground]
+    # one order for the triangulation, whichever block (and rows) the ground came from
+    cloth = cloth[np.lexsort((cloth[:, 2], cloth[:, 1], cloth[:, 0]))]
     if len(cloth) == 0:
         return Terrain(
             np.zeros(len(xyz), dtype=bool),
             np.full(window.shape, np.nan, dtype=np.float32),
             np.full(len(xyz), np.nan, dtype=np.float32),
         )
-    dtm = _dtm(xyz[cloth], window, lattice)
+    dtm = _dtm(cloth, window, lattice)
     heights = height_above_ground(xyz, dtm, window)
     return Terrain(np.abs(heights) <= CLASS_THRESHOLD_M, dtm, heights)
 
 
-#: Ground points this far outside a DTM window still shape its triangulation (m).
-DTM_MARGIN_M = 3.0
+#: The terrain model's triangles are at most this long (m; a pixel in a longer one takes the
+#: nearest ground point's height, as outside the ground's hull), and ground points this far
+#: outside a DTM window still shape it: so a pixel's height depends on the ground within
+#: this of it, whichever block computes it.
+DTM_MARGIN_M = 10.0
 #: A return this close to the terrain (m) is ground (CSF's class threshold).
 CLASS_THRESHOLD_M = 0.5
 #: Ground is classified in squares of this side (m, a stand cell), on the lattice ...
@@ -74,16 +87,38 @@ GROUND_SQUARE_M = 20.0
 GROUND_HALO_M = 10.0
 
 
+def ring_bin(cloth_resolution: float) -> float:
+    """The side of the bins whose lowest point CSF sees (a quarter cloth cell)."""
+    return cloth_resolution / 2
+
+
+def ground_reach(
+    bounds: tuple[float, float, float, float], lattice: tuple[float, float]
+) -> tuple[float, float, float, float]:
+    """The extent whose lowest points decide the ground of a block over ``bounds``: every
+    ground square the block touches, with its halo. A block that sees it classifies its
+    squares as the whole epoch would, so its terrain model (whose triangles at the block's
+    edge reach into the next squares) is the whole epoch's up to the block's edge."""
+    size, halo = GROUND_SQUARE_M, GROUND_HALO_M
+    x0 = lattice[0] + math.floor((bounds[0] - lattice[0]) / size) * size
+    y0 = lattice[1] + math.floor((bounds[1] - lattice[1]) / size) * size
+    x1 = lattice[0] + math.ceil((bounds[2] - lattice[0]) / size) * size
+    y1 = lattice[1] + math.ceil((bounds[3] - lattice[1]) / size) * size
+    return x0 - halo, y0 - halo, x1 + halo, y1 + halo
+
+
 def _classify(
     xyz: NDArray[np.float64],
     lattice: tuple[float, float],
     cloth_resolution: float,
     rigidness: int,
     source: str | None,
+    in_block: int | None = None,
 ) -> NDArray[np.bool_]:
     """Ground mask, CSF square by square (:data:`GROUND_SQUARE_M` on ``lattice``, seen with
     :data:`GROUND_HALO_M` around it): the same extent for every square, so the cloth's edge
-    effects do not depend on how much of the survey a block holds."""
+    effects do not depend on how much of the survey a block holds. Only the squares of the
+    first ``in_block`` points (default: all) are classified; the rest are only seen."""
     ground = np.zeros(len(xyz), dtype=bool)
     if len(xyz) < 3:
         return ground
@@ -95,7 +130,8 @@ def _classify(
     kx = _lattice_index(x, lattice[0], GROUND_SQUARE_M)
     ky = _lattice_index(y, lattice[1], GROUND_SQUARE_M)
     h = GROUND_HALO_M
-    for ix, iy in sorted(set(zip(kx.tolist(), ky.tolist(), strict=True))):
+    block = slice(None) if in_block is None else by_xyz < in_block
+    for ix, iy in sorted(set(zip(kx[block].tolist(), ky[block].tolist(), strict=True))):
         x0 = lattice[0] + ix * GROUND_SQUARE_M
         y0 = lattice[1] + iy * GROUND_SQUARE_M
         x1, y1 = x0 + GROUND_SQUARE_M, y0 + GROUND_SQUARE_M
@@ -174,7 +210,7 @@ def _dtm(
     x, y = ground[:, 0], ground[:, 1]
     near = (x >= xmin - m) & (x <= xmax + m) & (y >= ymin - m) & (y <= ymax + m)
     chosen = ground[near] if near.sum() >= 3 else ground
-    return dtm_from_ground(thin(chosen, window.pixel_size / 2, lattice), window)
+    return dtm_from_ground(thin(chosen, window.pixel_size / 2, lattice), window, max_edge=m)
 
 
 def thin(

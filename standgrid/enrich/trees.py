@@ -143,8 +143,11 @@ def segment_trees(
     # 1. CHM on a lattice aligned to multiples of the pixel size (same pixels in every block)
     canopy_xyz = xyz[canopy]
     cx, cy = canopy_xyz[:, 0], canopy_xyz[:, 1]
+    # with room for the sub-circles and the smoothing around the outermost points: a crown
+    # at the data's edge is not clipped by a raster that ends where one block's points end
+    margin = CHM_SUBCIRCLE_M + 2 * pixel_size
     grid = RasterGrid.covering(
-        (cx.min(), cy.min(), cx.max(), cy.max()),
+        (cx.min() - margin, cy.min() - margin, cx.max() + margin, cy.max() + margin),
         origin=(0.0, 0.0),
         cell_size=pixel_size,
         pixel_size=pixel_size,
@@ -633,13 +636,14 @@ def fit_stems(
     order = np.argsort(comp, kind="stable")
     bounds = np.concatenate([[0], np.cumsum(sizes)])
     # RANSAC samples by index: each cluster's points in a canonical order, so a fit does not
-    # depend on the order the tile stores them in
-    clusters = [
-        local[order[bounds[c] : bounds[c + 1]]] for c in np.flatnonzero(sizes >= min_points)
-    ]
+    # depend on the order the tile stores them in; and counted from the cluster's own corner,
+    # so its arithmetic does not depend on which other points the block holds
+    clusters = [xy[order[bounds[c] : bounds[c + 1]]] for c in np.flatnonzero(sizes >= min_points)]
     clusters = [members[np.lexsort(members.T[::-1])] for members in clusters]
+    corners = [members.min(axis=0) for members in clusters]
+    clusters = [members - corner for members, corner in zip(clusters, corners, strict=True)]
     fits = fit_circles(clusters, inlier_tolerance=inlier_tolerance)
-    for members, fit in zip(clusters, fits, strict=True):
+    for members, corner, fit in zip(clusters, corners, fits, strict=True):
         if fit is None:
             continue
         reason = None
@@ -657,15 +661,16 @@ def fit_stems(
             ring = max(0.03, 0.3 * fit.radius)
             on_stem = 0
             if above_tree is not None:
-                near = above_tree.query_ball_point([fit.x, fit.y], fit.radius + ring)
-                d = np.hypot(*(above[near] - origin - (fit.x, fit.y)).T) if near else []
+                centre = corner - origin + (fit.x, fit.y)
+                near = above_tree.query_ball_point(centre, fit.radius + ring)
+                d = np.hypot(*(above[near] - origin - centre).T) if near else []
                 on_stem = int(np.sum(np.abs(np.asarray(d) - fit.radius) <= ring))
             if on_stem < min_check_points:
                 reason = f"no stem at {check_height} m above the circle ({on_stem} points)"
         rows.append(
             {
-                "x": fit.x + origin[0],
-                "y": fit.y + origin[1],
+                "x": fit.x + corner[0],
+                "y": fit.y + corner[1],
                 "dbh_m": 2.0 * fit.radius,
                 "rmse_m": fit.rmse,
                 "n_points": len(members),

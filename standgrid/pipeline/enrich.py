@@ -17,6 +17,7 @@ metrics (all in one catalog transaction; the previous state stays intact on any 
 
 from __future__ import annotations
 
+import functools
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -163,10 +164,10 @@ def _enrich_epoch(
     from standgrid.catalog.partition import catalog_partition
     from standgrid.enrich.block import BlockContext
     from standgrid.enrich.coverage import Coverage, cells_mask
-    from standgrid.enrich.engine import BlockJob, EpochRasters, apply_blocks
+    from standgrid.enrich.engine import BlockJob, EpochRasters, apply_blocks, chunks_at_once
     from standgrid.enrich.outputs import tree_table, write_coverage, write_raster
     from standgrid.enrich.rasters import RasterGrid
-    from standgrid.enrich.terrain import GROUND_HALO_M
+    from standgrid.enrich.terrain import GROUND_HALO_M, ground_reach
 
     partition = catalog_partition(catalog, epoch, coverage=False)
     cells = _epoch_cells(catalog, epoch, partition)
@@ -191,10 +192,13 @@ def _enrich_epoch(
         2 * options.coverage_closing_m + 2 * grid.pixel_size,
         GROUND_HALO_M,
     )
-    # 7/8 of the budget for a chunk's block, 1/8 for the tiles kept for later chunks
+    # 7/8 of the budget for the chunks a process holds at once, 1/8 for the tiles kept for
+    # later chunks
     budget = options.memory_budget
-    side = chunk_side(cells, cell_size, halo, budget.bytes * 7 // 8 // BYTES_PER_POINT)
-    chunks = plan_chunks(cells, side=side, origin=origin, buffer=halo)
+    block_points = budget.bytes * 7 // 8 // chunks_at_once(executor) // BYTES_PER_POINT
+    side = chunk_side(cells, cell_size, halo, block_points)
+    reach = functools.partial(ground_reach, lattice=(grid.x0, grid.y0))
+    chunks = plan_chunks(cells, side=side, origin=origin, buffer=halo, reach=reach)
     size = partition.cell_size(cells[0].cell_id)
     context = BlockContext(grid, options, half_open=partition.half_open, cell_size=size)
     jobs = [

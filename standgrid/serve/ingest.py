@@ -12,6 +12,7 @@ request becomes a folder name only after :func:`check_name`.
 
 from __future__ import annotations
 
+import asyncio
 import datetime as dt
 import re
 from pathlib import Path
@@ -74,10 +75,19 @@ def _live(request: Request, name: str) -> Any:
     return LiveMission(root / check_name(name))
 
 
+def _turn(request: Request, live: Any) -> asyncio.Lock:
+    """The mission's turn in this server: its writes and its tiling, one at a time. A write
+    waits here, not in the writer process, while its mission tiles (the tiling holds the
+    folder), so the writes of other missions pass."""
+    turns: dict[str, asyncio.Lock] = request.app.state.mission_turns
+    return turns.setdefault(live.path.name, asyncio.Lock())
+
+
 async def _write(request: Request, live: Any, method: str, *args: Any) -> Any:
-    """``live.<method>(*args)`` in the mission folders' worker process."""
+    """``live.<method>(*args)`` in the mission folders' worker process, in the mission's turn."""
     writer: WorkerProcess = request.app.state.mission_writer
-    return await writer.call(live_mission, str(live.path.absolute()), method, *args)
+    async with _turn(request, live):
+        return await writer.call(live_mission, str(live.path.absolute()), method, *args)
 
 
 def _answer(outcome: str, status_created: int = 201, **extra: Any) -> JSONResponse:
@@ -190,4 +200,6 @@ async def tile(request: Request, name: str) -> JSONResponse:
     if record is not None and record.path and Path(record.path) != live.path.absolute():
         raise Problem(409, f"the catalog holds a mission {name!r} tiled from another folder")
     tiler: WorkerProcess = request.app.state.tiler
-    return JSONResponse(await tiler.call(tile_mission, str(live.path.absolute()), str(root)))
+    async with _turn(request, live):
+        report = await tiler.call(tile_mission, str(live.path.absolute()), str(root))
+    return JSONResponse(report)

@@ -17,6 +17,7 @@ from standgrid.errors import (
     CatalogBusyError,
     CatalogConflictError,
     EpochNotFoundError,
+    NotGeoreferencedError,
     OutputExistsError,
     PayloadNotFoundError,
     StandgridError,
@@ -46,7 +47,8 @@ def status_of(exc: StandgridError) -> int:
         return exc.status
     if isinstance(exc, CatalogBusyError):
         return 503
-    if isinstance(exc, LiveMissionConflictError | CatalogConflictError | OutputExistsError):
+    conflicts = LiveMissionConflictError | CatalogConflictError | OutputExistsError
+    if isinstance(exc, conflicts | NotGeoreferencedError):  # (not yet: send GNSS first)
         return 409
     if isinstance(exc, EpochNotFoundError | PayloadNotFoundError | LookupError | FileNotFoundError):
         return 404
@@ -102,9 +104,7 @@ def install(app: Any) -> None:
         headers = exc.headers if isinstance(exc, Problem) else None
         # Library errors name server paths: clients get the message, not the file.
         detail = exc.detail if isinstance(exc, Problem) else f"{type(exc).__name__}: {exc.message}"
-        return problem_response(
-            status, detail, instance=request.url.path, headers=headers, **extra
-        )
+        return problem_response(status, detail, instance=request.url.path, headers=headers, **extra)
 
     async def http_error(request: Request, exc: Exception) -> Any:
         assert isinstance(exc, HTTPException)

@@ -80,9 +80,11 @@ def measure_enrich(catalog: Path, workers: int, memory_mb: int) -> dict[str, Any
     # a cluster is started before the clock (as bench_tile does; its start-up is printed apart)
     with open_executor(workers or None, memory_budget=options.memory_budget.bytes) as executor:
         started = time.perf_counter() - t0
+        cpu0 = _cpu_seconds() + _workers_cpu_seconds(executor)
         t1 = time.perf_counter()
         report = enrich_catalog(catalog, options, executor=executor)
         seconds = time.perf_counter() - t1
+        cpu = _cpu_seconds() + _workers_cpu_seconds(executor) - cpu0
     epoch = next(iter(report.epochs.values()))
     return {
         "seconds": seconds,
@@ -91,8 +93,20 @@ def measure_enrich(catalog: Path, workers: int, memory_mb: int) -> dict[str, Any
         "cells": epoch["cells"],
         "chunks": epoch["chunks"],
         "trees": epoch["trees"],
-        "cpu_seconds": resource.getrusage(resource.RUSAGE_SELF).ru_utime,
+        "cpu_seconds": cpu,
     }
+
+
+def _cpu_seconds() -> float:
+    """User + system CPU time of this process, every thread."""
+    usage = resource.getrusage(resource.RUSAGE_SELF)
+    return usage.ru_utime + usage.ru_stime
+
+
+def _workers_cpu_seconds(executor: Any) -> float:
+    """The same, summed over a cluster's worker processes (0 without a cluster)."""
+    client = getattr(executor, "client", None)
+    return sum(client.run(_cpu_seconds).values()) if client is not None else 0.0
 
 
 def _child(args: list[str]) -> None:
@@ -168,7 +182,9 @@ def main() -> None:
             f"enrich ({where}): {result['points']:,} points, {result['cells']} cells in "
             f"{result['chunks']} chunks, {result['trees']} trees: {result['seconds']:.1f} s, "
             f"{pps / 1e6:.2f} M points/s, ratio to baseline {pps / base_pps:.2f} "
-            f"(target >= 0.3 in one process), client peak {result['peak_mb']:.0f} MB"
+            f"(target >= 0.3 in one process); CPU {result['cpu_seconds']:.1f} s = "
+            f"{result['points'] / result['cpu_seconds'] / 1e6:.2f} M points per CPU-second "
+            f"(target >= 1 per core), client peak {result['peak_mb']:.0f} MB"
             + (f"; cluster started in {result['cluster_start_seconds']:.1f} s" if workers else "")
         )
     if 1 in by_workers and 2 in by_workers:

@@ -5,14 +5,21 @@ from __future__ import annotations
 import os
 import threading
 
+import pytest
 from threadpoolctl import threadpool_info
 
-from standgrid.engine.shared import ONE_THREAD_POOLS, ProcessWide
+from standgrid.engine.executor import run_limited
+from standgrid.engine.shared import ONE_THREAD_BLAS, ProcessWide
 from standgrid.enrich.ground import _QUIET_STDOUT
 
 
 def _blas_threads() -> list[int]:
     return [p["num_threads"] for p in threadpool_info() if p["user_api"] == "blas"]
+
+
+def _openmp_threads(_: object = None) -> list[int]:
+    """The OpenMP thread count the calling thread would use (libgomp keeps it per thread)."""
+    return [p["num_threads"] for p in threadpool_info() if p["user_api"] == "openmp"]
 
 
 def test_overlapping_users_keep_the_setting_until_the_last_leaves() -> None:
@@ -55,7 +62,7 @@ def test_pool_limit_and_quiet_stdout_are_restored_after_concurrent_use() -> None
     inside: list[list[int]] = []
 
     def task() -> None:
-        with ONE_THREAD_POOLS.held(), _QUIET_STDOUT.held():
+        with ONE_THREAD_BLAS.held(), _QUIET_STDOUT.held():
             barrier.wait(5)
             inside.append(_blas_threads())
             barrier.wait(5)
@@ -69,3 +76,37 @@ def test_pool_limit_and_quiet_stdout_are_restored_after_concurrent_use() -> None
     assert _blas_threads() == before_blas
     after_fd = os.fstat(1)
     assert (after_fd.st_dev, after_fd.st_ino) == (before_fd.st_dev, before_fd.st_ino)
+
+
+def test_every_concurrent_task_thread_runs_openmp_on_one_thread() -> None:
+    """CSF's cloth is not deterministic on two OpenMP threads: a second task thread, entering
+    while the first is inside, must be limited too (libgomp's limit is per thread)."""
+    pytest.importorskip("CSF")  # loads the OpenMP runtime CSF uses
+    from standgrid.enrich.ground import one_thread
+
+    if not _openmp_threads():
+        pytest.skip("no OpenMP runtime loaded")
+    first_in, second_done = threading.Event(), threading.Event()
+    seen: dict[str, list[int]] = {}
+
+    def first() -> None:
+        def hold(_: object) -> None:
+            first_in.set()
+            second_done.wait(10)
+
+        run_limited(hold, None)
+
+    def second() -> None:
+        first_in.wait(10)
+        seen["run_limited"] = run_limited(_openmp_threads, None)
+        with one_thread("openmp"):
+            seen["one_thread"] = _openmp_threads()
+        second_done.set()
+
+    threads = [threading.Thread(target=first), threading.Thread(target=second)]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join(20)
+    assert seen["run_limited"] and set(seen["run_limited"]) == {1}
+    assert set(seen["one_thread"]) == {1}

@@ -354,7 +354,8 @@ def test_a_mission_tiling_does_not_hold_up_another_missions_writes(tmp_path: Pat
     source = open_mission(SOURCE, strict=False)
     first = source.payloads[0]
     stamp = {"stamp": f"{first.stamp.sec}_{first.stamp.nsec:09d}", "format": "pcd"}
-    with running(create_app(catalog, token=TOKEN, missions=missions)) as server:
+    app = create_app(catalog, token=TOKEN, missions=missions)
+    with running(app) as server:
         url = f"{server.base_url}/missions"
         assert httpx.post(url, json=_metadata(), headers=AUTH).status_code == 201
         graph = (SOURCE / "slam_pose_graph.g2o").read_bytes()
@@ -389,6 +390,7 @@ def test_a_mission_tiling_does_not_hold_up_another_missions_writes(tmp_path: Pat
             assert created.status_code == 201, created.text
             assert not tiling.done() and not resent.done()  # A still waits for the catalog
         assert tiling.result().status_code == 200, tiling.result().text
+        assert app.state.mission_turns == {}  # turns nobody holds are dropped
         assert resent.result().status_code == 200 and resent.result().json()["outcome"] == (
             "unchanged"
         )

@@ -188,8 +188,10 @@ def read_chunk(
     coordinates stay in this process's cache (up to ``cache_bytes``) for later chunks.
     Given ``ring_square``, also the lowest point of each such square (on ``ring_lattice``)
     in the ring out to ``chunk.reach_bounds``."""
-    _CORES.resize(cache_bytes // CACHED_BYTES_PER_POINT)
-    _LOWEST.resize(cache_bytes // 10 // CACHED_BYTES_PER_POINT)
+    # 3/4 of the cache for neighbours' coordinates, 1/4 for tiles' lowest points (about 1/20
+    # of a tile's points: the whole epoch's fit, for the chunks' rings)
+    _CORES.resize(cache_bytes * 3 // 4 // CACHED_BYTES_PER_POINT)
+    _LOWEST.resize(cache_bytes // 4 // CACHED_BYTES_PER_POINT)
     from standgrid.export.las import read_tile_record, snap_to_storage
 
     tiles, parts, rows, start = [], [], [], 0
@@ -211,28 +213,35 @@ def read_chunk(
         x, y = xyz[:, 0], xyz[:, 1]
         parts.append(xyz[(x >= xmin) & (x < xmax) & (y >= ymin) & (y < ymax)])
     if ring_square is not None and chunk.reach_bounds is not None:
+        squares = (ring_square, *ring_lattice)
+        neighbours = {c.cell_id for c in chunk.neighbours}
         for cell in (*chunk.neighbours, *chunk.far):
             path = Path(root) / cell.tile
-            lowest = _LOWEST.get(path, ring_square)
-            if lowest is None:
-                # the squares are on the lattice, inside a tile: its lowest are the epoch's
-                xyz = _neighbour_xyz(path, lattice_origin)
+            lowest = _LOWEST.get(path, squares)
+            if lowest is None:  # (a far tile's coordinates are not kept: only its lowest)
+                xyz = _neighbour_xyz(path, lattice_origin, keep=cell.cell_id in neighbours)
                 lowest = xyz[lowest_in_squares(xyz, ring_square, ring_lattice)]
-                _LOWEST.put(path, lowest, ring_square)
+                _LOWEST.put(path, lowest, squares)
+            # (a square cut by the tile's edge has a lowest point in each tile: the block's
+            # ground classification keeps the lowest of them)
             ring.append(_in_ring(lowest, chunk.buffered_bounds, chunk.reach_bounds))
     xyz = np.concatenate(parts) if parts else np.zeros((0, 3))
     ring_xyz = np.concatenate(ring) if ring else np.zeros((0, 3))
     return ChunkPoints(chunk, xyz, rows, tiles, ring_xyz)
 
 
-def _neighbour_xyz(path: Path, lattice_origin: tuple[float, float]) -> NDArray[np.float64]:
-    """A neighbour tile's core coordinates, from this process's cache or decoded."""
+def _neighbour_xyz(
+    path: Path, lattice_origin: tuple[float, float], *, keep: bool = True
+) -> NDArray[np.float64]:
+    """A tile's core coordinates, from this process's cache or decoded (and cached when
+    ``keep``)."""
     from standgrid.export.las import snap_to_storage
 
     xyz = _CORES.get(path)
     if xyz is None:
         xyz = snap_to_storage(_core_xyz(path), lattice_origin)
-        _CORES.put(path, xyz)
+        if keep:
+            _CORES.put(path, xyz)
     return xyz
 
 
@@ -260,11 +269,11 @@ class _CoreCache:
         self._lock = threading.Lock()  # a dask worker may run tasks on several threads
 
     @staticmethod
-    def _key(path: Path, tag: float) -> tuple[Any, ...]:
+    def _key(path: Path, tag: Any) -> tuple[Any, ...]:
         st = path.stat()
         return (str(path), st.st_ino, st.st_size, st.st_mtime_ns, tag)
 
-    def get(self, path: Path, tag: float = 0.0) -> NDArray[np.float64] | None:
+    def get(self, path: Path, tag: Any = None) -> NDArray[np.float64] | None:
         key = self._key(path, tag)
         with self._lock:
             found = self._items.get(key)
@@ -272,7 +281,7 @@ class _CoreCache:
                 self._items.move_to_end(key)
         return found
 
-    def put(self, path: Path, xyz: NDArray[np.float64], tag: float = 0.0) -> None:
+    def put(self, path: Path, xyz: NDArray[np.float64], tag: Any = None) -> None:
         key = self._key(path, tag)
         with self._lock:
             if key not in self._items and len(xyz) <= self.max_points:
@@ -295,7 +304,7 @@ class _CoreCache:
 CACHED_BYTES_PER_POINT = 24
 #: This process's cache of tiles' core coordinates (sized by each read_chunk call) ...
 _CORES = _CoreCache(0)
-#: ... and of their lowest points per square (keyed by the square's side), a tenth of it.
+#: ... and of their lowest points per square (keyed by the squares' side and lattice).
 _LOWEST = _CoreCache(0)
 
 

@@ -649,6 +649,7 @@ class Transaction:
         target.parent.mkdir(parents=True, exist_ok=True)
         self._staged[rel] = target
         self._deletes.discard(rel)
+        self._synced = False  # a file staged now is not on the disk yet
         return target
 
     def current(self, relative: str | os.PathLike[str]) -> Path | None:

@@ -36,10 +36,11 @@ class Executor(Protocol):
 
 def run_limited(func: Callable[[T], R], item: T) -> R:
     """``func(item)`` with BLAS/OpenMP pools limited to one thread (one task per core; the
-    limit holds for the whole process while any thread runs a task)."""
-    from standgrid.engine.shared import ONE_THREAD_POOLS
+    BLAS limit holds for the whole process while any thread runs a task, the OpenMP one is
+    each thread's own)."""
+    from standgrid.engine.shared import ONE_THREAD_BLAS, openmp_one_thread
 
-    with ONE_THREAD_POOLS.held():
+    with ONE_THREAD_BLAS.held(), openmp_one_thread():
         return func(item)
 
 

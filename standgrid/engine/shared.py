@@ -1,7 +1,7 @@
 """Process-wide settings that concurrent threads share.
 
-A thread-pool limit (``threadpoolctl``) or a redirected file descriptor belongs to the whole
-process. Entered and left by two threads at once, each thread's exit restores the state the
+A BLAS thread-pool limit (``threadpoolctl``) or a redirected file descriptor belongs to the
+whole process. Entered and left by two threads at once, each thread's exit restores the state the
 other saved: a pool limit lifted while the other still computes (CSF's cloth is not
 deterministic on two OpenMP threads), standard output left on ``/dev/null`` for good.
 :class:`ProcessWide` enters the setting for the first of its concurrent users and restores
@@ -40,11 +40,23 @@ class ProcessWide:
                     undo()
 
 
-def _limit_all_pools() -> Callable[[], None]:
+def _limit_blas() -> Callable[[], None]:
     from threadpoolctl import threadpool_limits
 
-    return threadpool_limits(1).restore_original_limits
+    return threadpool_limits(1, user_api="blas").restore_original_limits
 
 
-#: BLAS and OpenMP pools of this process at one thread while any task runs.
-ONE_THREAD_POOLS = ProcessWide(_limit_all_pools)
+#: BLAS pools of this process at one thread while any task runs. (An OpenMP limit is the
+#: calling thread's own setting in libgomp: each thread limits its own, see
+#: :func:`openmp_one_thread`.)
+ONE_THREAD_BLAS = ProcessWide(_limit_blas)
+
+
+@contextlib.contextmanager
+def openmp_one_thread() -> Iterator[None]:
+    """This thread's OpenMP regions on one thread for the duration (libgomp keeps the
+    number per thread, so concurrent threads each limit their own and restore their own)."""
+    from threadpoolctl import threadpool_limits
+
+    with threadpool_limits(1, user_api="openmp"):
+        yield

@@ -12,17 +12,24 @@ import contextlib
 import functools
 import os
 import sys
+import threading
 from collections.abc import Callable
 from typing import Any
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from standgrid.engine.shared import ProcessWide
+from standgrid.engine.shared import ProcessWide, openmp_one_thread
 from standgrid.errors import EnrichError
 from standgrid.pointcloud import PointCloud
 
 PointsLike = NDArray[np.float64] | PointCloud | ArrayLike
+
+# CSF's bundled OpenMP runtime is initialised on its first import; its default busy-wait
+# barriers slow CSF down 5-20x when the cores are shared with other processes (measured on
+# a 2-core machine). Passive waiting costs little when the cores are free. Set once, here:
+# setting the environment while another thread reads it is not safe.
+os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 
 
 def as_xyz(points: PointsLike) -> NDArray[np.float64]:
@@ -39,18 +46,25 @@ def as_xyz(points: PointsLike) -> NDArray[np.float64]:
 
 def one_thread(user_api: str) -> contextlib.AbstractContextManager[Any]:
     """Limit the ``user_api`` ("openmp" or "blas") thread pools to one thread for the
-    duration, for every thread of the process (held until the last concurrent user leaves).
-    The libraries are looked up once per process and API (that costs milliseconds per
-    lookup): call it after importing the library it should limit."""
+    duration: BLAS for every thread of the process (held until the last concurrent user
+    leaves), OpenMP for the calling thread (libgomp keeps the setting per thread). The BLAS
+    libraries are looked up once per process (milliseconds per lookup): call it after
+    importing the library it should limit."""
+    if user_api == "openmp":
+        return openmp_one_thread()
     return _one_thread(user_api).held()
+
+
+_LOOKUP = threading.Lock()
 
 
 @functools.cache
 def _one_thread(user_api: str) -> ProcessWide:
     from threadpoolctl import ThreadpoolController
 
-    pools = ThreadpoolController().select(user_api=user_api)
-    return ProcessWide(lambda: pools.limit(limits=1, user_api=user_api).restore_original_limits)
+    with _LOOKUP:  # one instance per API, also when two threads ask first at once
+        pools = ThreadpoolController().select(user_api=user_api)
+        return ProcessWide(lambda: pools.limit(limits=1, user_api=user_api).restore_original_limits)
 
 
 def _silence_stdout() -> Callable[[], None]:
@@ -60,15 +74,26 @@ def _silence_stdout() -> Callable[[], None]:
         saved = os.dup(1)
     except OSError:  # no fd 1 (embedded interpreter): nothing to silence
         return lambda: None
-    devnull = os.open(os.devnull, os.O_WRONLY)
-    os.dup2(devnull, 1)
+    try:
+        devnull = os.open(os.devnull, os.O_WRONLY)
+    except OSError:
+        os.close(saved)
+        return lambda: None
+    try:
+        os.dup2(devnull, 1)
+    except OSError:
+        os.close(saved)
+        os.close(devnull)
+        return lambda: None
 
     def undo() -> None:
         with contextlib.suppress(Exception):
             sys.stdout.flush()
-        os.dup2(saved, 1)
-        os.close(saved)
-        os.close(devnull)
+        try:
+            os.dup2(saved, 1)
+        finally:
+            os.close(saved)
+            os.close(devnull)
 
     return undo
 
@@ -104,10 +129,6 @@ def classify_ground(
     xyz = as_xyz(points)
     if len(xyz) == 0:
         return np.zeros(0, dtype=bool)
-    # CSF's bundled OpenMP runtime is initialised on first import; its default busy-wait
-    # barriers slow CSF down 5-20x when the cores are shared with other processes (measured
-    # on a 2-core machine). Passive waiting costs little when the cores are free.
-    os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
     import CSF
 
     local = xyz - xyz.min(axis=0)  # a local origin keeps CSF's float arithmetic precise

@@ -55,11 +55,15 @@ def classify_terrain(
     the lowest point of each bin (:func:`ring_bin`) around the block out to
     :func:`ground_reach` of it: the ground squares the block touches then see all they
     would in the whole epoch."""
-    candidates = xyz[_lowest(xyz, ring_bin(cloth_resolution), lattice)]
-    in_block = len(candidates)
+    size = ring_bin(cloth_resolution)
+    candidates = xyz[_lowest(xyz, size, lattice)]
+    squares = _squares(candidates, lattice)  # the ground squares the block touches
     if ring is not None and len(ring):
-        candidates = np.concatenate([candidates, ring])
-    ground = _classify(candidates, lattice, cloth_resolution, rigidness, source, in_block)
+        # a bin cut by a tile's or the buffer's edge has a lowest point on each side (a
+        # Voronoi cell's edge cuts bins): the lowest of them is the epoch's
+        pool = np.concatenate([candidates, ring])
+        candidates = pool[_lowest(pool, size, lattice)]
+    ground = _classify(candidates, lattice, cloth_resolution, rigidness, source, squares)
     cloth = candidates[ground]
     # one order for the triangulation, whichever block (and rows) the ground came from
     cloth = cloth[np.lexsort((cloth[:, 2], cloth[:, 1], cloth[:, 0]))]
@@ -113,12 +117,12 @@ def _classify(
     cloth_resolution: float,
     rigidness: int,
     source: str | None,
-    in_block: int | None = None,
+    squares: set[tuple[int, int]] | None = None,
 ) -> NDArray[np.bool_]:
     """Ground mask, CSF square by square (:data:`GROUND_SQUARE_M` on ``lattice``, seen with
     :data:`GROUND_HALO_M` around it): the same extent for every square, so the cloth's edge
-    effects do not depend on how much of the survey a block holds. Only the squares of the
-    first ``in_block`` points (default: all) are classified; the rest are only seen."""
+    effects do not depend on how much of the survey a block holds. Only ``squares`` (default:
+    every square holding points) are classified; points elsewhere are only seen."""
     ground = np.zeros(len(xyz), dtype=bool)
     if len(xyz) < 3:
         return ground
@@ -130,8 +134,9 @@ def _classify(
     kx = _lattice_index(x, lattice[0], GROUND_SQUARE_M)
     ky = _lattice_index(y, lattice[1], GROUND_SQUARE_M)
     h = GROUND_HALO_M
-    block = slice(None) if in_block is None else by_xyz < in_block
-    for ix, iy in sorted(set(zip(kx[block].tolist(), ky[block].tolist(), strict=True))):
+    if squares is None:
+        squares = set(zip(kx.tolist(), ky.tolist(), strict=True))
+    for ix, iy in sorted(squares):
         x0 = lattice[0] + ix * GROUND_SQUARE_M
         y0 = lattice[1] + iy * GROUND_SQUARE_M
         x1, y1 = x0 + GROUND_SQUARE_M, y0 + GROUND_SQUARE_M
@@ -142,6 +147,13 @@ def _classify(
         mine = (kx[near] == ix) & (ky[near] == iy)
         ground[by_xyz[near[mine]]] = labels[mine]
     return ground
+
+
+def _squares(xyz: NDArray[np.float64], lattice: tuple[float, float]) -> set[tuple[int, int]]:
+    """The ground squares (:data:`GROUND_SQUARE_M` on ``lattice``) holding the points."""
+    kx = _lattice_index(xyz[:, 0], lattice[0], GROUND_SQUARE_M)
+    ky = _lattice_index(xyz[:, 1], lattice[1], GROUND_SQUARE_M)
+    return set(zip(kx.tolist(), ky.tolist(), strict=True))
 
 
 def _lattice_index(values: NDArray[np.float64], origin: float, size: float) -> NDArray[np.int64]:

@@ -70,7 +70,7 @@ def create_app(
     app.state.catalog_root = root
     for name, worker in workers.items():
         setattr(app.state, name, worker)
-    app.state.mission_turns = {}  # mission name -> asyncio.Lock (serve.ingest._turn)
+    app.state.mission_turns = {}  # mission name -> [lock, users] (serve.ingest._turn)
     default_missions = root.with_name(f"{root.name}-missions")
     app.state.missions_root = Path(missions).absolute() if missions else default_missions
     problems.install(app)

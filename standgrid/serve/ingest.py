@@ -13,8 +13,10 @@ request becomes a folder name only after :func:`check_name`.
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import datetime as dt
 import re
+from collections.abc import AsyncIterator
 from pathlib import Path
 from typing import Annotated, Any
 
@@ -75,12 +77,23 @@ def _live(request: Request, name: str) -> Any:
     return LiveMission(root / check_name(name))
 
 
-def _turn(request: Request, live: Any) -> asyncio.Lock:
+@contextlib.asynccontextmanager
+async def _turn(request: Request, live: Any) -> AsyncIterator[None]:
     """The mission's turn in this server: its writes and its tiling, one at a time. A write
     waits here, not in the writer process, while its mission tiles (the tiling holds the
-    folder), so the writes of other missions pass."""
-    turns: dict[str, asyncio.Lock] = request.app.state.mission_turns
-    return turns.setdefault(live.path.name, asyncio.Lock())
+    folder), so the writes of other missions pass. A turn nobody holds or waits for is
+    dropped (names from the outside do not pile up)."""
+    turns: dict[str, list[Any]] = request.app.state.mission_turns
+    name = live.path.name
+    turn = turns.setdefault(name, [asyncio.Lock(), 0])
+    turn[1] += 1
+    try:
+        async with turn[0]:
+            yield
+    finally:
+        turn[1] -= 1
+        if turn[1] == 0:
+            del turns[name]
 
 
 async def _write(request: Request, live: Any, method: str, *args: Any) -> Any:

@@ -17,6 +17,7 @@ from standgrid.errors import (
     CatalogBusyError,
     CatalogConflictError,
     EpochNotFoundError,
+    InsufficientGnssError,
     NotGeoreferencedError,
     OutputExistsError,
     PayloadNotFoundError,
@@ -48,8 +49,8 @@ def status_of(exc: StandgridError) -> int:
     if isinstance(exc, CatalogBusyError):
         return 503
     conflicts = LiveMissionConflictError | CatalogConflictError | OutputExistsError
-    if isinstance(exc, conflicts | NotGeoreferencedError):  # (not yet: send GNSS first)
-        return 409
+    if isinstance(exc, conflicts | NotGeoreferencedError | InsufficientGnssError):
+        return 409  # (the last two: not yet, send GNSS fixes first)
     if isinstance(exc, EpochNotFoundError | PayloadNotFoundError | LookupError | FileNotFoundError):
         return 404
     if isinstance(exc, ValueError):

@@ -196,7 +196,7 @@ def test_the_kept_placement_is_within_its_offset_of_the_fresh_fit_for_every_poin
     # what the tolerance costs against the truth: at most the offset on top of the fit's own
     # error (the georeference alone; the SLAM drift is the same under both)
     assert kept_error <= fresh_error + TOLERANCE and kept_error < 0.1  # fresh: ~3 cm here
-    assert placement["offset_m"] - largest < 0.005  # corners of boxes, not of the points
+    assert placement["offset_m"] - largest < 0.005  # corners of cell boxes, not the points
     # the kept catalog's payloads sit within the offset (+ the 1 mm lattice and affine) of
     # where the exact settle put them
     means, settled = stream["streamed"]["means"], _payload_means(stream["catalog"])

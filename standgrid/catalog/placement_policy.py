@@ -14,17 +14,16 @@ fit is used and the whole epoch re-tiles, as without one. Either way the choice 
 ``placement_offset_m``): coordinates are never off the fresh fit silently.
 
 The points bounded: a payload already in the catalog whose source is unchanged (its
-``source_digest`` under the kept placement) lies in its stored footprint (the convex hull
-of its points in the catalog CRS) between the lowest and highest point of the cells holding
-the mission; that prism's corners, taken back to the map frame through the kept placement,
-and the eight corners of the base-frame box of every other payload (read: it is new or
-changed, and is read again to be tiled), through its node pose, and the trajectory's nodes.
+``source_digest`` under the kept placement) has its points in the cells holding the mission,
+each cell's square between its lowest and highest point (the ``cells`` layer): those boxes'
+corners, taken back to the map frame through the kept placement (exactly: pyproj's inverse);
+the eight corners of the base-frame box of every other payload (new or changed: read, as it
+is read again to be tiled) through its node pose; and the trajectory's nodes. (The stored
+footprints are not used: they are hulls of at most 20,000 points of a payload.)
 """
 
 from __future__ import annotations
 
-import contextlib
-import math
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any
 
@@ -156,34 +155,25 @@ def _mission_points(
     graph = mission.graph
     if graph is not None and len(graph):
         corners.append(np.asarray(graph.positions, dtype=np.float64))
-    prism = _stored_prism(mission.name, mine, cells, kept_ids)
-    if len(prism):
-        assert held.fit is not None
-        corners.append(to_catalog.projector.to_map(prism))
+    if kept_ids:  # their points are in the catalog's cells, placed by ``held``
+        corners.append(to_catalog.projector.to_map(_stored_boxes(mission.name, cells)))
     return np.concatenate(corners) if corners else np.zeros((0, 3))
 
 
-def _stored_prism(
-    name: str, mine: pd.DataFrame, cells: pd.DataFrame, kept_ids: set[int]
-) -> NDArray[np.float64]:
-    """Catalog-CRS corners of the prism holding the points of the payloads ``kept_ids``:
-    the convex hull of their footprints, from the lowest to the highest point of the cells
-    holding the mission (empty when those payloads have no points)."""
+def _stored_boxes(name: str, cells: pd.DataFrame) -> NDArray[np.float64]:
+    """Catalog-CRS corners of the boxes holding the mission's points in the catalog: each
+    cell holding the mission, its square from its lowest to its highest point (a tile's
+    points lie in its cell: the partition put them there)."""
     import shapely
-    from scipy.spatial import ConvexHull, QhullError
 
-    rows = mine[mine["payload_id"].astype(np.int64).isin(kept_ids)]
-    rows = rows[rows["point_count"].astype(np.int64) > 0]
-    holding = cells["missions"].astype(str).map(lambda text: name in text.split(","))
-    if not len(rows) or not holding.any():
+    holding = cells[cells["missions"].astype(str).map(lambda text: name in text.split(","))]
+    if not len(holding):
         return np.zeros((0, 3))
-    xy = shapely.get_coordinates(np.asarray(rows["geometry"].values))
-    with contextlib.suppress(QhullError):  # collinear footprints: every point is a corner
-        xy = xy[ConvexHull(xy).vertices] if len(xy) > 3 else xy
-    z_low = float(cells["z_min"][holding].min())
-    z_high = float(cells["z_max"][holding].max())
-    if not (math.isfinite(z_low) and math.isfinite(z_high)):
+    low, high = holding["z_min"].to_numpy(np.float64), holding["z_max"].to_numpy(np.float64)
+    if not (np.isfinite(low).all() and np.isfinite(high).all()):
         from standgrid.errors import CatalogError
 
-        raise CatalogError(f"the cells of mission {name!r} have no finite height range")
-    return np.concatenate([np.column_stack([xy, np.full(len(xy), z)]) for z in (z_low, z_high)])
+        raise CatalogError(f"cells of mission {name!r} without a finite height range")
+    squares = np.asarray(holding["geometry"].values)
+    xy, which = shapely.get_coordinates(squares, return_index=True)
+    return np.concatenate([np.column_stack([xy, z[which]]) for z in (low, high)])

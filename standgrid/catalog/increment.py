@@ -40,8 +40,13 @@ if TYPE_CHECKING:
 
 
 def placement_digest(placement: dict[str, Any]) -> str:
-    """A mission placement's record (:meth:`Placement.record`), hashed once per mission."""
-    text = json.dumps(placement, sort_keys=True, default=str)
+    """What of a mission placement's record (:meth:`Placement.record`) its points depend on,
+    hashed once per mission: the transform ``T_enu_map`` about ``lla_ref`` of a fit, the
+    source CRS of projected clouds (exact floats). A fit's per-fix residuals are not in it:
+    a fix that arrives without moving the transform (or the transform a catalog keeps under
+    a placement tolerance, re-evaluated on more fixes) leaves the payloads unchanged."""
+    placed = {key: placement.get(key) for key in ("T_enu_map", "lla_ref", "source_crs")}
+    text = json.dumps(placed, sort_keys=True, default=str)
     return hashlib.blake2b(text.encode(), digest_size=16).hexdigest()
 
 

@@ -152,9 +152,17 @@ def metadata_extra(mission: Mission) -> dict[str, Any]:
 
 
 def mission_row(
-    mission: Mission, placement: Placement, number: int, epoch: str, date: str, catalog: Any
+    mission: Mission,
+    placement: Placement,
+    number: int,
+    epoch: str,
+    date: str,
+    catalog: Any,
+    *,
+    placement_offset_m: float = 0.0,
 ) -> dict[str, Any]:
-    """The mission's row of the ``missions`` layer."""
+    """The mission's row of the ``missions`` layer (``placement_offset_m``: how far the
+    placement used may put a point from the mission's fresh fit, 0 when it is that fit)."""
     from standgrid.georeference.placement import finite_or_none
 
     fit = placement.fit
@@ -172,6 +180,7 @@ def mission_row(
         "rmse_m": None if fit is None else finite_or_none(fit.rmse_m),
         "n_used": 0 if fit is None else int(fit.n_used),
         "n_rejected": 0 if fit is None else int(fit.n_rejected),
+        "placement_offset_m": float(placement_offset_m),
         "grid_fingerprint": catalog.fingerprint,
         "crs": catalog.crs,
     }

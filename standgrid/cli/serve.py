@@ -24,9 +24,16 @@ from standgrid.cli.options import json_option
               help="Folder for missions robots send (default: CATALOG-missions beside it).")
 @click.option("--max-body", type=click.IntRange(1), default=64 * 1024 * 1024,
               show_default=True, help="Largest request body accepted, in bytes.")
+# default: standgrid.serve.app.DEFAULT_PLACEMENT_TOLERANCE_M (not imported: --help stays instant)
+@click.option("--placement-tolerance", type=click.FloatRange(0), default=0.05,
+              show_default=True, metavar="METRES",
+              help="A streamed mission tiled again keeps its placement while a GNSS refit "
+                   "moves none of its points this far (in-place re-tiles; the offset is "
+                   "reported); 0: always the fresh fit. 'tile?exact=true' settles exactly.")
 @json_option
 def serve(catalog: Path, host: str, port: int, token_file: Path | None,
-          missions_folder: Path | None, max_body: int, as_json: bool) -> None:  # fmt: skip
+          missions_folder: Path | None, max_body: int, placement_tolerance: float,
+          as_json: bool) -> None:  # fmt: skip
     """Serve CATALOG over HTTP until Ctrl-C.
 
     \b
@@ -49,7 +56,8 @@ def serve(catalog: Path, host: str, port: int, token_file: Path | None,
     from standgrid.serve.server import Server, config, service_urls
 
     token = load_token(token_file)
-    app = create_app(catalog, token=token, max_body=max_body, missions=missions_folder)
+    app = create_app(catalog, token=token, max_body=max_body, missions=missions_folder,
+                     placement_tolerance=placement_tolerance or None)  # fmt: skip
 
     def started(base: str) -> None:
         urls = service_urls(base)

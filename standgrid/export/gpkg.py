@@ -15,7 +15,8 @@ Layers (all geometry in the catalog CRS; ``LAYER_COLUMNS`` lists the required co
 - ``gnss_fixes``: mission, stamp_sec, stamp_nsec, quality, residual_e, residual_n,
   residual_u, residual_h, inlier; projected Point.
 - ``missions``: mission, number, epoch, date, robot, place, unit, sensors, fit_method,
-  rmse_m, n_used, n_rejected, grid_fingerprint, crs; attribute table (or a point).
+  rmse_m, n_used, n_rejected, grid_fingerprint, crs (and placement_offset_m, see
+  docs/METRICS.md); attribute table (or a point).
 """
 
 from __future__ import annotations

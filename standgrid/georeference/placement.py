@@ -4,6 +4,8 @@
 mission's own georeference) and checks the fit's quality. :class:`ToCatalog` is the
 picklable recipe that brings one payload's points into the catalog CRS; it builds its
 pyproj objects where it runs (this process or a dask worker), once per process.
+:func:`held_placement` and :func:`placement_offset` let a catalog keep the placement it used
+when a refit moves the mission by less than a tolerance (``TileOptions.placement_tolerance``).
 """
 
 from __future__ import annotations
@@ -153,6 +155,65 @@ def place_mission(
     if not accept_poor:
         check_fit_quality(fit, source=gnss_file(mission))
     return Placement(fit)
+
+
+#: The smallest radius of curvature of the WGS 84 ellipsoid (the meridian's at the equator, m):
+#: no projection's Jacobian turns or scales faster than by 1 / this per metre of ground.
+MIN_EARTH_RADIUS_M = 6_335_439.0
+
+
+def held_placement(mission: Mission, record: dict[str, Any]) -> Placement:
+    """The placement a catalog recorded for ``mission`` (its ``georeference`` record: the
+    transform ``T_enu_map`` about ``lla_ref``), with the residuals of the mission's current
+    GNSS fixes under that transform (nothing is refitted)."""
+    from standgrid.georeference.fit import GeoreferenceFit, evaluate_georeference
+
+    try:
+        transform = np.array(record["T_enu_map"], dtype=np.float64).reshape(4, 4)
+        lat, lon, alt = (float(v) for v in record["lla_ref"])
+        method = str(record["method"])
+    except (KeyError, TypeError, ValueError) as exc:
+        raise CatalogError(f"malformed georeference record of mission {mission.name!r}: {exc!r}",
+                           path=mission.path) from exc  # fmt: skip
+    graph, gnss = mission.graph, mission.gnss
+    if graph is None or len(graph) == 0 or gnss is None or len(gnss) == 0:
+        return Placement(GeoreferenceFit.without_fixes((lat, lon, alt), transform, method))
+    fit = evaluate_georeference(
+        transform, (lat, lon, alt), method, gnss.stamps_ns, gnss.lat, gnss.lon, gnss.alt,
+        gnss.quality, gnss.h_std, graph.stamps_ns, graph.positions, v_std=gnss.v_std,
+        source=gnss_file(mission),
+    )  # fmt: skip
+    return Placement(fit)
+
+
+def placement_offset(
+    used: Placement, fresh: Placement, xyz_map: NDArray[np.float64], crs: str
+) -> float:
+    """How far (m, 3-D: catalog CRS x, y and ellipsoidal height) ``fresh`` would put any point
+    of the convex hull of ``xyz_map`` (map frame, e.g. the corners of every payload's box)
+    from where ``used`` puts it: a bound, through the real transforms.
+
+    Both placements are rigid map -> ECEF motions ``A`` followed by the same smooth
+    projection ``f`` (ECEF -> CRS). The displacement is ``D(p) = f(A1 p) - f(A0 p) =
+    J0 (A1 - A0) p + r(p)``: ``(A1 - A0) p`` is affine in ``p``, so ``|J0 (A1 - A0) p|`` is
+    convex and its maximum over the hull is at a vertex, which is among the given points.
+    ``f``'s Jacobian turns and scales by at most ``E / R`` across a hull of extent ``E``
+    (``R`` >= :data:`MIN_EARTH_RADIUS_M`), so ``|r| <= 2 (E / R) max |D|`` (terms in
+    ``|D|^2 / R``, micrometres, aside); the bound returned is the largest ``|D|`` over the
+    points times ``1 + 4 E / R`` (1.0003 for a 500 m mission), plus 1 micrometre. Raises
+    :class:`GeoreferenceError` for projected clouds (no map frame).
+    """
+    if used.fit is None or fresh.fit is None:
+        raise GeoreferenceError("projected clouds have no map frame: no placement offset")
+    points = np.asarray(xyz_map, dtype=np.float64).reshape(-1, 3)
+    if not len(points):
+        return 0.0
+    from standgrid.georeference.project import MapProjector
+
+    moved = MapProjector(fresh.fit, crs).exact(points) - MapProjector(used.fit, crs).exact(points)
+    largest = float(np.sqrt(np.max(np.einsum("ij,ij->i", moved, moved))))
+    extent = float(np.max(np.linalg.norm(points - points.mean(axis=0), axis=1)))
+    return largest * (1.0 + 4.0 * extent / MIN_EARTH_RADIUS_M) + 1e-6
 
 
 def cloud_payloads(mission: Mission) -> list[Payload]:

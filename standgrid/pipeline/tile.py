@@ -16,6 +16,7 @@ the catalog, its index and its VPCs.
 from __future__ import annotations
 
 import contextlib
+import math
 import shutil
 from collections.abc import Sequence
 from dataclasses import dataclass, field
@@ -34,7 +35,7 @@ from standgrid.catalog.setup import (
     settle_tiling,
 )
 from standgrid.engine import SILENT, MemoryBudget, Progress
-from standgrid.errors import CatalogError, out_of_space_error
+from standgrid.errors import CatalogError, TilingError, out_of_space_error
 from standgrid.pipeline.tile_epoch import EpochSettings, Ingest, tile_epoch
 
 if TYPE_CHECKING:
@@ -78,6 +79,11 @@ class TileOptions:
     workers: int | None = None
     #: ... or on the dask cluster at this address (files on storage every worker reaches).
     scheduler: str | None = None
+    #: Metres: a mission already in its epoch keeps the placement the catalog used while its
+    #: fresh georeference moves none of its points this far from it (the epoch re-tiles in
+    #: place; the offset is reported). None: always the fresh fit (exact, the default).
+    #: See :mod:`standgrid.catalog.placement_policy`.
+    placement_tolerance: float | None = None
 
     @property
     def grid_request(self) -> GridRequest:
@@ -145,6 +151,9 @@ def tile_missions(
 
     if not mission_paths:
         raise CatalogError("no missions given")
+    tolerance = options.placement_tolerance
+    if tolerance is not None and not (math.isfinite(tolerance) and tolerance >= 0):
+        raise TilingError(f"placement tolerance {tolerance!r}: give metres >= 0, or None")
     if options.anchor is not None and len(mission_paths) > 1:
         raise CatalogError("an anchor places one mission: tile one mission per --anchor")
     ingests = [_prepare(path, options, progress) for path in mission_paths]
@@ -241,7 +250,7 @@ def _ingest(
     with catalog.transaction() as txn:
         index = CatalogIndex(catalog, txn)  # under the writer lock: no commit can intervene
         tiling = settle_tiling(txn, options.buffer, options.laz, options.copc)
-        settings = EpochSettings(tiling, options.memory_budget)
+        settings = EpochSettings(tiling, options.memory_budget, options.placement_tolerance)
         for ingest in ingests:
             ingest.number = txn.mission_number(ingest.mission.name)
             ingest.to_catalog = ingest.placement.to_catalog(catalog.crs, ingest.mission.name)

@@ -16,6 +16,7 @@ from standgrid.pipeline.tile_cells import EpochWork, write_cells
 if TYPE_CHECKING:
     from standgrid.catalog import Catalog, TilingSettings, Transaction
     from standgrid.catalog.index import CatalogIndex
+    from standgrid.catalog.placement_policy import PlacementChoice
     from standgrid.engine import Executor
     from standgrid.export.las import TileInfo
     from standgrid.georeference.placement import Placement, ToCatalog
@@ -34,12 +35,16 @@ class Ingest:
     date: str
     number: int = 0
     to_catalog: ToCatalog | None = None
+    #: the placement used and why (under a placement tolerance: maybe the catalog's own)
+    choice: PlacementChoice | None = None
 
 
 @dataclass(frozen=True)
 class EpochSettings:
     tiling: TilingSettings
     memory_budget: MemoryBudget
+    #: keep a mission's placement while a refit moves it less than this (m); None: exact
+    placement_tolerance: float | None = None
 
 
 @dataclass
@@ -94,11 +99,12 @@ def tile_epoch(
     names = {i.mission.name for i in group}
     previous = sorted(catalog.tiles(epoch)) if epoch in catalog.epochs else []
     schema = tiling_schema(catalog, previous, group)
+    stored = index.read("payloads", epoch)
+    _choose_placements(catalog, index, epoch, group, stored, schema, settings)
     rows, sources = payload_rows(group, epoch)
     placements = {i.mission.name: placement_digest(i.placement.record()) for i in group}
     for row, source in zip(rows, sources, strict=True):
         row["source_digest"] = source_digest(source, placements[row["mission"]], schema)
-    stored = index.read("payloads", epoch)
     mine = stored["mission"].astype(str).isin(names)
     others = stored[~mine]
     partition = catalog_partition(catalog, payloads=epoch_sites(others, rows), coverage=False)
@@ -206,7 +212,7 @@ def tile_epoch(
         mission = ingest.mission
         record = txn.record_mission(
             mission.name, epoch=epoch, date=ingest.date, path=str(mission.path.resolve()),
-            georeference=ingest.placement.record(),
+            georeference=ingest.placement.record(), placement=_note(ingest),
             payload_count=len(cloud_payloads(mission)),
             point_count=sum(r["point_count"] for r in rows if r["mission"] == mission.name),
             tiles=sorted(tiles_of.get(mission.name, ())), **metadata_extra(mission),
@@ -218,13 +224,15 @@ def tile_epoch(
             "points": record["point_count"],
             "tiles": len(record["tiles"]),
             "georeference": ingest.placement.summary(),
+            "placement": _note(ingest),
         }
         assert ingest.to_catalog is not None
         trajectories += trajectory_rows(mission, ingest.to_catalog, epoch)
         fixes.append(gnss_rows(mission, ingest.placement, catalog.crs))
-        mission_rows.append(
-            mission_row(mission, ingest.placement, ingest.number, epoch, ingest.date, catalog)
-        )
+        mission_rows.append(mission_row(
+            mission, ingest.placement, ingest.number, epoch, ingest.date, catalog,
+            placement_offset_m=_note(ingest)["offset_m"],
+        ))  # fmt: skip
     index.replace("cells", cell_rows, epochs={epoch})
     index.replace("payloads", rows, missions=names)
     index.replace("trajectories", trajectories, missions=names)
@@ -253,6 +261,43 @@ def tile_epoch(
         "bytes_spilled": done.bytes_spilled,
     }
     return result
+
+
+def _choose_placements(
+    catalog: Catalog,
+    index: CatalogIndex,
+    epoch: str,
+    group: list[Ingest],
+    stored: Any,
+    schema: Any,
+    settings: EpochSettings,
+) -> None:
+    """Under a placement tolerance, each mission of ``group`` is tiled with the placement
+    :func:`~standgrid.catalog.placement_policy.choose_placement` picks (its recipe into the
+    catalog CRS renewed when it is the catalog's own)."""
+    from standgrid.catalog.placement_policy import PlacementChoice, choose_placement
+
+    if settings.placement_tolerance is None:
+        for ingest in group:
+            ingest.choice = PlacementChoice(ingest.placement, "fresh")
+        return
+    cells = index.read("cells", epoch)
+    records = catalog.mission_records
+    for ingest in group:
+        name = ingest.mission.name
+        ingest.choice = choose_placement(
+            ingest.mission, ingest.number, epoch, ingest.placement, records.get(name), stored,
+            cells, schema, catalog.crs, settings.placement_tolerance,
+        )  # fmt: skip
+        if ingest.choice.placement is not ingest.placement:
+            ingest.placement = ingest.choice.placement
+            ingest.to_catalog = ingest.placement.to_catalog(catalog.crs, name)
+
+
+def _note(ingest: Ingest) -> dict[str, Any]:
+    """The mission's ``placement`` note (report, record): which placement, how far off."""
+    assert ingest.choice is not None
+    return ingest.choice.note()
 
 
 def _landing_tiles(

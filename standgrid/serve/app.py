@@ -12,6 +12,12 @@ from typing import Any
 from standgrid.catalog import Catalog
 from standgrid.serve.limits import DEFAULT_MAX_BODY
 
+#: Metres a refit may move a streamed mission before its epoch re-tiles whole (the default
+#: of ``standgrid serve --placement-tolerance``): a GNSS fit's own residuals and 1-sigma are
+#: centimetres (RTK fixes 2-3 cm; the bundled mission's fit settles to < 1 cm 1-sigma), and
+#: a forest point cloud's noise is ~1 cm, so 5 cm keeps every point as close to the fresh
+#: fit as the fit itself is to the truth, while a robot's stream re-tiles in place.
+DEFAULT_PLACEMENT_TOLERANCE_M = 0.05
 #: CPU priority of the tiling worker below the server's: tiling is background work that
 #: takes seconds of CPU, and on a busy machine the readers' requests come first.
 TILER_NICENESS = 10
@@ -23,13 +29,16 @@ def create_app(
     token: str | None = None,
     max_body: int = DEFAULT_MAX_BODY,
     missions: str | os.PathLike[str] | None = None,
+    placement_tolerance: float | None = DEFAULT_PLACEMENT_TOLERANCE_M,
 ) -> Any:
     """The FastAPI app serving ``catalog``: ``/ogc`` (OGC API - Features), ``/files``
     (catalog files with range requests), ``/missions`` (retrieval API and online ingest).
     Reads are open; a write needs ``Authorization: Bearer <token>`` (none is accepted when
     ``token`` is None). Missions sent by robots are written under ``missions`` (default:
     ``<catalog>-missions`` beside the catalog). Writes (mission folders, tiling) run in worker
-    processes, stopped with the app (its lifespan).
+    processes, stopped with the app (its lifespan). A mission tiled again keeps its placement
+    while a refit moves it less than ``placement_tolerance`` metres (None: always the fresh
+    fit; ``POST /missions/{name}/tile?exact=true`` settles on it).
     Raises :class:`~standgrid.errors.CatalogNotFoundError` when ``catalog`` is not one."""
     from fastapi import FastAPI
 
@@ -68,6 +77,7 @@ def create_app(
         lifespan=lifespan,
     )
     app.state.catalog_root = root
+    app.state.placement_tolerance = placement_tolerance
     for name, worker in workers.items():
         setattr(app.state, name, worker)
     app.state.mission_turns = {}  # mission name -> [lock, users] (serve.ingest._turn)

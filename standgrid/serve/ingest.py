@@ -201,9 +201,21 @@ async def gnss(request: Request, name: str) -> JSONResponse:
     "/{name}/tile",
     summary="Tile the mission into the catalog (one transaction under the writer lock, in "
     "the server's tiling worker process; one mission at a time)",
+    description="While the mission grows, its placement in the catalog is kept as long as "
+    "a refit of its georeference moves none of its points by the server's placement "
+    "tolerance (`--placement-tolerance`): the catalog is re-tiled in place, and the "
+    "report's `missions.<name>.placement` says which placement was used and how far "
+    "(`offset_m`) it may put a point from the fresh fit. `exact=true` settles on the fresh "
+    "fit (send it at the end of a mission): the catalog then equals `standgrid tile` of the "
+    "mission folder.",
     openapi_extra={"security": [{"bearer": []}]},
 )
-async def tile(request: Request, name: str) -> JSONResponse:
+async def tile(
+    request: Request,
+    name: str,
+    exact: Annotated[bool, Query(description="use the fresh georeference fit, whatever "
+                                 "the placement tolerance")] = False,
+) -> JSONResponse:  # fmt: skip
     live = _live(request, name)
     if not (live.path / "metadata.yaml").is_file():
         raise Problem(404, f"no mission {name!r} was created on this server")
@@ -213,6 +225,8 @@ async def tile(request: Request, name: str) -> JSONResponse:
     if record is not None and record.path and Path(record.path) != live.path.absolute():
         raise Problem(409, f"the catalog holds a mission {name!r} tiled from another folder")
     tiler: WorkerProcess = request.app.state.tiler
+    tolerance = None if exact else request.app.state.placement_tolerance
+    folder = str(live.path.absolute())
     async with _turn(request, live):
-        report = await tiler.call(tile_mission, str(live.path.absolute()), str(root))
+        report = await tiler.call(tile_mission, folder, str(root), tolerance)
     return JSONResponse(report)

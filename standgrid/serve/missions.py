@@ -85,6 +85,7 @@ def _summary(request: Request, record: MissionRecord) -> dict[str, Any]:
         "point_count": record.point_count,
         "ingested": record.ingested,
         "georeference": fit_summary or None,
+        "placement": record.extra.get("placement"),
         "tiles": [f"{base}/files/{t}" for t in record.tiles],
         "links": [
             {"rel": "self", "href": f"{base}/missions/{record.name}"},

@@ -54,17 +54,21 @@ def live_mission(folder: str, method: str, *args: Any) -> Any:
     return getattr(LiveMission(Path(folder)), method)(*args)
 
 
-def tile_mission(folder: str, catalog: str) -> dict[str, Any]:
-    """In the worker: tile the mission folder into ``catalog`` under the folder's lock; the
-    report as JSON values."""
+def tile_mission(
+    folder: str, catalog: str, placement_tolerance: float | None = None
+) -> dict[str, Any]:
+    """In the worker: tile the mission folder into ``catalog`` under the folder's lock (its
+    placement kept while a refit moves it less than ``placement_tolerance`` metres; None:
+    exact); the report as JSON values."""
     import json
 
     from standgrid.mission.live import LiveMission
     from standgrid.pipeline.tile import TileOptions, tile_missions
 
     live = LiveMission(Path(folder))
+    options = TileOptions(placement_tolerance=placement_tolerance)
     with live.locked():  # no payload lands half-way through the tiling
-        report = tile_missions([live.path], Path(catalog), TileOptions())
+        report = tile_missions([live.path], Path(catalog), options)
     result: dict[str, Any] = json.loads(json.dumps(report.to_dict(), default=str))
     return result
 

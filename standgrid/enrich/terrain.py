@@ -26,18 +26,20 @@ import numpy as np
 from numpy.typing import NDArray
 
 from standgrid.enrich.ground import classify_ground
-from standgrid.enrich.rasters import RasterGrid, dtm_from_ground, height_above_ground
+from standgrid.enrich.rasters import RasterGrid, dtm_from_ground, heights_and_pixels
 from standgrid.errors import EnrichError, StandgridError
 
 
 @dataclass(frozen=True)
 class Terrain:
-    """``ground`` (mask per point), ``dtm`` (on the window; NaN without ground) and
-    ``heights`` (float32 per point; NaN without ground)."""
+    """``ground`` (mask per point), ``dtm`` (on the window; NaN without ground),
+    ``heights`` (float32 per point; NaN without ground) and ``pixels`` (each point's pixel
+    on the window, :meth:`RasterGrid.flat_index`)."""
 
     ground: NDArray[np.bool_]
     dtm: NDArray[np.float32]
     heights: NDArray[np.float32]
+    pixels: NDArray[np.int64]
 
 
 def classify_terrain(
@@ -58,10 +60,11 @@ def classify_terrain(
             np.zeros(len(xyz), dtype=bool),
             np.full(window.shape, np.nan, dtype=np.float32),
             np.full(len(xyz), np.nan, dtype=np.float32),
+            window.flat_index(xyz[:, 0], xyz[:, 1]),
         )
     dtm = _dtm(xyz[cloth], window, lattice)
-    heights = height_above_ground(xyz, dtm, window)
-    return Terrain(np.abs(heights) <= CLASS_THRESHOLD_M, dtm, heights)
+    heights, pixels = heights_and_pixels(xyz, dtm, window)
+    return Terrain(np.abs(heights) <= CLASS_THRESHOLD_M, dtm, heights, pixels)
 
 
 #: Ground points this far outside a DTM window still shape its triangulation (m).

@@ -94,13 +94,11 @@ def enrich_block(points: ChunkPoints, context: BlockContext) -> BlockResult:
         trees["observed"] = coverage.observed_at(*stem_xy(trees))
 
     # rasters over the whole block (a pixel's CHM fill looks at its neighbours, a Voronoi
-    # edge pixel holds points of two cells), kept on the chunk's core window
-    with_height = np.isfinite(hag)
+    # edge pixel holds points of two cells), kept on the chunk's core window; the CHM of
+    # the points with a height
     rasters = {
         "dtm": _crop(dtm, buffered, core),
-        "chm": _crop(
-            chm_from_pixels(pixels[with_height], hag[with_height], buffered), buffered, core
-        ),
+        "chm": _crop(chm_from_pixels(pixels, hag, buffered), buffered, core),
         "density": _crop(density_from_pixels(pixels, buffered), buffered, core),
         "observed": _crop(coverage.observed, buffered, core),
         "near_ground": _crop(coverage.near_ground, buffered, core),
@@ -130,7 +128,7 @@ def enrich_block(points: ChunkPoints, context: BlockContext) -> BlockResult:
         else:  # sorted here (on the worker): the stand merges its cells' runs
             sample.heights = np.sort(sample.heights)
     fields: dict[str, NDArray[Any]] = {
-        "classification": np.where(ground, GROUND, OTHER).astype(np.uint8),
+        "classification": np.where(ground, np.uint8(GROUND), np.uint8(OTHER)),
         "height_above_ground": hag,
         "tree_id": tree_ids,
     }

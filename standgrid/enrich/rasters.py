@@ -341,11 +341,19 @@ def chm_from_pixels(
     fill_min_neighbours: int = FILL_MIN_NEIGHBOURS,
 ) -> NDArray[np.float32]:
     """:func:`chm` (without ``subcircle``) of points given by their pixels on ``grid``
-    (:meth:`RasterGrid.flat_index`, e.g. from :func:`heights_and_pixels`)."""
-    h = np.asarray(heights, dtype=np.float64)
+    (:meth:`RasterGrid.flat_index`, e.g. from :func:`heights_and_pixels`); points whose
+    height is NaN (no terrain) are left out."""
+    h = np.asarray(heights)
+    if h.dtype not in (np.float32, np.float64):
+        h = h.astype(np.float64)
     if h.shape != pixels.shape:
         raise EnrichError(f"{h.shape} heights for {len(pixels)} points")
-    top = _highest(_checked_pixels(pixels, grid), h, grid)
+    pixels = _checked_pixels(pixels, grid)
+    finite = np.isfinite(h)
+    if not finite.all():
+        pixels, h = pixels[finite], h[finite]
+    # the highest float32 height is the highest in float64 too: the CHM is the same
+    top = _highest(pixels, h, grid).astype(np.float64, copy=False)
     return _canopy(top, grid, fill_empty, fill_min_neighbours)
 
 
@@ -361,16 +369,16 @@ def _checked_pixels(pixels: NDArray[np.int64], grid: RasterGrid) -> NDArray[np.i
 
 
 def _highest(
-    pixels: NDArray[np.int64], h: NDArray[np.float64], grid: RasterGrid
-) -> NDArray[np.float64]:
-    """The highest ``h`` per pixel, flat (-inf where no point)."""
-    top = np.full(grid.nrows * grid.ncols, -np.inf)
+    pixels: NDArray[np.int64], h: NDArray[np.floating], grid: RasterGrid
+) -> NDArray[np.floating]:
+    """The highest ``h`` per pixel, flat, of ``h``'s dtype (-inf where no point)."""
+    top = np.full(grid.nrows * grid.ncols, -np.inf, dtype=h.dtype)
     np.maximum.at(top, pixels, h)
     return top
 
 
 def _canopy(
-    top: NDArray[np.float64], grid: RasterGrid, fill_empty: bool, fill_min_neighbours: int
+    top: NDArray[np.floating], grid: RasterGrid, fill_empty: bool, fill_min_neighbours: int
 ) -> NDArray[np.float32]:
     """The CHM from the highest height per pixel (flat, -inf where no point)."""
     top[np.isneginf(top)] = np.nan
@@ -387,7 +395,7 @@ SUBPIXELS = 5
 
 
 def _inflate(
-    top: NDArray[np.float64],
+    top: NDArray[np.floating],
     xyz: NDArray[np.float64],
     h: NDArray[np.float64],
     grid: RasterGrid,

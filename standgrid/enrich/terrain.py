@@ -98,7 +98,7 @@ def _classify(
     kx = _lattice_index(x, lattice[0], GROUND_SQUARE_M)
     ky = _lattice_index(y, lattice[1], GROUND_SQUARE_M)
     h = GROUND_HALO_M
-    for ix, iy in sorted(set(zip(kx.tolist(), ky.tolist(), strict=True))):
+    for ix, iy in _squares(kx, ky):
         x0 = lattice[0] + ix * GROUND_SQUARE_M
         y0 = lattice[1] + iy * GROUND_SQUARE_M
         x1, y1 = x0 + GROUND_SQUARE_M, y0 + GROUND_SQUARE_M
@@ -109,6 +109,15 @@ def _classify(
         mine = (kx[near] == ix) & (ky[near] == iy)
         ground[by_xyz[near[mine]]] = labels[mine]
     return ground
+
+
+def _squares(kx: NDArray[np.int64], ky: NDArray[np.int64]) -> list[tuple[int, int]]:
+    """The distinct (kx, ky) pairs, sorted."""
+    kx0, ky0 = int(kx.min()), int(ky.min())
+    rows = int(ky.max()) - ky0 + 1
+    key = (kx - kx0) * rows + (ky - ky0)  # grows with (kx, ky) in lexicographic order
+    ix, iy = np.divmod(np.unique(key), rows)
+    return list(zip((ix + kx0).tolist(), (iy + ky0).tolist(), strict=True))
 
 
 def _lattice_index(values: NDArray[np.float64], origin: float, size: float) -> NDArray[np.int64]:
@@ -189,14 +198,28 @@ def thin(
     if len(points) < 1000:
         return points
     key = _bins(points[:, :2], spacing, lattice)
-    centre = np.floor((points[:, :2] - np.asarray(lattice)) / spacing) + 0.5
-    offset = (points[:, :2] - np.asarray(lattice)) / spacing - centre
-    dist = (offset**2).sum(axis=1)
+    dist = np.zeros(len(points))
+    for axis in range(2):  # squared distance to the square's centre, in squares
+        units = (points[:, axis] - lattice[axis]) / spacing
+        offset = units - (np.floor(units) + 0.5)
+        offset *= offset
+        dist += offset
     nearest = np.full(int(key.max()) + 1, np.inf)
     np.minimum.at(nearest, key, dist)
-    # only the points nearest their square's centre can be first: sort those alone
+    # only the points nearest their square's centre can be first, all at the same
+    # distance: a square with one such point keeps it, the others keep their first by x, y, z
     tied = np.flatnonzero(dist <= nearest[key])
-    by = points[tied]
-    order = tied[np.lexsort((by[:, 2], by[:, 1], by[:, 0], dist[tied], key[tied]))]
-    first = np.r_[True, key[order][1:] != key[order][:-1]]
-    return points[np.sort(order[first])]
+    by_square = tied[np.argsort(key[tied], kind="stable")]
+    square = key[by_square]
+    same = square[1:] == square[:-1]
+    shared = np.zeros(len(by_square), dtype=bool)
+    shared[1:] |= same
+    shared[:-1] |= same
+    chosen = by_square[~shared]
+    if shared.any():
+        rivals = by_square[shared]
+        by = points[rivals]
+        order = rivals[np.lexsort((by[:, 2], by[:, 1], by[:, 0], key[rivals]))]
+        first = np.r_[True, key[order][1:] != key[order][:-1]]
+        chosen = np.concatenate([chosen, order[first]])
+    return points[np.sort(chosen)]

@@ -10,9 +10,13 @@ from standgrid.enrich.ground import classify_ground
 from standgrid.enrich.rasters import (
     RasterGrid,
     chm,
+    chm_from_pixels,
     density,
+    density_from_pixels,
     dtm_from_ground,
     height_above_ground,
+    heights_and_pixels,
+    pixel_counts,
     read_raster,
     write_cog,
 )
@@ -109,6 +113,36 @@ def test_chm_and_density_by_hand() -> None:
     assert density(xyz, quarter).sum() * 0.25 == pytest.approx(5)
     with pytest.raises(EnrichError):
         density(np.array([[5.0, 5.0, 0.0]]), grid)
+
+
+def test_pixels_found_with_the_heights_are_each_points_pixel_and_serve_the_rasters() -> None:
+    grid = RasterGrid(x0=ORIGIN[0], y0=ORIGIN[1], pixel_size=0.5, ncols=90, nrows=70)
+    rng = np.random.default_rng(7)
+    n = 200_000  # several blocks of the element-wise arithmetic
+    x = ORIGIN[0] + rng.uniform(0, 45, n)
+    y = ORIGIN[1] + rng.uniform(0, 35, n)
+    x[:500] = ORIGIN[0] + rng.integers(0, 90, 500) * 0.5  # on pixel edges
+    y[:500] = ORIGIN[1] + rng.integers(0, 70, 500) * 0.5
+    xyz = np.column_stack([x, y, rng.uniform(400, 430, n)])
+    dtm = rng.uniform(400, 410, grid.shape).astype(np.float32)
+    heights, pixels = heights_and_pixels(xyz, dtm, grid)
+    assert np.array_equal(heights, height_above_ground(xyz, dtm, grid))
+    # by hand: the pixel whose half-open square holds the point, row 0 in the north
+    col = np.array([int(np.floor((v - grid.x0) / grid.pixel_size)) for v in x[:2000]])
+    row = grid.nrows - 1 - np.array([int(np.floor((v - grid.y0) / 0.5)) for v in y[:2000]])
+    assert np.array_equal(pixels[:2000], row * grid.ncols + col)
+    assert np.array_equal(pixels, grid.flat_index(x, y))
+    # rasters from the pixels: those of the points (NaN heights left out of the CHM)
+    h = np.where(rng.random(n) < 0.3, np.nan, heights).astype(np.float32)
+    with_height = np.isfinite(h)
+    expected = chm(xyz[with_height], h[with_height], grid)
+    assert np.array_equal(chm_from_pixels(pixels, h, grid), expected, equal_nan=True)
+    assert np.array_equal(density_from_pixels(pixels, grid), density(xyz, grid))
+    assert pixel_counts(pixels, grid).sum() == n
+    with pytest.raises(EnrichError):  # a pixel off the raster
+        chm_from_pixels(np.array([grid.nrows * grid.ncols]), np.array([1.0]), grid)
+    with pytest.raises(EnrichError, match="1 of 2 points"):
+        grid.flat_index(np.array([x[0], grid.x0 - 0.1]), np.array([y[0], y[0]]))
 
 
 def test_write_cog_and_read_back(tmp_path) -> None:

@@ -61,8 +61,8 @@ class BlockResult:
 
 def enrich_block(points: ChunkPoints, context: BlockContext) -> BlockResult:
     """Ground, heights, coverage, trees and rasters of one chunk (see the module doc)."""
-    from standgrid.enrich.coverage import cells_mask, coverage_from_hits, ground_hits
-    from standgrid.enrich.rasters import chm, density
+    from standgrid.enrich.coverage import cells_mask, coverage_from_hits
+    from standgrid.enrich.rasters import chm_from_pixels, density_from_pixels, pixel_counts
     from standgrid.enrich.terrain import classify_terrain
 
     chunk, xyz, options = points.chunk, points.xyz, context.options
@@ -78,8 +78,9 @@ def enrich_block(points: ChunkPoints, context: BlockContext) -> BlockResult:
         ring=points.ring_xyz,
     )
     ground, dtm, hag = terrain.ground, terrain.dtm, terrain.heights
+    pixels = terrain.pixels  # each point's pixel on the buffered window
     polygons = [c.polygon for c in (*chunk.cells, *chunk.neighbours)]
-    hits = ground_hits(buffered, xyz[ground, :2])
+    hits = pixel_counts(pixels[ground], buffered)
     # a cell without ground in it or within the buffer has no terrain to measure from
     no_ground = [not hits[_slices(buffered, c.bounds, chunk.buffer)].any() for c in chunk.cells]
     coverage = coverage_from_hits(
@@ -94,19 +95,19 @@ def enrich_block(points: ChunkPoints, context: BlockContext) -> BlockResult:
         trees["observed"] = coverage.observed_at(*stem_xy(trees))
 
     # rasters over the whole block (a pixel's CHM fill looks at its neighbours, a Voronoi
-    # edge pixel holds points of two cells), kept on the chunk's core window
-    with_height = np.isfinite(hag)
+    # edge pixel holds points of two cells), kept on the chunk's core window; the CHM of
+    # the points with a height
     rasters = {
         "dtm": _crop(dtm, buffered, core),
-        "chm": _crop(chm(xyz[with_height], hag[with_height], buffered), buffered, core),
-        "density": _crop(density(xyz, buffered), buffered, core),
+        "chm": _crop(chm_from_pixels(pixels, hag, buffered), buffered, core),
+        "density": _crop(density_from_pixels(pixels, buffered), buffered, core),
         "observed": _crop(coverage.observed, buffered, core),
         "near_ground": _crop(coverage.near_ground, buffered, core),
     }
     samples = []
     for cell, rows, empty in zip(chunk.cells, points.cell_rows, no_ground, strict=True):
         polygon = cell.polygon
-        on_observed = coverage.observed_at(xyz[rows, 0], xyz[rows, 1])
+        on_observed = coverage.observed_in(pixels[rows])
         samples.append(
             StandSample(
                 stand_id=cell.cell_id,
@@ -128,7 +129,7 @@ def enrich_block(points: ChunkPoints, context: BlockContext) -> BlockResult:
         else:  # sorted here (on the worker): the stand merges its cells' runs
             sample.heights = np.sort(sample.heights)
     fields: dict[str, NDArray[Any]] = {
-        "classification": np.where(ground, GROUND, OTHER).astype(np.uint8),
+        "classification": np.where(ground, np.uint8(GROUND), np.uint8(OTHER)),
         "height_above_ground": hag,
         "tree_id": tree_ids,
     }

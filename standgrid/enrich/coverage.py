@@ -49,6 +49,10 @@ class Coverage:
         """Whether each position lies on an observed pixel (False outside the raster)."""
         return sample_mask(self.observed, self.grid, x, y)
 
+    def observed_in(self, pixels: NDArray[np.int64]) -> NDArray[np.bool_]:
+        """Whether each pixel (:meth:`RasterGrid.flat_index` on ``grid``) is observed."""
+        return np.take(self.observed, pixels)
+
     def observed_m2(self, polygon: Any) -> float:
         """Observed area inside ``polygon`` (pixels whose centre it contains)."""
         return float(polygon_pixel_count(self.observed, self.grid, polygon)) * (

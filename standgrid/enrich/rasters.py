@@ -108,15 +108,54 @@ class RasterGrid:
         self, x: NDArray[np.float64], y: NDArray[np.float64]
     ) -> tuple[NDArray[np.int64], NDArray[np.int64]]:
         """(row, col) of the pixel containing each point (may be outside ``shape``)."""
-        col = np.floor(self._pixel_units(x, self.x0)).astype(np.int64)
-        row_from_south = np.floor(self._pixel_units(y, self.y0)).astype(np.int64)
-        return self.nrows - 1 - row_from_south, col
+        x, y = np.asarray(x), np.asarray(y)
+        if x.ndim != 1 or y.shape != x.shape:
+            col = np.floor(self._pixel_units(x, self.x0)).astype(np.int64)
+            row_from_south = np.floor(self._pixel_units(y, self.y0)).astype(np.int64)
+            return self.nrows - 1 - row_from_south, col
+        row, col = np.empty(len(x), dtype=np.int64), np.empty(len(x), dtype=np.int64)
+        for part in _blocks(len(x)):  # blocks that stay in the CPU's cache
+            col[part] = self._pixel_floor(x[part], self.x0)
+            row[part] = self._pixel_floor(y[part], self.y0)  # from the south, for now
+            np.subtract(self.nrows - 1, row[part], out=row[part])
+        return row, col
 
     def _pixel_units(self, values: NDArray[np.floating], origin: float) -> NDArray[np.floating]:
         """(values - origin) / pixel_size (a new array): pixel units from the corner."""
         units = np.asarray(values) - origin
         units /= self.pixel_size
         return units
+
+    def _pixel_floor(self, values: NDArray[np.floating], origin: float) -> NDArray[np.floating]:
+        """floor((values - origin) / pixel_size) (a new float array): the pixel index."""
+        units = self._pixel_units(values, origin)
+        return np.floor(units, out=units)
+
+    def flat_index(self, x: NDArray[np.float64], y: NDArray[np.float64]) -> NDArray[np.int64]:
+        """Each point's pixel as ``row * ncols + col``; points outside the raster raise
+        :class:`EnrichError`."""
+        x, y = np.asarray(x), np.asarray(y)
+        index = np.empty(len(x), dtype=np.int64)
+        col = np.empty(min(len(x), _BLOCK), dtype=np.int64)
+        outside = False
+        for part in _blocks(len(x)):  # blocks that stay in the CPU's cache
+            n = part.stop - part.start
+            col[:n] = self._pixel_floor(x[part], self.x0)
+            row = index[part]
+            row[...] = self._pixel_floor(y[part], self.y0)  # from the south, for now
+            # as unsigned, a negative index is huge: one maximum tells if any is outside
+            outside |= int(col[:n].view(np.uint64).max()) >= self.ncols
+            outside |= int(row.view(np.uint64).max()) >= self.nrows
+            np.subtract(self.nrows - 1, row, out=row)
+            row *= self.ncols
+            row += col[:n]
+        if outside:
+            row_of, col_of = self.pixel_of(x, y)
+            out = (row_of < 0) | (row_of >= self.nrows) | (col_of < 0) | (col_of >= self.ncols)
+            raise EnrichError(
+                f"{int(out.sum())} of {len(x)} points fall outside the raster {self.bounds}"
+            )
+        return index
 
     def centers(self) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
         """Pixel-centre coordinates, each of ``shape``."""
@@ -125,17 +164,12 @@ class RasterGrid:
         return np.meshgrid(xs, ys)
 
     def _flat_index(self, xyz: NDArray[np.float64]) -> NDArray[np.int64]:
-        row, col = self.pixel_of(xyz[:, 0], xyz[:, 1])
-        if len(row) and (
-            row.min() < 0 or row.max() >= self.nrows or col.min() < 0 or col.max() >= self.ncols
-        ):
-            outside = (row < 0) | (row >= self.nrows) | (col < 0) | (col >= self.ncols)
-            raise EnrichError(
-                f"{int(outside.sum())} of {len(xyz)} points fall outside the raster {self.bounds}"
-            )
-        row *= self.ncols
-        row += col
-        return row
+        return self.flat_index(xyz[:, 0], xyz[:, 1])
+
+
+def _blocks(n: int) -> list[slice]:
+    """Slices of ``n`` rows in blocks of :data:`_BLOCK`."""
+    return [slice(start, min(start + _BLOCK, n)) for start in range(0, n, _BLOCK)]
 
 
 def dtm_from_ground(
@@ -185,58 +219,97 @@ def height_above_ground(
 ) -> NDArray[np.float32]:
     """Height of each point above the DTM, bilinear between pixel centres (clamped at the edge
     half-pixel). Points outside the raster raise :class:`EnrichError`."""
+    return _heights(as_xyz(points), dtm, grid, None)
+
+
+def heights_and_pixels(
+    points: PointsLike, dtm: NDArray[np.floating], grid: RasterGrid
+) -> tuple[NDArray[np.float32], NDArray[np.int64]]:
+    """:func:`height_above_ground`, and each point's pixel (:meth:`RasterGrid.flat_index`),
+    found on the way (for rasters of the same points: :func:`chm_from_pixels`,
+    :func:`density_from_pixels`)."""
     xyz = as_xyz(points)
+    pixels = np.empty(len(xyz), dtype=np.int64)
+    return _heights(xyz, dtm, grid, pixels), pixels
+
+
+def _heights(
+    xyz: NDArray[np.float64],
+    dtm: NDArray[np.floating],
+    grid: RasterGrid,
+    pixels: NDArray[np.int64] | None,
+) -> NDArray[np.float32]:
+    """:func:`height_above_ground` of checked points; fills ``pixels`` when given."""
     if dtm.shape != grid.shape:
         raise EnrichError(f"DTM shape {dtm.shape} does not match the raster grid {grid.shape}")
     if len(xyz) == 0:
         return np.zeros(0, dtype=np.float32)
     x, y = xyz[:, 0], xyz[:, 1]
-    # pixel units grow with the coordinates: the extreme points tell whether any is outside
-    u_range = grid._pixel_units(np.array([x.min(), x.max()]), grid.x0)
-    v_range = grid._pixel_units(np.array([y.min(), y.max()]), grid.y0)
-    if u_range[0] < 0 or u_range[1] >= grid.ncols or v_range[0] < 0 or v_range[1] >= grid.nrows:
-        grid._flat_index(xyz)  # raises, counting the points outside
     table = np.ascontiguousarray(np.asarray(dtm, dtype=np.float64)[::-1, :].T)  # south first
-    if not np.isfinite(table).all():
-        raise EnrichError("the DTM has empty (non-finite) pixels")
     if grid.ncols == 1 or grid.nrows == 1:  # degenerate axis: interpolate along the other only
         table = np.pad(table, ((0, grid.ncols == 1), (0, grid.nrows == 1)), mode="edge")
     heights = np.empty(len(xyz), dtype=np.float32)
-    for start in range(0, len(xyz), _BLOCK):  # blocks that stay in the CPU's cache
-        rows = slice(start, start + _BLOCK)
+    for rows in _blocks(len(xyz)):  # blocks that stay in the CPU's cache
         # axis 0 = column index (x), axis 1 = row index counted from the south (y), in pixel
         # units from the first centre, clamped at the edge half-pixel
         u = grid._pixel_units(x[rows], grid.x0)
-        u -= 0.5
         v = grid._pixel_units(y[rows], grid.y0)
+        # pixel units grow with the coordinates: the extremes tell whether any is outside
+        if u.min() < 0 or u.max() >= grid.ncols or v.min() < 0 or v.max() >= grid.nrows:
+            grid._flat_index(xyz)  # raises, counting the points outside
+        if pixels is not None:  # as RasterGrid.flat_index: floor of the same pixel units
+            pixel = pixels[rows]
+            pixel[...] = np.floor(v)  # from the south
+            np.subtract(grid.nrows - 1, pixel, out=pixel)
+            pixel *= grid.ncols
+            pixel += np.floor(u).astype(np.int64)
+        u -= 0.5
         v -= 0.5
-        ground_z = _bilinear(table, np.clip(u, 0, grid.ncols - 1), np.clip(v, 0, grid.nrows - 1))
+        np.clip(u, 0, grid.ncols - 1, out=u)
+        np.clip(v, 0, grid.nrows - 1, out=v)
+        ground_z = _bilinear(table, u, v)
         np.subtract(xyz[rows, 2], ground_z, out=ground_z)
         heights[rows] = ground_z
+    if not np.isfinite(table).all():  # after the points' check: that error comes first
+        raise EnrichError("the DTM has empty (non-finite) pixels")
     return heights
 
 
-#: Points per block of the element-wise arithmetic of :func:`height_above_ground`.
+#: Points per block of element-wise arithmetic over many points.
 _BLOCK = 1 << 16
 
 
 def _bilinear(
-    table: NDArray[np.float64], u: NDArray[np.float64], v: NDArray[np.float64]
-) -> NDArray[np.float64]:
+    table: NDArray[np.float64], u: NDArray[np.floating], v: NDArray[np.floating]
+) -> NDArray[np.floating]:
     """Bilinear interpolation of ``table`` (values at pixel centres; ``u`` along axis 0,
-    ``v`` along axis 1, in pixels from the first centre) between the four centres around
-    each point."""
-    i = np.minimum(np.floor(u).astype(np.int64), table.shape[0] - 2)
-    j = np.minimum(np.floor(v).astype(np.int64), table.shape[1] - 2)
-    fu, fv = u - i, v - j
+    ``v`` along axis 1, in pixels from the first centre, >= 0; both overwritten) between
+    the four centres around each point."""
+    i = np.floor(u)
+    np.minimum(i, table.shape[0] - 2, out=i)
+    j = np.floor(v)
+    np.minimum(j, table.shape[1] - 2, out=j)
+    fu = np.subtract(u, i, out=u)
+    fv = np.subtract(v, j, out=v)
     step = table.shape[1]  # (i + 1, j) is this far on from (i, j) in the flat table
-    corner = i * step + j
+    corner = i.astype(np.int64)
+    corner *= step
+    corner += j.astype(np.int64)
     values = table.ravel()
     gu = 1.0 - fu
-    south = gu * values[corner]
-    south += fu * values[corner + step]
-    north = gu * values[corner + 1]
-    north += fu * values[corner + (step + 1)]
+    south = values.take(corner)
+    south *= gu
+    corner += step
+    part = values.take(corner)  # (i + 1, j)
+    part *= fu
+    south += part
+    corner += 1
+    north = values.take(corner)  # (i + 1, j + 1)
+    north *= fu
+    corner -= step
+    np.take(values, corner, out=part)  # (i, j + 1)
+    part *= gu
+    north += part
     south *= 1.0 - fv
     north *= fv
     south += north
@@ -270,18 +343,61 @@ def chm(
     h = np.asarray(heights, dtype=np.float64)
     if h.shape != (len(xyz),):
         raise EnrichError(f"{h.shape} heights for {len(xyz)} points")
-    xy = xyz[:, :2]
-    index = grid._flat_index(xyz)  # raises when a point is outside the raster
-    top = np.full(grid.nrows * grid.ncols, -np.inf)
-    np.maximum.at(top, index, h)
-    if subcircle > 0 and len(xy):
-        xy, h = _highest_per_subpixel(xy, h, grid, SUBPIXELS)
-        for angle in np.arange(8) * (np.pi / 4):
-            x = xy[:, 0] + subcircle * np.cos(angle)
-            y = xy[:, 1] + subcircle * np.sin(angle)
-            row, col = grid.pixel_of(x, y)
-            inside = (row >= 0) & (row < grid.nrows) & (col >= 0) & (col < grid.ncols)
-            np.maximum.at(top, row[inside] * grid.ncols + col[inside], h[inside])
+    top = _highest(grid._flat_index(xyz), h, grid)  # raises when a point is outside
+    if subcircle > 0 and len(xyz):
+        top = _inflate(top, xyz, h, grid, subcircle)
+    return _canopy(top, grid, fill_empty, fill_min_neighbours)
+
+
+def chm_from_pixels(
+    pixels: NDArray[np.int64],
+    heights: NDArray[np.floating],
+    grid: RasterGrid,
+    *,
+    fill_empty: bool = True,
+    fill_min_neighbours: int = FILL_MIN_NEIGHBOURS,
+) -> NDArray[np.float32]:
+    """:func:`chm` (without ``subcircle``) of points given by their pixels on ``grid``
+    (:meth:`RasterGrid.flat_index`, e.g. from :func:`heights_and_pixels`); points whose
+    height is NaN (no terrain) are left out."""
+    h = np.asarray(heights)
+    if h.dtype not in (np.float32, np.float64):
+        h = h.astype(np.float64)
+    if h.shape != pixels.shape:
+        raise EnrichError(f"{h.shape} heights for {len(pixels)} points")
+    pixels = _checked_pixels(pixels, grid)
+    finite = np.isfinite(h)
+    if not finite.all():
+        pixels, h = pixels[finite], h[finite]
+    # the highest float32 height is the highest in float64 too: the CHM is the same
+    top = _highest(pixels, h, grid).astype(np.float64, copy=False)
+    return _canopy(top, grid, fill_empty, fill_min_neighbours)
+
+
+def _checked_pixels(pixels: NDArray[np.int64], grid: RasterGrid) -> NDArray[np.int64]:
+    """``pixels`` (flat indices), checked to lie on ``grid``."""
+    pixels = np.asarray(pixels)
+    if pixels.dtype != np.int64 or pixels.ndim != 1:
+        raise EnrichError(f"pixel indices must be a 1-D int64 array, got {pixels.dtype}")
+    # as unsigned, a negative index is huge: one maximum tells if any is outside
+    if len(pixels) and int(pixels.view(np.uint64).max()) >= grid.nrows * grid.ncols:
+        raise EnrichError(f"pixel indices outside the raster of shape {grid.shape}")
+    return pixels
+
+
+def _highest(
+    pixels: NDArray[np.int64], h: NDArray[np.floating], grid: RasterGrid
+) -> NDArray[np.floating]:
+    """The highest ``h`` per pixel, flat, of ``h``'s dtype (-inf where no point)."""
+    top = np.full(grid.nrows * grid.ncols, -np.inf, dtype=h.dtype)
+    np.maximum.at(top, pixels, h)
+    return top
+
+
+def _canopy(
+    top: NDArray[np.floating], grid: RasterGrid, fill_empty: bool, fill_min_neighbours: int
+) -> NDArray[np.float32]:
+    """The CHM from the highest height per pixel (flat, -inf where no point)."""
     top[np.isneginf(top)] = np.nan
     out = np.maximum(top.reshape(grid.shape), 0.0)
     if not 1 <= fill_min_neighbours <= 8:
@@ -295,19 +411,63 @@ def chm(
 SUBPIXELS = 5
 
 
+def _inflate(
+    top: NDArray[np.floating],
+    xyz: NDArray[np.float64],
+    h: NDArray[np.float64],
+    grid: RasterGrid,
+    subcircle: float,
+) -> NDArray[np.float64]:
+    """``top`` (flat, on ``grid``) raised by 8 points on a circle of radius ``subcircle``
+    around each point highest in its sub-pixel."""
+    x, y, h = _highest_per_subpixel(xyz[:, 0], xyz[:, 1], h, grid, SUBPIXELS)
+    # a margin of pixels around the raster takes the circle points outside it (cut off at
+    # the end): no mask of the inside points per angle
+    margin = math.ceil(subcircle / grid.pixel_size) + 1
+    width = grid.ncols + 2 * margin
+    padded = np.full((grid.nrows + 2 * margin, width), -np.inf)
+    inner = (slice(margin, margin + grid.nrows), slice(margin, margin + grid.ncols))
+    padded[inner] = top.reshape(grid.shape)
+    flat = padded.ravel()
+    index = np.empty(min(len(x), _BLOCK), dtype=np.int64)
+    for angle in np.arange(8) * (np.pi / 4):
+        dx, dy = subcircle * np.cos(angle), subcircle * np.sin(angle)
+        for part in _blocks(len(x)):  # in the points' order, as one call per angle would
+            n = part.stop - part.start
+            shifted = x[part] + dx
+            index[:n] = grid._pixel_floor(shifted, grid.x0)  # column
+            index[:n] += margin
+            np.add(y[part], dy, out=shifted)
+            row = grid._pixel_floor(shifted, grid.y0)  # row from the south
+            np.subtract(grid.nrows - 1 + margin, row, out=row)
+            row *= width
+            index[:n] += row.astype(np.int64)
+            np.maximum.at(flat, index[:n], h[part])
+    return padded[inner].ravel()
+
+
 def _highest_per_subpixel(
-    xy: NDArray[np.float64], h: NDArray[np.float64], grid: RasterGrid, n: int
-) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
-    """The points that are highest in their sub-pixel (``n`` x ``n`` per pixel of ``grid``)."""
+    x: NDArray[np.float64], y: NDArray[np.float64], h: NDArray[np.float64], grid: RasterGrid, n: int
+) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]]:
+    """x, y and h of the points highest in their sub-pixel (``n`` x ``n`` per pixel of
+    ``grid``)."""
     step = grid.pixel_size / n
     cols, rows = grid.ncols * n, grid.nrows * n
-    col = np.clip(np.floor((xy[:, 0] - grid.x0) / step).astype(np.int64), 0, cols - 1)
-    row = np.clip(np.floor((xy[:, 1] - grid.y0) / step).astype(np.int64), 0, rows - 1)
-    index = row * cols + col
+    index = np.empty(len(x), dtype=np.int64)
+    for part in _blocks(len(x)):  # blocks that stay in the CPU's cache
+        units = x[part] - grid.x0
+        units /= step
+        col = np.clip(np.floor(units, out=units).astype(np.int64), 0, cols - 1)
+        units = y[part] - grid.y0
+        units /= step
+        row = index[part]
+        np.clip(np.floor(units, out=units).astype(np.int64), 0, rows - 1, out=row)
+        row *= cols
+        row += col
     top = np.full(rows * cols, -np.inf)
     np.maximum.at(top, index, h)
-    keep = h >= top[index]
-    return xy[keep], h[keep]
+    keep = np.flatnonzero(h >= top[index])
+    return x[keep], y[keep], h[keep]
 
 
 def _fill_isolated(raster: NDArray[np.float64], min_neighbours: int) -> NDArray[np.float64]:
@@ -330,9 +490,20 @@ def _fill_isolated(raster: NDArray[np.float64], min_neighbours: int) -> NDArray[
 
 def density(points: PointsLike, grid: RasterGrid) -> NDArray[np.float32]:
     """Points per m2 in each pixel (0 where a pixel of the raster has no point)."""
-    xyz = as_xyz(points)
-    counts = np.bincount(grid._flat_index(xyz), minlength=grid.nrows * grid.ncols)
-    return (counts / grid.pixel_size**2).reshape(grid.shape).astype(np.float32)
+    return density_from_pixels(grid._flat_index(as_xyz(points)), grid)
+
+
+def density_from_pixels(pixels: NDArray[np.int64], grid: RasterGrid) -> NDArray[np.float32]:
+    """:func:`density` of points given by their pixels on ``grid``
+    (:meth:`RasterGrid.flat_index`)."""
+    counts = pixel_counts(pixels, grid)
+    return (counts / grid.pixel_size**2).astype(np.float32)
+
+
+def pixel_counts(pixels: NDArray[np.int64], grid: RasterGrid) -> NDArray[np.int64]:
+    """Points per pixel of ``grid``, from their pixels (:meth:`RasterGrid.flat_index`)."""
+    counts = np.bincount(_checked_pixels(pixels, grid), minlength=grid.nrows * grid.ncols)
+    return counts.astype(np.int64, copy=False).reshape(grid.shape)
 
 
 def write_cog(

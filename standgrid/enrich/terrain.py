@@ -26,18 +26,20 @@ import numpy as np
 from numpy.typing import NDArray
 
 from standgrid.enrich.ground import classify_ground
-from standgrid.enrich.rasters import RasterGrid, dtm_from_ground, height_above_ground
+from standgrid.enrich.rasters import RasterGrid, dtm_from_ground, heights_and_pixels
 from standgrid.errors import EnrichError, StandgridError
 
 
 @dataclass(frozen=True)
 class Terrain:
-    """``ground`` (mask per point), ``dtm`` (on the window; NaN without ground) and
-    ``heights`` (float32 per point; NaN without ground)."""
+    """``ground`` (mask per point), ``dtm`` (on the window; NaN without ground),
+    ``heights`` (float32 per point; NaN without ground) and ``pixels`` (each point's pixel
+    on the window, :meth:`RasterGrid.flat_index`)."""
 
     ground: NDArray[np.bool_]
     dtm: NDArray[np.float32]
     heights: NDArray[np.float32]
+    pixels: NDArray[np.int64]
 
 
 def classify_terrain(
@@ -72,10 +74,11 @@ def classify_terrain(
             np.zeros(len(xyz), dtype=bool),
             np.full(window.shape, np.nan, dtype=np.float32),
             np.full(len(xyz), np.nan, dtype=np.float32),
+            window.flat_index(xyz[:, 0], xyz[:, 1]),
         )
     dtm = _dtm(cloth, window, lattice)
-    heights = height_above_ground(xyz, dtm, window)
-    return Terrain(np.abs(heights) <= CLASS_THRESHOLD_M, dtm, heights)
+    heights, pixels = heights_and_pixels(xyz, dtm, window)
+    return Terrain(np.abs(heights) <= CLASS_THRESHOLD_M, dtm, heights, pixels)
 
 
 #: The terrain model's triangles are at most this long (m; a pixel in a longer one takes the
@@ -117,7 +120,7 @@ def _classify(
     cloth_resolution: float,
     rigidness: int,
     source: str | None,
-    squares: set[tuple[int, int]] | None = None,
+    squares: list[tuple[int, int]] | None = None,
 ) -> NDArray[np.bool_]:
     """Ground mask, CSF square by square (:data:`GROUND_SQUARE_M` on ``lattice``, seen with
     :data:`GROUND_HALO_M` around it): the same extent for every square, so the cloth's edge
@@ -134,9 +137,7 @@ def _classify(
     kx = _lattice_index(x, lattice[0], GROUND_SQUARE_M)
     ky = _lattice_index(y, lattice[1], GROUND_SQUARE_M)
     h = GROUND_HALO_M
-    if squares is None:
-        squares = set(zip(kx.tolist(), ky.tolist(), strict=True))
-    for ix, iy in sorted(squares):
+    for ix, iy in _distinct(kx, ky) if squares is None else squares:
         x0 = lattice[0] + ix * GROUND_SQUARE_M
         y0 = lattice[1] + iy * GROUND_SQUARE_M
         x1, y1 = x0 + GROUND_SQUARE_M, y0 + GROUND_SQUARE_M
@@ -149,11 +150,22 @@ def _classify(
     return ground
 
 
-def _squares(xyz: NDArray[np.float64], lattice: tuple[float, float]) -> set[tuple[int, int]]:
-    """The ground squares (:data:`GROUND_SQUARE_M` on ``lattice``) holding the points."""
+def _squares(xyz: NDArray[np.float64], lattice: tuple[float, float]) -> list[tuple[int, int]]:
+    """The ground squares (:data:`GROUND_SQUARE_M` on ``lattice``) holding the points, sorted."""
+    if len(xyz) == 0:
+        return []
     kx = _lattice_index(xyz[:, 0], lattice[0], GROUND_SQUARE_M)
     ky = _lattice_index(xyz[:, 1], lattice[1], GROUND_SQUARE_M)
-    return set(zip(kx.tolist(), ky.tolist(), strict=True))
+    return _distinct(kx, ky)
+
+
+def _distinct(kx: NDArray[np.int64], ky: NDArray[np.int64]) -> list[tuple[int, int]]:
+    """The distinct (kx, ky) pairs, sorted."""
+    kx0, ky0 = int(kx.min()), int(ky.min())
+    rows = int(ky.max()) - ky0 + 1
+    key = (kx - kx0) * rows + (ky - ky0)  # grows with (kx, ky) in lexicographic order
+    ix, iy = np.divmod(np.unique(key), rows)
+    return list(zip((ix + kx0).tolist(), (iy + ky0).tolist(), strict=True))
 
 
 def _lattice_index(values: NDArray[np.float64], origin: float, size: float) -> NDArray[np.int64]:
@@ -234,14 +246,28 @@ def thin(
     if len(points) < 1000:
         return points
     key = _bins(points[:, :2], spacing, lattice)
-    centre = np.floor((points[:, :2] - np.asarray(lattice)) / spacing) + 0.5
-    offset = (points[:, :2] - np.asarray(lattice)) / spacing - centre
-    dist = (offset**2).sum(axis=1)
+    dist = np.zeros(len(points))
+    for axis in range(2):  # squared distance to the square's centre, in squares
+        units = (points[:, axis] - lattice[axis]) / spacing
+        offset = units - (np.floor(units) + 0.5)
+        offset *= offset
+        dist += offset
     nearest = np.full(int(key.max()) + 1, np.inf)
     np.minimum.at(nearest, key, dist)
-    # only the points nearest their square's centre can be first: sort those alone
+    # only the points nearest their square's centre can be first, all at the same
+    # distance: a square with one such point keeps it, the others keep their first by x, y, z
     tied = np.flatnonzero(dist <= nearest[key])
-    by = points[tied]
-    order = tied[np.lexsort((by[:, 2], by[:, 1], by[:, 0], dist[tied], key[tied]))]
-    first = np.r_[True, key[order][1:] != key[order][:-1]]
-    return points[np.sort(order[first])]
+    by_square = tied[np.argsort(key[tied], kind="stable")]
+    square = key[by_square]
+    same = square[1:] == square[:-1]
+    shared = np.zeros(len(by_square), dtype=bool)
+    shared[1:] |= same
+    shared[:-1] |= same
+    chosen = by_square[~shared]
+    if shared.any():
+        rivals = by_square[shared]
+        by = points[rivals]
+        order = rivals[np.lexsort((by[:, 2], by[:, 1], by[:, 0], key[rivals]))]
+        first = np.r_[True, key[order][1:] != key[order][:-1]]
+        chosen = np.concatenate([chosen, order[first]])
+    return points[np.sort(chosen)]

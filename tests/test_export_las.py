@@ -286,3 +286,32 @@ def test_rewrite_tile_refuses_wrong_lengths_and_foreign_files(tmp_path: Path) ->
     with pytest.raises(PointCloudFormatError, match="not a standgrid tile"):
         rewrite_tile(read_tile_record(foreign), tmp_path / "o.las", {}, source=foreign)
     assert not (tmp_path / "out.laz").exists() and not (tmp_path / "o.las").exists()
+
+
+@pytest.mark.parametrize("suffix", [".las", ".laz"])
+@pytest.mark.parametrize("returns", [False, True])
+def test_tile_bytes_are_what_laspy_writes_for_its_points(
+    tmp_path: Path, suffix: str, returns: bool
+) -> None:
+    """The header write_tile fills in itself (extremes, counts by return, extra bytes'
+    extremes) is the one laspy's writer computes from the points: re-writing the read tile
+    with laspy gives the same bytes."""
+    core, buffer = make_cloud(3000, seed=5), make_cloud(800, seed=6)
+    if returns:
+        rng = np.random.default_rng(7)
+        core, buffer = (
+            c.with_fields(
+                return_number=rng.integers(1, 4, len(c)).astype(np.uint8),
+                number_of_returns=np.full(len(c), 3, np.uint8),
+                intensity=np.where(rng.random(len(c)) < 0.1, np.nan, rng.normal(0, 9e4, len(c))),
+            )
+            for c in (core, buffer)
+        )
+    path = tmp_path / f"t{suffix}"
+    write_tile(path, core, crs=CRS, buffer=buffer)
+    rewritten = tmp_path / f"laspy{suffix}"
+    with open(rewritten, "wb") as stream:
+        laspy.read(path).write(stream, do_compress=suffix == ".laz")
+    assert path.read_bytes() == rewritten.read_bytes()
+    header = laspy.read(path).header
+    assert int(header.number_of_points_by_return.sum()) == 3800

@@ -149,3 +149,21 @@ def test_real_als_crs_other_datum_round_trip() -> None:
     np.testing.assert_allclose(proj.to_map(out), pts, rtol=0, atol=1e-6)
     # The projected tile corners fall inside the real file's extent where the map is there.
     assert np.all(np.abs(out[:, :2] - centre[:2]) < 800)
+
+
+def test_fast_into_the_points_themselves_gives_the_same_values() -> None:
+    """``out=`` (the input itself, block after block of rows) changes nothing in the result,
+    with and without a pose, across block boundaries."""
+    proj = MapProjector(anchored_fit(), "EPSG:32630")
+    rng = np.random.default_rng(3)
+    pose = pose_matrix([12.0, -4.0, 1.5], Rotation.from_euler("z", 0.3).as_quat())
+    for n in (64, 8191, 8192, 20_001):
+        base = rng.uniform(-20, 20, (n, 3)) + np.array([800.0, -300.0, 0.0])
+        for given_pose in (None, pose):
+            expected = proj.fast(base, pose=given_pose)
+            points = base.copy()
+            result = proj.fast(points, pose=given_pose, out=points)
+            assert result is points
+            np.testing.assert_array_equal(result, expected)
+            in_map = base if given_pose is None else base @ pose[:3, :3].T + pose[:3, 3]
+            assert np.abs(expected - proj.exact(in_map)).max() < 1e-3

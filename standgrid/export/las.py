@@ -137,11 +137,12 @@ def _crs_wkt(crs: str) -> tuple[Any, str]:
     return parsed, wkt
 
 
-def _column_bounds(xyz: NDArray[np.float64]) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
-    """Per-axis (min, max) of an (N, 3) array; reduces contiguous columns (fast)."""
-    if not len(xyz):
+def _column_bounds(
+    columns: NDArray[np.float64],
+) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    """Per-axis (min, max) of (3, N) contiguous columns (NaN when N is 0)."""
+    if not columns.shape[1]:
         return np.full(3, np.nan), np.full(3, np.nan)
-    columns = np.ascontiguousarray(xyz.T)
     return columns.min(axis=1), columns.max(axis=1)
 
 
@@ -194,8 +195,12 @@ def _storage_ints(values: NDArray[np.float64], offset: float) -> NDArray[np.floa
 
 def _scaled_intensity(values: NDArray[Any], intensity_scale: float) -> NDArray[np.uint16]:
     """Non-native intensities as LAS intensities: rounded, scaled, clipped to 16 bits."""
-    scaled = np.round(values.astype(np.float64) * intensity_scale)
-    return np.clip(np.nan_to_num(scaled), 0, 65535).astype(np.uint16)
+    scaled = values.astype(np.float64)  # a copy, worked on in place
+    scaled *= intensity_scale
+    np.round(scaled, out=scaled)
+    np.nan_to_num(scaled, copy=False)
+    np.clip(scaled, 0, 65535, out=scaled)
+    return scaled.astype(np.uint16)
 
 
 def _intensity_is_native(values: NDArray[Any]) -> bool:
@@ -267,9 +272,12 @@ def write_tile(
     n_core, n_buffer = len(core), len(buffer)
     n = n_core + n_buffer
     # The core and buffer parts go straight into the record: no concatenated copies.
-    parts = [(0, core.xyz, core_fields)]
+    # (x, y, z) as contiguous columns: reduced for the bounds, scaled into the record
+    core_columns = np.ascontiguousarray(core.xyz.T)
+    parts = [(0, core_columns, core_fields)]
     if n_buffer:
-        parts.append((n_core, buffer.xyz, buffer_fields))
+        buffer_columns = np.ascontiguousarray(buffer.xyz.T)
+        parts.append((n_core, buffer_columns, buffer_fields))
     #: Each field as a zero-length array of the dtype (and per-point shape) it is written as.
     fields: dict[str, NDArray[Any]] = {
         name: _probe(values, buffer_fields[name] if n_buffer else None)
@@ -288,10 +296,10 @@ def write_tile(
         if isinstance(vlr, laspy.vlrs.known.WktCoordinateSystemVlr):
             vlr.string = wkt
 
-    core_lo, core_hi = _column_bounds(core.xyz)
+    core_lo, core_hi = _column_bounds(core_columns)
     all_lo, all_hi = core_lo, core_hi
     if n_buffer:
-        buffer_lo, buffer_hi = _column_bounds(buffer.xyz)
+        buffer_lo, buffer_hi = _column_bounds(buffer_columns)
         all_lo, all_hi = buffer_lo, buffer_hi
         if n_core:
             all_lo, all_hi = np.minimum(core_lo, buffer_lo), np.maximum(core_hi, buffer_hi)
@@ -363,10 +371,10 @@ def write_tile(
             )
 
     for axis, upper in enumerate("XYZ"):
-        for start, part_xyz, _ in parts:
-            record[upper][start : start + len(part_xyz)] = _storage_ints(
-                part_xyz[:, axis], offsets[axis]
-            )
+        for start, part_columns, _ in parts:
+            part = part_columns[axis]
+            record[upper][start : start + len(part)] = _storage_ints(part, offsets[axis])
+    packed: dict[str, NDArray[Any]] = {}  # the bit fields' values, as given to laspy
     for name in (*_STANDARD_FIELDS, *(_COLOUR_FIELDS if has_colour else ())):
         if name in fields:
             if name in _RANGES:
@@ -374,7 +382,8 @@ def write_tile(
             if name in (record.dtype.names or ()):
                 put(name, name)
             else:  # a bit field: laspy packs it
-                points[name] = np.concatenate([f[name] for _, _, f in parts])
+                packed[name] = np.concatenate([f[name] for _, _, f in parts])
+                points[name] = packed[name]
     if "intensity" in fields:
         if _intensity_is_native(fields["intensity"]):
             put("intensity", "intensity")
@@ -384,8 +393,25 @@ def write_tile(
         to_bytes = (lambda v: v.astype(np.uint8)) if values.dtype == np.bool_ else None
         put(name, source_of[name], to_bytes)
     las = laspy.LasData(header, points)
+    extent = None
+    if n:  # what laspy would compute from the packed points, from the values at hand
+        returns = packed.get("return_number")
+        if returns is not None:
+            by_return = np.bincount(returns.astype(np.int64), minlength=16)
+        else:  # every point is return 1 of 1 (the blank record)
+            by_return = np.zeros(16, np.int64)
+            by_return[1] = n
+        gps = (0.0, 0.0)
+        if "gps_time" in fields:
+            kind = record.dtype["gps_time"]
+            stored = [f["gps_time"].astype(kind) for _, _, f in parts if len(f["gps_time"])]
+            gps = (min(float(v.min()) for v in stored), max(float(v.max()) for v in stored))
+        # rounding is monotonic: the stored extremes are the rounded true extremes
+        file_lo = offsets + np.round((all_lo - offsets) / SCALE) * SCALE
+        file_hi = offsets + np.round((all_hi - offsets) / SCALE) * SCALE
+        extent = _Extent(file_lo, file_hi, gps, by_return)
 
-    _write_las(las, out, laz=bool(laz), overwrite=overwrite, durable=durable)
+    _write_las(las, out, laz=bool(laz), overwrite=overwrite, durable=durable, extent=extent)
 
     z = core.xyz[:, 2]
     if n_core:
@@ -394,16 +420,14 @@ def write_tile(
             float(core_lo[2]),
             float(core_hi[2]),
             float(z.mean()),
-            float(np.percentile(z, 95)),
+            # the same values in the same order as z: percentile copies them either way
+            float(np.percentile(core_columns[2], 95)),
         )
     else:
         bounds = (float("nan"),) * 6
         z_stats = (float("nan"),) * 4
-    if n:
-        # rounding is monotonic: the stored extremes are the rounded true extremes
-        file_lo = offsets + np.round((all_lo - offsets) / SCALE) * SCALE
-        file_hi = offsets + np.round((all_hi - offsets) / SCALE) * SCALE
-        file_bounds = (*map(float, file_lo), *map(float, file_hi))
+    if extent is not None:
+        file_bounds = (*map(float, extent.mins), *map(float, extent.maxs))
     else:
         file_bounds = (float("nan"),) * 6
     per_source: dict[int, int] = {}
@@ -428,15 +452,63 @@ def write_tile(
     )
 
 
-def _write_las(las: Any, out: Path, *, laz: bool, overwrite: bool, durable: bool) -> None:
-    """Write ``las`` to ``out`` atomically (LAZ with the parallel lazrs backend)."""
+@dataclass(frozen=True)
+class _Extent:
+    """What laspy's writer computes from the packed points for the header (``header.grow``:
+    passes over the points, a sort of the return numbers), known beforehand; the extra
+    bytes' extremes are still laspy's."""
+
+    #: Scaled storage extremes (offset + stored integer * scale).
+    mins: NDArray[np.float64]
+    maxs: NDArray[np.float64]
+    #: (min, max) of the stored GPS times.
+    gps: tuple[float, float]
+    #: Point count of each return number 0..15.
+    by_return: NDArray[np.int64]
+
+
+def _write_las(
+    las: Any, out: Path, *, laz: bool, overwrite: bool, durable: bool, extent: _Extent | None = None
+) -> None:
+    """Write ``las`` to ``out`` atomically (LAZ with the parallel lazrs backend).
+
+    With ``extent`` (points present), the header's point count, extremes and counts by
+    return are set from it rather than recomputed by laspy from the packed points, and a
+    LAS header is written once: the same bytes as ``las.write``, without passes over the
+    record (``las``'s header is updated as laspy's writer would update its copy)."""
     import laspy
 
     backend = laspy.LazBackend.LazrsParallel if laz else None
     # A file object: given a path, laspy picks compression from the (temporary) suffix.
     staged = atomic_output(out, overwrite=overwrite, durable=durable)
     with staged as tmp, open(tmp, "wb") as stream:
-        las.write(stream, do_compress=laz, laz_backend=backend)
+        if extent is None or not len(las.points) or las.evlrs:
+            las.write(stream, do_compress=laz, laz_backend=backend)
+        elif laz:
+            with laspy.LasWriter(
+                stream, las.header, do_compress=True, laz_backend=backend, closefd=False
+            ) as writer:
+                _grow(writer.header, extent, las.points)
+                writer.point_writer.write_points(las.points)
+        else:  # what laspy's LasWriter writes, the header written once, complete
+            header = las.header
+            header.partial_reset()
+            header.are_points_compressed = False
+            _grow(header, extent, las.points)
+            header.write_to(stream)
+            stream.write(las.points.memoryview())
+
+
+def _grow(header: Any, extent: _Extent, points: Any) -> None:
+    """Set what laspy's ``header.grow(points)`` sets, from ``extent`` (the extra bytes'
+    extremes by laspy itself)."""
+    header.mins, header.maxs = extent.mins.copy(), extent.maxs.copy()
+    header.min_gps_time, header.max_gps_time = extent.gps
+    header.number_of_points_by_return[:] += extent.by_return[1:16].astype(np.uint64)
+    header.point_count += len(points)
+    extra_bytes = header.vlrs.get("ExtraBytesVlr")
+    if extra_bytes:
+        extra_bytes[0].grow(points)
 
 
 def read_tile_record(path: str | os.PathLike[str], **options: Any) -> Any:

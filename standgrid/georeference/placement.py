@@ -103,10 +103,15 @@ class ToCatalog:
         return found
 
     def base_points(
-        self, xyz: NDArray[np.float64], pose: NDArray[np.float64]
+        self,
+        xyz: NDArray[np.float64],
+        pose: NDArray[np.float64],
+        *,
+        out: NDArray[np.float64] | None = None,
     ) -> NDArray[np.float64]:
-        """Base-frame points of a node at ``pose`` (T_map_base) into the catalog CRS (<= 1 mm)."""
-        return self.projector.fast(xyz, pose=pose)
+        """Base-frame points of a node at ``pose`` (T_map_base) into the catalog CRS (<= 1 mm);
+        ``out`` (may be ``xyz``) may receive them (see :meth:`MapProjector.fast`)."""
+        return self.projector.fast(xyz, pose=pose, out=out)
 
     def projected_points(self, xyz: NDArray[np.float64]) -> NDArray[np.float64]:
         """Points in the source CRS into the catalog CRS (heights as the clouds have them)."""

@@ -33,6 +33,8 @@ FloatArray = NDArray[np.float64]
 FAST_TOLERANCE_M = 0.5e-3
 #: Chunks smaller than this go straight to ``exact`` (linearising costs ~27 exact points).
 _FAST_MIN_POINTS = 64
+#: Rows projected per block by :meth:`MapProjector.fast`.
+_FAST_BLOCK_ROWS = 8192
 
 
 def _as_points(xyz: ArrayLike) -> FloatArray:
@@ -128,13 +130,16 @@ class MapProjector:
             return None
         return centre, coef[:3], coef[3] + origin
 
-    def fast(self, xyz: ArrayLike, *, pose: ArrayLike | None = None) -> FloatArray:
+    def fast(
+        self, xyz: ArrayLike, *, pose: ArrayLike | None = None, out: FloatArray | None = None
+    ) -> FloatArray:
         """:meth:`exact` for one compact chunk (one payload, tens of metres) via a verified affine.
 
         With ``pose`` (T_map_base), ``xyz`` is in the base frame and the pose is composed into
         the affine: one pass base -> CRS. Within 1 mm of :meth:`exact`; chunks where the
         affine is not good to 0.5 mm at its check points (e.g. hundreds of metres across) fall
-        back to :meth:`exact`.
+        back to :meth:`exact`. ``out`` (float64 (N, 3), may be ``xyz`` itself) receives the
+        affine's result; the fall-back returns a new array.
         """
         pts = _as_points(xyz)
         t = None if pose is None else np.asarray(pose, dtype=np.float64)
@@ -155,14 +160,23 @@ class MapProjector:
         if t is not None:  # p_map = p @ R^T + t, so crs = p @ (R^T A) + (t - centre) A + b
             matrix = t[:3, :3].T @ a
             offset = (t[:3, 3] - centre) @ a + b
-        out = np.empty_like(pts)
-        x, y, z = pts[:, 0], pts[:, 1], pts[:, 2]
-        for k in range(3):  # per column: faster than an (N, 3) @ (3, 3) matmul
-            column = out[:, k]
-            np.multiply(x, matrix[0, k], out=column)
-            column += y * matrix[1, k]
-            column += z * matrix[2, k]
-            column += offset[k]
+        if out is None:
+            out = np.empty_like(pts)
+        # Per column (faster than an (N, 3) @ (3, 3) matmul), block by block of rows: the
+        # block's results and temporaries stay in cache, and ``out`` may be ``pts``.
+        rows = min(len(pts), _FAST_BLOCK_ROWS)
+        block, product = np.empty((rows, 3)), np.empty(rows)
+        for start in range(0, len(pts), rows):
+            part = pts[start : start + rows]
+            done, temp = block[: len(part)], product[: len(part)]
+            x, y, z = part[:, 0], part[:, 1], part[:, 2]
+            for k in range(3):
+                column = done[:, k]
+                np.multiply(x, matrix[0, k], out=column)
+                column += np.multiply(y, matrix[1, k], out=temp)
+                column += np.multiply(z, matrix[2, k], out=temp)
+                column += offset[k]
+            out[start : start + len(part)] = done
         return out
 
     def describe(self) -> dict[str, Any]:

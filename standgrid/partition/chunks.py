@@ -72,9 +72,12 @@ def payload_chunk(task: PayloadTask) -> PayloadChunk:
         if task.file_to_base is not None:
             cloud = cloud.transformed(task.file_to_base)
         assert task.pose is not None
-        xyz = task.to_catalog.base_points(cloud.xyz, task.pose)
+        # the points just read are this function's own: projected in place when they can be
+        xyz = task.to_catalog.base_points(
+            cloud.xyz, task.pose, out=cloud.xyz if _writable_float64(cloud.xyz) else None
+        )
     # the projected points are this function's own (never the caller's): snapped in place
-    own = xyz is not cloud.xyz and xyz.dtype == np.float64 and xyz.flags.c_contiguous
+    own = _writable_float64(xyz) and (xyz is not cloud.xyz or task.to_catalog.fit is not None)
     xyz = snap_to_storage(xyz, task.lattice_origin, out=xyz if own else None)
     n = len(xyz)
     fields = dict(cloud.fields)
@@ -84,6 +87,10 @@ def payload_chunk(task: PayloadTask) -> PayloadChunk:
     fields["payload_id"] = np.full(n, task.payload_id, dtype=np.uint32)
     chunk = conform(PointCloud(xyz, fields), task.schema, task.path)
     return PayloadChunk(chunk, footprint(chunk.xyz, task.fallback_footprint))
+
+
+def _writable_float64(xyz: NDArray[Any]) -> bool:
+    return xyz.dtype == np.float64 and xyz.flags.c_contiguous and xyz.flags.writeable
 
 
 def footprint(xyz: NDArray[np.float64], fallback: Any) -> Any:

@@ -307,8 +307,11 @@ def _stable_order(keys: NDArray[np.int64]) -> NDArray[np.intp] | None:
     high_lo, low_lo = int(high.min()), int(low.min())
     columns = int(low.max()) - low_lo + 1
     if (int(high.max()) - high_lo + 1) * columns <= 1 << 16:
-        rank = (high - high_lo) * columns + (low - low_lo)
-        return np.argsort(rank.astype(np.uint16), kind="stable")
+        high -= high_lo  # the rank (high - high_lo) * columns + (low - low_lo), in place
+        high *= columns
+        low -= low_lo
+        high += low
+        return np.argsort(high.astype(np.uint16), kind="stable")
     return np.argsort(keys, kind="stable")
 
 

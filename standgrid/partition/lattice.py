@@ -10,6 +10,8 @@ from numpy.typing import NDArray
 
 #: Coordinate resolution of every tile (1 mm).
 SCALE = 0.001
+#: Rows snapped per block by :func:`snap_to_storage`.
+_SNAP_BLOCK_ROWS = 8192
 
 
 def snap_to_storage(
@@ -30,12 +32,20 @@ def snap_to_storage(
     if out is None:
         out = np.empty_like(pts)
     per_mm = 1.0 / SCALE
-    for axis, o in enumerate((float(origin[0]), float(origin[1]), 0.0)):
-        np.subtract(pts[:, axis], o, out=out[:, axis])
-        out[:, axis] *= per_mm
-        np.round(out[:, axis], out=out[:, axis])
-        out[:, axis] /= per_mm
-        out[:, axis] += o
+    origins = (float(origin[0]), float(origin[1]), 0.0)
+    # block by block of rows, each axis worked on in a contiguous scratch column (in cache)
+    rows = max(1, min(len(pts), _SNAP_BLOCK_ROWS))
+    scratch = np.empty(rows)
+    for start in range(0, len(pts), rows):
+        part = pts[start : start + rows]
+        column = scratch[: len(part)]
+        for axis, o in enumerate(origins):
+            np.subtract(part[:, axis], o, out=column)
+            column *= per_mm
+            np.round(column, out=column)
+            column /= per_mm
+            column += o
+            out[start : start + len(part), axis] = column
     return out
 
 

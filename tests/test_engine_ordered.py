@@ -32,6 +32,30 @@ def test_serial_results_come_in_item_order() -> None:
         list(ordered_map(SerialExecutor(), refuse_seven, range(10)))
 
 
+def test_a_caller_that_stops_early_leaves_nothing_running() -> None:
+    """Closed after its first result, the generator cancels what has not started and waits
+    for what has: nothing runs on behind the caller (a task writing into a transaction that
+    is being discarded)."""
+    import time
+    from contextlib import closing
+
+    started: list[int] = []
+    finished: list[int] = []
+
+    def slow(item: int) -> int:
+        started.append(item)
+        time.sleep(0.2)
+        finished.append(item)
+        return item
+
+    with closing(ordered_map(SerialExecutor(), slow, range(20), ahead=3)) as results:
+        assert next(results) == 0
+    # closed: what had started has finished, nothing else starts afterwards
+    assert sorted(finished) == sorted(started) and len(started) <= 4
+    time.sleep(0.5)
+    assert len(started) == len(finished) <= 4
+
+
 def test_cluster_results_come_in_item_order() -> None:
     pytest.importorskip("distributed")
     expected = [cumulative_sum(item) for item in ITEMS]

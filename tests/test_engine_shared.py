@@ -72,7 +72,7 @@ def test_pool_limit_and_quiet_stdout_are_restored_after_concurrent_use() -> None
         t.start()
     for t in threads:
         t.join(10)
-    assert all(set(limits) <= {1} for limits in inside) and len(inside) == 2, (inside, threadpool_info())
+    assert all(set(limits) <= {1} for limits in inside) and len(inside) == 2
     assert _blas_threads() == before_blas
     after_fd = os.fstat(1)
     assert (after_fd.st_dev, after_fd.st_ino) == (before_fd.st_dev, before_fd.st_ino)

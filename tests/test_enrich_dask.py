@@ -216,3 +216,34 @@ def test_another_chunk_layout_gives_the_same_catalog(tiled: Path, single: Path) 
     state = json.loads((single / "catalog.json").read_text())
     assert report.epochs["2024"]["chunks"] != state["epochs"]["2024"]["enrichment"]["chunks"]
     _assert_same(single, out)
+
+
+def test_an_interrupted_enrichment_leaves_no_chunk_running_and_the_catalog_as_it_was(
+    tiled: Path,
+) -> None:
+    """Stopped after its first chunk (as by Ctrl-C in the progress bar), enrichment waits for
+    the chunk running beside it before the transaction is discarded: no thread goes on
+    writing tiles into a staging folder that is gone, and the catalog is unchanged."""
+    import threading
+    from collections.abc import Iterable
+
+    from standgrid.engine import CallbackProgress
+
+    class Stop(Exception):
+        pass
+
+    def first_chunk_only(items: Iterable[object], total: int, desc: str) -> Iterable[object]:
+        for k, item in enumerate(items):
+            if k == 1 and desc.endswith("chunks"):
+                raise Stop
+            yield item
+
+    out = tiled.parent / "interrupted"
+    shutil.copytree(tiled, out)
+    before = {p.relative_to(out): p.read_bytes() for p in out.glob("tiles/2024/*.la[sz]")}
+    with pytest.raises(Stop):
+        enrich_catalog(out, OPTIONS, progress=CallbackProgress(wrap=first_chunk_only))
+    assert not [t for t in threading.enumerate() if t.name.startswith("ThreadPoolExecutor")]
+    assert not list(out.glob(".staging/*/files"))  # the discarded transaction stays gone
+    after = {p.relative_to(out): p.read_bytes() for p in out.glob("tiles/2024/*.la[sz]")}
+    assert after == before

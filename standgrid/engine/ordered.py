@@ -10,7 +10,7 @@ soon as they are, so at most one window of results is held.
 from __future__ import annotations
 
 from collections import deque
-from collections.abc import Callable, Iterable, Iterator
+from collections.abc import Callable, Generator, Iterable
 from concurrent.futures import Future, ThreadPoolExecutor
 from itertools import islice
 from typing import TypeVar
@@ -28,9 +28,11 @@ WINDOW_PER_WORKER = 4
 
 def ordered_map(
     executor: Executor, func: Callable[[T], R], items: Iterable[T], *, ahead: int = AHEAD
-) -> Iterator[R]:
+) -> Generator[R, None, None]:
     """``func(item)`` for every item, yielded in item order (the same order whatever runs
-    them, so what is built from the results is the same)."""
+    them, so what is built from the results is the same). Close the generator when done
+    (``contextlib.closing``): a caller that stops early then leaves nothing running behind
+    it (no task writes into a transaction being discarded)."""
     if isinstance(executor, SerialExecutor):
         yield from _threaded(func, items, ahead)
         return
@@ -46,14 +48,18 @@ def ordered_map(
                 following += 1
 
 
-def _threaded(func: Callable[[T], R], items: Iterable[T], ahead: int) -> Iterator[R]:
+def _threaded(func: Callable[[T], R], items: Iterable[T], ahead: int) -> Generator[R, None, None]:
     iterator = iter(items)
     with ThreadPoolExecutor(max_workers=max(1, ahead)) as pool:
         pending: deque[Future[R]] = deque()
-        for item in islice(iterator, max(1, ahead)):
-            pending.append(pool.submit(func, item))
-        while pending:
-            result = pending.popleft().result()
-            for item in islice(iterator, 1):
+        try:
+            for item in islice(iterator, max(1, ahead)):
                 pending.append(pool.submit(func, item))
-            yield result
+            while pending:
+                result = pending.popleft().result()
+                for item in islice(iterator, 1):
+                    pending.append(pool.submit(func, item))
+                yield result
+        finally:  # an error, or a caller that stops reading: items not started never run,
+            for future in pending:  # and the pool's exit waits for the running ones
+                future.cancel()

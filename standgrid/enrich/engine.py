@@ -9,8 +9,9 @@ and collects the rest, so one process and a cluster give the same result.
 
 from __future__ import annotations
 
+import contextlib
 import functools
-from collections.abc import Iterator, Sequence
+from collections.abc import Generator, Sequence
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any
 
@@ -89,15 +90,17 @@ class EpochRasters:
 
 def apply_blocks(
     jobs: Sequence[BlockJob], executor: Executor, progress: Progress, desc: str
-) -> Iterator[tuple[BlockJob, BlockResult]]:
+) -> Generator[tuple[BlockJob, BlockResult], None, None]:
     """Run every job; yield ``(job, result)`` in the jobs' order (results that finish early
-    wait, so merging is deterministic whatever the executor). In this process, jobs run
+    wait, so merging is deterministic whatever the executor; close it when done, see
+    :func:`~standgrid.engine.ordered.ordered_map`). In this process, jobs run
     :data:`~standgrid.engine.ordered.AHEAD` at once on threads (see :func:`chunks_at_once`)."""
     from standgrid.engine.ordered import ordered_map
 
     if isinstance(executor, SerialExecutor):
         in_order = ordered_map(executor, functools.partial(run_limited, run_block), jobs)
-        yield from zip(jobs, progress.track(in_order, len(jobs), desc), strict=True)
+        with contextlib.closing(in_order):
+            yield from zip(jobs, progress.track(in_order, len(jobs), desc), strict=True)
         return
     done: dict[int, BlockResult] = {}
     next_index = 0

@@ -17,6 +17,7 @@ metrics (all in one catalog transaction; the previous state stays intact on any 
 
 from __future__ import annotations
 
+import contextlib
 import functools
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -226,11 +227,12 @@ def _enrich_epoch(
     rasters = EpochRasters.empty(grid)
     samples: list[StandSample] = []
     tree_frames = []
-    for job, result in apply_blocks(jobs, executor, progress, f"{epoch}: chunks"):
-        rasters.paste(job.chunk, result)
-        stands.add(result.samples)
-        samples.extend(result.samples)
-        tree_frames.append(result.trees)
+    with contextlib.closing(apply_blocks(jobs, executor, progress, f"{epoch}: chunks")) as done:
+        for job, result in done:
+            rasters.paste(job.chunk, result)
+            stands.add(result.samples)
+            samples.extend(result.samples)
+            tree_frames.append(result.trees)
     if all(s.no_ground for s in samples):
         raise EnrichError(
             f"epoch {epoch}: no ground points anywhere, so no terrain model", path=catalog.root

@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import shutil
 from collections.abc import Callable, Sequence
+from contextlib import closing
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Any
 
@@ -83,16 +84,16 @@ def _in_this_process(
         memory_budget_bytes=work.memory_budget.bytes,
         buffer=work.buffer,
     ) as engine:
-        kept = ordered_map(executor, kept_points, work.kept)
-        for cloud in progress.track(kept, len(work.kept), f"{epoch}: existing tiles"):
-            if len(cloud):
-                engine.add(cloud)
-                done.kept_in += len(cloud)
-        chunks = ordered_map(executor, payload_chunk, work.payloads)
+        with closing(ordered_map(executor, kept_points, work.kept)) as kept:
+            for cloud in progress.track(kept, len(work.kept), f"{epoch}: existing tiles"):
+                if len(cloud):
+                    engine.add(cloud)
+                    done.kept_in += len(cloud)
         total = len(work.payloads)
-        for k, chunk in enumerate(progress.track(chunks, total, f"{epoch}: payloads")):
-            work.on_payload(k, len(chunk.cloud), chunk.footprint)
-            engine.add(chunk.cloud)
+        with closing(ordered_map(executor, payload_chunk, work.payloads)) as chunks:
+            for k, chunk in enumerate(progress.track(chunks, total, f"{epoch}: payloads")):
+                work.on_payload(k, len(chunk.cloud), chunk.footprint)
+                engine.add(chunk.cloud)
         partition = work.final_partition()
         names: list[tuple[str, str]] = []
 
@@ -104,9 +105,9 @@ def _in_this_process(
                 polygon = partition.polygon(cell.key)
                 yield CellTile(txn.stage(rel), cell.core, cell.buffer, work.crs, polygon, origin)
 
-        infos = ordered_map(executor, write_cell, cells())
-        for k, info in enumerate(progress.track(infos, 0, f"{epoch}: tiles")):
-            done.tiles.append((*names[k], info))
+        with closing(ordered_map(executor, write_cell, cells())) as infos:
+            for k, info in enumerate(progress.track(infos, 0, f"{epoch}: tiles")):
+                done.tiles.append((*names[k], info))
         stats = engine.stats
     done.points_in, done.points_out = stats.points_in, stats.points_out
     done.buffer_points, done.bytes_spilled = stats.buffer_points, stats.bytes_spilled

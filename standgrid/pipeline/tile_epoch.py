@@ -309,14 +309,17 @@ def _landing_tiles(
 ) -> set[str]:
     """The tiles (catalog-relative) the payloads' points fall in (each payload is read where
     the executor runs it, only its cells come back; the partition engine reads it again)."""
+    from contextlib import closing
+
     from standgrid.catalog import paths
     from standgrid.catalog.increment import landing_keys
     from standgrid.engine.ordered import ordered_map
 
     keys: set[int] = set()
     jobs = [(task, partition) for task in tasks]
-    for found in ordered_map(executor, landing_keys, jobs):  # keys only come back
-        keys.update(found.tolist())
+    with closing(ordered_map(executor, landing_keys, jobs)) as landed:
+        for found in landed:  # keys only come back
+            keys.update(found.tolist())
     tiling = settings.tiling
     return {paths.tile(epoch, partition.cell_id(k), laz=tiling.laz, copc=tiling.copc) for k in keys}
 

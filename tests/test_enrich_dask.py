@@ -247,3 +247,23 @@ def test_an_interrupted_enrichment_leaves_no_chunk_running_and_the_catalog_as_it
     assert not list(out.glob(".staging/*/files"))  # the discarded transaction stays gone
     after = {p.relative_to(out): p.read_bytes() for p in out.glob("tiles/2024/*.la[sz]")}
     assert after == before
+
+
+def test_a_voronoi_catalog_is_the_same_for_any_chunk_layout(
+    tmp_path_factory: pytest.TempPathFactory,
+) -> None:
+    """Voronoi cells cut the lattice's bins at their edges: a bin split between two tiles
+    has a lowest point in each, and the block keeps the lower (as the whole epoch does)."""
+    root = tmp_path_factory.mktemp("voronoi")
+    tiled = root / "tiled"
+    tile_missions(sorted(BUNDLED_MISSIONS.iterdir()), tiled, TileOptions(scheme="voronoi"))
+    small, large = root / "small", root / "large"
+    shutil.copytree(tiled, small)
+    shutil.copytree(tiled, large)
+    chunks = [
+        enrich_catalog(out, replace(OPTIONS, memory_budget=MemoryBudget(mb << 20)))
+        .epochs["2024"]["chunks"]
+        for out, mb in ((small, 64), (large, 512))
+    ]
+    assert chunks[0] > chunks[1]
+    _assert_same(small, large)

@@ -8,6 +8,7 @@ import numpy as np
 
 from standgrid.enrich import terrain
 from standgrid.enrich.ground import classify_ground
+from standgrid.partition.lattice import lowest_in_squares
 
 LATTICE = (0.3, -0.7)
 
@@ -35,7 +36,7 @@ def test_lowest_is_every_point_at_its_squares_minimum() -> None:
         low[square] = min(z, low.get(square, np.inf))
     expected = [k for k, (square, z) in enumerate(zip(squares, xyz[:, 2], strict=True))
                 if z == low[square]]  # fmt: skip
-    assert terrain._lowest(xyz, 0.25, LATTICE).tolist() == expected
+    assert lowest_in_squares(xyz, 0.25, LATTICE).tolist() == expected
 
 
 def test_thin_keeps_the_point_nearest_each_centre_whatever_the_order() -> None:

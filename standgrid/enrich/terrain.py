@@ -28,6 +28,7 @@ from numpy.typing import NDArray
 from standgrid.enrich.ground import classify_ground
 from standgrid.enrich.rasters import RasterGrid, dtm_from_ground, heights_and_pixels
 from standgrid.errors import EnrichError, StandgridError
+from standgrid.partition.lattice import lattice_index, lowest_in_squares, square_keys
 
 
 @dataclass(frozen=True)
@@ -58,13 +59,13 @@ def classify_terrain(
     :func:`ground_reach` of it: the ground squares the block touches then see all they
     would in the whole epoch."""
     size = ring_bin(cloth_resolution)
-    candidates = xyz[_lowest(xyz, size, lattice)]
+    candidates = xyz[lowest_in_squares(xyz, size, lattice)]
     squares = _squares(candidates, lattice)  # the ground squares the block touches
     if ring is not None and len(ring):
         # a bin cut by a tile's or the buffer's edge has a lowest point on each side (a
         # Voronoi cell's edge cuts bins): the lowest of them is the epoch's
         pool = np.concatenate([candidates, ring])
-        candidates = pool[_lowest(pool, size, lattice)]
+        candidates = pool[lowest_in_squares(pool, size, lattice)]
     ground = _classify(candidates, lattice, cloth_resolution, rigidness, source, squares)
     cloth = candidates[ground]
     # one order for the triangulation, whichever block (and rows) the ground came from
@@ -134,8 +135,8 @@ def _classify(
     # points are a run of it in x, filtered by y (a stable sort, so the same order)
     by_xyz = np.lexsort((xyz[:, 2], xyz[:, 1], xyz[:, 0]))
     x, y = xyz[by_xyz, 0], xyz[by_xyz, 1]
-    kx = _lattice_index(x, lattice[0], GROUND_SQUARE_M)
-    ky = _lattice_index(y, lattice[1], GROUND_SQUARE_M)
+    kx = lattice_index(x, lattice[0], GROUND_SQUARE_M)
+    ky = lattice_index(y, lattice[1], GROUND_SQUARE_M)
     h = GROUND_HALO_M
     for ix, iy in _distinct(kx, ky) if squares is None else squares:
         x0 = lattice[0] + ix * GROUND_SQUARE_M
@@ -154,8 +155,8 @@ def _squares(xyz: NDArray[np.float64], lattice: tuple[float, float]) -> list[tup
     """The ground squares (:data:`GROUND_SQUARE_M` on ``lattice``) holding the points, sorted."""
     if len(xyz) == 0:
         return []
-    kx = _lattice_index(xyz[:, 0], lattice[0], GROUND_SQUARE_M)
-    ky = _lattice_index(xyz[:, 1], lattice[1], GROUND_SQUARE_M)
+    kx = lattice_index(xyz[:, 0], lattice[0], GROUND_SQUARE_M)
+    ky = lattice_index(xyz[:, 1], lattice[1], GROUND_SQUARE_M)
     return _distinct(kx, ky)
 
 
@@ -166,50 +167,6 @@ def _distinct(kx: NDArray[np.int64], ky: NDArray[np.int64]) -> list[tuple[int, i
     key = (kx - kx0) * rows + (ky - ky0)  # grows with (kx, ky) in lexicographic order
     ix, iy = np.divmod(np.unique(key), rows)
     return list(zip((ix + kx0).tolist(), (iy + ky0).tolist(), strict=True))
-
-
-def _lattice_index(values: NDArray[np.float64], origin: float, size: float) -> NDArray[np.int64]:
-    """Per value, its ``size`` interval on the lattice of ``origin``: floor((v - o) / size)."""
-    index = values - origin
-    index /= size
-    return np.floor(index, out=index).astype(np.int64)
-
-
-def _bins(xy: NDArray[np.float64], size: float, lattice: tuple[float, float]) -> NDArray[np.int64]:
-    """Per point, its ``size`` square on ``lattice``, as one integer key."""
-    xy = np.asarray(xy, dtype=np.float64)
-    x, y = xy[:, 0], xy[:, 1]
-    # a square's index grows with the coordinate: the extreme points give the key's range
-    # (only the key's: the squares stay the lattice's)
-    col0 = math.floor((float(x.min()) - lattice[0]) / size)
-    row0 = math.floor((float(y.min()) - lattice[1]) / size)
-    rows = math.floor((float(y.max()) - lattice[1]) / size) - row0 + 1
-    key = np.empty(len(xy), dtype=np.int64)
-    for start in range(0, len(xy), _BLOCK):  # blocks that stay in the CPU's cache
-        part = slice(start, start + _BLOCK)
-        col = _lattice_index(x[part], lattice[0], size)
-        col -= col0
-        col *= rows
-        col += _lattice_index(y[part], lattice[1], size)
-        np.subtract(col, row0, out=key[part])
-    return key
-
-
-#: Points per block of element-wise arithmetic over a whole block of points.
-_BLOCK = 1 << 16
-
-
-def _lowest(
-    xyz: NDArray[np.float64], size: float, lattice: tuple[float, float]
-) -> NDArray[np.int64]:
-    """Rows of the lowest point of each ``size`` square of ``lattice`` (ties: every tied
-    point), sorted."""
-    if len(xyz) == 0:
-        return np.zeros(0, dtype=np.int64)
-    key = _bins(xyz[:, :2], size, lattice)
-    low = np.full(int(key.max()) + 1, np.inf)
-    np.minimum.at(low, key, xyz[:, 2])
-    return np.flatnonzero(xyz[:, 2] <= low[key])
 
 
 def _csf(
@@ -245,7 +202,7 @@ def thin(
     needs no more than ~4 ground points per p^2."""
     if len(points) < 1000:
         return points
-    key = _bins(points[:, :2], spacing, lattice)
+    key = square_keys(points[:, :2], spacing, lattice)
     dist = np.zeros(len(points))
     for axis in range(2):  # squared distance to the square's centre, in squares
         units = (points[:, axis] - lattice[axis]) / spacing

@@ -5,10 +5,11 @@ Over the whole block (the owned cells plus the neighbours' points in the buffer)
 observed, and tree crowns, tops and stems. Kept for the owned cells only: their points'
 classification, height and tree id, their raster pixels (DTM, CHM, density, observed, near
 ground), the trees whose top stands in them and one :class:`StandSample` per cell. The
-buffer must be wider than a crown, than twice the coverage closing radius and than the
-ground squares' halo (:data:`standgrid.enrich.terrain.GROUND_HALO_M`), so that the owned
-part is what one computation over the whole epoch gives, but for the terrain where the
-survey's edge limits the block's ground and crowns at the block's edge (docs/METRICS.md).
+buffer must be wider than a crown and than twice the coverage closing radius, and the
+chunk brings the lowest points of a ring out to the halo of every ground square it
+touches (:func:`standgrid.enrich.terrain.ground_reach`), so that the owned part is what one
+computation over the whole epoch gives, whatever the chunk layout (docs/METRICS.md,
+"Chunks").
 """
 
 from __future__ import annotations

@@ -5,16 +5,20 @@
    for dense scans), square by square: :data:`GROUND_SQUARE_M` squares on a fixed lattice
    (the stand grid's), each seen with :data:`GROUND_HALO_M` around it;
 2. the terrain model is the TIN of that ground, thinned to the point nearest the centre of
-   each half-pixel square, at the window's pixel centres (nearest ground point outside
-   their hull);
+   each half-pixel square, at the window's pixel centres, without triangles longer than
+   :data:`DTM_MARGIN_M` (nearest ground point there and outside the hull);
 3. every return within :data:`CLASS_THRESHOLD_M` of the terrain (CSF's own class threshold)
    is ground; heights above ground are bilinear in the terrain model.
 
 Every bin and square sits on the fixed lattice and no choice depends on the order of the
-points, so a point's ground class and height depend only on the points within
-:data:`GROUND_HALO_M` of its square: a block that holds them (a chunk whose buffer is at
-least that wide) gives every point it owns what one computation over the whole epoch
-would, whatever the chunk layout (the memory budget) is.
+points, so a square's ground depends only on the lowest points within
+:data:`GROUND_HALO_M` of it, and a pixel's height only on the ground within
+:data:`DTM_MARGIN_M` of it. A block that sees the lowest points out to the halo of every
+square it touches (:func:`ground_reach`: the chunk's ring) gives every point it owns what
+one computation over the whole epoch would, whatever the chunk layout (the memory budget)
+is. (Two cases reach further and are left as they are: a pixel more than ~20 m from any
+ground takes its nearest ground point, and a thin triangle's circumcircle can reach past
+the margin.)
 """
 
 from __future__ import annotations
@@ -91,7 +95,7 @@ DTM_MARGIN_M = 10.0
 CLASS_THRESHOLD_M = 0.5
 #: Ground is classified in squares of this side (m, a stand cell), on the lattice ...
 GROUND_SQUARE_M = 20.0
-#: ... each seen with this much around it (m): a chunk's buffer must be at least as wide.
+#: ... each seen with this much around it (m; a chunk brings it: :func:`ground_reach`).
 GROUND_HALO_M = 10.0
 
 

@@ -34,6 +34,7 @@ if TYPE_CHECKING:
 
     from standgrid.catalog.records import TilingSettings
     from standgrid.catalog.store import Catalog
+    from standgrid.engine import Executor
     from standgrid.export.las import TileInfo
     from standgrid.partition.chunks import PayloadTask
     from standgrid.partition.protocol import Partition
@@ -148,6 +149,38 @@ def landing_keys(job: tuple[PayloadTask, Partition]) -> NDArray[np.int64]:
     task, partition = job
     xyz = payload_chunk(task).cloud.xyz
     return np.unique(partition.assign(xyz[:, 0], xyz[:, 1]))
+
+
+def landing_tiles(
+    tasks: list[PayloadTask],
+    partition: Partition,
+    epoch: str,
+    tiling: TilingSettings,
+    executor: Executor,
+) -> set[str]:
+    """The tiles (catalog-relative) the payloads' points fall in (each payload is read where
+    the executor runs it, only its cells come back; the partition engine reads it again)."""
+    from contextlib import closing
+
+    from standgrid.catalog import paths
+    from standgrid.engine.ordered import ordered_map
+
+    keys: set[int] = set()
+    jobs = [(task, partition) for task in tasks]
+    with closing(ordered_map(executor, landing_keys, jobs)) as landed:
+        for found in landed:  # keys only come back
+            keys.update(found.tolist())
+    return {paths.tile(epoch, partition.cell_id(k), laz=tiling.laz, copc=tiling.copc) for k in keys}
+
+
+def keep_rows(rows: list[dict[str, Any]], kept: Any) -> None:
+    """Unchanged payloads keep their stored point count and footprint."""
+    stored = {int(r["payload_id"]): r for r in kept.to_dict("records")}
+    for row in rows:
+        found = stored.get(int(row["payload_id"]))
+        if found is not None:
+            row["point_count"] = int(found["point_count"])
+            row["geometry"] = found["geometry"]
 
 
 def tiles_holding(root: Path, tiles: Sequence[str], payload_ids: Iterable[int]) -> set[str]:

@@ -21,8 +21,6 @@ if TYPE_CHECKING:
     from standgrid.export.las import TileInfo
     from standgrid.georeference.placement import Placement, ToCatalog
     from standgrid.mission.model import Mission
-    from standgrid.partition.chunks import PayloadTask
-    from standgrid.partition.protocol import Partition
 
 
 @dataclass
@@ -74,7 +72,9 @@ def tile_epoch(
     import pandas as pd
 
     from standgrid.catalog.increment import (
+        keep_rows,
         kept_tile_info,
+        landing_tiles,
         placement_digest,
         plan_increment,
         source_digest,
@@ -119,11 +119,13 @@ def tile_epoch(
         rewrite, drop = previous, {"renewed": tuple(renewed)}
     else:  # in place: the tiles holding dropped payloads or receiving changed ones
         read = [k for k, r in enumerate(rows) if r["payload_id"] not in increment.unchanged]
-        landing = _landing_tiles([tasks[k] for k in read], partition, epoch, settings, executor)
+        landing = landing_tiles(
+            [tasks[k] for k in read], partition, epoch, settings.tiling, executor
+        )
         holding = tiles_holding(catalog.root, previous, increment.dropped)
         rewrite = sorted((landing | holding) & set(previous))
         drop = {"renewed": (), "dropped_payloads": tuple(sorted(increment.dropped))}
-        _keep_rows(rows, increment.kept_rows)
+        keep_rows(rows, increment.kept_rows)
         progress.status(
             f"{epoch}: {len(increment.unchanged)} payloads unchanged, {len(read)} to read; "
             f"{len(rewrite)} of {len(previous)} tiles rewritten"
@@ -298,37 +300,3 @@ def _note(ingest: Ingest) -> dict[str, Any]:
     """The mission's ``placement`` note (report, record): which placement, how far off."""
     assert ingest.choice is not None
     return ingest.choice.note()
-
-
-def _landing_tiles(
-    tasks: list[PayloadTask],
-    partition: Partition,
-    epoch: str,
-    settings: EpochSettings,
-    executor: Executor,
-) -> set[str]:
-    """The tiles (catalog-relative) the payloads' points fall in (each payload is read where
-    the executor runs it, only its cells come back; the partition engine reads it again)."""
-    from contextlib import closing
-
-    from standgrid.catalog import paths
-    from standgrid.catalog.increment import landing_keys
-    from standgrid.engine.ordered import ordered_map
-
-    keys: set[int] = set()
-    jobs = [(task, partition) for task in tasks]
-    with closing(ordered_map(executor, landing_keys, jobs)) as landed:
-        for found in landed:  # keys only come back
-            keys.update(found.tolist())
-    tiling = settings.tiling
-    return {paths.tile(epoch, partition.cell_id(k), laz=tiling.laz, copc=tiling.copc) for k in keys}
-
-
-def _keep_rows(rows: list[dict[str, Any]], kept: Any) -> None:
-    """Unchanged payloads keep their stored point count and footprint."""
-    stored = {int(r["payload_id"]): r for r in kept.to_dict("records")}
-    for row in rows:
-        found = stored.get(int(row["payload_id"]))
-        if found is not None:
-            row["point_count"] = int(found["point_count"])
-            row["geometry"] = found["geometry"]

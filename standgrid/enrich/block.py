@@ -119,13 +119,12 @@ def enrich_block(points: ChunkPoints, context: BlockContext) -> BlockResult:
                 no_ground=empty,
             )
         )
-    measure_heights(samples, height_break=options.height_break)
+    # sorted here (on the worker): a coarser stand merges its cells' runs
+    measure_heights(samples, height_break=options.height_break, sort_heights=True)
     rule = options.coverage_rule
     for cell, sample in zip(chunk.cells, samples, strict=True):
         if cell.stand_id is None or not sample.measured(rule):
             sample.release_heights()  # only a coarser stand of measured cells needs them
-        else:  # sorted here (on the worker): the stand merges its cells' runs
-            sample.heights = np.sort(sample.heights)
     fields: dict[str, NDArray[Any]] = {
         "classification": np.where(ground, GROUND, OTHER).astype(np.uint8),
         "height_above_ground": hag,

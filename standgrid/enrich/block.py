@@ -78,7 +78,8 @@ def enrich_block(points: ChunkPoints, context: BlockContext) -> BlockResult:
     )
     ground, dtm, hag = terrain.ground, terrain.dtm, terrain.heights
     polygons = [c.polygon for c in (*chunk.cells, *chunk.neighbours)]
-    hits = ground_hits(buffered, xyz[ground, :2])
+    # rows by index (a boolean mask of a 2-D array gathers several times slower)
+    hits = ground_hits(buffered, xyz.take(np.flatnonzero(ground), axis=0)[:, :2])
     # a cell without ground in it or within the buffer has no terrain to measure from
     no_ground = [not hits[_slices(buffered, c.bounds, chunk.buffer)].any() for c in chunk.cells]
     coverage = coverage_from_hits(
@@ -95,9 +96,14 @@ def enrich_block(points: ChunkPoints, context: BlockContext) -> BlockResult:
     # rasters over the whole block (a pixel's CHM fill looks at its neighbours, a Voronoi
     # edge pixel holds points of two cells), kept on the chunk's core window
     with_height = np.isfinite(hag)
+    if with_height.all():
+        xyz_with, hag_with = xyz, hag  # no copy
+    else:
+        with_index = np.flatnonzero(with_height)
+        xyz_with, hag_with = xyz.take(with_index, axis=0), hag[with_index]
     rasters = {
         "dtm": _crop(dtm, buffered, core),
-        "chm": _crop(chm(xyz[with_height], hag[with_height], buffered), buffered, core),
+        "chm": _crop(chm(xyz_with, hag_with, buffered), buffered, core),
         "density": _crop(density(xyz, buffered), buffered, core),
         "observed": _crop(coverage.observed, buffered, core),
         "near_ground": _crop(coverage.near_ground, buffered, core),
@@ -126,7 +132,7 @@ def enrich_block(points: ChunkPoints, context: BlockContext) -> BlockResult:
         if cell.stand_id is None or not sample.measured(rule):
             sample.release_heights()  # only a coarser stand of measured cells needs them
     fields: dict[str, NDArray[Any]] = {
-        "classification": np.where(ground, GROUND, OTHER).astype(np.uint8),
+        "classification": np.where(ground, np.uint8(GROUND), np.uint8(OTHER)),
         "height_above_ground": hag,
         "tree_id": tree_ids,
     }
@@ -171,7 +177,7 @@ def _trees(
     stands = [chunk.cells[k].stand_id for k in owner[keep]]
     if chunk.cells and chunk.cells[0].stand_id is not None:
         owned.insert(1, "stand_id", stands)
-    return owned, tree_ids.astype(np.int64)
+    return owned, tree_ids.astype(np.int64, copy=False)
 
 
 def _window(grid: RasterGrid, bounds: tuple[float, float, float, float]) -> RasterGrid:

@@ -216,3 +216,53 @@ def test_stand_grid_cell_keys_work_as_metric_keys() -> None:
     reordered = by_index.loc[ix * 1000 + iy]
     assert np.array_equal(reordered["n_points"].to_numpy(), by_key["n_points"].to_numpy())
     assert np.allclose(reordered["zq95"].to_numpy(), by_key["zq95"].to_numpy())
+
+
+def test_float32_heights_give_the_float64_metrics_to_the_bit_and_their_sorted_order() -> None:
+    from standgrid.enrich.metrics import area_metrics_sorted
+
+    rng = np.random.default_rng(11)
+    h32 = (rng.gamma(2.0, 6.0, 30_000) - 1.0).astype(np.float32)
+    h32[rng.choice(30_000, 50, replace=False)] = np.nan  # no height there
+    grouped = np.repeat(np.arange(5, dtype=np.int64), 6_000)  # cell after cell: sorted per cell
+    scattered = rng.integers(0, 2_000, 30_000)  # many small cells: one sort by (cell, height)
+    for keys in (grouped, scattered):
+        wide = area_metrics(keys, h32.astype(np.float64))
+        table, ordered = area_metrics_sorted(keys, h32)
+        assert list(table.columns) == list(wide.columns) and table.index.equals(wide.index)
+        for column in wide.columns.drop("null_reason"):
+            a, b = wide[column].to_numpy(np.float64), table[column].to_numpy(np.float64)
+            assert a.tobytes() == b.tobytes(), column
+        assert ordered.dtype == np.float32
+        finite = np.isfinite(h32)
+        expected = np.concatenate(
+            [np.sort(h32[finite & (keys == cell)]) for cell in np.unique(keys[finite])]
+        )
+        assert ordered.tobytes() == expected.tobytes()
+
+
+def test_measured_heights_left_sorted_measure_the_same_stand() -> None:
+    import pandas as pd
+
+    from standgrid.enrich.stands import StandSample, measure_heights
+
+    def cells(seed: int) -> list[StandSample]:
+        rng = np.random.default_rng(seed)
+        out = []
+        for k in range(4):
+            h = (rng.gamma(2.0, 6.0, 5_000) - 1.0).astype(np.float32)
+            h[[3, 17]] = np.nan
+            trees = pd.DataFrame({"height_m": [], "dbh_m": []})
+            out.append(StandSample(f"c{k}", 0, 20.0, 400.0, 400.0, 5_000, h, trees))
+        return out
+
+    plain, kept = cells(12), cells(12)
+    measure_heights(plain)
+    measure_heights(kept, sort_heights=True)
+    for a, b in zip(plain, kept, strict=True):
+        assert a.area is not None and repr(a.area) == repr(b.area)
+        finite = np.isfinite(a.heights)
+        n = int(finite.sum())
+        assert b.heights.dtype == np.float32 and len(b.heights) == len(a.heights)
+        assert b.heights[:n].tobytes() == np.sort(a.heights[finite]).tobytes()
+        assert np.isnan(b.heights[n:]).all()

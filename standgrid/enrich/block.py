@@ -122,13 +122,12 @@ def enrich_block(points: ChunkPoints, context: BlockContext) -> BlockResult:
                 no_ground=empty,
             )
         )
-    measure_heights(samples, height_break=options.height_break)
+    # sorted here (on the worker): a coarser stand merges its cells' runs
+    measure_heights(samples, height_break=options.height_break, sort_heights=True)
     rule = options.coverage_rule
     for cell, sample in zip(chunk.cells, samples, strict=True):
         if cell.stand_id is None or not sample.measured(rule):
             sample.release_heights()  # only a coarser stand of measured cells needs them
-        else:  # sorted here (on the worker): the stand merges its cells' runs
-            sample.heights = np.sort(sample.heights)
     fields: dict[str, NDArray[Any]] = {
         "classification": np.where(ground, np.uint8(GROUND), np.uint8(OTHER)),
         "height_above_ground": hag,
@@ -175,7 +174,7 @@ def _trees(
     stands = [chunk.cells[k].stand_id for k in owner[keep]]
     if chunk.cells and chunk.cells[0].stand_id is not None:
         owned.insert(1, "stand_id", stands)
-    return owned, tree_ids.astype(np.int64)
+    return owned, tree_ids.astype(np.int64, copy=False)
 
 
 def _window(grid: RasterGrid, bounds: tuple[float, float, float, float]) -> RasterGrid:

@@ -142,32 +142,45 @@ BATCH_HEIGHTS = 2_000_000
 TREE_BATCH = 10_000
 
 
-def measure_heights(samples: list[StandSample], *, height_break: float = 2.0) -> None:
+def measure_heights(
+    samples: list[StandSample], *, height_break: float = 2.0, sort_heights: bool = False
+) -> None:
     """Fill :attr:`StandSample.area` of the samples not measured yet, many at once, in
-    batches of at most :data:`BATCH_HEIGHTS` heights (memory stays bounded)."""
+    batches of at most :data:`BATCH_HEIGHTS` heights (memory stays bounded). With
+    ``sort_heights``, their heights are left sorted (the finite ones, then the others), as a
+    coarser stand merges them: the measurement sorts them anyway."""
     batch: list[StandSample] = []
     size = 0
     for sample in (s for s in samples if s.area is None):
         if batch and size + len(sample.heights) > BATCH_HEIGHTS:
-            _measure_batch(batch, height_break)
+            _measure_batch(batch, height_break, sort_heights)
             batch, size = [], 0
         batch.append(sample)
         size += len(sample.heights)
     if batch:
-        _measure_batch(batch, height_break)
+        _measure_batch(batch, height_break, sort_heights)
 
 
-def _measure_batch(samples: list[StandSample], height_break: float) -> None:
-    from standgrid.enrich.metrics import area_metrics
+def _measure_batch(samples: list[StandSample], height_break: float, sort_heights: bool) -> None:
+    from standgrid.enrich.metrics import area_metrics_sorted
 
     keys = np.arange(len(samples), dtype=np.int64)
-    table = area_metrics(
+    # float32 heights (as enrichment holds them) stay float32: the metrics sort them as such
+    heights = np.concatenate([np.asarray(s.heights) for s in samples])
+    table, ordered = area_metrics_sorted(
         np.repeat(keys, [len(s.heights) for s in samples]),
-        np.concatenate([np.asarray(s.heights, dtype=np.float64) for s in samples]),
+        heights,
         cells=keys,
         height_break=height_break,
     )
-    for sample, row in zip(samples, table.to_dict("records"), strict=True):
+    rows = table.to_dict("records")
+    if sort_heights:
+        n_finite = (table["n_points"] - table["n_no_height"]).to_numpy()
+        parts = np.split(ordered, np.cumsum(n_finite)[:-1])
+        for sample, part in zip(samples, parts, strict=True):
+            given = np.asarray(sample.heights)
+            sample.heights = np.concatenate([part, given[~np.isfinite(given)]])  # a copy
+    for sample, row in zip(samples, rows, strict=True):
         sample.area = row
 
 

@@ -136,12 +136,14 @@ def segment_trees(
     if h.shape != (len(xyz),):
         raise EnrichError(f"{h.shape} heights for {len(xyz)} points")
     labels = np.zeros(len(xyz), dtype=np.uint32)
-    canopy = np.isfinite(h) & (h >= min_height)
+    finite = np.isfinite(h)
+    canopy = finite & (h >= min_height)
     if not canopy.any():
         return TreeSegmentation(_empty_table(), labels)
 
     # 1. CHM on a lattice aligned to multiples of the pixel size (same pixels in every block)
-    canopy_xyz = xyz[canopy]
+    canopy_index = np.flatnonzero(canopy)
+    canopy_xyz = xyz.take(canopy_index, axis=0)
     cx, cy = canopy_xyz[:, 0], canopy_xyz[:, 1]
     # with room for the sub-circles and the smoothing around the outermost points: a crown
     # at the data's edge is not clipped by a raster that ends where one block's points end
@@ -152,7 +154,7 @@ def segment_trees(
         cell_size=pixel_size,
         pixel_size=pixel_size,
     )
-    raw = chm(canopy_xyz, h[canopy], grid, fill_empty=True, subcircle=CHM_SUBCIRCLE_M)
+    raw = chm(canopy_xyz, h[canopy_index], grid, fill_empty=True, subcircle=CHM_SUBCIRCLE_M)
     raw = np.nan_to_num(raw, nan=0.0).astype(np.float64)
     smooth = ndimage.gaussian_filter(raw, sigma=0.5, truncate=2.0)
 
@@ -178,11 +180,14 @@ def segment_trees(
     crowns[raw < crown_fraction * seed_height[crowns]] = 0
 
     # 4. points by pixel; a tree is its canopy points (top = highest point)
-    row, col = grid.pixel_of(xyz[:, 0], xyz[:, 1])
-    inside = (row >= 0) & (row < grid.nrows) & (col >= 0) & (col < grid.ncols)
+    pixel, col = grid.pixel_of(xyz[:, 0], xyz[:, 1])
+    outside = (pixel < 0) | (pixel >= grid.nrows) | (col < 0) | (col >= grid.ncols)
+    pixel *= grid.ncols
+    pixel += col
     # one lookup: the points outside the raster read the 0 appended after its pixels
-    crown_of_pixel = np.append(crowns.ravel(), 0).astype(np.int64)
-    pixel_label = crown_of_pixel[np.where(inside, row * grid.ncols + col, crowns.size)]
+    pixel[outside] = crowns.size
+    del col, outside
+    pixel_label = np.append(crowns.ravel(), 0).astype(np.int64)[pixel]
     in_tree = (pixel_label > 0) & canopy
     if not in_tree.any():
         return TreeSegmentation(_empty_table(), labels)
@@ -205,9 +210,9 @@ def segment_trees(
     row_of_seed = np.zeros(n_seeds + 1, dtype=np.int64)
     row_of_seed[seeds] = np.arange(1, n_trees + 1)
     # crowns without a tree and the points outside any crown (pixel label 0) read 0
-    labels = np.where(
-        np.isfinite(h) & (h >= point_min_height), row_of_seed.astype(np.uint32)[pixel_label], 0
-    ).astype(np.uint32)
+    point_rows = row_of_seed[pixel_label]
+    point_rows[~(finite & (h >= point_min_height))] = 0
+    labels = point_rows.astype(np.uint32)
 
     crown_pixels = np.bincount(crowns.ravel(), minlength=n_seeds + 1)[seeds]
     table = pd.DataFrame(
@@ -218,7 +223,7 @@ def segment_trees(
             "z_ground": xyz[tops, 2] - h[tops],
             "height_m": h[tops],
             "crown_area_m2": crown_pixels * pixel_size**2,
-            "n_points": np.bincount(labels, minlength=n_trees + 1)[1:],
+            "n_points": np.bincount(point_rows, minlength=n_trees + 1)[1:],
         }
     )
     table["crown"] = _crown_polygons(crowns, seeds, grid)
@@ -305,6 +310,11 @@ def _attach_stems(
     dist = np.hypot(sx[pairs[:, 0]] - tx[pairs[:, 1]], sy[pairs[:, 0]] - ty[pairs[:, 1]])
     pairs = pairs[np.argsort(dist, kind="stable")]
     ok = stems["ok"].to_numpy(dtype=bool)
+    stem_reason = stems["reason"].to_numpy(dtype=object)
+    stem_dbh = stems["dbh_m"].to_numpy(dtype=float)
+    stem_rmse = stems["rmse_m"].to_numpy(dtype=float)
+    stem_inliers = stems["n_inliers"].to_numpy(dtype=np.int64)
+    stem_arc = stems["arc_deg"].to_numpy(dtype=float)
     used_stem, used_tree = set(), set()
     reasons = table["dbh_reason"].to_numpy(dtype=object, copy=True)
     dbh = table["dbh_m"].to_numpy(dtype=float, copy=True)
@@ -313,20 +323,20 @@ def _attach_stems(
     rmse = table["dbh_rmse_m"].to_numpy(dtype=float, copy=True)
     n_used = table["dbh_n_points"].to_numpy(dtype=np.int64, copy=True)
     arc = table["dbh_arc_deg"].to_numpy(dtype=float, copy=True)
-    for s, t in pairs:
+    for s, t in pairs.tolist():
         if s in used_stem or t in used_tree:
             continue
         if not ok[s]:
             if reasons[t] == REASON_NO_STEM:
-                reasons[t] = f"stem fit rejected: {stems['reason'].iat[s]}"
+                reasons[t] = f"stem fit rejected: {stem_reason[s]}"
             continue
         used_stem.add(s)
         used_tree.add(t)
-        dbh[t] = stems["dbh_m"].iat[s]
+        dbh[t] = stem_dbh[s]
         stem_x[t], stem_y[t] = sx[s], sy[s]
-        rmse[t] = stems["rmse_m"].iat[s]
-        n_used[t] = stems["n_inliers"].iat[s]
-        arc[t] = stems["arc_deg"].iat[s]
+        rmse[t] = stem_rmse[s]
+        n_used[t] = stem_inliers[s]
+        arc[t] = stem_arc[s]
         reasons[t] = None
     table["dbh_m"] = dbh
     table["stem_x"], table["stem_y"], table["dbh_rmse_m"] = stem_x, stem_y, rmse
@@ -461,7 +471,8 @@ def _msac_circle(
         resid = (c * -2.0) @ score_pts.T
         resid += (score_pts**2).sum(axis=1)[None, :]
         resid += (c**2).sum(axis=1)[:, None]
-        np.maximum(resid, 0.0, out=resid)
+        if resid.min() < 0.0:  # round-off where a point is at a centre
+            np.maximum(resid, 0.0, out=resid)
         np.sqrt(resid, out=resid)
         resid -= radius[:, None]
         # MSAC: truncated squared residuals, so a tight circle beats a loose one that
@@ -612,7 +623,7 @@ def fit_stems(
     band = np.flatnonzero((h >= low) & (h <= high))  # NaN heights are in no slice
     if within is not None:
         x0, y0, x1, y1 = within
-        x, y = xyz[band, 0], xyz[band, 1]
+        x, y = xyz[:, 0][band], xyz[:, 1][band]
         band = band[(x >= x0) & (x < x1) & (y >= y0) & (y < y1)]
 
     def slice_at(height: float) -> NDArray[np.float64]:

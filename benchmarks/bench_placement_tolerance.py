@@ -32,27 +32,6 @@ REPO = Path(__file__).resolve().parents[1]
 BUNDLED = REPO / "data" / "missions" / "2024-05-14-wytham-anymal-coyote"
 
 
-def subgraph(source: Path, until_ns: int) -> bytes:
-    """The pose graph as the robot has it at ``until_ns``: nodes until then, their edges."""
-    kept, out = set(), []
-    for line in (source / "slam_pose_graph.g2o").read_text().splitlines():
-        parts = line.split()
-        if parts and parts[0].startswith("VERTEX"):
-            if int(parts[-2]) * 1_000_000_000 + int(parts[-1]) > until_ns:
-                continue
-            kept.add(parts[1])
-        elif parts and parts[0].startswith("EDGE") and not {parts[1], parts[2]} <= kept:
-            continue
-        out.append(line)
-    return ("\n".join(out) + "\n").encode()
-
-
-def fixes(source: Path, until_ns: int) -> bytes:
-    header, *rows = (source / "gnss" / "fixes.txt").read_text().splitlines()
-    rows = [r for r in rows if int(r.split(",")[0]) * 10**9 + int(r.split(",")[1]) <= until_ns]
-    return ("\n".join([header, *rows]) + "\n").encode()
-
-
 def stream(source: Path, folder: Path, batch: int, tolerance: float | None) -> dict[str, Any]:
     """Stream ``source`` into a new catalog in ``folder``; tiling times and placements."""
     from standgrid.catalog import Catalog
@@ -62,6 +41,7 @@ def stream(source: Path, folder: Path, batch: int, tolerance: float | None) -> d
     from standgrid.mission.model import open_mission
     from standgrid.partition import StandGrid
     from standgrid.serve.workers import tile_mission
+    from standgrid.simulate.stream import fixes_until, graph_until
 
     mission = open_mission(source, strict=False)
     crs = "EPSG:32630"  # the simulator's (Wytham Woods)
@@ -75,11 +55,11 @@ def stream(source: Path, folder: Path, batch: int, tolerance: float | None) -> d
     for start in range(0, len(payloads), batch):
         chunk = payloads[start : start + batch]
         until = payloads[start + batch].stamp.ns - 1 if start + batch < len(payloads) else 1 << 62
-        live.set_graph(subgraph(source, until))
+        live.set_graph(graph_until(source, until))
         for payload in chunk:
             live.add_payload(payload.stamp, payload.path.read_bytes(),
                              payload.path.suffix, mission.pose_of(payload))  # fmt: skip
-        live.add_gnss(fixes(source, until))
+        live.add_gnss(fixes_until(source, until))
         t0 = time.perf_counter()
         try:
             report = tile_mission(str(live.path), str(catalog), tolerance)

@@ -214,3 +214,48 @@ def small_cell_id(name: str) -> str:
     dx, dy = next(cells[name] for cells in SMALL_CELLS.values() if name in cells)
     grid = StandGrid(CRS, 20.0)
     return str(grid.cell(SMALL_ORIGIN[0] + 20.0 * dx + 10.0, SMALL_ORIGIN[1] + 20.0 * dy + 10.0))
+
+
+def tile_files(root: Path) -> dict[str, tuple[int, str]]:
+    """Every tile of the catalog at ``root``: (inode, content hash) by catalog-relative path."""
+    import hashlib
+
+    from standgrid.catalog import Catalog
+
+    catalog = Catalog.open(root)
+    return {
+        rel: ((root / rel).stat().st_ino, hashlib.sha256((root / rel).read_bytes()).hexdigest())
+        for epoch in catalog.epochs
+        for rel in catalog.tiles(epoch)
+    }
+
+
+def tile_points(path: Path) -> np.ndarray:
+    """A tile's points (buffer copies included) as sorted rows of (x, y, z in mm, payload id,
+    GPS time bits): two tiles hold the same points when these are equal."""
+    from standgrid.export.las import read_tile
+
+    cloud = read_tile(path, include_withheld=True)
+    table = np.column_stack([
+        np.round(cloud.xyz * 1000).astype(np.int64),
+        cloud.fields["payload_id"].astype(np.int64),
+        cloud.fields["gps_time"].view(np.int64),
+    ])  # fmt: skip
+    return table[np.lexsort(table.T[::-1])]
+
+
+def assert_same_tiles_and_cells(a: Path, b: Path) -> dict[str, tuple[int, str]]:
+    """Catalogs ``a`` and ``b`` hold the same tiles, point for point, and the same cells and
+    payloads with the same point counts; ``a``'s tiles (:func:`tile_files`) are returned."""
+    import pyogrio
+
+    tiles, other = tile_files(a), tile_files(b)
+    assert sorted(tiles) == sorted(other) and tiles
+    for rel in tiles:
+        np.testing.assert_array_equal(tile_points(a / rel), tile_points(b / rel), err_msg=rel)
+    for layer, key in (("cells", "cell_id"), ("payloads", "payload_id")):
+        got = pyogrio.read_dataframe(a / "index.gpkg", layer=layer).sort_values(key)
+        want = pyogrio.read_dataframe(b / "index.gpkg", layer=layer).sort_values(key)
+        for column in ("point_count", key):
+            assert got[column].tolist() == want[column].tolist(), (layer, column)
+    return tiles

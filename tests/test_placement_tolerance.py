@@ -5,7 +5,6 @@ whole; an exact settle at the end gives the catalog `standgrid tile` of the fold
 
 from __future__ import annotations
 
-import hashlib
 import json
 from pathlib import Path
 
@@ -18,38 +17,21 @@ from standgrid.mission.live import LiveMission
 from standgrid.mission.metadata import read_metadata
 from standgrid.mission.model import open_mission
 from standgrid.pipeline.tile import TileOptions, tile_missions
+from standgrid.simulate.stream import fixes_until, graph_until
 from tests.conftest import BUNDLED_MISSIONS
-from tests.pipeline_fixtures import CRS, MISSIONS
+from tests.pipeline_fixtures import (
+    CRS,
+    MISSIONS,
+    assert_same_tiles_and_cells,
+    tile_files,
+    tile_points,
+)
 
 NAME = MISSIONS["2024"]
 SOURCE = BUNDLED_MISSIONS / NAME
 TOLERANCE = 0.05
 #: payloads per batch the robot sends before asking for a tile
 BATCH = 2
-
-
-def _subgraph(until_ns: int) -> bytes:
-    """The source's pose graph as the robot has it at ``until_ns``: nodes up to then and the
-    edges between them."""
-    kept, out = set(), []
-    for line in (SOURCE / "slam_pose_graph.g2o").read_text().splitlines():
-        parts = line.split()
-        if parts and parts[0].startswith("VERTEX"):
-            if int(parts[-2]) * 1_000_000_000 + int(parts[-1]) > until_ns:
-                continue
-            kept.add(parts[1])
-        elif parts and parts[0].startswith("EDGE") and not {parts[1], parts[2]} <= kept:
-            continue
-        out.append(line)
-    return ("\n".join(out) + "\n").encode()
-
-
-def _fixes(until_ns: int | None) -> bytes:
-    """The source's GNSS log up to ``until_ns`` (None: all of it)."""
-    header, *rows = (SOURCE / "gnss" / "fixes.txt").read_text().splitlines()
-    if until_ns is not None:
-        rows = [r for r in rows if int(r.split(",")[0]) * 10**9 + int(r.split(",")[1]) <= until_ns]
-    return ("\n".join([header, *rows]) + "\n").encode()
 
 
 def batches() -> list[tuple[bytes, list[tuple], bytes]]:
@@ -62,29 +44,10 @@ def batches() -> list[tuple[bytes, list[tuple], bytes]]:
         chunk = payloads[start : start + BATCH]
         last = start + BATCH >= len(payloads)
         until = None if last else payloads[start + BATCH].stamp.ns - 1
-        graph = _subgraph(until if until is not None else 1 << 62)
+        graph = graph_until(SOURCE, until if until is not None else 1 << 62)
         sent = [(p.stamp, p.path.read_bytes(), source.pose_of(p)) for p in chunk]
-        out.append((graph, sent, _fixes(until)))
+        out.append((graph, sent, fixes_until(SOURCE, until)))
     return out
-
-
-def _files(root: Path) -> dict[str, tuple[int, str]]:
-    catalog = Catalog.open(root)
-    return {
-        rel: ((root / rel).stat().st_ino, hashlib.sha256((root / rel).read_bytes()).hexdigest())
-        for epoch in catalog.epochs
-        for rel in catalog.tiles(epoch)
-    }
-
-
-def _points(path: Path) -> np.ndarray:
-    cloud = read_tile(path, include_withheld=True)
-    table = np.column_stack([
-        np.round(cloud.xyz * 1000).astype(np.int64),
-        cloud.fields["payload_id"].astype(np.int64),
-        cloud.fields["gps_time"].view(np.int64),
-    ])  # fmt: skip
-    return table[np.lexsort(table.T[::-1])]
 
 
 def _payload_means(root: Path) -> dict[int, np.ndarray]:
@@ -114,9 +77,9 @@ def stream(tmp_path_factory: pytest.TempPathFactory) -> dict:
         for stamp, data, pose in payloads:
             live.add_payload(stamp, data, "pcd", pose)
         live.add_gnss(fixes)
-        before = _files(catalog) if catalog.exists() else {}
+        before = tile_files(catalog) if catalog.exists() else {}
         report = tile_missions([live.path], catalog, options).to_dict()
-        steps.append({"report": report, "before": before, "after": _files(catalog),
+        steps.append({"report": report, "before": before, "after": tile_files(catalog),
                       "tiled_before": BATCH * len(steps)})  # fmt: skip
     streamed = {
         "record": json.loads((catalog / "catalog.json").read_text())["missions"][NAME],
@@ -213,15 +176,7 @@ def test_the_exact_settle_equals_tiling_the_folder(stream: dict) -> None:
     catalog, batch = Path(stream["catalog"]), Path(stream["batch"])
     settle = stream["settle"]["missions"][NAME]["placement"]
     assert settle["used"] == "fresh" and settle["offset_m"] == 0.0
-    tiles, batch_tiles = _files(catalog), _files(batch)
-    assert sorted(tiles) == sorted(batch_tiles) and tiles
-    for rel in tiles:
-        np.testing.assert_array_equal(_points(catalog / rel), _points(batch / rel), err_msg=rel)
-    for layer, key in (("cells", "cell_id"), ("payloads", "payload_id")):
-        got = pyogrio.read_dataframe(catalog / "index.gpkg", layer=layer).sort_values(key)
-        want = pyogrio.read_dataframe(batch / "index.gpkg", layer=layer).sort_values(key)
-        for column in ("point_count", key):
-            assert got[column].tolist() == want[column].tolist(), (layer, column)
+    assert_same_tiles_and_cells(catalog, batch)
     state = json.loads((catalog / "catalog.json").read_text())["missions"][NAME]
     want = json.loads((batch / "catalog.json").read_text())["missions"][NAME]
     assert state["georeference"]["T_enu_map"] == want["georeference"]["T_enu_map"]
@@ -313,7 +268,7 @@ def test_a_served_stream_keeps_its_placement_then_settles_exactly(tmp_path: Path
     assert after["placement"] == settled
     reference = tmp_path / "reference"
     tile_missions([tmp_path / "inbox" / NAME], reference, TileOptions(cell_size=20.0, crs=CRS))
-    got, want = _files(catalog), _files(reference)
+    got, want = tile_files(catalog), tile_files(reference)
     assert sorted(got) == sorted(want) and got
     for rel in want:
-        np.testing.assert_array_equal(_points(catalog / rel), _points(reference / rel), rel)
+        np.testing.assert_array_equal(tile_points(catalog / rel), tile_points(reference / rel), rel)

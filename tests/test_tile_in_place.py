@@ -3,7 +3,6 @@ catalog equals one tiled from the whole mission at once."""
 
 from __future__ import annotations
 
-import hashlib
 import json
 from pathlib import Path
 
@@ -11,13 +10,12 @@ import numpy as np
 import pytest
 
 from standgrid.catalog import Catalog
-from standgrid.export.las import read_tile
 from standgrid.mission.live import LiveMission
 from standgrid.mission.metadata import read_metadata
 from standgrid.mission.model import open_mission
 from standgrid.pipeline.tile import TileOptions, tile_missions
 from tests.conftest import BUNDLED_MISSIONS
-from tests.pipeline_fixtures import MISSIONS
+from tests.pipeline_fixtures import MISSIONS, assert_same_tiles_and_cells, tile_files
 
 SOURCE = BUNDLED_MISSIONS / MISSIONS["2024"]
 #: A hand placement (no GNSS fit): the same for every payload count.
@@ -32,26 +30,6 @@ def _grow(live: LiveMission, upto: int) -> None:
         live.add_payload(payload.stamp, payload.path.read_bytes(), payload.path.suffix, pose)
 
 
-def _files(root: Path) -> dict[str, tuple[int, str]]:
-    """Every tile: (inode, content hash)."""
-    catalog = Catalog.open(root)
-    return {
-        rel: ((root / rel).stat().st_ino, hashlib.sha256((root / rel).read_bytes()).hexdigest())
-        for epoch in catalog.epochs
-        for rel in catalog.tiles(epoch)
-    }
-
-
-def _points(path: Path) -> np.ndarray:
-    cloud = read_tile(path, include_withheld=True)
-    table = np.column_stack([
-        np.round(cloud.xyz * 1000).astype(np.int64),
-        cloud.fields["payload_id"].astype(np.int64),
-        cloud.fields["gps_time"].view(np.int64),
-    ])  # fmt: skip
-    return table[np.lexsort(table.T[::-1])]
-
-
 @pytest.fixture(scope="module")
 def grown(tmp_path_factory: pytest.TempPathFactory) -> dict[str, object]:
     """A mission tiled with half its payloads, then tiled again with all of them."""
@@ -64,10 +42,10 @@ def grown(tmp_path_factory: pytest.TempPathFactory) -> dict[str, object]:
     catalog = folder / "catalog"
     _grow(live, total // 2)
     tile_missions([live.path], catalog, options)
-    before = _files(catalog)
+    before = tile_files(catalog)
     _grow(live, total)
     report = tile_missions([live.path], catalog, options)
-    after = _files(catalog)
+    after = tile_files(catalog)
     again = tile_missions([live.path], catalog, options)  # nothing new
     batch = folder / "batch"
     tile_missions([live.path], batch, options)
@@ -89,17 +67,9 @@ def test_only_the_tiles_the_new_payloads_touch_are_rewritten(grown: dict) -> Non
 
 def test_the_grown_catalog_equals_one_tiled_at_once(grown: dict) -> None:
     catalog, batch = Path(grown["catalog"]), Path(grown["batch"])
-    tiles, batch_tiles = _files(catalog), _files(batch)
-    assert sorted(tiles) == sorted(batch_tiles)
-    for rel in tiles:
-        np.testing.assert_array_equal(_points(catalog / rel), _points(batch / rel), err_msg=rel)
+    tiles = assert_same_tiles_and_cells(catalog, batch)
     import pyogrio
 
-    for layer, key in (("cells", "cell_id"), ("payloads", "payload_id")):
-        got = pyogrio.read_dataframe(catalog / "index.gpkg", layer=layer).sort_values(key)
-        want = pyogrio.read_dataframe(batch / "index.gpkg", layer=layer).sort_values(key)
-        for column in ("point_count", key):
-            assert got[column].tolist() == want[column].tolist(), (layer, column)
     state = json.loads((catalog / "catalog.json").read_text())
     mission = state["missions"][SOURCE.name]
     cells = pyogrio.read_dataframe(catalog / "index.gpkg", layer="cells")
@@ -112,7 +82,7 @@ def test_a_re_tile_of_an_unchanged_mission_rewrites_nothing(grown: dict) -> None
     assert epoch["payloads_unchanged"] == grown["total"]
     assert epoch["cells_rewritten"] == 0 and epoch["points_new"] == 0
     assert "invalidated" not in epoch
-    assert _files(Path(grown["catalog"])) == grown["after"]
+    assert tile_files(Path(grown["catalog"])) == grown["after"]
 
 
 def test_a_buffered_catalog_is_re_tiled_whole(tmp_path: Path) -> None:

@@ -216,6 +216,14 @@ def test_a_negative_tolerance_is_refused(tmp_path: Path) -> None:
     with pytest.raises(TilingError, match="placement tolerance"):
         tile_missions([SOURCE], tmp_path / "c", TileOptions(placement_tolerance=-0.01))
     assert not (tmp_path / "c").exists()
+    from standgrid.partition import StandGrid
+    from standgrid.serve import create_app
+
+    catalog = tmp_path / "served"
+    Catalog.create(catalog, StandGrid(CRS, 20.0).to_dict(), CRS, "grid")
+    for bad in (float("nan"), float("inf"), -1.0):  # refused when the server starts
+        with pytest.raises(TilingError, match="placement tolerance"):
+            create_app(catalog, placement_tolerance=bad)
 
 
 def test_a_served_stream_keeps_its_placement_then_settles_exactly(tmp_path: Path) -> None:

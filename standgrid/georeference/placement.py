@@ -162,8 +162,9 @@ def place_mission(
     return Placement(fit)
 
 
-#: The smallest radius of curvature of the WGS 84 ellipsoid (the meridian's at the equator, m):
-#: no projection's Jacobian turns or scales faster than by 1 / this per metre of ground.
+#: The smallest radius of curvature of the WGS 84 ellipsoid (the meridian's at the equator,
+#: m); with 1 / cos(latitude) for the grid convergence, what bounds how fast a projection's
+#: Jacobian turns or scales per metre of ground.
 MIN_EARTH_RADIUS_M = 6_335_439.0
 
 
@@ -202,10 +203,13 @@ def placement_offset(
     projection ``f`` (ECEF -> CRS). The displacement is ``D(p) = f(A1 p) - f(A0 p) =
     J0 (A1 - A0) p + r(p)``: ``(A1 - A0) p`` is affine in ``p``, so ``|J0 (A1 - A0) p|`` is
     convex and its maximum over the hull is at a vertex, which is among the given points.
-    ``f``'s Jacobian turns and scales by at most ``E / R`` across a hull of extent ``E``
-    (``R`` >= :data:`MIN_EARTH_RADIUS_M`), so ``|r| <= 2 (E / R) max |D|`` (terms in
-    ``|D|^2 / R``, micrometres, aside); the bound returned is the largest ``|D|`` over the
-    points times ``1 + 4 E / R`` (1.0003 for a 500 m mission), plus 1 micrometre. Raises
+    ``f``'s Jacobian turns and scales by at most ``E / (R cos phi)`` across a hull of extent
+    ``E`` at latitude ``phi`` (``R`` >= :data:`MIN_EARTH_RADIUS_M`; a transverse Mercator's
+    grid convergence turns with ``tan phi / R``), so ``|r| <= 2 (E / (R cos phi)) max |D|``
+    (terms in ``|D|^2 / R``, micrometres, aside); the bound returned is the largest ``|D|``
+    over the points times ``1 + 4 E / (R cos phi)`` (1.0003 for a 500 m mission at 0 deg,
+    1.0006 at 60 deg; ``cos phi`` taken at least 0.05), plus 1 micrometre. It bounds the
+    exact transforms: any tiling also rounds coordinates to the 1 mm storage lattice. Raises
     :class:`GeoreferenceError` for projected clouds (no map frame).
     """
     if used.fit is None or fresh.fit is None:
@@ -218,7 +222,9 @@ def placement_offset(
     moved = MapProjector(fresh.fit, crs).exact(points) - MapProjector(used.fit, crs).exact(points)
     largest = float(np.sqrt(np.max(np.einsum("ij,ij->i", moved, moved))))
     extent = float(np.max(np.linalg.norm(points - points.mean(axis=0), axis=1)))
-    return largest * (1.0 + 4.0 * extent / MIN_EARTH_RADIUS_M) + 1e-6
+    latitude = np.radians(max(abs(used.fit.lla_ref[0]), abs(fresh.fit.lla_ref[0])))
+    radius = MIN_EARTH_RADIUS_M * max(float(np.cos(latitude)), 0.05)
+    return largest * (1.0 + 4.0 * extent / radius) + 1e-6
 
 
 def cloud_payloads(mission: Mission) -> list[Payload]:

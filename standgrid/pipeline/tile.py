@@ -250,7 +250,10 @@ def _ingest(
     with catalog.transaction() as txn:
         index = CatalogIndex(catalog, txn)  # under the writer lock: no commit can intervene
         tiling = settle_tiling(txn, options.buffer, options.laz, options.copc)
-        settings = EpochSettings(tiling, options.memory_budget, options.placement_tolerance)
+        # a placement given by hand (an anchor, a fit method) is applied exactly
+        by_hand = options.anchor is not None or options.method != TileOptions.method
+        tolerance = None if by_hand else options.placement_tolerance
+        settings = EpochSettings(tiling, options.memory_budget, tolerance)
         for ingest in ingests:
             ingest.number = txn.mission_number(ingest.mission.name)
             ingest.to_catalog = ingest.placement.to_catalog(catalog.crs, ingest.mission.name)

@@ -40,7 +40,17 @@ def create_app(
     while a refit moves it less than ``placement_tolerance`` metres (None: always the fresh
     fit; ``POST /missions/{name}/tile?exact=true`` settles on it).
     Raises :class:`~standgrid.errors.CatalogNotFoundError` when ``catalog`` is not one."""
+    import math
+
     from fastapi import FastAPI
+
+    from standgrid.errors import TilingError
+
+    if placement_tolerance is not None and not (
+        math.isfinite(placement_tolerance) and placement_tolerance >= 0
+    ):
+        raise TilingError(f"placement tolerance must be a finite number of metres >= 0, "
+                          f"got {placement_tolerance!r}")  # fmt: skip
 
     from standgrid.serve import files, ingest, ogc, problems, viewer
     from standgrid.serve import missions as retrieval

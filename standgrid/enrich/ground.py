@@ -9,17 +9,15 @@ on the real ``las_chablais3`` scan they find > 99 % of the producer's ground poi
 from __future__ import annotations
 
 import contextlib
-import functools
 import os
 import sys
-import threading
 from collections.abc import Callable
 from typing import Any
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from standgrid.engine.shared import ProcessWide, openmp_one_thread
+from standgrid.engine.shared import ONE_THREAD_BLAS, ProcessWide, openmp_one_thread
 from standgrid.errors import EnrichError
 from standgrid.pointcloud import PointCloud
 
@@ -47,24 +45,13 @@ def as_xyz(points: PointsLike) -> NDArray[np.float64]:
 def one_thread(user_api: str) -> contextlib.AbstractContextManager[Any]:
     """Limit the ``user_api`` ("openmp" or "blas") thread pools to one thread for the
     duration: BLAS for every thread of the process (held until the last concurrent user
-    leaves), OpenMP for the calling thread (libgomp keeps the setting per thread). The BLAS
-    libraries are looked up once per process (milliseconds per lookup): call it after
-    importing the library it should limit."""
+    leaves; a task of the engine already holds it), OpenMP for the calling thread (libgomp
+    keeps the setting per thread)."""
     if user_api == "openmp":
         return openmp_one_thread()
-    return _one_thread(user_api).held()
-
-
-_LOOKUP = threading.Lock()
-
-
-@functools.cache
-def _one_thread(user_api: str) -> ProcessWide:
-    from threadpoolctl import ThreadpoolController
-
-    with _LOOKUP:  # one instance per API, also when two threads ask first at once
-        pools = ThreadpoolController().select(user_api=user_api)
-        return ProcessWide(lambda: pools.limit(limits=1, user_api=user_api).restore_original_limits)
+    if user_api == "blas":
+        return ONE_THREAD_BLAS.held()
+    raise ValueError(f"no thread pool API {user_api!r}")
 
 
 def _silence_stdout() -> Callable[[], None]:

@@ -204,3 +204,72 @@ def test_epochs_never_compared_export_without_increments(catalog: Path, tmp_path
     _, trees = _tables(tmp_path / "s.db")
     assert trees["DG"].isna().all() and trees["HTG"].isna().all()
     assert any("not compared" in note for note in report.notes)
+
+
+def _dtm_means(catalog: Path, stands: pd.DataFrame) -> np.ndarray:
+    """Mean DTM height (m, ellipsoidal) inside each exported stand, read with rasterio.mask."""
+    import pyogrio
+    import rasterio
+    import rasterio.mask
+
+    polygons = pyogrio.read_dataframe(catalog / "index.gpkg", layer="stand_metrics")
+    polygons["epoch"] = polygons["epoch"].astype(str)
+    means = []
+    for stand in stands.itertuples():
+        row = polygons[
+            (polygons["cell_id"] == stand.SG_Cell_ID) & (polygons["epoch"] == stand.SG_Epoch)
+        ]
+        with rasterio.open(catalog / "rasters" / stand.SG_Epoch / "dtm.tif") as src:
+            inside, _ = rasterio.mask.mask(src, [row.geometry.iloc[0]], crop=True, filled=False)
+        means.append(float(inside.astype(np.float64).mean()))
+    return np.array(means)
+
+
+def test_elev_ft_is_the_dtm_height_above_the_geoid(catalog: Path, tmp_path: Path) -> None:
+    """ElevFt = (mean DTM ellipsoidal height - geoid undulation) / 0.3048, the undulation
+    read from the grid file itself (GDAL, bilinear by hand) at the stand's lat/lon."""
+    from tests.test_georef_geoid import _debian_grid, _grid_bilinear
+
+    grid = _debian_grid()
+    db = tmp_path / "s.db"
+    report = export_fvs(catalog, db, species="DF", geoid_dirs=[grid.parent])
+    assert report.elev_ft_null_reason is None
+    assert report.elevation_reference is not None
+    assert report.elevation_reference.endswith(f"with the grid {grid}")
+    stands, _ = _tables(db)
+    assert len(stands) >= 2 and stands["ElevFt"].notna().all()
+    undulation = np.array(
+        [_grid_bilinear(grid, s.Longitude, s.Latitude) for s in stands.itertuples()]
+    )
+    assert (undulation > 40).all()  # Wytham Woods, UK: about +48 m
+    expected_ft = (_dtm_means(catalog, stands) - undulation) / M_PER_FT
+    np.testing.assert_allclose(stands["ElevFt"], expected_ft, atol=0.01)
+
+
+def test_without_a_geoid_grid_elev_ft_is_null_and_said(catalog: Path, tmp_path: Path) -> None:
+    """No grid in the folders searched: ElevFt NULL (FVS's variant default), the report and
+    the CLI (stderr) say why, naming the folder."""
+    import json
+
+    from click.testing import CliRunner
+
+    from standgrid.cli import cli
+
+    empty = tmp_path / "no_grids"
+    empty.mkdir()
+    report = export_fvs(catalog, tmp_path / "s.db", species="DF", geoid_dirs=[empty])
+    stands, _ = _tables(tmp_path / "s.db")
+    assert len(stands) >= 2 and stands["ElevFt"].isna().all()
+    assert stands["Slope"].notna().all()  # the DTM was there: only the datum is missing
+    reason = report.elev_ft_null_reason
+    assert reason is not None and "no geoid model found" in reason and str(empty) in reason
+    assert report.elevation_reference is None
+
+    out = tmp_path / "cli.db"
+    result = CliRunner(env={"STANDGRID_GEOID_PATH": str(empty)}).invoke(
+        cli, ["export", "fvs", str(catalog), "-o", str(out), "--species", "DF", "--json"]
+    )
+    assert result.exit_code == 0, result.output
+    assert json.loads(result.stdout)["elev_ft_null_reason"] == reason
+    assert f"warning: {reason}" in result.stderr
+    assert _tables(out)[0]["ElevFt"].isna().all()

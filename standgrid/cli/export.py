@@ -81,6 +81,8 @@ def fvs(
     One FVS stand per stand and epoch, one fixed plot of the stand's observed area, one
     record per tree with a DBH (trees without one are counted, not exported), in FVS units
     (inches, feet, acres). LiDAR does not tell species: give --species or --species-table.
+    ElevFt is height above the geoid (EGM2008 or EGM96 grid from PROJ's data folders,
+    /usr/share/proj or $STANDGRID_GEOID_PATH); NULL, with a warning, when none is found.
 
     \b
     Example:
@@ -111,6 +113,8 @@ def fvs(
         result["keywords"] = str(keywords)
     if report.species_default_used:
         status("warning: species not given; every tree is DF (Douglas-fir), a placeholder", quiet)
+    if report.elev_ft_null_reason is not None:
+        status(f"warning: {report.elev_ft_null_reason}", quiet)
     emit(result, as_json, _fvs_human)
 
 
@@ -118,6 +122,7 @@ def _fvs_human(r: dict[str, Any]) -> str:
     return (
         f"{r['stands']} stands, {r['trees']} trees ({r['trees_with_dg_htg']} with DG/HTG), "
         f"{r['trees_without_dbh_skipped']} trees without a DBH left out -> {r['output']}"
+        f"\nElevFt: {r['elevation_reference'] or 'NULL (no geoid model)'}"
     )
 
 

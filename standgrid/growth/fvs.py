@@ -23,6 +23,7 @@ from standgrid._atomic import atomic_output
 from standgrid.catalog import Catalog, paths
 from standgrid.enrich.stands import counted_trees
 from standgrid.errors import FormatError
+from standgrid.georeference.geoid import GeoidModel, NoGeoidModel, find_geoid
 from standgrid.growth.treelist import (
     catalog_epochs,
     read_stands,
@@ -71,6 +72,10 @@ class FvsExport:
     trees_with_increments: int = 0
     stands_skipped: dict[str, str] = field(default_factory=dict)
     species_default_used: bool = False
+    #: ``ElevFt``'s vertical reference (geoid model, operation, grid file), when found
+    elevation_reference: str | None = None
+    #: why ``ElevFt`` is NULL for every stand (no geoid model), else None
+    elev_ft_null_reason: str | None = None
     notes: list[str] = field(default_factory=list)
 
     def to_dict(self) -> dict[str, Any]:
@@ -82,6 +87,8 @@ class FvsExport:
             "trees_with_dg_htg": self.trees_with_increments,
             "stands_skipped": dict(self.stands_skipped),
             "species_default_used": self.species_default_used,
+            "elevation_reference": self.elevation_reference,
+            "elev_ft_null_reason": self.elev_ft_null_reason,
             "notes": list(self.notes),
         }
 
@@ -187,6 +194,7 @@ def export_fvs(
     species_by_stand: Mapping[str, str] | None = None,
     increments: bool = True,
     overwrite: bool = False,
+    geoid_dirs: Sequence[str | Path] | None = None,
 ) -> FvsExport:
     """Write ``FVS_StandInit`` and ``FVS_TreeInit`` (SQLite) for the catalog's stands.
 
@@ -196,11 +204,15 @@ def export_fvs(
     (``cell_id``) to an FVS species code; other stands get ``species`` (default
     :data:`DEFAULT_SPECIES`). With ``increments`` and an earlier epoch compared with this
     one, matched trees get DG (past DBH, DG_Trans 1) and HTG (height increment, HTG_Trans 0).
+    ``ElevFt`` is the stand's mean DTM height above the geoid, through the geoid grid
+    :func:`~standgrid.georeference.geoid.find_geoid` finds in ``geoid_dirs`` (default: its
+    usual folders); NULL without one (the report says why).
     """
     with Catalog.reading(catalog_path) as catalog:  # one consistent state of every file
         return _export_fvs(
             catalog, Path(out), level=level, epochs=epochs, variant=variant, species=species,
             species_by_stand=species_by_stand, increments=increments, overwrite=overwrite,
+            geoid=find_geoid(geoid_dirs),
         )  # fmt: skip
 
 
@@ -215,6 +227,7 @@ def _export_fvs(
     species_by_stand: Mapping[str, str] | None,
     increments: bool,
     overwrite: bool,
+    geoid: GeoidModel | NoGeoidModel,
 ) -> FvsExport:
     from pyproj import Transformer
 
@@ -226,6 +239,12 @@ def _export_fvs(
     polygons = _stand_polygons(catalog)
     to_wgs84 = Transformer.from_crs(catalog.crs, "EPSG:4326", always_xy=True)
     report = FvsExport(Path(out), species_default_used=False)
+    if isinstance(geoid, GeoidModel):
+        report.elevation_reference = geoid.describe()
+    else:
+        report.elev_ft_null_reason = (
+            f"ElevFt is NULL (FVS uses its variant default): {geoid.reason}"
+        )
     species_by_stand = dict(species_by_stand or {})
     stand_rows: list[dict[str, Any]] = []
     tree_frames: list[pd.DataFrame] = []
@@ -272,6 +291,12 @@ def _export_fvs(
             cx, cy = (geom.centroid.x, geom.centroid.y) if geom is not None else (
                 float(mine["x"].mean()), float(mine["y"].mean()))  # fmt: skip
             lon, lat = to_wgs84.transform(cx, cy)
+            # the DTM holds WGS 84 ellipsoidal heights; FVS wants height above sea level
+            elev = (
+                float(geoid.orthometric_height(lon, lat, elev))
+                if isinstance(geoid, GeoidModel)
+                else math.nan
+            )
             acres = area / M2_PER_ACRE
             code = species_by_stand.get(cell_id)
             if code is None:

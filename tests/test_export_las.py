@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 from pathlib import Path
+from typing import Any
 
 import laspy
 import numpy as np
@@ -12,6 +13,7 @@ from shapely.geometry import box
 
 from standgrid.errors import CRSError, PointCloudFormatError
 from standgrid.export.las import read_tile, read_tile_record, rewrite_tile, write_tile
+from standgrid.las_fields import LAS_INTEGER_DIMENSIONS
 from standgrid.pointcloud import PointCloud
 from standgrid.stamps import unix_ns_to_adjusted_gps_time
 from tests.conftest import real_file
@@ -315,3 +317,270 @@ def test_tile_bytes_are_what_laspy_writes_for_its_points(
     assert path.read_bytes() == rewritten.read_bytes()
     header = laspy.read(path).header
     assert int(header.number_of_points_by_return.sum()) == 3800
+
+
+# --- standard LAS fields: stored exactly, or refused with a typed error --------------------
+
+#: Integer LAS dimensions a field is written to (withheld: set from core/buffer).
+INTEGER_FIELDS = [name for name in LAS_INTEGER_DIMENSIONS if name != "withheld"]
+
+
+def _with_standard_field(cloud: PointCloud, name: str, values: np.ndarray) -> PointCloud:
+    """``cloud`` with ``values`` as field ``name`` (colours: all three, the others valid)."""
+    if name in ("red", "green", "blue"):
+        fields = {c: np.zeros(len(cloud), np.uint16) for c in ("red", "green", "blue")}
+        fields[name] = values
+        return cloud.with_fields(**fields)
+    return cloud.with_fields(**{name: values})
+
+
+def _integral_values(name: str, n: int, seed: int) -> np.ndarray:
+    """Random integers over the field's whole LAS range, both ends included."""
+    _, lo, hi = LAS_INTEGER_DIMENSIONS[name]
+    values = np.random.default_rng(seed).integers(lo, hi + 1, n)
+    values[:2] = lo, hi
+    return values
+
+
+@pytest.mark.parametrize("dtype", [np.float32, np.float64])
+@pytest.mark.parametrize("name", INTEGER_FIELDS)
+def test_integral_float_fields_are_stored_exactly(tmp_path: Path, name: str, dtype: type) -> None:
+    core_ints, buffer_ints = _integral_values(name, 400, 1), _integral_values(name, 100, 2)
+    core = _with_standard_field(make_cloud(400), name, core_ints.astype(dtype))
+    buffer = _with_standard_field(make_cloud(100, seed=3), name, buffer_ints.astype(dtype))
+    path = tmp_path / "tile.las"
+    write_tile(path, core, crs=CRS, buffer=buffer)
+    las = laspy.read(path)  # a second reader: the stored integers themselves
+    assert name not in las.point_format.extra_dimension_names
+    assert np.array_equal(np.asarray(las[name]), np.concatenate([core_ints, buffer_ints]))
+    back = read_tile(path, include_withheld=True)  # given back with the dtype written
+    assert back.fields[name].dtype == np.dtype(dtype)
+    assert np.array_equal(back.fields[name], np.concatenate([core_ints, buffer_ints]))
+
+
+@pytest.mark.parametrize("suffix", [".las", ".laz"])
+def test_float_return_numbers_fill_the_header_counts(tmp_path: Path, suffix: str) -> None:
+    """The known case: float32 return numbers (1.0, 2.0) used to fail in laspy's packing."""
+    returns = np.tile(np.array([1.0, 2.0, 2.0], np.float32), 100)
+    cloud = make_cloud(300).with_fields(
+        return_number=returns, number_of_returns=np.full(300, 2.0, np.float32)
+    )
+    path = tmp_path / f"tile{suffix}"
+    write_tile(path, cloud, crs=CRS)
+    las = laspy.read(path)
+    assert np.array_equal(np.asarray(las.return_number), returns.astype(np.uint8))
+    assert np.array_equal(np.asarray(las.number_of_returns), np.full(300, 2))
+    assert list(las.header.number_of_points_by_return[:3]) == [100, 200, 0]
+
+
+def _bad_cases() -> list[tuple[str, str, np.ndarray, str]]:
+    """(field, what, 10 values with the first bad one at index 6, its text in the message)."""
+    cases = []
+    for name in INTEGER_FIELDS:
+        _, lo, hi = LAS_INTEGER_DIMENSIONS[name]
+        good = np.full(10, lo, np.float64)
+        for what, bad, text in (
+            ("fraction", lo + 0.5, str(lo + 0.5)),
+            ("nan", np.nan, "nan"),
+            ("infinite", np.inf, "inf"),
+            ("below", lo - 1.0, str(lo - 1.0)),
+            ("above", hi + 1.0, str(hi + 1.0)),
+        ):
+            values = good.copy()
+            values[6] = values[8] = bad
+            cases.append((name, what, values, text))
+        ints = np.full(10, lo, np.int64)
+        ints[6] = hi + 1
+        cases.append((name, "int above", ints, str(hi + 1)))
+        ints = np.full(10, lo, np.int32)
+        ints[6] = lo - 1
+        cases.append((name, "int below", ints, str(lo - 1)))
+    times = np.linspace(1e8, 1e8 + 9, 10)
+    for what, bad, text in (("nan", np.nan, "nan"), ("infinite", -np.inf, "-inf")):
+        values = times.copy()
+        values[6] = bad
+        cases.append(("gps_time", what, values, text))
+    beyond = np.full(10, 2**53, np.uint64)
+    beyond[6] = 2**53 + 1
+    cases.append(("gps_time", "inexact integer", beyond, str(2**53 + 1)))
+    return cases
+
+
+@pytest.mark.parametrize(
+    ("name", "values", "text"),
+    [pytest.param(n, v, t, id=f"{n}-{w}") for n, w, v, t in _bad_cases()],
+)
+def test_bad_standard_field_values_are_refused_before_any_file(
+    tmp_path: Path, name: str, values: np.ndarray, text: str
+) -> None:
+    # the bad value (index 6) lies in the buffer: points are counted core first
+    cloud = _with_standard_field(make_cloud(10), name, values)
+    core, buffer = cloud.select(np.arange(4)), cloud.select(np.arange(4, 10))
+    path = tmp_path / "tile.laz"
+    with pytest.raises(PointCloudFormatError) as info:
+        write_tile(path, core, crs=CRS, buffer=buffer)
+    message = str(info.value)
+    assert info.value.path == path and message.startswith(f"{path}: ")
+    assert f"field {name!r} value {text} (point 6)" in message
+    assert list(tmp_path.iterdir()) == []  # no tile, no temporary file
+
+
+@pytest.mark.parametrize("name", ["return_number", "classification", "gps_time", "red"])
+@pytest.mark.parametrize(
+    "values",
+    [np.ones((10, 2), np.uint8), np.ones(10, np.complex64), np.array(["1"] * 10)],
+    ids=["two-values-per-point", "complex", "text"],
+)
+def test_standard_fields_of_the_wrong_shape_or_kind_are_refused(
+    tmp_path: Path, name: str, values: np.ndarray
+) -> None:
+    path = tmp_path / "tile.las"
+    with pytest.raises(PointCloudFormatError, match=f"field {name!r}") as info:
+        write_tile(path, _with_standard_field(make_cloud(10), name, values), crs=CRS)
+    assert info.value.path == path
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_intensity_of_two_values_per_point_is_refused(tmp_path: Path) -> None:
+    path = tmp_path / "tile.las"
+    cloud = make_cloud(10).with_fields(intensity=np.ones((10, 2), np.uint16))
+    with pytest.raises(PointCloudFormatError, match="'intensity' has shape") as info:
+        write_tile(path, cloud, crs=CRS)
+    assert info.value.path == path and list(tmp_path.iterdir()) == []
+
+
+def test_float_withheld_flags_split_exactly_or_are_refused(tmp_path: Path) -> None:
+    flags = np.array([0, 1, 0, 1, 1, 0, 0, 0], np.float32)
+    path = tmp_path / "tile.las"
+    write_tile(path, make_cloud(8).with_fields(withheld=flags), crs=CRS)
+    assert np.array_equal(np.asarray(laspy.read(path).withheld), [0, 0, 0, 0, 0, 1, 1, 1])
+    flags[2] = 0.5
+    other = tmp_path / "other.las"
+    with pytest.raises(PointCloudFormatError, match=r"'withheld' value 0.5 \(point 2\)"):
+        write_tile(other, make_cloud(8).with_fields(withheld=flags), crs=CRS)
+    assert not other.exists()
+
+
+def test_copc_tile_refusal_names_the_tile_and_leaves_nothing(tmp_path: Path) -> None:
+    from standgrid.export.copc import write_copc_tile
+
+    path = tmp_path / "tile.copc.laz"
+    cloud = make_cloud(50).with_fields(classification=np.full(50, 2.5, np.float32))
+    with pytest.raises(PointCloudFormatError, match=r"'classification' value 2\.5") as info:
+        write_copc_tile(path, cloud, crs=CRS)
+    assert info.value.path == path
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_rewrite_tile_stores_integral_floats_and_refuses_the_rest(tmp_path: Path) -> None:
+    source = tmp_path / "tile.laz"
+    write_tile(source, make_cloud(100), crs=CRS)
+    record = read_tile_record(source)
+    out = tmp_path / "out.laz"
+    for fields, text in (
+        ({"return_number": np.full(100, 1.5, np.float32)}, "'return_number' value 1.5 (point 0)"),
+        ({"classification": np.full(100, np.nan)}, "'classification' value nan (point 0)"),
+        ({"gps_time": np.full(100, np.inf)}, "'gps_time' value inf (point 0)"),
+        # a valid extra field first: nothing of it is applied when a later field is refused
+        ({"tree_id": np.arange(100.0), "user_data": np.full(100, -1)}, "'user_data' value -1"),
+    ):
+        with pytest.raises(PointCloudFormatError) as info:
+            rewrite_tile(record, out, fields, source=source)
+        assert info.value.path == source and text in str(info.value)
+        assert not out.exists()
+    assert "tree_id" not in record.point_format.extra_dimension_names
+    classes = np.arange(100) % 7
+    rewrite_tile(
+        record,
+        out,
+        {"classification": classes.astype(np.float64), "return_number": np.full(100, 2.0)},
+        source=source,
+    )
+    las = laspy.read(out)
+    assert np.array_equal(np.asarray(las.classification), classes)
+    assert np.array_equal(np.asarray(las.return_number), np.full(100, 2))
+    assert read_tile(out).fields["classification"].dtype == np.float64
+
+
+# --- through the pipeline: a payload's bad field is named with the payload file -----------
+
+
+def _mission_with_fields(root: Path, fields_of: Any) -> tuple[Path, list[Path]]:
+    """A copy of a bundled mission with its first 3 payloads, ``fields_of(k, n)`` added to
+    payload ``k`` (of ``n`` points)."""
+    import shutil
+
+    from standgrid.mission.clouds import read_cloud, write_cloud
+    from tests.conftest import BUNDLED_MISSIONS
+
+    mission = shutil.copytree(
+        BUNDLED_MISSIONS / "2024-05-14-wytham-anymal-coyote",
+        root / "2024-05-14-wytham-anymal-coyote",
+    )
+    payloads = sorted((mission / "payload_clouds").glob("*.pcd"))
+    for extra in payloads[3:]:
+        extra.unlink()
+    for k, payload in enumerate(payloads[:3]):
+        cloud = read_cloud(payload)
+        write_cloud(cloud.with_fields(**fields_of(k, len(cloud))), payload)
+    return mission, payloads[:3]
+
+
+def test_tiling_payloads_with_float_return_numbers(tmp_path: Path) -> None:
+    from standgrid.mission.clouds import read_cloud
+    from standgrid.pipeline.tile import tile_missions
+
+    def returns(k: int, n: int) -> dict[str, np.ndarray]:
+        return {"return_number": (np.arange(n) % 3 + 1).astype(np.float32)}
+
+    mission, payloads = _mission_with_fields(tmp_path / "good", returns)
+    assert read_cloud(payloads[0]).fields["return_number"].dtype == np.float32
+    catalog = tmp_path / "good" / "catalog"
+    report = tile_missions([mission], catalog)
+    tiles = sorted((catalog / "tiles").rglob("*.la[sz]"))
+    assert tiles and report.points_out == sum(len(read_cloud(p)) for p in payloads)
+    for tile in tiles:
+        las = laspy.read(tile)
+        stored = np.asarray(las.return_number)
+        assert set(np.unique(stored)) <= {1, 2, 3}
+        assert np.array_equal(
+            np.bincount(stored, minlength=16)[1:16], las.header.number_of_points_by_return
+        )
+
+    def one_fraction(k: int, n: int) -> dict[str, np.ndarray]:
+        values = returns(k, n)
+        if k == 1:
+            values["return_number"][5] = 1.5
+        return values
+
+    mission, payloads = _mission_with_fields(tmp_path / "bad", one_fraction)
+    catalog = tmp_path / "bad" / "catalog"
+    with pytest.raises(PointCloudFormatError) as info:
+        tile_missions([mission], catalog)
+    assert info.value.path == payloads[1]
+    assert "field 'return_number' value 1.5 (point 5)" in str(info.value)
+    assert not catalog.exists()
+
+
+def test_tiling_refuses_a_payload_field_that_would_wrap_in_the_epochs_dtype(
+    tmp_path: Path,
+) -> None:
+    """The epoch's field dtypes come from its first payload: a later payload's value that
+    does not fit (300 in a uint8 field) is refused, not wrapped to 44."""
+    from standgrid.pipeline.tile import tile_missions
+
+    def rings(k: int, n: int) -> dict[str, np.ndarray]:
+        if k == 0:
+            return {"ring": np.arange(n).astype(np.uint8)}
+        values = np.arange(n, dtype=np.uint16) % 200
+        if k == 2:
+            values[7] = 300
+        return {"ring": values}
+
+    mission, payloads = _mission_with_fields(tmp_path, rings)
+    catalog = tmp_path / "catalog"
+    with pytest.raises(PointCloudFormatError) as info:
+        tile_missions([mission], catalog)
+    assert info.value.path == payloads[2]
+    assert "field 'ring' value 300 (point 7)" in str(info.value)
+    assert not catalog.exists()

@@ -199,17 +199,22 @@ def write_copc_tile(
     scratch = temporary_sibling(out, "scratch")
     raw = temporary_sibling(out, "copclib")
     try:
-        info = write_tile(
-            scratch,
-            core,
-            crs=crs,
-            buffer=buffer,
-            laz=False,
-            core_bounds=core_bounds,
-            intensity_scale=intensity_scale,
-            overwrite=True,
-            lattice_origin=lattice_origin,
-        )
+        try:
+            info = write_tile(
+                scratch,
+                core,
+                crs=crs,
+                buffer=buffer,
+                laz=False,
+                core_bounds=core_bounds,
+                intensity_scale=intensity_scale,
+                overwrite=True,
+                lattice_origin=lattice_origin,
+            )
+        except PointCloudFormatError as exc:  # a bad field: named with the tile, not the scratch
+            if exc.path != scratch:
+                raise
+            raise PointCloudFormatError(exc.message, path=out) from exc
         with atomic_output(out, overwrite=overwrite, durable=durable) as tmp:
             _scratch_to_copc(scratch, raw, tmp, resolution=resolution, leaf_points=leaf_points)
     finally:

@@ -11,7 +11,9 @@ Field mapping (``PointCloud.fields`` -> LAS):
   ``number_of_returns`` (both default to 1), ``user_data``, ``scan_angle``,
   ``scan_direction_flag``, ``edge_of_flight_line``, ``synthetic``, ``key_point``,
   ``overlap``, ``scanner_channel``, ``red``/``green``/``blue`` -> the LAS dimension of the
-  same name (values must fit its type, otherwise ``PointCloudFormatError``).
+  same name, only when every value is exactly storable (:mod:`standgrid.las_fields`: integral
+  and in range, floats such as ``1.0, 2.0`` included; nothing rounded, wrapped or clipped),
+  otherwise ``PointCloudFormatError``.
 - ``intensity``: unsigned integers of at most 16 bits are stored as they are. Any other
   dtype (float reflectivity, signed or wide integers) is stored as
   ``clip(round(value * intensity_scale), 0, 65535)`` in the LAS intensity, *and* the exact
@@ -39,6 +41,7 @@ from numpy.typing import NDArray
 
 from standgrid._atomic import atomic_output
 from standgrid.errors import CRSError, PointCloudFormatError
+from standgrid.las_fields import check_finite_gps_time, las_dimension_values
 from standgrid.partition.lattice import SCALE, snap_to_storage
 from standgrid.pointcloud import PointCloud
 
@@ -70,24 +73,6 @@ _COLOUR_FIELDS = ("red", "green", "blue")
 _LAS_DIMENSION_NAMES = frozenset(
     {"x", "y", "z", "intensity", "withheld", *_STANDARD_FIELDS, *_COLOUR_FIELDS}
 )
-#: Integer range each standard field must fit.
-_RANGES: dict[str, tuple[float, float]] = {
-    "point_source_id": (0, 65535),
-    "classification": (0, 255),
-    "return_number": (0, 15),
-    "number_of_returns": (0, 15),
-    "user_data": (0, 255),
-    "scan_angle": (-32768, 32767),
-    "scan_direction_flag": (0, 1),
-    "edge_of_flight_line": (0, 1),
-    "synthetic": (0, 1),
-    "key_point": (0, 1),
-    "overlap": (0, 1),
-    "scanner_channel": (0, 3),
-    "red": (0, 65535),
-    "green": (0, 65535),
-    "blue": (0, 65535),
-}
 
 
 @dataclass(frozen=True)
@@ -144,21 +129,6 @@ def _column_bounds(
     if not columns.shape[1]:
         return np.full(3, np.nan), np.full(3, np.nan)
     return columns.min(axis=1), columns.max(axis=1)
-
-
-def _check_range(name: str, parts: list[NDArray[Any]], path: Path) -> None:
-    """Every value of a standard field (given in parts) fits its LAS dimension."""
-    lo, hi = _RANGES[name]
-    filled = [v for v in parts if v.size]
-    if not filled:
-        return
-    low = min(np.nanmin(v) for v in filled)
-    high = max(np.nanmax(v) for v in filled)
-    if low < lo or high > hi:
-        raise PointCloudFormatError(
-            f"field {name!r} has values in [{low}, {high}], outside the LAS range [{lo:g}, {hi:g}]",
-            path=path,
-        )
 
 
 def _probe(core: NDArray[Any], buffer: NDArray[Any] | None) -> NDArray[Any]:
@@ -245,6 +215,15 @@ def write_tile(
     carry the same field names. A single cloud with a bool ``withheld`` field (and no
     ``buffer``) is split by it. Written atomically, and fsynced unless ``durable=False`` (a
     tile staged in a catalog transaction: the commit fsyncs it); returns a :class:`TileInfo`.
+
+    Standard LAS fields (``return_number``, ``classification``, colours, flags, ...; see
+    :mod:`standgrid.las_fields`) are stored only when exact: integer and bool values must be
+    in the dimension's range; float values (``1.0, 2.0``) are accepted when every one is
+    integral and in range, and stored as those integers (read back with the float dtype);
+    ``gps_time`` must be finite. A fraction, NaN, infinity, out-of-range value, non-numeric
+    dtype or a field of more than one value per point raises
+    :class:`~standgrid.errors.PointCloudFormatError` naming the tile, the field and the first
+    offending value, before any file is created.
     """
     import laspy
 
@@ -252,7 +231,7 @@ def write_tile(
     if laz is None:
         laz = out.suffix.lower() == ".laz"
     if buffer is None and "withheld" in core.fields:  # a combined cloud (CellPoints.combined())
-        flags = np.asarray(core.fields["withheld"], dtype=bool)
+        flags = np.asarray(las_dimension_values("withheld", core.fields["withheld"], out), bool)
         if flags.any():
             core, buffer = core.select(~flags), core.select(flags)
     buffer = (
@@ -269,6 +248,13 @@ def write_tile(
             f"core fields {sorted(core_fields)} differ from buffer fields {sorted(buffer_fields)}",
             path=out,
         )
+    for name, values in core_fields.items():
+        if len(buffer) and buffer_fields[name].shape[1:] != values.shape[1:]:
+            raise PointCloudFormatError(
+                f"field {name!r} has shape {values.shape[1:]} per core point and "
+                f"{buffer_fields[name].shape[1:]} per buffer point",
+                path=out,
+            )
     n_core, n_buffer = len(core), len(buffer)
     n = n_core + n_buffer
     # The core and buffer parts go straight into the record: no concatenated copies.
@@ -285,6 +271,21 @@ def write_tile(
     }
     has_colour = all(c in fields for c in _COLOUR_FIELDS)
     point_format = 7 if has_colour else 6
+    # The standard dimensions' values, checked (and floats made integers) before any work.
+    standard: dict[str, list[tuple[int, NDArray[Any]]]] = {
+        name: [
+            (start, las_dimension_values(name, f[name], out, first_point=start))
+            for start, _, f in parts
+        ]
+        for name in (*_STANDARD_FIELDS, *(_COLOUR_FIELDS if has_colour else ()))
+        if name in fields
+    }
+    if "intensity" in fields and fields["intensity"].ndim != 1:
+        raise PointCloudFormatError(
+            f"field 'intensity' has shape {fields['intensity'].shape[1:]} per point; "
+            "LAS intensity holds one value per point",
+            path=out,
+        )
 
     parsed_crs, wkt = _crs_wkt(crs)
     header = laspy.LasHeader(point_format=point_format, version="1.4")
@@ -375,15 +376,13 @@ def write_tile(
             part = part_columns[axis]
             record[upper][start : start + len(part)] = _storage_ints(part, offsets[axis])
     packed: dict[str, NDArray[Any]] = {}  # the bit fields' values, as given to laspy
-    for name in (*_STANDARD_FIELDS, *(_COLOUR_FIELDS if has_colour else ())):
-        if name in fields:
-            if name in _RANGES:
-                _check_range(name, [f[name] for _, _, f in parts], out)
-            if name in (record.dtype.names or ()):
-                put(name, name)
-            else:  # a bit field: laspy packs it
-                packed[name] = np.concatenate([f[name] for _, _, f in parts])
-                points[name] = packed[name]
+    for name, checked in standard.items():
+        if name in (record.dtype.names or ()):
+            for start, values in checked:
+                record[name][start : start + len(values)] = values
+        else:  # a bit field: laspy packs it
+            packed[name] = np.concatenate([values for _, values in checked])
+            points[name] = packed[name]
     if "intensity" in fields:
         if _intensity_is_native(fields["intensity"]):
             put("intensity", "intensity")
@@ -402,10 +401,14 @@ def write_tile(
             by_return = np.zeros(16, np.int64)
             by_return[1] = n
         gps = (0.0, 0.0)
-        if "gps_time" in fields:
-            kind = record.dtype["gps_time"]
-            stored = [f["gps_time"].astype(kind) for _, _, f in parts if len(f["gps_time"])]
-            gps = (min(float(v.min()) for v in stored), max(float(v.max()) for v in stored))
+        if "gps_time" in standard:
+            stored = [v for _, v in standard["gps_time"] if len(v)]
+            # np.min/np.max, not min/max: a NaN extreme of any part propagates
+            gps = (
+                float(np.min([v.min() for v in stored])),
+                float(np.max([v.max() for v in stored])),
+            )
+            check_finite_gps_time(*gps, stored, out)  # NaN or inf extremes: not written
         # rounding is monotonic: the stored extremes are the rounded true extremes
         file_lo = offsets + np.round((all_lo - offsets) / SCALE) * SCALE
         file_hi = offsets + np.round((all_hi - offsets) / SCALE) * SCALE
@@ -539,15 +542,18 @@ def rewrite_tile(
     """Write a tile read with :func:`read_tile_record` (from ``source``) to ``path`` with
     ``fields`` (one value per stored point, withheld included) set, added when missing; every
     other dimension, the header's offsets and the points' order are kept as stored, so
-    :func:`read_tile` of the result equals :func:`write_tile` of the same cloud and fields.
-    ``laz`` defaults to the suffix of ``path``."""
+    :func:`read_tile` of the result equals :func:`write_tile` of the same cloud and fields
+    (standard LAS fields checked by the same rule: exact or ``PointCloudFormatError`` naming
+    ``source``, before the record is changed). ``laz`` defaults to the suffix of ``path``."""
     import laspy
 
     out, src = Path(path), Path(source)
     manifest = _manifest(record, src)
     if manifest is None:
         raise PointCloudFormatError("not a standgrid tile (no field manifest)", path=src)
-    added = []
+    # Every field checked before the record is touched: a refusal leaves it as read.
+    extra_types: dict[str, str] = {}
+    stored_values: dict[str, NDArray[Any]] = {}
     for name, values in fields.items():
         if len(values) != len(record.points) or values.ndim != 1:
             raise PointCloudFormatError(
@@ -555,18 +561,25 @@ def rewrite_tile(
                 path=src,
             )
         if name in _STANDARD_FIELDS:
-            if name in _RANGES:
-                _check_range(name, [values], src)
+            stored_values[name] = las_dimension_values(name, values, src)
+            if name == "gps_time" and len(values):
+                times = stored_values[name]
+                check_finite_gps_time(times.min(), times.max(), [times], src)
         elif name in _LAS_DIMENSION_NAMES or name == "intensity_raw":
             raise PointCloudFormatError(f"field {name!r} cannot be rewritten", path=src)
         else:
+            extra_types[name] = _extra_type(name, values, src)
+            stored_values[name] = values.astype(np.uint8) if values.dtype == np.bool_ else values
+    added = []
+    for name, values in fields.items():
+        if name in extra_types:
             if name in manifest and manifest[name] != values.dtype.str:
                 record.remove_extra_dim(name)  # stored with another type: stored anew
             if name not in record.point_format.extra_dimension_names:
                 added.append(
                     laspy.ExtraBytesParams(
                         name=name,
-                        type=_extra_type(name, values, out),
+                        type=extra_types[name],
                         description="bool" if values.dtype == np.bool_ else "",
                     )
                 )
@@ -579,7 +592,7 @@ def rewrite_tile(
         record.points = points
     raw = record.points.array
     for name, values in fields.items():
-        stored = values.astype(np.uint8) if values.dtype == np.bool_ else values
+        stored = stored_values[name]
         if name in raw.dtype.names and raw.dtype[name].shape == ():  # a whole field: no packing
             raw[name] = stored
         else:

@@ -14,8 +14,9 @@ import numpy as np
 from numpy.typing import NDArray
 
 from standgrid.errors import MissionConsistencyError
+from standgrid.las_fields import LAS_CHECKED_FIELDS, LAS_INTEGER_DIMENSIONS, las_dimension_values
 from standgrid.partition.lattice import snap_to_storage
-from standgrid.partition.schema import Schema, conform
+from standgrid.partition.schema import WITHHELD, Schema, conform
 from standgrid.pointcloud import PointCloud
 
 if TYPE_CHECKING:
@@ -61,6 +62,7 @@ def payload_chunk(task: PayloadTask) -> PayloadChunk:
     from standgrid.mission.clouds import read_cloud
 
     cloud = read_cloud(task.path)
+    check_las_fields(cloud, task.path)
     if task.to_catalog.fit is None:  # already in a projected CRS
         xyz = task.to_catalog.projected_points(cloud.xyz)
     elif task.frame == "utm":
@@ -87,6 +89,21 @@ def payload_chunk(task: PayloadTask) -> PayloadChunk:
     fields["payload_id"] = np.full(n, task.payload_id, dtype=np.uint32)
     chunk = conform(PointCloud(xyz, fields), task.schema, task.path)
     return PayloadChunk(chunk, footprint(chunk.xyz, task.fallback_footprint))
+
+
+def check_las_fields(cloud: PointCloud, source: Path) -> None:
+    """Refuse (naming ``source``) a payload field bound for a standard LAS dimension whose
+    values the tiles cannot store exactly (:mod:`standgrid.las_fields`). Fields already of
+    the dimension's own dtype are left to the tile writer (no pass over their values here)."""
+    replaced = {WITHHELD, "point_source_id"}  # set by the partition engine / the tiler
+    colours = {"red", "green", "blue"}
+    if not colours <= cloud.fields.keys():  # tiles keep lone colour fields as extra bytes
+        replaced |= colours
+    for name in (LAS_CHECKED_FIELDS - replaced) & cloud.fields.keys():
+        values = cloud.fields[name]
+        own = LAS_INTEGER_DIMENSIONS[name][0] if name != "gps_time" else np.dtype(np.float64)
+        if values.dtype != own or values.ndim != 1:
+            las_dimension_values(name, values, source)
 
 
 def _writable_float64(xyz: NDArray[Any]) -> bool:

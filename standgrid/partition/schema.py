@@ -4,10 +4,12 @@ from __future__ import annotations
 
 from collections.abc import Iterable
 from pathlib import Path
+from typing import Any
 
 import numpy as np
+from numpy.typing import NDArray
 
-from standgrid.errors import CatalogError
+from standgrid.errors import CatalogError, PointCloudFormatError
 from standgrid.pointcloud import PointCloud
 
 #: Fields the tiler sets on every point.
@@ -47,7 +49,9 @@ def epoch_schema(samples: Iterable[PointCloud], where: Path) -> Schema:
 
 
 def conform(cloud: PointCloud, schema: Schema, source: Path) -> PointCloud:
-    """Bring a chunk to the epoch's schema: cast, fill absent fields (NaN or 0)."""
+    """Bring a chunk to the epoch's schema: cast (a value an integer dtype cannot hold
+    exactly is refused: ``PointCloudFormatError`` naming ``source``), fill absent fields
+    (NaN or 0)."""
     unknown = sorted(set(cloud.fields) - set(schema) - {WITHHELD})
     if unknown:
         raise CatalogError(
@@ -69,5 +73,25 @@ def conform(cloud: PointCloud, schema: Schema, source: Path) -> PointCloud:
                 path=source,
             )
         else:
-            fields[name] = values.astype(base, copy=False)
+            fields[name] = _exact_cast(name, values, base, source)
     return PointCloud(cloud.xyz, fields)
+
+
+def _exact_cast(name: str, values: NDArray[Any], base: np.dtype, source: Path) -> NDArray[Any]:
+    """``values`` as ``base``; a cast into an integer dtype that would wrap or truncate a
+    value (checked only when the cast is not safe for every value) is refused."""
+    if base.kind not in "biu" or np.can_cast(values.dtype, base, "safe"):
+        return values.astype(base, copy=False)
+    with np.errstate(invalid="ignore", over="ignore"):  # NaN and huge floats: refused below
+        cast = values.astype(base)
+    changed = cast != values
+    if values.dtype.kind == "f":
+        changed |= ~np.isfinite(values)
+    if changed.any():
+        k = int(np.argmax(changed.reshape(len(values), -1).any(axis=1)))
+        raise PointCloudFormatError(
+            f"field {name!r} value {values[k]} (point {k}) cannot be stored exactly as "
+            f"{base}, the epoch's dtype for it",
+            path=source,
+        )
+    return cast

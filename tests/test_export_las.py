@@ -584,3 +584,37 @@ def test_tiling_refuses_a_payload_field_that_would_wrap_in_the_epochs_dtype(
     assert info.value.path == payloads[2]
     assert "field 'ring' value 300 (point 7)" in str(info.value)
     assert not catalog.exists()
+
+
+@pytest.mark.parametrize("dtype", [np.uint8, np.float32])
+def test_a_payload_without_return_numbers_gets_return_one_of_one(
+    tmp_path: Path, dtype: Any
+) -> None:
+    """A payload that lacks the return fields others of its epoch carry gets what a tile
+    without them holds, return 1 of 1 (not 0, nor a NaN the writer would refuse)."""
+    from standgrid.pipeline.tile import tile_missions
+
+    def returns(k: int, n: int) -> dict[str, np.ndarray]:
+        if k == 1:
+            return {}
+        return {"return_number": np.full(n, 2, dtype), "number_of_returns": np.full(n, 3, dtype)}
+
+    mission, _ = _mission_with_fields(tmp_path, returns)
+    catalog = tmp_path / "catalog"
+    tile_missions([mission], catalog)
+    seen = {}
+    for tile in sorted((catalog / "tiles").rglob("*.la[sz]")):
+        las = laspy.read(tile)
+        for payload in np.unique(np.asarray(las.payload_id)).tolist():
+            mine = np.asarray(las.payload_id) == payload
+            pairs = set(
+                zip(
+                    np.asarray(las.return_number)[mine].tolist(),
+                    np.asarray(las.number_of_returns)[mine].tolist(),
+                    strict=True,
+                )
+            )
+            seen.setdefault(payload, set()).update(pairs)
+    assert len(seen) == 3
+    first, second, third = (seen[k] for k in sorted(seen))
+    assert first == third == {(2, 3)} and second == {(1, 1)}

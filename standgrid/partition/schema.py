@@ -18,6 +18,9 @@ TILER_FIELDS: dict[str, np.dtype] = {
     "point_source_id": np.dtype(np.uint16),
     "payload_id": np.dtype(np.uint32),
 }
+#: What a payload without the field gets, where that is not NaN (floats) or 0: the value a
+#: tile's point record has when no payload carries the field (return 1 of 1).
+FILL_VALUES: dict[str, int] = {"return_number": 1, "number_of_returns": 1}
 #: The buffer flag: set by the partition engine, never part of a schema.
 WITHHELD = "withheld"
 
@@ -51,7 +54,7 @@ def epoch_schema(samples: Iterable[PointCloud], where: Path) -> Schema:
 def conform(cloud: PointCloud, schema: Schema, source: Path) -> PointCloud:
     """Bring a chunk to the epoch's schema: cast (a value an integer dtype cannot hold
     exactly is refused: ``PointCloudFormatError`` naming ``source``), fill absent fields
-    (NaN or 0)."""
+    (:data:`FILL_VALUES`, else NaN or 0)."""
     unknown = sorted(set(cloud.fields) - set(schema) - {WITHHELD})
     if unknown:
         raise CatalogError(
@@ -65,7 +68,7 @@ def conform(cloud: PointCloud, schema: Schema, source: Path) -> PointCloud:
         values = cloud.fields.get(name)
         base, shape = dtype.base, dtype.shape
         if values is None:
-            fill = np.nan if np.issubdtype(base, np.floating) else 0
+            fill = FILL_VALUES.get(name, np.nan if np.issubdtype(base, np.floating) else 0)
             fields[name] = np.full((n, *shape), fill, dtype=base)
         elif values.shape[1:] != shape:
             raise CatalogError(

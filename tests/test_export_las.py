@@ -618,3 +618,96 @@ def test_a_payload_without_return_numbers_gets_return_one_of_one(
     assert len(seen) == 3
     first, second, third = (seen[k] for k in sorted(seen))
     assert first == third == {(2, 3)} and second == {(1, 1)}
+
+
+@pytest.mark.parametrize(
+    ("name", "dtype", "fill"),
+    [("classification", np.float32, 0), ("user_data", np.float64, 0), ("scan_angle", np.int16, 0)],
+)
+def test_a_payload_without_a_standard_field_gets_the_blank_records_value(
+    tmp_path: Path, name: str, dtype: Any, fill: int
+) -> None:
+    """Fields stored in standard LAS dimensions are filled as a tile without the field holds
+    them, whatever their dtype (a float one used to get NaN, which the writer refuses)."""
+    from standgrid.pipeline.tile import tile_missions
+
+    def fields(k: int, n: int) -> dict[str, np.ndarray]:
+        return {} if k == 1 else {name: np.full(n, 7, dtype)}
+
+    mission, _ = _mission_with_fields(tmp_path, fields)
+    catalog = tmp_path / "catalog"
+    tile_missions([mission], catalog)
+    seen: dict[int, set[int]] = {}
+    for tile in sorted((catalog / "tiles").rglob("*.la[sz]")):
+        las = laspy.read(tile)
+        payloads = np.asarray(las.payload_id)
+        for payload in np.unique(payloads).tolist():
+            values = np.asarray(las[name])[payloads == payload].tolist()
+            seen.setdefault(payload, set()).update(values)
+    first, second, third = (seen[k] for k in sorted(seen))
+    assert first == third == {7} and second == {fill}
+
+
+@pytest.mark.parametrize(
+    ("fields_of_bad", "text"),
+    [
+        (
+            lambda n: {"return_number": np.where(np.arange(n) == 4, 20, 1).astype(np.uint8)},
+            "field 'return_number' value 20 (point 4) is outside the LAS range [0, 15]",
+        ),
+        (
+            lambda n: {"gps_time": np.where(np.arange(n) == 9, np.nan, 1e9)},
+            "field 'gps_time' value nan (point 9) is not a finite time",
+        ),
+    ],
+)
+def test_a_bad_value_of_the_fields_own_dtype_names_the_payload(
+    tmp_path: Path, fields_of_bad: Any, text: str
+) -> None:
+    """Values a field's own dtype can hold but its LAS dimension cannot (a uint8 return number
+    of 20, a NaN time) are refused when the payload is read: the error names the payload and
+    its own point, not a staging tile."""
+    from standgrid.pipeline.tile import tile_missions
+
+    def fields(k: int, n: int) -> dict[str, np.ndarray]:
+        good = {key: np.ones(n, v.dtype) * (1e9 if key == "gps_time" else 1)
+                for key, v in fields_of_bad(n).items()}  # fmt: skip
+        return fields_of_bad(n) if k == 1 else good
+
+    mission, payloads = _mission_with_fields(tmp_path, fields)
+    catalog = tmp_path / "catalog"
+    with pytest.raises(PointCloudFormatError) as info:
+        tile_missions([mission], catalog)
+    assert info.value.path == payloads[1] and text in str(info.value)
+    assert not catalog.exists()
+
+
+def test_a_later_payloads_value_the_epochs_float_dtype_would_round_is_refused(
+    tmp_path: Path,
+) -> None:
+    """The epoch's dtypes come from the mission's first payload (float32 here): a later
+    float64 value float32 cannot hold is refused, naming the payload, not rounded; float64
+    values float32 holds exactly pass."""
+    from standgrid.mission.clouds import read_cloud
+    from standgrid.pipeline.tile import tile_missions
+
+    def ranges(exact: bool) -> Any:
+        def fields(k: int, n: int) -> dict[str, np.ndarray]:
+            if k == 0:
+                return {"range_m": np.full(n, 12.5, np.float32)}
+            values = np.full(n, 12.25)
+            if k == 2 and not exact:
+                values[3] = 12.345678901234
+            return {"range_m": values}
+
+        return fields
+
+    mission, payloads = _mission_with_fields(tmp_path / "bad", ranges(exact=False))
+    with pytest.raises(PointCloudFormatError) as info:
+        tile_missions([mission], tmp_path / "bad" / "catalog")
+    assert info.value.path == payloads[2]
+    assert "field 'range_m' value 12.345678901234 (point 3)" in str(info.value)
+    mission, payloads = _mission_with_fields(tmp_path / "good", ranges(exact=True))
+    assert read_cloud(payloads[1]).fields["range_m"].dtype == np.float64
+    report = tile_missions([mission], tmp_path / "good" / "catalog")
+    assert report.points_out == sum(len(read_cloud(p)) for p in payloads)

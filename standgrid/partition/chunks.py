@@ -14,7 +14,11 @@ import numpy as np
 from numpy.typing import NDArray
 
 from standgrid.errors import MissionConsistencyError
-from standgrid.las_fields import LAS_CHECKED_FIELDS, LAS_INTEGER_DIMENSIONS, las_dimension_values
+from standgrid.las_fields import (
+    LAS_CHECKED_FIELDS,
+    check_finite_gps_time,
+    las_dimension_values,
+)
 from standgrid.partition.lattice import snap_to_storage
 from standgrid.partition.schema import WITHHELD, Schema, conform
 from standgrid.pointcloud import PointCloud
@@ -93,17 +97,18 @@ def payload_chunk(task: PayloadTask) -> PayloadChunk:
 
 def check_las_fields(cloud: PointCloud, source: Path) -> None:
     """Refuse (naming ``source``) a payload field bound for a standard LAS dimension whose
-    values the tiles cannot store exactly (:mod:`standgrid.las_fields`). Fields already of
-    the dimension's own dtype are left to the tile writer (no pass over their values here)."""
+    values the tiles cannot store exactly (:mod:`standgrid.las_fields`), and non-finite GPS
+    times. A field whose dtype cannot hold a bad value (``uint8`` classification) is not
+    looked at; the others cost a min/max pass."""
     replaced = {WITHHELD, "point_source_id"}  # set by the partition engine / the tiler
     colours = {"red", "green", "blue"}
     if not colours <= cloud.fields.keys():  # tiles keep lone colour fields as extra bytes
         replaced |= colours
     for name in (LAS_CHECKED_FIELDS - replaced) & cloud.fields.keys():
-        values = cloud.fields[name]
-        own = LAS_INTEGER_DIMENSIONS[name][0] if name != "gps_time" else np.dtype(np.float64)
-        if values.dtype != own or values.ndim != 1:
-            las_dimension_values(name, values, source)
+        las_dimension_values(name, cloud.fields[name], source)
+    times = cloud.fields.get("gps_time")
+    if times is not None and len(times) and times.dtype.kind == "f":
+        check_finite_gps_time(float(times.min()), float(times.max()), [times], source)
 
 
 def _writable_float64(xyz: NDArray[Any]) -> bool:

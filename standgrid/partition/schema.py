@@ -10,6 +10,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from standgrid.errors import CatalogError, PointCloudFormatError
+from standgrid.las_fields import LAS_INTEGER_DIMENSIONS
 from standgrid.pointcloud import PointCloud
 
 #: Fields the tiler sets on every point.
@@ -18,9 +19,14 @@ TILER_FIELDS: dict[str, np.dtype] = {
     "point_source_id": np.dtype(np.uint16),
     "payload_id": np.dtype(np.uint32),
 }
-#: What a payload without the field gets, where that is not NaN (floats) or 0: the value a
-#: tile's point record has when no payload carries the field (return 1 of 1).
-FILL_VALUES: dict[str, int] = {"return_number": 1, "number_of_returns": 1}
+#: What a payload without a field stored in a standard LAS dimension gets, whatever the
+#: field's dtype: the value of a tile's point record when no payload carries the field
+#: (return 1 of 1, else 0). Other fields get NaN (floats) or 0.
+FILL_VALUES: dict[str, int] = {
+    **dict.fromkeys(LAS_INTEGER_DIMENSIONS, 0),
+    "return_number": 1,
+    "number_of_returns": 1,
+}
 #: The buffer flag: set by the partition engine, never part of a schema.
 WITHHELD = "withheld"
 
@@ -81,20 +87,24 @@ def conform(cloud: PointCloud, schema: Schema, source: Path) -> PointCloud:
 
 
 def _exact_cast(name: str, values: NDArray[Any], base: np.dtype, source: Path) -> NDArray[Any]:
-    """``values`` as ``base``; a cast into an integer dtype that would wrap or truncate a
-    value (checked only when the cast is not safe for every value) is refused."""
-    if base.kind not in "biu" or np.can_cast(values.dtype, base, "safe"):
+    """``values`` as ``base``; a cast that would change a value (wrap, truncate or round it:
+    checked only when the cast is not safe for every value) is refused. NaN stays NaN."""
+    if np.can_cast(values.dtype, base, "safe"):
         return values.astype(base, copy=False)
     with np.errstate(invalid="ignore", over="ignore"):  # NaN and huge floats: refused below
         cast = values.astype(base)
-    changed = cast != values
-    if values.dtype.kind == "f":
-        changed |= ~np.isfinite(values)
+    if base.kind in "biu":
+        changed = cast != values
+        if values.dtype.kind == "f":
+            changed |= ~np.isfinite(values)
+    else:  # a float or complex target: the cast back must give the same value (or NaN)
+        back = cast.astype(values.dtype)
+        changed = (back != values) & ~(np.isnan(values) if values.dtype.kind in "fc" else False)
     if changed.any():
         k = int(np.argmax(changed.reshape(len(values), -1).any(axis=1)))
         raise PointCloudFormatError(
             f"field {name!r} value {values[k]} (point {k}) cannot be stored exactly as "
-            f"{base}, the epoch's dtype for it",
+            f"{base}, the epoch's dtype for it (from the mission's first payload)",
             path=source,
         )
     return cast

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import math
 import shutil
+import struct
 from pathlib import Path
 
 import numpy as np
@@ -95,7 +96,10 @@ def test_no_grid_is_a_reason_naming_the_folders(tmp_path: Path) -> None:
     assert isinstance(found, NoGeoidModel)
     assert found.reason.startswith("no geoid model found")
     assert str(empty) in found.reason and "egm96_15.gtx" in found.reason
-    assert "PROJ cannot use it" in found.reason  # the unreadable file is named, not used
+    # the unreadable file is named, with what is wrong with it, and not used
+    assert f"{tmp_path / 'fake' / 'egm96_15.gtx'}: 10 bytes: shorter than a GTX header" in (
+        found.reason
+    )
 
 
 def test_environment_variable_replaces_the_search_path(
@@ -104,3 +108,70 @@ def test_environment_variable_replaces_the_search_path(
     monkeypatch.setenv("STANDGRID_GEOID_PATH", str(tmp_path))
     found = find_geoid()
     assert isinstance(found, NoGeoidModel) and found.searched == (tmp_path,)
+
+
+def _damaged_copies(tmp_path: Path) -> dict[str, Path]:
+    """Folders each holding one damaged copy of the EGM96 grid (under its own name)."""
+    grid = DEBIAN_PROJ_DATA / "egm96_15.gtx"
+    if not grid.is_file():
+        pytest.skip(f"no {grid} (apt-get install proj-data)")
+    data = grid.read_bytes()
+    rows, cols = struct.unpack(">2i", data[32:40])
+    values = np.frombuffer(data, ">f4", offset=40).reshape(rows, cols)
+    zeroed = values.copy()
+    zeroed[rows // 2 + 100 : rows // 2 + 160] = 0.0  # a band at 25..40 N, no anchor in it
+    damaged = {
+        "truncated 77 %": data[: int(len(data) * 0.77)],
+        "truncated 90 %": data[: int(len(data) * 0.90)],
+        "zeroed band": data[:40] + zeroed.astype(">f4").tobytes(),
+        "negated": data[:40] + (-values).astype(">f4").tobytes(),
+        "header only": data[:40],
+    }
+    folders = {}
+    for label, content in damaged.items():
+        folder = tmp_path / label.replace(" ", "_").replace("%", "pct")
+        folder.mkdir()
+        (folder / grid.name).write_bytes(content)
+        folders[label] = folder
+    return folders
+
+
+def test_a_damaged_grid_is_refused_naming_the_file(tmp_path: Path) -> None:
+    """Truncated, zero-filled or sign-flipped copies of the EGM96 grid are each refused,
+    the reason naming the file; the intact grid in the same search passes."""
+    for label, folder in _damaged_copies(tmp_path).items():
+        found = find_geoid([folder])
+        assert isinstance(found, NoGeoidModel), f"{label}: accepted"
+        (problem,) = found.problems
+        print(label, problem)
+        assert problem.startswith(f"{folder / 'egm96_15.gtx'}: "), problem
+        assert str(folder / "egm96_15.gtx") in found.reason
+        # the intact grid, searched after the damaged one, is the one used
+        model = find_geoid([folder, DEBIAN_PROJ_DATA])
+        assert isinstance(model, GeoidModel) and model.file != folder / "egm96_15.gtx"
+
+
+def test_a_sign_flipped_grid_is_refused_by_its_anchors(tmp_path: Path) -> None:
+    """A grid whose values are all in the undulation range, but negated (a band of it kept
+    in range): refused because PROJ's undulation at the anchor points is not EGM96's."""
+    folders = _damaged_copies(tmp_path)
+    data = (folders["negated"] / "egm96_15.gtx").read_bytes()
+    values = np.frombuffer(data, ">f4", offset=40).clip(-85.0, 85.0)  # in range everywhere
+    (folders["negated"] / "egm96_15.gtx").write_bytes(data[:40] + values.astype(">f4").tobytes())
+    found = find_geoid([folders["negated"]])
+    assert isinstance(found, NoGeoidModel)
+    assert "N(-1.337, 51.773) = -47.89 m, not 47.89" in found.reason, found.reason
+
+
+def test_the_verdict_is_cached_per_file_version(tmp_path: Path) -> None:
+    """A grid damaged after it was checked (new size / mtime) is checked again."""
+    grid = DEBIAN_PROJ_DATA / "egm96_15.gtx"
+    if not grid.is_file():
+        pytest.skip(f"no {grid} (apt-get install proj-data)")
+    folder = tmp_path / "grids"
+    folder.mkdir()
+    shutil.copy(grid, folder / grid.name)
+    assert isinstance(find_geoid([folder]), GeoidModel)
+    data = (folder / grid.name).read_bytes()
+    (folder / grid.name).write_bytes(data[: len(data) - 4 * 1440])
+    assert isinstance(find_geoid([folder]), NoGeoidModel)

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import os
 import sqlite3
+import struct
 from pathlib import Path
 from typing import Any
 
@@ -20,6 +21,7 @@ from standgrid.growth.fvs import (
     export_fvs,
     keyword_file,
 )
+from tests.conftest import BUNDLED_MISSIONS
 from tests.pipeline_fixtures import copy_catalog, enriched_pair
 
 
@@ -233,9 +235,9 @@ def test_elev_ft_is_the_dtm_height_above_the_geoid(catalog: Path, tmp_path: Path
     grid = _debian_grid()
     db = tmp_path / "s.db"
     report = export_fvs(catalog, db, species="DF", geoid_dirs=[grid.parent])
-    assert report.elev_ft_null_reason is None
-    assert report.elevation_reference is not None
-    assert report.elevation_reference.endswith(f"with the grid {grid}")
+    assert report.elev_ft_null_reason == {} and report.elev_ft_null_stands == {}
+    assert set(report.elevation_reference) == {"2024", "2028"}  # both GNSS-fitted
+    assert all(r.endswith(f"with the grid {grid}") for r in report.elevation_reference.values())
     stands, _ = _tables(db)
     assert len(stands) >= 2 and stands["ElevFt"].notna().all()
     undulation = np.array(
@@ -261,15 +263,186 @@ def test_without_a_geoid_grid_elev_ft_is_null_and_said(catalog: Path, tmp_path: 
     stands, _ = _tables(tmp_path / "s.db")
     assert len(stands) >= 2 and stands["ElevFt"].isna().all()
     assert stands["Slope"].notna().all()  # the DTM was there: only the datum is missing
-    reason = report.elev_ft_null_reason
-    assert reason is not None and "no geoid model found" in reason and str(empty) in reason
-    assert report.elevation_reference is None
+    reasons = report.elev_ft_null_reason
+    assert set(reasons) == {"2024", "2028"}
+    for reason in reasons.values():
+        assert "no geoid model found" in reason and str(empty) in reason
+    assert report.elevation_reference == {}
 
     out = tmp_path / "cli.db"
     result = CliRunner(env={"STANDGRID_GEOID_PATH": str(empty)}).invoke(
         cli, ["export", "fvs", str(catalog), "-o", str(out), "--species", "DF", "--json"]
     )
     assert result.exit_code == 0, result.output
-    assert json.loads(result.stdout)["elev_ft_null_reason"] == reason
-    assert f"warning: {reason}" in result.stderr
+    assert json.loads(result.stdout)["elev_ft_null_reason"] == reasons
+    for epoch, reason in reasons.items():
+        assert f"warning: epoch {epoch}: {reason}" in result.stderr
     assert _tables(out)[0]["ElevFt"].isna().all()
+
+
+# --- missions whose clouds are already projected -----------------------------------------
+
+
+def _projected_copy(source: Path, target: Path, geoid: Any) -> Path:
+    """``source`` (a GNSS-fitted mission) as survey LAS already in EPSG:32630, with heights
+    above sea level (ellipsoidal - N through ``geoid``), as national surveys deliver them."""
+    import shutil
+
+    import pyproj
+
+    from standgrid.georeference import MapProjector, georeference_mission
+    from standgrid.mission.clouds import write_cloud
+    from standgrid.mission.model import open_mission
+    from standgrid.pointcloud import PointCloud
+
+    (target / "payload_clouds").mkdir(parents=True)
+    for name in ("metadata.yaml", "slam_pose_graph.g2o"):
+        shutil.copy(source / name, target / name)
+    mission = open_mission(source)
+    projector = MapProjector(georeference_mission(mission), "EPSG:32630")
+    to_lonlat = pyproj.Transformer.from_crs("EPSG:32630", "EPSG:4326", always_xy=True)
+    for payload in mission.payloads:
+        if payload.kind != "point_cloud":
+            continue
+        cloud = mission.load_payload(payload, "map")
+        xyz = projector.exact(cloud.xyz)
+        lon, lat = to_lonlat.transform(xyz[:, 0], xyz[:, 1])
+        xyz[:, 2] = geoid.orthometric_height(lon, lat, xyz[:, 2])
+        name = payload.stamp.filename("cloud", "las")
+        write_cloud(PointCloud(xyz, {"intensity_raw": cloud.fields["intensity"]}),
+                    target / "payload_clouds" / name, crs="EPSG:32630")  # fmt: skip
+    return target
+
+
+@pytest.fixture(scope="module")
+def projected_catalogs(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Path]:
+    """``projected``: the 2024 mission as projected survey LAS (heights above sea level);
+    ``mixed``: one epoch of that and the GNSS-fitted original. Tiled like the shared pair."""
+    import shutil
+
+    from standgrid.georeference.geoid import find_geoid
+    from standgrid.pipeline.run import run_pipeline
+    from standgrid.pipeline.tile import TileOptions
+    from tests.pipeline_fixtures import BUFFER_M, MISSIONS
+    from tests.test_georef_geoid import _debian_grid
+
+    grid = _debian_grid()
+    geoid = find_geoid([grid.parent])
+    root = tmp_path_factory.mktemp("projected")
+    source = BUNDLED_MISSIONS / MISSIONS["2024"]
+    projected = _projected_copy(source, root / "p" / source.name, geoid)
+    run_pipeline([projected], root / "projected", TileOptions(buffer=BUFFER_M))
+    survey = _projected_copy(source, root / "m" / "2024-05-14-wytham-anymal-survey", geoid)
+    original = shutil.copytree(source, root / "m" / source.name)
+    run_pipeline([original, survey], root / "mixed", TileOptions(buffer=BUFFER_M))
+    return {"projected": root / "projected", "mixed": root / "mixed", "grid": grid}
+
+
+def test_projected_clouds_elev_ft_is_null_unless_the_user_says_above_sea_level(
+    projected_catalogs: dict[str, Path], catalog: Path, tmp_path: Path
+) -> None:
+    """Clouds already projected keep their source's heights: no geoid is subtracted. ElevFt
+    is NULL with the reason (report, stderr, --json) unless --heights-above-sea-level, then
+    the DTM height itself, which equals the GNSS-fitted catalog's ElevFt of the same cells."""
+    import json
+
+    from click.testing import CliRunner
+
+    from standgrid.cli import cli
+
+    projected, grid = projected_catalogs["projected"], projected_catalogs["grid"]
+    db = tmp_path / "null.db"
+    report = export_fvs(projected, db, level=0, species="DF", geoid_dirs=[grid.parent])
+    stands, _ = _tables(db)
+    assert len(stands) >= 5 and stands["ElevFt"].isna().all() and stands["Slope"].notna().all()
+    (reason,) = report.elev_ft_null_reason.values()
+    assert "heights of already-projected clouds: vertical datum unknown" in reason
+    assert "--heights-above-sea-level" in reason and report.elevation_reference == {}
+
+    db = tmp_path / "asl.db"
+    report = export_fvs(projected, db, level=0, species="DF", geoid_dirs=[grid.parent],
+                        heights_above_sea_level=True)  # fmt: skip
+    assert report.elev_ft_null_reason == {} and report.elev_ft_null_stands == {}
+    assert "--heights-above-sea-level" in report.elevation_reference["2024"]
+    stands, _ = _tables(db)
+    assert stands["ElevFt"].notna().all()
+    np.testing.assert_allclose(
+        stands["ElevFt"], _dtm_means(projected, stands) / M_PER_FT, atol=0.01
+    )
+    # the same ground, GNSS-fitted (ellipsoidal heights - N): the same elevation
+    export_fvs(catalog, tmp_path / "gnss.db", level=0, epochs=["2024"], species="DF",
+               geoid_dirs=[grid.parent])  # fmt: skip
+    gnss = _tables(tmp_path / "gnss.db")[0][["Stand_ID", "ElevFt"]]
+    both = stands.merge(gnss, on="Stand_ID", suffixes=("", "_gnss"))
+    assert len(both) >= 0.9 * len(stands)
+    difference = both["ElevFt"] - both["ElevFt_gnss"]
+    print("projected - GNSS ElevFt (ft):", difference.describe().to_dict())
+    assert difference.abs().max() < 0.01  # 3 mm: N at the centroid vs at each point
+
+    runner = CliRunner(env={"STANDGRID_GEOID_PATH": str(grid.parent)})
+    args = ["export", "fvs", str(projected), "--species", "DF", "--json"]
+    result = runner.invoke(cli, [*args, "-o", str(tmp_path / "cli_null.db")])
+    assert result.exit_code == 0, result.output
+    assert json.loads(result.stdout)["elev_ft_null_reason"] == {"2024": reason}
+    assert f"warning: epoch 2024: {reason}" in result.stderr
+    result = runner.invoke(
+        cli, [*args, "-o", str(tmp_path / "cli_asl.db"), "--heights-above-sea-level"]
+    )
+    assert result.exit_code == 0, result.output
+    out = json.loads(result.stdout)
+    assert out["elev_ft_null_reason"] == {} and "2024" in out["elevation_reference"]
+    assert _tables(tmp_path / "cli_asl.db")[0]["ElevFt"].notna().all()
+
+
+def test_an_epoch_mixing_gnss_and_projected_missions_has_null_elev_ft(
+    projected_catalogs: dict[str, Path], tmp_path: Path
+) -> None:
+    """GNSS-fitted and already-projected missions in one epoch: one DTM, two vertical
+    references; ElevFt is NULL, the reason naming both missions, even with the flag."""
+    mixed, grid = projected_catalogs["mixed"], projected_catalogs["grid"]
+    for flag in (False, True):
+        db = tmp_path / f"{flag}.db"
+        report = export_fvs(mixed, db, level=0, species="DF", geoid_dirs=[grid.parent],
+                            heights_above_sea_level=flag)  # fmt: skip
+        stands, _ = _tables(db)
+        assert len(stands) >= 5 and stands["ElevFt"].isna().all()
+        (reason,) = report.elev_ft_null_reason.values()
+        assert "mixes" in reason and "2024-05-14-wytham-anymal-coyote" in reason
+        assert "2024-05-14-wytham-anymal-survey" in reason
+        assert flag == any("changed nothing" in note for note in report.notes)
+
+
+def test_a_stand_outside_the_geoid_grid_has_null_elev_ft_with_a_reason(
+    catalog: Path, tmp_path: Path
+) -> None:
+    """A regional grid (part of EGM96) not covering the stands: N is NaN there, and the
+    stand's ElevFt is NULL with the reason, not a number."""
+    from standgrid.catalog import Catalog
+    from standgrid.georeference.geoid import GeoidModel
+    from standgrid.growth.fvs import _export_fvs
+    from tests.test_georef_geoid import _debian_grid
+
+    grid = _debian_grid()
+    if grid.suffix != ".gtx":
+        pytest.skip("the regional grid is cut from the GTX grid")
+    data = grid.read_bytes()
+    lat0, lon0, dlat, dlon, rows, cols = struct.unpack(">4d2i", data[:40])
+    values = np.frombuffer(data, ">f4", offset=40).reshape(rows, cols)
+    row0, col0 = int((0 - lat0) / dlat), int((0 - lon0) / dlon)  # 0..10 N, 0..10 E
+    part = values[row0 : row0 + 41, col0 : col0 + 41]
+    regional = tmp_path / "regional.gtx"
+    header = struct.pack(">4d2i", 0.0, 0.0, dlat, dlon, *part.shape)
+    regional.write_bytes(header + part.astype(">f4").tobytes())
+    model = GeoidModel("EGM96", regional, "EPSG:10084", "EPSG:5773", 1.0)
+    assert model.undulation(5.0, 5.0) == pytest.approx(float(values[row0 + 20, col0 + 20]))
+    with Catalog.reading(catalog) as cat:
+        report = _export_fvs(cat, tmp_path / "s.db", level=1, epochs=None, variant="PN",
+                             species="DF", species_by_stand=None, increments=False,
+                             overwrite=False, geoid=model)  # fmt: skip
+    stands, _ = _tables(tmp_path / "s.db")
+    assert len(stands) >= 2 and stands["ElevFt"].isna().all()
+    assert set(report.elev_ft_null_stands) == set(stands["Stand_ID"])
+    assert all(
+        f"the geoid grid {regional} has no undulation" in r
+        for r in report.elev_ft_null_stands.values()
+    )

@@ -57,6 +57,9 @@ def _species_table(path: Path | None) -> dict[str, str]:
               help="Leave DG/HTG empty even when an earlier campaign was compared.")  # fmt: skip
 @click.option("--keywords", type=click.Path(dir_okay=False, path_type=Path),
               help="Also write an FVS keyword file running every exported stand.")  # fmt: skip
+@click.option("--heights-above-sea-level", is_flag=True,
+              help="Already-projected clouds carry heights above sea level: ElevFt is their "
+              "DTM height (else NULL: their vertical datum is unknown).")  # fmt: skip
 @level_option
 @epoch_option
 @overwrite_option
@@ -70,6 +73,7 @@ def fvs(
     species_table: Path | None,
     no_increments: bool,
     keywords: Path | None,
+    heights_above_sea_level: bool,
     level: int,
     epochs: tuple[str, ...],
     overwrite: bool,
@@ -81,8 +85,10 @@ def fvs(
     One FVS stand per stand and epoch, one fixed plot of the stand's observed area, one
     record per tree with a DBH (trees without one are counted, not exported), in FVS units
     (inches, feet, acres). LiDAR does not tell species: give --species or --species-table.
-    ElevFt is height above the geoid (EGM2008 or EGM96 grid from PROJ's data folders,
-    /usr/share/proj or $STANDGRID_GEOID_PATH); NULL, with a warning, when none is found.
+    ElevFt is height above sea level: for missions placed by GNSS or an anchor, their WGS 84
+    ellipsoidal heights minus the geoid (EGM2008 or EGM96 grid from PROJ's data folders,
+    /usr/share/proj or $STANDGRID_GEOID_PATH); for clouds already projected, their heights
+    with --heights-above-sea-level. Else NULL, with a warning saying why (per epoch).
 
     \b
     Example:
@@ -98,7 +104,7 @@ def fvs(
     report = export_fvs(
         catalog, output, level=level, epochs=epochs or None, variant=variant, species=species,
         species_by_stand=_species_table(species_table), increments=not no_increments,
-        overwrite=overwrite,
+        overwrite=overwrite, heights_above_sea_level=heights_above_sea_level,
     )  # fmt: skip
     result: dict[str, Any] = report.to_dict()
     if keywords is not None:
@@ -113,8 +119,13 @@ def fvs(
         result["keywords"] = str(keywords)
     if report.species_default_used:
         status("warning: species not given; every tree is DF (Douglas-fir), a placeholder", quiet)
-    if report.elev_ft_null_reason is not None:
-        status(f"warning: {report.elev_ft_null_reason}", quiet)
+    for epoch, reason in report.elev_ft_null_reason.items():
+        status(f"warning: epoch {epoch}: {reason}", quiet)
+    if report.elev_ft_null_stands:
+        status(f"warning: ElevFt is NULL for {len(report.elev_ft_null_stands)} stand(s) "
+               "(elev_ft_null_stands in --json says why)", quiet)  # fmt: skip
+    for note in report.notes:
+        status(f"note: {note}", quiet)
     emit(result, as_json, _fvs_human)
 
 
@@ -122,7 +133,8 @@ def _fvs_human(r: dict[str, Any]) -> str:
     return (
         f"{r['stands']} stands, {r['trees']} trees ({r['trees_with_dg_htg']} with DG/HTG), "
         f"{r['trees_without_dbh_skipped']} trees without a DBH left out -> {r['output']}"
-        f"\nElevFt: {r['elevation_reference'] or 'NULL (no geoid model)'}"
+        + "".join(f"\nElevFt of epoch {e}: {ref}" for e, ref in r["elevation_reference"].items())
+        + "".join(f"\nElevFt of epoch {e}: {why}" for e, why in r["elev_ft_null_reason"].items())
     )
 
 

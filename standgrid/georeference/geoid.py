@@ -9,12 +9,17 @@ EPSG:10084, read from pyproj's proj.db as PROJJSON) with its "geoid model file" 
 set to the file found. So the result comes from that grid or from nothing: PROJ cannot fall
 back to its ballpark (no-op) vertical transformation, and pyproj's global search paths are
 left alone (adding a folder to them would change the grids other transforms pick).
+A grid is used only whole and sound: its file size matches its header (GTX), GDAL reads
+every value, each finite and a plausible undulation, no row filled with one value, the node
+spacing is the model's, and PROJ gives the known undulation at :data:`ANCHORS` (which
+catches a sign flip); each file is checked once per process and version.
 """
 
 from __future__ import annotations
 
 import json
 import os
+import struct
 from collections.abc import Sequence
 from dataclasses import dataclass
 from functools import cached_property
@@ -37,15 +42,27 @@ class _Candidate:
     model: str
     operation: int  # EPSG code of the WGS 84 -> gravity-related height transformation
     files: tuple[str, ...]  # PROJ-data name, then the older PROJ (Debian proj-data) name
+    spacing_deg: float  # the grid's node spacing
 
 
 #: Best model first.
 CANDIDATES = (
-    _Candidate("EGM2008", 3858, ("us_nga_egm08_25.tif", "egm08_25.gtx")),
-    _Candidate("EGM96", 10084, ("us_nga_egm96_15.tif", "egm96_15.gtx")),
+    _Candidate("EGM2008", 3858, ("us_nga_egm08_25.tif", "egm08_25.gtx"), 2.5 / 60),
+    _Candidate("EGM96", 10084, ("us_nga_egm96_15.tif", "egm96_15.gtx"), 15 / 60),
 )
 #: The geoid undulation lies within about -107..+86 m everywhere: outside, the grid is wrong.
 UNDULATION_RANGE_M = (-110.0, 90.0)
+#: lon, lat, N (m): EGM96's undulation at the equator/prime meridian, both poles and the
+#: bundled Wytham Woods missions; EGM2008's agree within about 1 m.
+ANCHORS = ((0.0, 0.0, 17.16), (0.0, 90.0, 13.61), (0.0, -90.0, -29.53), (-1.337, 51.773, 47.89))
+#: How far (m) a grid's undulation at an :data:`ANCHORS` point may be from the anchor's.
+ANCHOR_TOLERANCE_M = 2.0
+#: A grid row (but the poles') whose neighbouring values are equal this often is a fill.
+CONSTANT_ROW_FRACTION = 0.5
+#: Rows read at a time when checking a grid (EGM2008 2.5': 8640 columns, 35 MB per 1000).
+_CHECK_ROWS = 1024
+#: (path, size, mtime) -> the check's verdict: each grid file is read once per process.
+_VERDICTS: dict[tuple[str, int, int], str | None] = {}
 
 
 @dataclass(frozen=True)
@@ -164,19 +181,91 @@ def _transformer(operation: int, grid: Path) -> pyproj.Transformer:
 
 
 def _check(candidate: _Candidate, path: Path) -> str | None:
-    """None when PROJ opens ``path`` and gives an undulation in the world's range."""
+    """None when ``path`` is a whole, sound geoid grid that PROJ applies with the right sign;
+    else what is wrong. The verdict is cached per (path, size, mtime)."""
+    stat = path.stat()
+    key = (str(path), stat.st_size, stat.st_mtime_ns)
+    if key not in _VERDICTS:
+        _VERDICTS[key] = _grid_problem(candidate, path, stat.st_size) or _anchor_problem(
+            candidate, path
+        )
+    return _VERDICTS[key]
+
+
+def _gtx_problem(path: Path, size: int) -> str | None:
+    """None when the GTX header's rows x columns of float32 fill the file exactly."""
+    with open(path, "rb") as f:
+        header = f.read(40)
+    if len(header) < 40:
+        return f"{size} bytes: shorter than a GTX header (40 bytes)"
+    *_, rows, cols = struct.unpack(">4d2i", header)
+    expected = 40 + 4 * rows * cols
+    if rows <= 0 or cols <= 0 or size != expected:
+        return (
+            f"{size} bytes, but its GTX header says {rows} x {cols} values "
+            f"({expected} bytes): truncated or damaged"
+        )
+    return None
+
+
+def _grid_problem(candidate: _Candidate, path: Path, size: int) -> str | None:
+    """None when the whole grid reads (GDAL), at the candidate's spacing, every value finite
+    and in :data:`UNDULATION_RANGE_M`, no row but the poles' a constant fill."""
+    import rasterio
+    from rasterio.windows import Window
+
+    if path.suffix.lower() == ".gtx" and (problem := _gtx_problem(path, size)) is not None:
+        return problem
+    low, high = UNDULATION_RANGE_M
+    try:
+        with rasterio.open(path) as src:
+            spacing = (abs(src.transform.a), abs(src.transform.e))
+            if not np.allclose(spacing, candidate.spacing_deg, rtol=1e-6):
+                return (
+                    f"node spacing {spacing[0]:g} x {spacing[1]:g} deg, not {candidate.model}'s "
+                    f"{candidate.spacing_deg:g} deg"
+                )
+            nodata = src.nodata
+            for top in range(0, src.height, _CHECK_ROWS):
+                rows = min(_CHECK_ROWS, src.height - top)
+                values = src.read(1, window=Window(0, top, src.width, rows)).astype(np.float64)
+                if nodata is not None:
+                    values[values == nodata] = np.nan
+                bad = ~(np.isfinite(values) & (values >= low) & (values <= high))
+                if bad.any():
+                    row, col = (int(i) for i in np.argwhere(bad)[0])
+                    return (
+                        f"value {values[row, col]} at row {top + row}, column {col}: "
+                        f"not a geoid undulation ({low:g}..{high:g} m)"
+                    )
+                same = (np.diff(values, axis=1) == 0).mean(axis=1) > CONSTANT_ROW_FRACTION
+                same &= ~np.isin(np.arange(top, top + rows), (0, src.height - 1))  # poles
+                if same.any():
+                    first = int(np.argmax(same))
+                    return (
+                        f"row {top + first} is a constant fill "
+                        f"({values[first, 0]:g} m): not a geoid grid"
+                    )
+    except rasterio.errors.RasterioError as exc:
+        return f"GDAL cannot read it whole ({exc})"
+    return None
+
+
+def _anchor_problem(candidate: _Candidate, path: Path) -> str | None:
+    """None when PROJ, through the grid, gives the :data:`ANCHORS` undulations within
+    :data:`ANCHOR_TOLERANCE_M` (which catches a flipped sign or a scaled grid)."""
+    lon, lat, expected = (np.array(v) for v in zip(*ANCHORS, strict=True))
     try:
         transformer = _transformer(candidate.operation, path)
-        probes_lat, probes_lon = np.array([0.0, 45.0, -45.0]), np.array([0.0, 90.0, -90.0])
-        _, _, out = transformer.transform(probes_lat, probes_lon, np.zeros(3))
+        _, _, out = transformer.transform(lat, lon, np.zeros(len(lat)))
     except ProjError as exc:
         return f"PROJ cannot use it ({exc})"
     undulation = -np.asarray(out, np.float64)
-    low, high = UNDULATION_RANGE_M
-    if not (np.all(np.isfinite(undulation)) and np.all((undulation > low) & (undulation < high))):
-        return (
-            f"undulations {undulation.tolist()} m at (0, 0), (90, 45), (-90, -45) are not a geoid's"
+    off = ~(np.abs(undulation - expected) <= ANCHOR_TOLERANCE_M)
+    if off.any():
+        where = ", ".join(
+            f"N({x:g}, {y:g}) = {n:.2f} m, not {e:g}"
+            for x, y, n, e in zip(lon[off], lat[off], undulation[off], expected[off], strict=True)
         )
-    if np.all(undulation == 0.0):
-        return "all undulations are 0: not a geoid grid"
+        return f"through PROJ {where} (+-{ANCHOR_TOLERANCE_M:g} m): not {candidate.model}"
     return None

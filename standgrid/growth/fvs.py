@@ -21,6 +21,7 @@ import pandas as pd
 
 from standgrid._atomic import atomic_output
 from standgrid.catalog import Catalog, paths
+from standgrid.catalog.records import MissionRecord
 from standgrid.enrich.stands import counted_trees
 from standgrid.errors import FormatError
 from standgrid.georeference.geoid import GeoidModel, NoGeoidModel, find_geoid
@@ -72,10 +73,13 @@ class FvsExport:
     trees_with_increments: int = 0
     stands_skipped: dict[str, str] = field(default_factory=dict)
     species_default_used: bool = False
-    #: ``ElevFt``'s vertical reference (geoid model, operation, grid file), when found
-    elevation_reference: str | None = None
-    #: why ``ElevFt`` is NULL for every stand (no geoid model), else None
-    elev_ft_null_reason: str | None = None
+    #: epoch -> ``ElevFt``'s vertical reference (geoid model, operation, grid file; or the
+    #: clouds' own heights), for the epochs whose ``ElevFt`` is written
+    elevation_reference: dict[str, str] = field(default_factory=dict)
+    #: epoch -> why ``ElevFt`` is NULL for every stand of the epoch
+    elev_ft_null_reason: dict[str, str] = field(default_factory=dict)
+    #: FVS stand id -> why its ``ElevFt`` is NULL (in an epoch that has a reference)
+    elev_ft_null_stands: dict[str, str] = field(default_factory=dict)
     notes: list[str] = field(default_factory=list)
 
     def to_dict(self) -> dict[str, Any]:
@@ -87,10 +91,86 @@ class FvsExport:
             "trees_with_dg_htg": self.trees_with_increments,
             "stands_skipped": dict(self.stands_skipped),
             "species_default_used": self.species_default_used,
-            "elevation_reference": self.elevation_reference,
-            "elev_ft_null_reason": self.elev_ft_null_reason,
+            "elevation_reference": dict(self.elevation_reference),
+            "elev_ft_null_reason": dict(self.elev_ft_null_reason),
+            "elev_ft_null_stands": dict(self.elev_ft_null_stands),
             "notes": list(self.notes),
         }
+
+
+#: A mission's heights: WGS 84 ellipsoidal (placed by a GNSS fit or an anchor), those of its
+#: already-projected clouds (the source's vertical datum), or not recorded.
+ELLIPSOIDAL, PROJECTED, UNRECORDED = "ellipsoidal", "projected", "unrecorded"
+_NULL = "ElevFt is NULL (FVS uses its variant default)"
+
+
+@dataclass(frozen=True)
+class EpochElevation:
+    """How an epoch's ``ElevFt`` is made from its DTM heights h: H = h - N through
+    ``geoid``, H = h (``geoid`` None, ``reference`` set), or not at all (``null_reason``)."""
+
+    geoid: GeoidModel | None = None
+    reference: str | None = None
+    null_reason: str | None = None
+    #: H = h because the user says the clouds' heights are above sea level
+    user_says_above_sea_level: bool = False
+
+
+def mission_height_kind(record: MissionRecord) -> str:
+    """:data:`ELLIPSOIDAL`, :data:`PROJECTED` or :data:`UNRECORDED`, from how the catalog
+    placed the mission (its ``georeference`` record)."""
+    if not record.georeference or "method" not in record.georeference:
+        return UNRECORDED
+    return PROJECTED if record.georeference["method"] == PROJECTED else ELLIPSOIDAL
+
+
+def epoch_elevation(
+    catalog: Catalog,
+    epoch: str,
+    geoid: GeoidModel | NoGeoidModel,
+    heights_above_sea_level: bool = False,
+) -> EpochElevation:
+    """How ``ElevFt`` is made for ``epoch``, from how its missions were placed.
+
+    Every mission placed by a GNSS fit or an anchor: WGS 84 ellipsoidal heights, minus the
+    geoid undulation (NULL without a geoid grid). Every mission already projected: the
+    clouds' heights as they are with ``heights_above_sea_level``, else NULL (their vertical
+    datum is unknown: the tiler refuses compound CRSs, so no cloud names one). Missions of
+    both kinds, or placement not recorded: NULL.
+    """
+    names = catalog.epoch(epoch).missions
+    records = catalog.mission_records
+    kinds: dict[str, list[str]] = {}
+    for name in names:
+        kind = mission_height_kind(records[name]) if name in records else UNRECORDED
+        kinds.setdefault(kind, []).append(name)
+    if not kinds:
+        return EpochElevation(null_reason=f"{_NULL}: the epoch has no mission")
+    if UNRECORDED in kinds:
+        return EpochElevation(null_reason=(
+            f"{_NULL}: how mission(s) {', '.join(kinds[UNRECORDED])} were placed is not "
+            "recorded (re-tile them), so their heights' vertical reference is unknown"
+        ))  # fmt: skip
+    if len(kinds) > 1:
+        return EpochElevation(null_reason=(
+            f"{_NULL}: the epoch mixes missions with WGS 84 ellipsoidal heights (GNSS fit or "
+            f"anchor: {', '.join(kinds[ELLIPSOIDAL])}) and already-projected clouds (heights "
+            f"of their source's vertical datum: {', '.join(kinds[PROJECTED])}); its DTM has "
+            "no one vertical reference"
+        ))  # fmt: skip
+    if ELLIPSOIDAL in kinds:
+        if isinstance(geoid, NoGeoidModel):
+            return EpochElevation(null_reason=f"{_NULL}: {geoid.reason}")
+        return EpochElevation(geoid=geoid, reference=geoid.describe())
+    if heights_above_sea_level:
+        return EpochElevation(reference=(
+            "heights of the already-projected clouds, as they are: above sea level as the "
+            "user says (--heights-above-sea-level); no geoid applied"
+        ), user_says_above_sea_level=True)  # fmt: skip
+    return EpochElevation(null_reason=(
+        f"{_NULL}: heights of already-projected clouds: vertical datum unknown; pass "
+        "--heights-above-sea-level if they are"
+    ))  # fmt: skip
 
 
 def fvs_stand_id(cell_id: str, epoch: str) -> str:
@@ -195,6 +275,7 @@ def export_fvs(
     increments: bool = True,
     overwrite: bool = False,
     geoid_dirs: Sequence[str | Path] | None = None,
+    heights_above_sea_level: bool = False,
 ) -> FvsExport:
     """Write ``FVS_StandInit`` and ``FVS_TreeInit`` (SQLite) for the catalog's stands.
 
@@ -204,15 +285,17 @@ def export_fvs(
     (``cell_id``) to an FVS species code; other stands get ``species`` (default
     :data:`DEFAULT_SPECIES`). With ``increments`` and an earlier epoch compared with this
     one, matched trees get DG (past DBH, DG_Trans 1) and HTG (height increment, HTG_Trans 0).
-    ``ElevFt`` is the stand's mean DTM height above the geoid, through the geoid grid
+    ``ElevFt`` is the stand's mean DTM height above sea level (:func:`epoch_elevation`):
+    for missions placed by GNSS or an anchor, minus the geoid undulation of the grid
     :func:`~standgrid.georeference.geoid.find_geoid` finds in ``geoid_dirs`` (default: its
-    usual folders); NULL without one (the report says why).
+    usual folders); for already-projected clouds, their heights with
+    ``heights_above_sea_level``; else NULL (the report says why, per epoch).
     """
     with Catalog.reading(catalog_path) as catalog:  # one consistent state of every file
         return _export_fvs(
             catalog, Path(out), level=level, epochs=epochs, variant=variant, species=species,
             species_by_stand=species_by_stand, increments=increments, overwrite=overwrite,
-            geoid=find_geoid(geoid_dirs),
+            geoid=find_geoid(geoid_dirs), heights_above_sea_level=heights_above_sea_level,
         )  # fmt: skip
 
 
@@ -228,6 +311,7 @@ def _export_fvs(
     increments: bool,
     overwrite: bool,
     geoid: GeoidModel | NoGeoidModel,
+    heights_above_sea_level: bool = False,
 ) -> FvsExport:
     from pyproj import Transformer
 
@@ -239,11 +323,19 @@ def _export_fvs(
     polygons = _stand_polygons(catalog)
     to_wgs84 = Transformer.from_crs(catalog.crs, "EPSG:4326", always_xy=True)
     report = FvsExport(Path(out), species_default_used=False)
-    if isinstance(geoid, GeoidModel):
-        report.elevation_reference = geoid.describe()
-    else:
-        report.elev_ft_null_reason = (
-            f"ElevFt is NULL (FVS uses its variant default): {geoid.reason}"
+    elevations = {e: epoch_elevation(catalog, e, geoid, heights_above_sea_level) for e in wanted}
+    for epoch, elevation in elevations.items():
+        if elevation.null_reason is not None:
+            report.elev_ft_null_reason[epoch] = elevation.null_reason
+        else:
+            assert elevation.reference is not None
+            report.elevation_reference[epoch] = elevation.reference
+    if heights_above_sea_level and not any(
+        e.user_says_above_sea_level for e in elevations.values()
+    ):
+        report.notes.append(
+            "--heights-above-sea-level changed nothing: no exported epoch is made only of "
+            "already-projected clouds"
         )
     species_by_stand = dict(species_by_stand or {})
     stand_rows: list[dict[str, Any]] = []
@@ -291,12 +383,7 @@ def _export_fvs(
             cx, cy = (geom.centroid.x, geom.centroid.y) if geom is not None else (
                 float(mine["x"].mean()), float(mine["y"].mean()))  # fmt: skip
             lon, lat = to_wgs84.transform(cx, cy)
-            # the DTM holds WGS 84 ellipsoidal heights; FVS wants height above sea level
-            elev = (
-                float(geoid.orthometric_height(lon, lat, elev))
-                if isinstance(geoid, GeoidModel)
-                else math.nan
-            )
+            elev = _above_sea_level(elevations[epoch], lon, lat, elev, stand_id, report)
             acres = area / M2_PER_ACRE
             code = species_by_stand.get(cell_id)
             if code is None:
@@ -329,6 +416,32 @@ def _export_fvs(
     _write_database(Path(out), pd.DataFrame(stand_rows, columns=list(STAND_COLUMNS)), tree_table,
                     overwrite)  # fmt: skip
     return report
+
+
+def _above_sea_level(
+    elevation: EpochElevation,
+    lon: float,
+    lat: float,
+    height: float,
+    stand_id: str,
+    report: FvsExport,
+) -> float:
+    """The stand's mean DTM ``height`` (m) as height above sea level (m), or NaN (the
+    report's ``elev_ft_null_stands`` says why, when the epoch has a reference)."""
+    if elevation.null_reason is not None:
+        return math.nan
+    if not math.isfinite(height):
+        report.elev_ft_null_stands[stand_id] = "no DTM height in the stand"
+        return math.nan
+    if elevation.geoid is None:
+        return height
+    result = float(elevation.geoid.orthometric_height(lon, lat, height))
+    if not math.isfinite(result):
+        report.elev_ft_null_stands[stand_id] = (
+            f"the geoid grid {elevation.geoid.file} has no undulation at lon {lon:.6f}, "
+            f"lat {lat:.6f}"
+        )
+    return result
 
 
 def _opt(value: float) -> float | None:

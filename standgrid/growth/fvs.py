@@ -21,10 +21,10 @@ import pandas as pd
 
 from standgrid._atomic import atomic_output
 from standgrid.catalog import Catalog, paths
-from standgrid.catalog.records import MissionRecord
 from standgrid.enrich.stands import counted_trees
 from standgrid.errors import FormatError
 from standgrid.georeference.geoid import GeoidModel, NoGeoidModel, find_geoid
+from standgrid.growth.elevation import above_sea_level, epoch_elevation
 from standgrid.growth.treelist import (
     catalog_epochs,
     read_stands,
@@ -96,81 +96,6 @@ class FvsExport:
             "elev_ft_null_stands": dict(self.elev_ft_null_stands),
             "notes": list(self.notes),
         }
-
-
-#: A mission's heights: WGS 84 ellipsoidal (placed by a GNSS fit or an anchor), those of its
-#: already-projected clouds (the source's vertical datum), or not recorded.
-ELLIPSOIDAL, PROJECTED, UNRECORDED = "ellipsoidal", "projected", "unrecorded"
-_NULL = "ElevFt is NULL (FVS uses its variant default)"
-
-
-@dataclass(frozen=True)
-class EpochElevation:
-    """How an epoch's ``ElevFt`` is made from its DTM heights h: H = h - N through
-    ``geoid``, H = h (``geoid`` None, ``reference`` set), or not at all (``null_reason``)."""
-
-    geoid: GeoidModel | None = None
-    reference: str | None = None
-    null_reason: str | None = None
-    #: H = h because the user says the clouds' heights are above sea level
-    user_says_above_sea_level: bool = False
-
-
-def mission_height_kind(record: MissionRecord) -> str:
-    """:data:`ELLIPSOIDAL`, :data:`PROJECTED` or :data:`UNRECORDED`, from how the catalog
-    placed the mission (its ``georeference`` record)."""
-    if not record.georeference or "method" not in record.georeference:
-        return UNRECORDED
-    return PROJECTED if record.georeference["method"] == PROJECTED else ELLIPSOIDAL
-
-
-def epoch_elevation(
-    catalog: Catalog,
-    epoch: str,
-    geoid: GeoidModel | NoGeoidModel,
-    heights_above_sea_level: bool = False,
-) -> EpochElevation:
-    """How ``ElevFt`` is made for ``epoch``, from how its missions were placed.
-
-    Every mission placed by a GNSS fit or an anchor: WGS 84 ellipsoidal heights, minus the
-    geoid undulation (NULL without a geoid grid). Every mission already projected: the
-    clouds' heights as they are with ``heights_above_sea_level``, else NULL (their vertical
-    datum is unknown: the tiler refuses compound CRSs, so no cloud names one). Missions of
-    both kinds, or placement not recorded: NULL.
-    """
-    names = catalog.epoch(epoch).missions
-    records = catalog.mission_records
-    kinds: dict[str, list[str]] = {}
-    for name in names:
-        kind = mission_height_kind(records[name]) if name in records else UNRECORDED
-        kinds.setdefault(kind, []).append(name)
-    if not kinds:
-        return EpochElevation(null_reason=f"{_NULL}: the epoch has no mission")
-    if UNRECORDED in kinds:
-        return EpochElevation(null_reason=(
-            f"{_NULL}: how mission(s) {', '.join(kinds[UNRECORDED])} were placed is not "
-            "recorded (re-tile them), so their heights' vertical reference is unknown"
-        ))  # fmt: skip
-    if len(kinds) > 1:
-        return EpochElevation(null_reason=(
-            f"{_NULL}: the epoch mixes missions with WGS 84 ellipsoidal heights (GNSS fit or "
-            f"anchor: {', '.join(kinds[ELLIPSOIDAL])}) and already-projected clouds (heights "
-            f"of their source's vertical datum: {', '.join(kinds[PROJECTED])}); its DTM has "
-            "no one vertical reference"
-        ))  # fmt: skip
-    if ELLIPSOIDAL in kinds:
-        if isinstance(geoid, NoGeoidModel):
-            return EpochElevation(null_reason=f"{_NULL}: {geoid.reason}")
-        return EpochElevation(geoid=geoid, reference=geoid.describe())
-    if heights_above_sea_level:
-        return EpochElevation(reference=(
-            "heights of the already-projected clouds, as they are: above sea level as the "
-            "user says (--heights-above-sea-level); no geoid applied"
-        ), user_says_above_sea_level=True)  # fmt: skip
-    return EpochElevation(null_reason=(
-        f"{_NULL}: heights of already-projected clouds: vertical datum unknown; pass "
-        "--heights-above-sea-level if they are"
-    ))  # fmt: skip
 
 
 def fvs_stand_id(cell_id: str, epoch: str) -> str:
@@ -383,7 +308,9 @@ def _export_fvs(
             cx, cy = (geom.centroid.x, geom.centroid.y) if geom is not None else (
                 float(mine["x"].mean()), float(mine["y"].mean()))  # fmt: skip
             lon, lat = to_wgs84.transform(cx, cy)
-            elev = _above_sea_level(elevations[epoch], lon, lat, elev, stand_id, report)
+            elev, why = above_sea_level(elevations[epoch], lon, lat, elev)
+            if why is not None:
+                report.elev_ft_null_stands[stand_id] = why
             acres = area / M2_PER_ACRE
             code = species_by_stand.get(cell_id)
             if code is None:
@@ -416,32 +343,6 @@ def _export_fvs(
     _write_database(Path(out), pd.DataFrame(stand_rows, columns=list(STAND_COLUMNS)), tree_table,
                     overwrite)  # fmt: skip
     return report
-
-
-def _above_sea_level(
-    elevation: EpochElevation,
-    lon: float,
-    lat: float,
-    height: float,
-    stand_id: str,
-    report: FvsExport,
-) -> float:
-    """The stand's mean DTM ``height`` (m) as height above sea level (m), or NaN (the
-    report's ``elev_ft_null_stands`` says why, when the epoch has a reference)."""
-    if elevation.null_reason is not None:
-        return math.nan
-    if not math.isfinite(height):
-        report.elev_ft_null_stands[stand_id] = "no DTM height in the stand"
-        return math.nan
-    if elevation.geoid is None:
-        return height
-    result = float(elevation.geoid.orthometric_height(lon, lat, height))
-    if not math.isfinite(result):
-        report.elev_ft_null_stands[stand_id] = (
-            f"the geoid grid {elevation.geoid.file} has no undulation at lon {lon:.6f}, "
-            f"lat {lat:.6f}"
-        )
-    return result
 
 
 def _opt(value: float) -> float | None:

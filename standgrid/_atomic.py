@@ -13,7 +13,7 @@ import errno
 import os
 import shutil
 import uuid
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from pathlib import Path
 
 from standgrid.errors import (
@@ -148,9 +148,41 @@ def _place_new(tmp: Path, final: Path) -> None:
         raise
 
 
+def check_replaceable(
+    final: Path,
+    *,
+    overwrite: bool,
+    replaces: Callable[[Path], bool] | None = None,
+    what: str = "an output of this kind",
+) -> None:
+    """Refuse to replace ``final`` unless ``overwrite``, and a folder with files even then
+    unless it is ``what`` (``replaces(final)``): overwriting never deletes a folder of other
+    things (a folder of missions, a home folder) given as an output by mistake."""
+    if not final.exists() and not final.is_symlink():
+        return
+    if not overwrite:
+        raise OutputExistsError("exists (use overwrite to replace it)", path=final)
+    if (
+        final.is_dir()
+        and not final.is_symlink()
+        and any(final.iterdir())
+        and not (replaces is not None and replaces(final))
+    ):
+        raise OutputExistsError(
+            f"is a folder with files that is not {what}: overwriting replaces only {what} "
+            "(choose another output, or move the folder away yourself)",
+            path=final,
+        )
+
+
 @contextlib.contextmanager
 def atomic_output(
-    final: str | os.PathLike[str], *, overwrite: bool = True, durable: bool = True
+    final: str | os.PathLike[str],
+    *,
+    overwrite: bool = True,
+    durable: bool = True,
+    replaces: Callable[[Path], bool] | None = None,
+    what: str = "an output of this kind",
 ) -> Iterator[Path]:
     """Yield a temporary path beside ``final``; on success rename it onto ``final``.
 
@@ -158,11 +190,12 @@ def atomic_output(
     the rename and the folder after it. ``durable=False`` (a file staged in a catalog
     transaction, whose commit fsyncs every staged file): the write-back of a file is only
     started, not waited for. On error the temporary is removed and ``final`` is left as it
-    was; running out of space raises :class:`~standgrid.errors.OutOfSpaceError`.
+    was; running out of space raises :class:`~standgrid.errors.OutOfSpaceError`. An
+    existing folder with files is replaced only when ``replaces(final)`` says it is ``what``
+    (:func:`check_replaceable`).
     """
     final_path = Path(final)
-    if final_path.exists() and not overwrite:
-        raise OutputExistsError("exists (use overwrite to replace it)", path=final_path)
+    check_replaceable(final_path, overwrite=overwrite, replaces=replaces, what=what)
     try:
         final_path.parent.mkdir(parents=True, exist_ok=True)
     except OSError as exc:

@@ -435,7 +435,9 @@ def test_existing_folder_and_overwrite(tmp_path: Path) -> None:
     (folder / "notes.txt").write_text("mine")
     with pytest.raises(OutputExistsError, match="folder with files"):
         Catalog.create(folder, GRID, "EPSG:32632")
-    assert (folder / "notes.txt").exists()
+    with pytest.raises(OutputExistsError, match="overwriting replaces only a catalog"):
+        Catalog.create(folder, GRID, "EPSG:32632", overwrite=True)  # never deleted
+    assert (folder / "notes.txt").read_text() == "mine"
     make(tmp_path)
     with pytest.raises(OutputExistsError, match="is a catalog"):
         make(tmp_path)

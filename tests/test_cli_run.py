@@ -42,8 +42,7 @@ def _error_lines(output: str) -> list[str]:
 
 def test_run_the_bundled_pair_and_print_the_qgis_guide(tmp_path: Path) -> None:
     out = tmp_path / "demo"
-    out.mkdir()
-    (out / "stale.txt").write_text("replaced by --overwrite")
+    out.mkdir()  # an empty folder becomes the catalog
     result = CliRunner().invoke(
         cli, ["run", str(BUNDLED_MISSIONS), "-o", str(out), "--overwrite", "-q"]
     )
@@ -57,7 +56,6 @@ def test_run_the_bundled_pair_and_print_the_qgis_guide(tmp_path: Path) -> None:
         assert (out / f"tiles_{epoch}.vpc").is_file()
     assert "2024 -> 2028 (4.02 years)" in text
     assert str(out / "compare/2024__2028/chm_diff.tif") in text
-    assert not (out / "stale.txt").exists()
     metrics = pd.read_parquet(out / "tables/stand_metrics.parquet")
     assert sorted(metrics["epoch"].unique()) == ["2024", "2028"]
     assert (out / "compare/2024__2028/stand_changes.parquet").is_file()
@@ -87,6 +85,23 @@ def test_run_refuses_a_folder_with_files_without_overwrite(tmp_path: Path) -> No
     lines = _error_lines(result.output)
     assert len(lines) == 1 and lines[0].startswith("Error: OutputExistsError: ")
     assert sorted(p.name for p in out.iterdir()) == ["notes.txt"]
+
+
+def test_overwrite_never_replaces_a_folder_that_is_not_a_catalog(tmp_path: Path) -> None:
+    """``--overwrite`` replaces a catalog only: a folder of missions given as the output by
+    mistake is left as it is (it used to be swapped for the new catalog and deleted)."""
+    import shutil
+
+    out = tmp_path / "missions"
+    shutil.copytree(BUNDLED_MISSIONS, out)
+    before = sorted(str(p.relative_to(out)) for p in out.rglob("*"))
+    mission = next(p for p in sorted(BUNDLED_MISSIONS.iterdir()) if p.is_dir())
+    for command in (["tile", str(mission)], ["run", str(mission)]):
+        result = CliRunner().invoke(cli, [*command, "-o", str(out), "--overwrite"])
+        assert result.exit_code == 1, result.output
+        lines = _error_lines(result.output)
+        assert len(lines) == 1 and "is a folder with files that is not a catalog" in lines[0]
+        assert sorted(str(p.relative_to(out)) for p in out.rglob("*")) == before
 
 
 def test_enrich_json_on_an_existing_catalog(

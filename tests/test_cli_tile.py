@@ -99,9 +99,11 @@ def test_existing_folder_needs_overwrite(runner: CliRunner, tmp_path: Path) -> N
     result = runner.invoke(cli, ["tile", str(M1), "-o", str(folder), "-q"])
     assert result.exit_code == 1
     assert _error_lines(result.output)[0].startswith("Error: OutputExistsError: ")
+    # --overwrite replaces a catalog only: a folder of other files is never deleted
     result = runner.invoke(cli, ["tile", str(M1), "-o", str(folder), "-q", "--overwrite"])
-    assert result.exit_code == 0, result.output
-    assert not (folder / "keep.txt").exists()
+    assert result.exit_code == 1
+    assert "is a folder with files that is not a catalog" in _error_lines(result.output)[0]
+    assert sorted(p.name for p in folder.iterdir()) == ["keep.txt"]
 
 
 def test_help_has_an_example(runner: CliRunner) -> None:

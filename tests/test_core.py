@@ -158,7 +158,7 @@ def test_atomic_folder_replace_rolls_back_when_the_new_folder_cannot_move_in(
     monkeypatch.setattr(_atomic, "exchange", lambda a, b: False)
     with (
         pytest.raises(errors.OutputNotWritableError, match="into place") as info,
-        atomic_output(target) as tmp,
+        atomic_output(target, replaces=_is_out_folder, what="an out folder") as tmp,
     ):
         tmp.mkdir()
         (tmp / "a.txt").write_text("new")
@@ -167,8 +167,27 @@ def test_atomic_folder_replace_rolls_back_when_the_new_folder_cannot_move_in(
     assert (target / "a.txt").read_text() == "old"  # the old output is back in place
     assert [p.name for p in tmp_path.iterdir()] == ["out"]  # no stranded temporaries
     monkeypatch.setattr(os, "replace", real_replace)
-    with atomic_output(target) as tmp:
+    with atomic_output(target, replaces=_is_out_folder, what="an out folder") as tmp:
         tmp.mkdir()
         (tmp / "a.txt").write_text("new")
     assert (target / "a.txt").read_text() == "new"
     assert [p.name for p in tmp_path.iterdir()] == ["out"]
+    # a folder of other things is never replaced: overwriting replaces only what it makes
+    (target / "a.txt").unlink()
+    (target / "notes.txt").write_text("mine")
+    with (
+        pytest.raises(errors.OutputExistsError, match="not an out folder"),
+        atomic_output(target, replaces=_is_out_folder, what="an out folder") as tmp,
+    ):
+        tmp.mkdir()
+    with (  # a file output onto a folder
+        pytest.raises(errors.OutputExistsError, match="is a folder with files"),
+        atomic_output(target) as tmp,
+    ):
+        tmp.write_text("new")
+    assert [p.name for p in target.iterdir()] == ["notes.txt"]
+    assert [p.name for p in tmp_path.iterdir()] == ["out"]
+
+
+def _is_out_folder(path: Path) -> bool:
+    return (path / "a.txt").is_file()

@@ -93,6 +93,13 @@ def test_overwrite_and_failure_leave_no_partial_output(tmp_path: Path) -> None:
         write_mission(fresh, out, overwrite=True)
     assert len(list((out / "payload_clouds").iterdir())) == 5
     assert [p.name for p in out.parent.iterdir() if p.name.startswith(".")] == []
+    # overwriting replaces a mission folder only, never a folder of other things
+    other = tmp_path / "documents"
+    other.mkdir()
+    (other / "thesis.tex").write_text("mine")
+    with pytest.raises(OutputExistsError, match="not a mission folder"):
+        write_mission(open_mission(out), other, overwrite=True)
+    assert [p.name for p in other.iterdir()] == ["thesis.tex"]
 
 
 def test_scans_written_only_on_request(tmp_path: Path) -> None:

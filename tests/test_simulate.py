@@ -246,6 +246,13 @@ def test_write_georef_flag_and_overwrite(tmp_path: Path) -> None:
         simulate_mission(tmp_path, seed=5, epoch=2, area=50.0, points_per_payload=1000)
     simulate_mission(tmp_path, seed=5, epoch=2, area=50.0, points_per_payload=1000, overwrite=True)
     assert read_pose_graph(sim.mission_dir / "slam_pose_graph.g2o").gnss_lla_ref is None  # type: ignore[operator]
+    # overwriting replaces the simulator's own folders only
+    (sim.truth_dir / "truth.json").unlink()  # type: ignore[operator]
+    with pytest.raises(OutputExistsError, match="not a simulator truth folder"):
+        simulate_mission(
+            tmp_path, seed=5, epoch=2, area=50.0, points_per_payload=1000, overwrite=True
+        )
+    assert sim.truth_dir.is_dir()  # type: ignore[union-attr]
 
 
 def test_cli_simulate(tmp_path: Path) -> None:

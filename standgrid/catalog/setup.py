@@ -8,6 +8,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, Literal
 
+from standgrid._atomic import check_replaceable
 from standgrid.catalog.store import CATALOG_FILE
 from standgrid.errors import (
     CRSError,
@@ -85,14 +86,13 @@ def is_catalog(path: Path) -> bool:
     return (path / CATALOG_FILE).is_file()
 
 
-def refuse_foreign_folder(path: Path, overwrite: bool) -> None:
-    """A folder with other files is not silently turned into (or replaced by) a catalog."""
+def refuse_foreign_folder(path: Path) -> None:
+    """A folder with other files is never turned into, nor replaced by, a catalog: overwriting
+    replaces a catalog only."""
     if path.exists() and not path.is_dir():
         raise OutputExistsError("exists and is not a folder", path=path)
-    if path.is_dir() and any(path.iterdir()) and not overwrite:
-        raise OutputExistsError(
-            "is a folder with files but not a catalog (use overwrite to replace it)", path=path
-        )
+    if path.is_dir() and any(path.iterdir()) and not is_catalog(path):
+        check_replaceable(path, overwrite=True, what="a catalog")
 
 
 def check_existing(catalog: Catalog, request: GridRequest) -> None:

@@ -45,7 +45,14 @@ from pathlib import Path, PurePosixPath
 from types import TracebackType
 from typing import Any
 
-from standgrid._atomic import exchange, fsync_path, fsync_tree, temporary_sibling, write_text_atomic
+from standgrid._atomic import (
+    check_replaceable,
+    exchange,
+    fsync_path,
+    fsync_tree,
+    temporary_sibling,
+    write_text_atomic,
+)
 from standgrid.catalog.paths import CATALOG_FILE
 from standgrid.catalog.records import EpochRecord, MissionRecord, TilingSettings
 from standgrid.errors import (
@@ -261,7 +268,8 @@ class Catalog:
 
         An existing catalog or a folder with files raises :class:`OutputExistsError` unless
         ``overwrite``: then the new catalog is built beside the old one and swapped in
-        atomically, so there is always a catalog at ``path``. An unwritable location raises
+        atomically, so there is always a catalog at ``path``. A folder with files that is not
+        a catalog is never replaced. An unwritable location raises
         :class:`OutputNotWritableError`.
         """
         if scheme not in SCHEMES:
@@ -287,6 +295,8 @@ class Catalog:
                 if not overwrite:
                     kind = "a catalog" if (root / CATALOG_FILE).is_file() else "a folder with files"
                     raise OutputExistsError(f"is {kind} (use overwrite to replace it)", path=root)
+                if not (root / CATALOG_FILE).is_file():  # overwriting replaces a catalog only
+                    check_replaceable(root, overwrite=True, what="a catalog")
                 build = build_folder(root)
                 try:
                     cls._make(build, definition, crs, scheme)

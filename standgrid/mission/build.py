@@ -14,7 +14,7 @@ from standgrid._atomic import atomic_output
 from standgrid.errors import MissionConsistencyError, MissionNotFoundError, StandgridError
 from standgrid.geometry import Matrix4, invert_pose
 from standgrid.mission.clouds import read_cloud_header
-from standgrid.mission.layout import GRAPH_NAMES, POSES_CSV_NAMES
+from standgrid.mission.layout import GRAPH_NAMES, POSES_CSV_NAMES, is_mission_folder
 from standgrid.mission.model import Mission, Payload, open_mission
 from standgrid.mission.posegraph import PoseGraph
 from standgrid.mission.writer import CloudToWrite, own_graph, write_canonical
@@ -179,7 +179,9 @@ def build_payloads(
         else group_by_distance(positions, distance)
     )
     out = Path(out_path)
-    with atomic_output(out, overwrite=overwrite) as tmp:
+    with atomic_output(
+        out, overwrite=overwrite, replaces=is_mission_folder, what="a mission folder"
+    ) as tmp:
         tmp.mkdir()
         write_canonical(
             tmp,

@@ -233,6 +233,12 @@ def discover_layout(path: str | Path) -> MissionLayout:
     )
 
 
+def is_mission_folder(path: str | Path) -> bool:
+    """True when ``path`` is a folder holding anything a mission is made of (what writing a
+    mission with overwrite may replace)."""
+    return Path(path).is_dir() and discover_layout(path).is_mission
+
+
 def layer_name(folder: CloudFolder) -> str:
     """The layer key of a layer folder (``ground_clouds`` -> ``ground``)."""
     return LAYER_FOLDERS.get(folder.name, folder.name.removesuffix("_clouds"))

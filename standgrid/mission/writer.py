@@ -28,6 +28,7 @@ from standgrid._atomic import atomic_output
 from standgrid.errors import OrphanPayloadError
 from standgrid.geometry import Matrix4
 from standgrid.mission.clouds import write_cloud
+from standgrid.mission.layout import is_mission_folder
 from standgrid.mission.metadata import MissionMetadata, write_metadata
 from standgrid.mission.model import Mission
 from standgrid.mission.posegraph import PoseGraph, write_pose_graph
@@ -180,7 +181,9 @@ def write_mission(
     Raises :class:`OutputExistsError` if ``out_path`` exists and not ``overwrite``.
     """
     out = Path(out_path)
-    with atomic_output(out, overwrite=overwrite) as tmp:
+    with atomic_output(
+        out, overwrite=overwrite, replaces=is_mission_folder, what="a mission folder"
+    ) as tmp:
         tmp.mkdir()
         write_canonical(
             tmp,

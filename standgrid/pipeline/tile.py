@@ -181,7 +181,7 @@ def tile_missions(
             with Catalog.writing(path, held=lock) as catalog:
                 check_existing(catalog, request)
                 return _ingest(catalog, ingests, options, executor, progress)
-        refuse_foreign_folder(path, options.overwrite)
+        refuse_foreign_folder(path)
         if path.is_dir() and not any(path.iterdir()):
             # an empty folder (maybe the current one) becomes the catalog in place
             try:

@@ -22,9 +22,10 @@ import pyproj
 from numpy.typing import NDArray
 from scipy.spatial import cKDTree
 
-from standgrid._atomic import atomic_output
-from standgrid.errors import CRSError, FormatError, MissionNotFoundError, OutputExistsError
+from standgrid._atomic import atomic_output, check_replaceable
+from standgrid.errors import CRSError, FormatError, MissionNotFoundError
 from standgrid.geometry import Matrix4, invert_pose, transform_points
+from standgrid.mission.layout import is_mission_folder
 from standgrid.mission.posegraph import PoseGraph
 from standgrid.pointcloud import PointCloud
 from standgrid.simulate.chain import FrameChain
@@ -36,6 +37,7 @@ from standgrid.simulate.trajectory import (
     poses_from_positions,
     resample_polyline,
 )
+from standgrid.simulate.truth import is_truth_folder
 from standgrid.stamps import NS_PER_S, Stamp
 
 
@@ -178,9 +180,12 @@ def mission_from_scan(
     name = f"{date.isoformat()}-{place or _default_place(paths)}-{robot}"
     root = Path(out_root)
     mission_dir, truth_dir = root / "missions" / name, root / "truth" / name
-    for final in (mission_dir, truth_dir):
-        if final.exists() and not overwrite:
-            raise OutputExistsError("exists (use overwrite to replace it)", path=final)
+    check_replaceable(
+        mission_dir, overwrite=overwrite, replaces=is_mission_folder, what="a mission folder"
+    )
+    check_replaceable(
+        truth_dir, overwrite=overwrite, replaces=is_truth_folder, what="a simulator truth folder"
+    )
     xyz, intensity, classification, use_crs, sources = _read_scans(paths, crs)
     rng = np.random.default_rng([int(seed), 7])
 
@@ -240,13 +245,17 @@ def mission_from_scan(
         notes=f"cut from {', '.join(p.name for p in paths)} (CRS {use_crs}), seed {seed}",
         extra={"simulator": {"seed": int(seed), "source_crs": use_crs}},
     )  # fmt: skip
-    with atomic_output(mission_dir, overwrite=overwrite) as tmp:
+    with atomic_output(
+        mission_dir, overwrite=overwrite, replaces=is_mission_folder, what="a mission folder"
+    ) as tmp:
         tmp.mkdir()
         write_canonical_parts(
             tmp, metadata=metadata, graph=graph, stamps_ns=stamps_ns, true_poses=true_poses,
             spans=spans, payloads=payloads, fixes=fixes, rng=rng, imu_rate_hz=10.0,
         )  # fmt: skip
-    with atomic_output(truth_dir, overwrite=overwrite) as tmp:
+    with atomic_output(
+        truth_dir, overwrite=overwrite, replaces=is_truth_folder, what="a simulator truth folder"
+    ) as tmp:
         from standgrid.mission.poses_csv import PoseTable, write_poses_csv
 
         (tmp / "payload_points").mkdir(parents=True)

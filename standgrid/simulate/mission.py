@@ -15,9 +15,10 @@ from numpy.typing import NDArray
 from pyproj import Transformer
 from scipy.spatial.transform import Rotation
 
-from standgrid._atomic import temporary_sibling
-from standgrid.errors import OutputExistsError, OutputNotWritableError
+from standgrid._atomic import check_replaceable, temporary_sibling
+from standgrid.errors import OutputNotWritableError
 from standgrid.geometry import Matrix4, invert_pose, transform_points
+from standgrid.mission.layout import is_mission_folder
 from standgrid.mission.posegraph import Edge, PoseGraph, Vertex
 from standgrid.mission.sensors import GnssFixes
 from standgrid.pointcloud import PointCloud
@@ -431,9 +432,8 @@ def write_truth_folder(sim: SimulatedMission, folder: Path, config: SimulationCo
     write_truth_json(info, folder / "truth.json")
 
 
-def _prepare(final: Path, overwrite: bool) -> None:
-    if final.exists() and not overwrite:
-        raise OutputExistsError("exists (use overwrite to replace it)", path=final)
+def _prepare(final: Path, overwrite: bool, replaces: Any, what: str) -> None:
+    check_replaceable(final, overwrite=overwrite, replaces=replaces, what=what)
 
 
 def _install_together(moves: list[tuple[Path, Path]]) -> None:
@@ -493,8 +493,10 @@ def simulate_mission(
     root = Path(out_root)
     name = EPOCHS[epoch].mission_name()
     mission_dir, truth_dir = root / "missions" / name, root / "truth" / name
-    _prepare(mission_dir, overwrite)
-    _prepare(truth_dir, overwrite)
+    _prepare(mission_dir, overwrite, is_mission_folder, "a mission folder")
+    from standgrid.simulate.truth import is_truth_folder
+
+    _prepare(truth_dir, overwrite, is_truth_folder, "a simulator truth folder")
     sim = run_simulation(seed, epoch, base)
     tmp_mission, tmp_truth = temporary_sibling(mission_dir), temporary_sibling(truth_dir)
     try:

@@ -156,6 +156,12 @@ def write_gnss_truth(
     path.write_text("\n".join(lines) + "\n", encoding="utf-8")
 
 
+def is_truth_folder(path: str | Path) -> bool:
+    """True when ``path`` is a simulator truth folder (what simulating with overwrite may
+    replace)."""
+    return (Path(path) / "truth.json").is_file()
+
+
 def write_truth_json(info: dict[str, Any], path: Path) -> None:
     path.write_text(json.dumps(info, indent=2, sort_keys=True) + "\n", encoding="utf-8")
 

@@ -208,3 +208,42 @@ def test_real_als_scan_angles_and_flight_lines_reach_the_tiles(
         assert "source_point_source_id" not in got["extra"]
     print(f"\n{relative}: scan_angle_rank {rank.min()}..{rank.max()} -> scan_angle "
           f"{got['scan_angle'].min()}..{got['scan_angle'].max()} (0.006 degree units)")  # fmt: skip
+
+
+def test_tiles_written_with_the_rank_as_extra_bytes_get_scan_angle_when_retiled(
+    tmp_path: Path,
+) -> None:
+    """Tiles of a catalog written before the rank became ``scan_angle`` (the rank as an
+    extra dimension, ``scan_angle`` absent) re-tiled with a new mission: their points get
+    the ``scan_angle`` too, and no tile keeps a ``scan_angle_rank`` dimension."""
+    from standgrid.export.las import read_tile, write_tile
+    from standgrid.pointcloud import PointCloud
+
+    old = _las(1, "1.2", 1500, seed=8, first_time=1e5)
+    old.scan_angle_rank = np.random.default_rng(9).integers(-25, 26, 1500).astype(np.int8)
+    catalog = tmp_path / "cat"
+    report = tile_missions([_mission(tmp_path / "a", [old])], catalog, TileOptions(laz=False))
+    for path in catalog.glob("tiles/*/*.las"):  # as the tiler wrote them before
+        tile = read_tile(path)
+        fields = dict(tile.fields)
+        units = fields.pop("scan_angle")
+        fields["scan_angle_rank"] = np.rint(units * SCAN_ANGLE_UNIT_DEG).astype(np.int8)
+        write_tile(path, PointCloud(tile.xyz, fields), crs=report.crs, laz=False)
+    assert "scan_angle_rank" in _tiles(catalog)["extra"]
+
+    new = _las(1, "1.2", 700, seed=10, first_time=5e5)
+    new.scan_angle_rank = np.full(700, -7, np.int8)
+    root = tmp_path / "b"
+    folder = _mission(root, [new]).rename(root / "2024-06-02-site-robot")
+    (folder / "metadata.yaml").write_text(
+        "name: 2024-06-02-site-robot\ndate: 2024-06-02\ntime: 10:00:00\n"
+    )
+    again = tile_missions([folder], catalog, TileOptions())
+
+    assert again.points_in == again.points_out == 2200
+    got = _tiles(catalog)
+    assert "scan_angle_rank" not in got["extra"]
+    times = np.concatenate([np.asarray(old.gps_time), np.asarray(new.gps_time)])
+    rank = np.concatenate([np.asarray(old.scan_angle_rank), np.asarray(new.scan_angle_rank)])
+    angle = _by_time(got["gps_time"], got["scan_angle"], times)
+    assert np.array_equal(angle, np.rint(rank / SCAN_ANGLE_UNIT_DEG).astype(np.int16))

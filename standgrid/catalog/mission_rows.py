@@ -236,10 +236,15 @@ def tiling_schema(catalog: Catalog, previous: list[str], group: Sequence[PlacedM
     (its fields as the tiles store them: :func:`~standgrid.partition.chunks.source_fields`)."""
     from standgrid.export.las import read_tile
     from standgrid.georeference.placement import cloud_payloads
-    from standgrid.partition.chunks import source_fields
+    from standgrid.partition.chunks import rank_as_scan_angle, source_fields
     from standgrid.partition.schema import epoch_schema
+    from standgrid.pointcloud import PointCloud
 
-    samples = [read_tile(catalog.path(previous[0]))] if previous else []
+    samples = []
+    if previous:  # tiles written before scan_angle_rank became scan_angle: as they are now
+        tile_path = catalog.path(previous[0])
+        tile = read_tile(tile_path)
+        samples.append(PointCloud(tile.xyz, rank_as_scan_angle(tile.fields, tile_path)))
     for ingest in group:
         payloads = cloud_payloads(ingest.mission)
         if payloads:

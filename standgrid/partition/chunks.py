@@ -6,6 +6,7 @@ an executor may run it in this process or on a dask worker: the result is the sa
 
 from __future__ import annotations
 
+from collections.abc import Mapping
 from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -86,9 +87,7 @@ def source_fields(cloud: PointCloud, source: Path) -> tuple[PointCloud, int]:
         withheld = int(np.count_nonzero(flags))
         if withheld:
             cloud = cloud.select(~flags)
-    fields = {k: v for k, v in cloud.fields.items() if k != WITHHELD}
-    if "scan_angle_rank" in fields and "scan_angle" not in fields:
-        fields["scan_angle"] = scan_angle_from_rank(fields.pop("scan_angle_rank"), source)
+    fields = rank_as_scan_angle({k: v for k, v in cloud.fields.items() if k != WITHHELD}, source)
     if "point_source_id" in fields:
         if SOURCE_POINT_SOURCE_ID in fields:
             raise PointCloudFormatError(
@@ -134,6 +133,17 @@ def payload_chunk(task: PayloadTask) -> PayloadChunk:
     fields["payload_id"] = np.full(n, task.payload_id, dtype=np.uint32)
     chunk = conform(PointCloud(xyz, fields), task.schema, task.path)
     return PayloadChunk(chunk, footprint(chunk.xyz, task.fallback_footprint), withheld)
+
+
+def rank_as_scan_angle(fields: Mapping[str, NDArray[Any]], source: Path) -> dict[str, NDArray[Any]]:
+    """``fields`` with a ``scan_angle_rank`` (degrees) and no ``scan_angle`` turned into the
+    LAS 1.4 ``scan_angle`` (:func:`~standgrid.las_fields.scan_angle_from_rank`); also for the
+    points of tiles written before that rule, which kept the rank as an extra dimension."""
+    converted = dict(fields)
+    if "scan_angle_rank" in converted and "scan_angle" not in converted:
+        rank = converted.pop("scan_angle_rank")
+        converted["scan_angle"] = scan_angle_from_rank(rank, source)
+    return converted
 
 
 def check_las_fields(cloud: PointCloud, source: Path) -> None:

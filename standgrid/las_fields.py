@@ -17,6 +17,10 @@ truncated.
 
 Every refusal is a :class:`~standgrid.errors.PointCloudFormatError` naming the field, the
 file and the first offending value with its point index.
+
+The one conversion: a LAS 1.0-1.3 ``scan_angle_rank`` (point formats 0-5, whole degrees) is
+stored as the LAS 1.4 ``scan_angle`` (:func:`scan_angle_from_rank`: units of
+:data:`SCAN_ANGLE_UNIT_DEG`, off by at most 0.003 degrees).
 """
 
 from __future__ import annotations
@@ -50,6 +54,8 @@ LAS_INTEGER_DIMENSIONS: dict[str, tuple[np.dtype[Any], int, int]] = {
 }
 #: Every field stored in a LAS dimension of its own name by these rules.
 LAS_CHECKED_FIELDS = frozenset({*LAS_INTEGER_DIMENSIONS, "gps_time"})
+#: Degrees per unit of the LAS 1.4 ``scan_angle`` (point formats 6-10).
+SCAN_ANGLE_UNIT_DEG = 0.006
 #: Integers up to this magnitude convert to float64 exactly.
 _FLOAT64_EXACT = 2**53
 
@@ -100,6 +106,36 @@ def las_dimension_values(
             path=path,
         )
     return converted
+
+
+def scan_angle_from_rank(
+    rank: NDArray[Any], path: str | os.PathLike[str], *, first_point: int = 0
+) -> NDArray[np.int16]:
+    """A LAS 1.0-1.3 ``scan_angle_rank`` (degrees, int8 in point formats 0-5) as the LAS 1.4
+    ``scan_angle``: ``round(rank / 0.006)`` in int16 units of 0.006 degrees. The stored
+    angle is off by at most half a unit, 0.003 degrees (15 degrees is exactly 2500 units,
+    1 degree 167 units = 1.002 degrees). A non-integer dtype must hold finite angles within
+    the int16 range (+-196.6 degrees), else a :class:`PointCloudFormatError` names the field,
+    ``path`` and the first offending value."""
+    if rank.ndim != 1 or rank.dtype.kind not in "biuf":
+        raise PointCloudFormatError(
+            f"field 'scan_angle_rank' of dtype {rank.dtype} and shape {rank.shape[1:]} per "
+            "point is not one angle in degrees per point",
+            path=path,
+        )
+    units = rank.astype(np.float64) / SCAN_ANGLE_UNIT_DEG
+    if rank.dtype.itemsize > 1 and len(units):  # int8 ranks always fit int16 units
+        low, high = LAS_INTEGER_DIMENSIONS["scan_angle"][1:]
+        if not (units.min() >= low - 0.5 and units.max() < high + 0.5):
+            inside = (units >= low - 0.5) & (units < high + 0.5)
+            k = int(np.argmin(inside))
+            raise PointCloudFormatError(
+                f"field 'scan_angle_rank' value {rank[k]} (point {first_point + k}) is not an "
+                f"angle the LAS scan_angle can hold ({low * SCAN_ANGLE_UNIT_DEG:.3f} to "
+                f"{high * SCAN_ANGLE_UNIT_DEG:.3f} degrees)",
+                path=path,
+            )
+    return np.rint(units).astype(np.int16)
 
 
 def check_finite_gps_time(

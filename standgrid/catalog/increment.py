@@ -51,12 +51,19 @@ def placement_digest(placement: dict[str, Any]) -> str:
     return hashlib.blake2b(text.encode(), digest_size=16).hexdigest()
 
 
+#: Version of how a payload's fields reach its tiles (``partition.chunks.source_fields``):
+#: bumped when a rule changes, so every payload is read again (2: source-withheld points
+#: left out, scan_angle_rank as scan_angle, the source's point_source_id kept).
+SOURCE_FIELD_RULES = 2
+
+
 def source_digest(source: dict[str, Any], placement: str, schema: Any) -> str:
     """What a payload's points in the catalog depend on, hashed: its cloud file (by identity:
     device, inode, size, modification and change times, as git and make tell a changed file;
     any write changes them, a copied folder has new ones), frame, file -> base transform and
     node pose (to 1e-9), stamp (GPS time), mission number, payload id, the mission's
-    placement (:func:`placement_digest`) and the epoch's field schema."""
+    placement (:func:`placement_digest`), the epoch's field schema and the version of the
+    rules bringing a source's fields to the tiles (:data:`SOURCE_FIELD_RULES`)."""
     from standgrid.errors import PointCloudFormatError
     from standgrid.mission.clouds import check_cloud_file
 
@@ -76,6 +83,7 @@ def source_digest(source: dict[str, Any], placement: str, schema: Any) -> str:
         rounded = None if value is None else np.round(np.asarray(value, np.float64), 9) + 0.0
         digest.update(b"-" if rounded is None else rounded.tobytes())
     described = {
+        "source_field_rules": SOURCE_FIELD_RULES,
         "frame": source["frame"],
         "gps_time": float(source["gps_time"]).hex(),
         "point_source_id": int(source["point_source_id"]),
@@ -174,12 +182,14 @@ def landing_tiles(
 
 
 def keep_rows(rows: list[dict[str, Any]], kept: Any) -> None:
-    """Unchanged payloads keep their stored point count and footprint."""
+    """Unchanged payloads keep their stored point count, count of source-withheld points
+    left out and footprint."""
     stored = {int(r["payload_id"]): r for r in kept.to_dict("records")}
     for row in rows:
         found = stored.get(int(row["payload_id"]))
         if found is not None:
             row["point_count"] = int(found["point_count"])
+            row["withheld_left_out"] = int(found["withheld_left_out"])
             row["geometry"] = found["geometry"]
 
 

@@ -42,8 +42,9 @@ def payload_id(number: int, index: int, mission: Mission) -> int:
 def payload_row(
     mission: Mission, to_catalog: ToCatalog, ident: int, payload: Payload, epoch: str
 ) -> dict[str, Any]:
-    """A ``payloads`` row: the pose point and heading (``point_count`` and the footprint
-    geometry are filled in once the points were read)."""
+    """A ``payloads`` row: the pose point and heading (``point_count``,
+    ``withheld_left_out`` and the footprint geometry are filled in once the points were
+    read)."""
     import shapely
 
     from standgrid.export.gpkg import iso_time
@@ -64,6 +65,7 @@ def payload_row(
         "time": iso_time(payload.stamp.sec, payload.stamp.nsec),
         "node_id": payload.node_id,
         "point_count": 0,
+        "withheld_left_out": 0,
         "x": float(x),
         "y": float(y),
         "z": float(z),
@@ -230,17 +232,24 @@ def payload_rows(
 
 
 def tiling_schema(catalog: Catalog, previous: list[str], group: Sequence[PlacedMission]) -> Schema:
-    """The epoch's field schema: from its first existing tile and each mission's first payload."""
+    """The epoch's field schema: from its first existing tile and each mission's first payload
+    (its fields as the tiles store them: :func:`~standgrid.partition.chunks.source_fields`)."""
     from standgrid.export.las import read_tile
     from standgrid.georeference.placement import cloud_payloads
+    from standgrid.partition.chunks import rank_as_scan_angle, source_fields
     from standgrid.partition.schema import epoch_schema
+    from standgrid.pointcloud import PointCloud
 
-    samples = [read_tile(catalog.path(previous[0]))] if previous else []
+    samples = []
+    if previous:  # tiles written before scan_angle_rank became scan_angle: as they are now
+        tile_path = catalog.path(previous[0])
+        tile = read_tile(tile_path)
+        samples.append(PointCloud(tile.xyz, rank_as_scan_angle(tile.fields, tile_path)))
     for ingest in group:
         payloads = cloud_payloads(ingest.mission)
         if payloads:
             first = payloads[0]
             mission = ingest.mission
             load = mission.load_projected if first.frame == "utm" else mission.load_base
-            samples.append(load(first))
+            samples.append(source_fields(load(first), first.path)[0])
     return epoch_schema(samples, catalog.root)

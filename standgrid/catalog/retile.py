@@ -33,6 +33,7 @@ def kept_points(task: KeptTiles) -> PointCloud:
     partition engine."""
     from standgrid.catalog.invalidate import without_enrichment
     from standgrid.export.las import read_tile
+    from standgrid.partition.chunks import rank_as_scan_angle
     from standgrid.partition.lattice import snap_to_storage
     from standgrid.partition.schema import conform
 
@@ -41,8 +42,8 @@ def kept_points(task: KeptTiles) -> PointCloud:
     if task.dropped_payloads:
         keep &= ~np.isin(cloud.fields["payload_id"], task.dropped_payloads)
     kept = cloud.select(keep)
-    # heights and tree ids of the old enrichment do not survive a re-tile
-    kept = PointCloud(
-        snap_to_storage(kept.xyz, task.lattice_origin), without_enrichment(kept.fields)
-    )
+    # heights and tree ids of the old enrichment do not survive a re-tile; a rank kept as
+    # an extra dimension (tiles written before it became scan_angle) becomes scan_angle
+    fields = rank_as_scan_angle(without_enrichment(kept.fields), task.path)
+    kept = PointCloud(snap_to_storage(kept.xyz, task.lattice_origin), fields)
     return conform(kept, task.schema, task.path)

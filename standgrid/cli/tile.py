@@ -44,6 +44,11 @@ def _human(report: dict[str, Any]) -> str:
         f"points   {report['points_in']:,} in, {report['points_out']:,} out"
         f" ({'conserved' if report['conserved'] else 'NOT CONSERVED'})",
     ]
+    if report["withheld_left_out"]:
+        lines.append(
+            f"         {report['withheld_left_out']:,} points the source files flag withheld "
+            "(deleted) left out, not counted in"
+        )
     for epoch, e in report["epochs"].items():
         lines.append(
             f"epoch {epoch} ({e['date']}): {e['cells']} tiles, {e['points_out']:,} points,"

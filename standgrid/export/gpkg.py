@@ -10,7 +10,8 @@ Layers (all geometry in the catalog CRS; ``LAYER_COLUMNS`` lists the required co
   z_min, z_max, z_mean, z_p95, tile_path (relative to the catalog), missions (comma list);
   polygon = the cell's core bounds.
 - ``payloads``: payload_id, mission, stamp_sec, stamp_nsec, time (ISO 8601 UTC), node_id,
-  point_count, x, y, z, yaw; polygon = the payload footprint.
+  point_count (points tiled), x, y, z, yaw (and withheld_left_out: points the source flags
+  withheld, left out; source_digest); polygon = the payload footprint.
 - ``trajectories``: mission, epoch; LineString.
 - ``gnss_fixes``: mission, stamp_sec, stamp_nsec, quality, residual_e, residual_n,
   residual_u, residual_h, inlier; projected Point.

@@ -7,8 +7,10 @@ them exactly. Point data record format 6, or 7 when the cloud has ``red``/``gree
 Field mapping (``PointCloud.fields`` -> LAS):
 
 - ``gps_time`` (adjusted standard GPS time; the global-encoding GPS-time-type bit is set),
-  ``point_source_id`` (uint16, the mission number), ``classification``, ``return_number``,
-  ``number_of_returns`` (both default to 1), ``user_data``, ``scan_angle``,
+  ``point_source_id`` (uint16, the mission number; a payload's own is kept as the extra
+  dimension ``source_point_source_id``), ``classification``, ``return_number``,
+  ``number_of_returns`` (both default to 1), ``user_data``, ``scan_angle`` (LAS 1.4 units of
+  0.006 degrees, stored as given; a source's ``scan_angle_rank`` arrives converted),
   ``scan_direction_flag``, ``edge_of_flight_line``, ``synthetic``, ``key_point``,
   ``overlap``, ``scanner_channel``, ``red``/``green``/``blue`` -> the LAS dimension of the
   same name, only when every value is exactly storable (:mod:`standgrid.las_fields`: integral

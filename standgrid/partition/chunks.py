@@ -6,6 +6,7 @@ an executor may run it in this process or on a dask worker: the result is the sa
 
 from __future__ import annotations
 
+from collections.abc import Mapping
 from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -13,14 +14,15 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 from numpy.typing import NDArray
 
-from standgrid.errors import MissionConsistencyError
+from standgrid.errors import MissionConsistencyError, PointCloudFormatError
 from standgrid.las_fields import (
     LAS_CHECKED_FIELDS,
     check_finite_gps_time,
     las_dimension_values,
+    scan_angle_from_rank,
 )
 from standgrid.partition.lattice import snap_to_storage
-from standgrid.partition.schema import WITHHELD, Schema, conform
+from standgrid.partition.schema import SOURCE_POINT_SOURCE_ID, WITHHELD, Schema, conform
 from standgrid.pointcloud import PointCloud
 
 if TYPE_CHECKING:
@@ -59,13 +61,51 @@ class PayloadChunk:
 
     cloud: PointCloud
     footprint: Any
+    #: Points the source file flags ``withheld`` (deleted, LAS 1.4), left out of the tiles.
+    withheld: int = 0
+
+
+def source_fields(cloud: PointCloud, source: Path) -> tuple[PointCloud, int]:
+    """A payload's standard LAS fields as the tiles store them, and how many points were
+    left out. Only fields of those names cost a pass over the values:
+
+    - ``withheld``: LAS 1.4 says a withheld point "should be considered deleted"; those
+      points are left out (counted; the tiles' own withheld flag marks buffer copies).
+    - ``scan_angle_rank`` (LAS point formats 0-5, degrees) without a ``scan_angle``:
+      stored as the LAS 1.4 ``scan_angle`` (0.006 degree units, off by at most 0.003
+      degrees; :func:`~standgrid.las_fields.scan_angle_from_rank`). A ``scan_angle``
+      (formats 6-10, or a PLY/PCD field) is taken as given, in 0.006 degree units.
+    - ``point_source_id`` (a flight line): the tiler sets the mission number there, so a
+      source value other than 0 anywhere is kept as ``source_point_source_id`` (uint16).
+    """
+    fields = cloud.fields
+    if not {WITHHELD, "scan_angle_rank", "point_source_id"} & fields.keys():
+        return cloud, 0
+    withheld = 0
+    if WITHHELD in fields:
+        flags = las_dimension_values(WITHHELD, fields[WITHHELD], source).astype(bool)
+        withheld = int(np.count_nonzero(flags))
+        if withheld:
+            cloud = cloud.select(~flags)
+    fields = rank_as_scan_angle({k: v for k, v in cloud.fields.items() if k != WITHHELD}, source)
+    if "point_source_id" in fields:
+        if SOURCE_POINT_SOURCE_ID in fields:
+            raise PointCloudFormatError(
+                f"fields 'point_source_id' and {SOURCE_POINT_SOURCE_ID!r} both: the tiles keep "
+                f"a source's point_source_id as {SOURCE_POINT_SOURCE_ID!r}; rename one",
+                path=source,
+            )
+        ids = las_dimension_values("point_source_id", fields.pop("point_source_id"), source)
+        if ids.any():
+            fields[SOURCE_POINT_SOURCE_ID] = ids.astype(np.uint16, copy=False)
+    return PointCloud(cloud.xyz, fields), withheld
 
 
 def payload_chunk(task: PayloadTask) -> PayloadChunk:
     """Read one payload and bring it into the catalog CRS, snapped to the 1 mm lattice."""
     from standgrid.mission.clouds import read_cloud
 
-    cloud = read_cloud(task.path)
+    cloud, withheld = source_fields(read_cloud(task.path), task.path)
     check_las_fields(cloud, task.path)
     if task.to_catalog.fit is None:  # already in a projected CRS
         xyz = task.to_catalog.projected_points(cloud.xyz)
@@ -92,7 +132,18 @@ def payload_chunk(task: PayloadTask) -> PayloadChunk:
     fields["point_source_id"] = np.full(n, task.point_source_id, dtype=np.uint16)
     fields["payload_id"] = np.full(n, task.payload_id, dtype=np.uint32)
     chunk = conform(PointCloud(xyz, fields), task.schema, task.path)
-    return PayloadChunk(chunk, footprint(chunk.xyz, task.fallback_footprint))
+    return PayloadChunk(chunk, footprint(chunk.xyz, task.fallback_footprint), withheld)
+
+
+def rank_as_scan_angle(fields: Mapping[str, NDArray[Any]], source: Path) -> dict[str, NDArray[Any]]:
+    """``fields`` with a ``scan_angle_rank`` (degrees) and no ``scan_angle`` turned into the
+    LAS 1.4 ``scan_angle`` (:func:`~standgrid.las_fields.scan_angle_from_rank`); also for the
+    points of tiles written before that rule, which kept the rank as an extra dimension."""
+    converted = dict(fields)
+    if "scan_angle_rank" in converted and "scan_angle" not in converted:
+        rank = converted.pop("scan_angle_rank")
+        converted["scan_angle"] = scan_angle_from_rank(rank, source)
+    return converted
 
 
 def check_las_fields(cloud: PointCloud, source: Path) -> None:

@@ -29,6 +29,9 @@ FILL_VALUES: dict[str, int] = {
 }
 #: The buffer flag: set by the partition engine, never part of a schema.
 WITHHELD = "withheld"
+#: Where a payload's own ``point_source_id`` (a LAS flight line) is kept when it is not 0
+#: everywhere: the tiles' ``point_source_id`` is the mission number.
+SOURCE_POINT_SOURCE_ID = "source_point_source_id"
 
 Schema = dict[str, np.dtype]
 
@@ -62,6 +65,14 @@ def conform(cloud: PointCloud, schema: Schema, source: Path) -> PointCloud:
     exactly is refused: ``PointCloudFormatError`` naming ``source``), fill absent fields
     (:data:`FILL_VALUES`, else NaN or 0)."""
     unknown = sorted(set(cloud.fields) - set(schema) - {WITHHELD})
+    if unknown == [SOURCE_POINT_SOURCE_ID]:
+        raise CatalogError(
+            "point_source_id (flight line) values other than 0 here, but 0 at every point of "
+            f"the epoch's first payload, so its tiles have no {SOURCE_POINT_SOURCE_ID!r} field "
+            "to keep them in: every payload of a mission must carry the same fields (tile "
+            "this payload as a mission of its own)",
+            path=source,
+        )
     if unknown:
         raise CatalogError(
             f"fields {unknown} appear here but not in the epoch's first payload; "

@@ -49,14 +49,18 @@ class Run:
     points: int
     core: tuple[NDArray[np.int64], NDArray[np.int64], NDArray[np.int64]]
     buffer: tuple[NDArray[np.int64], NDArray[np.int64], NDArray[np.int64]]
-    #: What the loader gave besides the points (a payload's footprint), or None.
+    #: What the loader gave besides the points (a payload's footprint and count of source
+    #: points left out as withheld), or None.
     extra: Any = None
 
 
 def spill_chunk(task: SpillTask) -> Run:
     """Load, partition and write one item's run (see the module doc)."""
     got = task.load(task.item)
-    cloud, extra = (got.cloud, got.footprint) if isinstance(got, PayloadChunk) else (got, None)
+    if isinstance(got, PayloadChunk):
+        cloud, extra = got.cloud, (got.footprint, got.withheld)
+    else:
+        cloud, extra = got, None
     names = list(cloud.fields)
     descr: list[tuple[Any, ...]] = [(_XYZ, np.dtype(np.float64).str, (3,))]
     descr += [(n, v.dtype.str, v.shape[1:]) for n, v in cloud.fields.items()]

@@ -114,6 +114,12 @@ class TileReport:
     def points_out(self) -> int:
         return sum(e["points_out"] for e in self.epochs.values())
 
+    @property
+    def withheld_left_out(self) -> int:
+        """Payload points the source files flag withheld (deleted): not tiled, not in
+        :attr:`points_in`."""
+        return sum(e.get("withheld_left_out", 0) for e in self.epochs.values())
+
     def to_dict(self) -> dict[str, Any]:
         return {
             "catalog": str(self.catalog),
@@ -123,6 +129,7 @@ class TileReport:
             "points_in": self.points_in,
             "points_out": self.points_out,
             "conserved": self.points_in == self.points_out,
+            "withheld_left_out": self.withheld_left_out,
             "workers": self.workers,
             "epochs": self.epochs,
             "also_invalidated": self.also_invalidated,

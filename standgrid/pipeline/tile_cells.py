@@ -39,8 +39,9 @@ class EpochWork:
     payloads: Sequence[PayloadTask]
     partition: Partition
     buffer: BufferFunction | None
-    #: Told each payload's point count and footprint, in payload order.
-    on_payload: Callable[[int, int, Any], None]
+    #: Told each payload's point count, footprint and count of source-withheld points left
+    #: out, in payload order.
+    on_payload: Callable[[int, int, Any, int], None]
     #: The partition whose polygons the cells get (called once every payload is read).
     final_partition: Callable[[], Partition]
     crs: str
@@ -92,7 +93,7 @@ def _in_this_process(
         total = len(work.payloads)
         with closing(ordered_map(executor, payload_chunk, work.payloads)) as chunks:
             for k, chunk in enumerate(progress.track(chunks, total, f"{epoch}: payloads")):
-                work.on_payload(k, len(chunk.cloud), chunk.footprint)
+                work.on_payload(k, len(chunk.cloud), chunk.footprint, chunk.withheld)
                 engine.add(chunk.cloud)
         partition = work.final_partition()
         names: list[tuple[str, str]] = []
@@ -137,7 +138,7 @@ def _on_cluster(work: EpochWork, txn: Transaction, executor: Executor, progress:
         )
         runs = [found[k] for k in range(len(tasks))]
         for k, run in enumerate(runs[len(work.kept) :]):
-            work.on_payload(k, run.points, run.extra)
+            work.on_payload(k, run.points, *run.extra)
         done.kept_in = sum(run.points for run in runs[: len(work.kept)])
         done.points_in = sum(run.points for run in runs)
         done.bytes_spilled = sum(run.path.stat().st_size for run in runs)

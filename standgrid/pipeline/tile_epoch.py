@@ -132,12 +132,16 @@ def tile_epoch(
         )
 
     new_in: dict[str, int] = dict.fromkeys(names, 0)
+    withheld_left_out = 0  # source points flagged withheld (deleted), not tiled
 
-    def on_payload(k: int, points: int, footprint: Any) -> None:
+    def on_payload(k: int, points: int, footprint: Any, withheld: int) -> None:
+        nonlocal withheld_left_out
         row = rows[read[k]]
         row["point_count"] = points
+        row["withheld_left_out"] = withheld
         row["geometry"] = footprint
         new_in[row["mission"]] += points
+        withheld_left_out += withheld
 
     work = EpochWork(
         epoch=epoch,
@@ -212,11 +216,12 @@ def tile_epoch(
     mission_rows, trajectories, fixes = [], [], []
     for ingest in group:
         mission = ingest.mission
+        mine_rows = [r for r in rows if r["mission"] == mission.name]
         record = txn.record_mission(
             mission.name, epoch=epoch, date=ingest.date, path=str(mission.path.resolve()),
             georeference=ingest.placement.record(), placement=_note(ingest),
             payload_count=len(cloud_payloads(mission)),
-            point_count=sum(r["point_count"] for r in rows if r["mission"] == mission.name),
+            point_count=sum(r["point_count"] for r in mine_rows),
             tiles=sorted(tiles_of.get(mission.name, ())), **metadata_extra(mission),
         )  # fmt: skip
         result.missions[mission.name] = {
@@ -224,6 +229,7 @@ def tile_epoch(
             "epoch": epoch,
             "payloads": record["payload_count"],
             "points": record["point_count"],
+            "withheld_left_out": sum(r["withheld_left_out"] for r in mine_rows),
             "tiles": len(record["tiles"]),
             "georeference": ingest.placement.summary(),
             "placement": _note(ingest),
@@ -253,6 +259,7 @@ def tile_epoch(
         "points_in": fed + left_in,
         "points_kept_from_catalog": kept_in + left_in,
         "points_new": sum(new_in.values()),
+        "withheld_left_out": withheld_left_out,
         "points_out": done.points_out + left_in,
         "points_rewritten": done.points_out,
         "buffer_points": done.buffer_points,

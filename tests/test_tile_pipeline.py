@@ -564,7 +564,12 @@ def test_existing_folder_needs_overwrite(tmp_path: Path) -> None:
     with pytest.raises(OutputExistsError):
         tile([M1], folder)
     assert (folder / "notes.txt").read_text() == "mine\n"
-    tile([M1], folder, overwrite=True)
+    with pytest.raises(OutputExistsError, match="overwriting replaces only a catalog"):
+        tile([M1], folder, overwrite=True)  # never deletes a folder of other things
+    assert sorted(p.name for p in folder.iterdir()) == ["notes.txt"]
+    (folder / "notes.txt").unlink()
+    tile([M1], folder)  # an empty folder becomes the catalog
+    tile([M1], folder, overwrite=True)  # a catalog is replaced
     assert (folder / "catalog.json").is_file()
 
 

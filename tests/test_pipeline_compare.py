@@ -179,6 +179,9 @@ def test_voronoi_catalog_finds_the_harvest_too(tmp_path: Path) -> None:
     counts = changes["status"].value_counts()
     assert re.search(rf"{counts.get('removed', 0)} removed", result.output)
     assert re.search(rf"{counts.get('unobserved', 0)} unobserved", result.output)
+    # co-observed ground is clipped to each irregular cell (not whole pixels by their centre)
+    stands = pd.read_parquet(catalog / FOLDER / "stand_changes.parquet")
+    assert (stands["co_observed_fraction"].dropna() <= 1.0).all()
 
 
 # --- the compare outputs -----------------------------------------------------------------

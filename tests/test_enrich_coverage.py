@@ -73,6 +73,18 @@ def test_observed_is_cut_to_the_cells_and_the_mask_raster_says_so() -> None:
     assert polygon_mask_area(coverage.observed, GRID, shapely.box(0, 0, 40, 40)) == 800.0
 
 
+def test_observed_area_clips_pixels_to_an_irregular_polygon() -> None:
+    """Pixels cut by the polygon's edge count only their part inside it (pixel centres
+    counted whole would give 100 m² and 55 m² here)."""
+    mask = np.ones(GRID.shape, dtype=bool)
+    offset = shapely.box(0.25, 0.25, 10.5, 10.5)
+    assert polygon_mask_area(mask, GRID, offset) == pytest.approx(10.25**2, abs=1e-9)
+    triangle = shapely.Polygon([(0, 0), (10, 0), (0, 10)])
+    assert polygon_mask_area(mask, GRID, triangle) == pytest.approx(50.0, abs=1e-9)
+    mask[GRID.nrows - 5 :, :5] = False  # the 5 x 5 m south-west corner unobserved
+    assert polygon_mask_area(mask, GRID, triangle) == pytest.approx(50.0 - 25.0, abs=1e-9)
+
+
 def test_coverage_rule_names_what_is_missing() -> None:
     rule = CoverageRule(min_observed_fraction=0.5, min_density_pts_m2=2.0)
     assert rule.shortfall(0.6, 10.0) is None

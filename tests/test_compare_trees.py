@@ -207,6 +207,24 @@ def test_optional_attribute_columns_may_be_absent():
     assert row["height_m_per_year"] == pytest.approx(0.25)
 
 
+def test_dbh_growth_only_between_two_stem_fits():
+    """Four matched trees: fitted twice, imputed twice, fit then model, no DBH in one epoch;
+    only the first gets a diameter growth."""
+    xy = [[0, 0], [10, 0], [20, 0], [30, 0]]
+    before = _trees([1, 2, 3, 4], xy, [20.0, 21.0, 22.0, 23.0], dbh=[0.30, 0.31, 0.32, np.nan])
+    after = _trees([5, 6, 7, 8], xy, [21.0, 22.0, 23.0, 24.0], dbh=[0.32, 0.30, 0.33, 0.35])
+    before["dbh_source"] = ["measured", "imputed", "measured", "none"]
+    after["dbh_source"] = ["measured", "imputed", "imputed", "imputed"]
+    result = match_trees(before, after, date_from=DATE_FROM, date_to=DATE_TO)
+    grown = result.grown.sort_values("tree_id_from")
+    assert list(grown["dbh_growth_source"]) == ["measured", "imputed", "mixed", "none"]
+    assert list(grown["dbh_mixed_sources"]) == [False, False, True, False]
+    assert grown["dbh_m_delta"].iloc[0] == pytest.approx(0.02)
+    assert grown["dbh_m_per_year"].iloc[0] == pytest.approx(0.02 / result.years)
+    assert grown[["dbh_m_delta", "dbh_m_per_year"]].iloc[1:].isna().all().all()
+    assert grown["dbh_m_to"].notna().all()
+
+
 def test_bad_tree_tables_are_refused():
     good = _trees([1], [[0, 0]], [10.0])
     with pytest.raises(FormatError, match=r"trees_to.*height_m"):

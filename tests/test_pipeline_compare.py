@@ -179,6 +179,31 @@ def test_voronoi_catalog_finds_the_harvest_too(tmp_path: Path) -> None:
     counts = changes["status"].value_counts()
     assert re.search(rf"{counts.get('removed', 0)} removed", result.output)
     assert re.search(rf"{counts.get('unobserved', 0)} unobserved", result.output)
+    # co-observed ground is clipped to each irregular cell (not whole pixels by their centre)
+    stands = pd.read_parquet(catalog / FOLDER / "stand_changes.parquet")
+    assert (stands["co_observed_fraction"].dropna() <= 1.0).all()
+
+
+def test_diameter_growth_is_reported_only_between_two_stem_fits(pair: EnrichedPair) -> None:
+    """A DBH change between two height-diameter model estimates (or a fit and a model) is
+    not growth: ``dbh_m_per_year`` is null there and ``dbh_growth_source`` says why, while
+    each epoch's DBH stays."""
+    changes = _tree_changes(pair)
+    grown = changes[changes["status"] == "grown"]
+    both_fitted = (grown["dbh_source_from"] == "measured") & (grown["dbh_source_to"] == "measured")
+    both_imputed = (grown["dbh_source_from"] == "imputed") & (grown["dbh_source_to"] == "imputed")
+    assert both_fitted.sum() > 0 and both_imputed.sum() > 0  # the bundled pair has both
+    reported = grown["dbh_m_per_year"].notna()
+    assert (reported == both_fitted).all()
+    assert grown.loc[reported, "dbh_m_delta"].notna().all()
+    assert grown["dbh_m_delta"].notna().sum() == both_fitted.sum()
+    assert (grown.loc[both_fitted, "dbh_growth_source"] == "measured").all()
+    assert (grown.loc[both_imputed, "dbh_growth_source"] == "imputed").all()
+    mixed = grown["dbh_source_from"] != grown["dbh_source_to"]
+    assert (grown.loc[mixed, "dbh_growth_source"] == "mixed").all()
+    assert (grown["dbh_mixed_sources"] == mixed).all()
+    assert grown.loc[both_imputed, ["dbh_m_from", "dbh_m_to"]].notna().all().all()
+    assert changes.loc[changes["status"] != "grown", "dbh_growth_source"].isna().all()
 
 
 # --- the compare outputs -----------------------------------------------------------------

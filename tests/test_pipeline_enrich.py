@@ -323,6 +323,7 @@ def test_tree_lists(pair: EnrichedPair, epoch: str) -> None:
     assert summary["trees"] == len(parquet)
     assert summary["trees_dbh_measured"] == int((parquet["dbh_source"] == "measured").sum())
     assert summary["trees_dbh_imputed"] == int((parquet["dbh_source"] == "imputed").sum())
+    assert summary["trees_dbh_none"] == int((parquet["dbh_source"] == "none").sum())
     # each tree lies in its cell (top inside the cell polygon) and cell counts agree
     cells = _cells(pair, epoch).set_index("cell_id")
     polygons = cells.loc[parquet["cell_id"], "geometry"].to_numpy()
@@ -436,6 +437,34 @@ def test_stand_without_ground_has_null_metrics_with_a_reason(tmp_path: Path) -> 
     ok = metrics.loc[("2024", small_cell_id("A"))]
     assert ok["zmax"] == pytest.approx(15.0, abs=0.3)
     assert ok["n_trees"] == 1
+
+
+def test_enrich_summary_counts_the_trees_left_without_a_dbh(tmp_path: Path) -> None:
+    """Cone trees have no stem to fit: with fewer than 15 measured stems in the catalog no
+    height-diameter model, so no tree gets a DBH, and both summaries say so (not "0
+    measured, 0 imputed" alone)."""
+    from click.testing import CliRunner
+
+    from standgrid.cli import cli
+
+    catalog = build_small_catalog(tmp_path / "small")
+    result = CliRunner().invoke(cli, ["enrich", str(catalog), "--json", "-q"])
+    assert result.exit_code == 0, result.output
+    summaries = json.loads(result.stdout)["epochs"]
+    recorded = json.loads((catalog / "catalog.json").read_text())["epochs"]
+    for epoch, summary in summaries.items():
+        trees = pd.read_parquet(catalog / f"tables/tree_list_{epoch}.parquet")
+        without = int(trees["dbh_m"].isna().sum())
+        assert without == len(trees) > 0 and summary["height_diameter_model"] is None
+        assert summary["trees_dbh_none"] == without
+        assert summary["trees_dbh_measured"] + summary["trees_dbh_imputed"] + without == len(trees)
+        assert recorded[epoch]["enrichment"]["trees_dbh_none"] == without
+    human = CliRunner().invoke(cli, ["enrich", str(catalog), "-q"])
+    assert human.exit_code == 0, human.output
+    for epoch, summary in summaries.items():
+        line = next(x for x in human.stdout.splitlines() if x.startswith(f"epoch {epoch}:"))
+        assert f"{summary['trees_dbh_none']} without a DBH" in line
+        assert "no height-diameter model: fewer than 15 measured stems" in line
 
 
 def test_stand_without_ground_has_no_zero_stem_count(tmp_path: Path) -> None:

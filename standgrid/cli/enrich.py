@@ -19,13 +19,26 @@ from standgrid.cli.options import (
 
 
 def _human(r: dict[str, Any]) -> str:
+    from standgrid.enrich.allometry import MIN_TREES
+
     lines = [f"enriched {r['catalog']}"]
     for epoch, e in r["epochs"].items():
+        without = (
+            f", {e['trees_dbh_none']} without a DBH"
+            + (
+                f" (no height-diameter model: fewer than {MIN_TREES} measured stems in the"
+                " catalog; basal area and QMD null where they stand)"
+                if e["height_diameter_model"] is None
+                else ""
+            )
+            if e["trees_dbh_none"]
+            else ""
+        )
         lines.append(
             f"epoch {epoch}: {e['cells']} cells ({e['cells_without_ground']} without ground),"
             f" {100 * e['observed_fraction']:.0f} % of their area observed;"
             f" {e['trees']} trees ({e['trees_on_observed_ground']} on observed ground),"
-            f" DBH {e['trees_dbh_measured']} measured, {e['trees_dbh_imputed']} imputed"
+            f" DBH {e['trees_dbh_measured']} measured, {e['trees_dbh_imputed']} imputed" + without
         )
     lines.append(
         "outputs: rasters/<epoch>/{dtm,chm,density,observed}.tif,"
@@ -89,9 +102,10 @@ def enrich(
     Tiles get LAS class 2 for ground, a height_above_ground and a tree_id dimension; each
     epoch gets DTM, CHM, density and observed-ground Cloud-Optimized GeoTIFFs aligned to the
     stand grid; stand metrics (over each stand's observed ground; null with a reason below
-    --min-observed / --min-density) and tree lists (every tree with a measured or imputed
-    DBH) go to tables/ (CSV, Parquet) and to index.gpkg. Column definitions:
-    docs/METRICS.md.
+    --min-observed / --min-density) and tree lists (every tree with a measured DBH, one
+    imputed from its height, or none with a reason when the catalog has fewer than 15
+    measured stems to fit a height-diameter model) go to tables/ (CSV, Parquet) and to
+    index.gpkg. Column definitions: docs/METRICS.md.
 
     \b
     Example:

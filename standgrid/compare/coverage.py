@@ -26,7 +26,7 @@ import pandas as pd
 from numpy.typing import NDArray
 
 from standgrid.compare.rasters import read_aligned_pair
-from standgrid.enrich.coverage import polygon_pixel_count, sample_mask
+from standgrid.enrich.coverage import polygon_mask_area, sample_mask
 from standgrid.enrich.rasters import RasterGrid
 from standgrid.enrich.stands import INSUFFICIENT_COVERAGE
 
@@ -61,7 +61,8 @@ class CoObserved:
         return sample_mask(self.mask, self.grid, x, y)
 
     def area_m2(self, polygon: Any) -> float:
-        return polygon_pixel_count(self.mask, self.grid, polygon) * self.grid.pixel_size**2
+        """Co-observed area inside ``polygon`` (m²): :func:`polygon_mask_area`."""
+        return polygon_mask_area(self.mask, self.grid, polygon)
 
 
 def mark_unobserved(table: pd.DataFrame, co: CoObserved) -> pd.DataFrame:

@@ -35,9 +35,11 @@ Tree-matching rule
 
 DBH sources
     With a ``dbh_source`` column in both tree lists (``measured`` / ``imputed``), a matched
-    tree whose DBH was measured in one epoch and imputed in the other is flagged
-    ``dbh_mixed_sources`` and gets no ``dbh_m_delta``: the difference of a fit and a model
-    is not growth.
+    tree gets ``dbh_m_delta`` / ``dbh_m_per_year`` only when a stem fit measured its DBH in
+    both epochs; ``dbh_growth_source`` says what the change rests on (``measured``,
+    ``imputed`` in both, ``mixed``, ``none``; ``dbh_mixed_sources`` flags ``mixed``): the
+    difference of two height-diameter model estimates, or of a fit and a model, is not
+    growth (each epoch's DBH stays in ``dbh_m_from`` / ``dbh_m_to``).
 
 Statuses
     ``grown``: matched (re-observed). ``new``: only in *to* (ingrowth, or a tree hidden
@@ -271,6 +273,22 @@ def _nullable_ids(values: pd.Series, index: np.ndarray, present: np.ndarray) -> 
     return series
 
 
+def dbh_growth_source(
+    source_from: np.ndarray, source_to: np.ndarray, matched: np.ndarray
+) -> np.ndarray:
+    """What a matched tree's DBH change rests on: ``measured`` (a stem fit in both epochs:
+    the only growth reported), ``imputed`` (the height-diameter model in both), ``mixed``
+    (a fit and a model), ``none`` (no DBH in an epoch); None for an unmatched tree."""
+    fits = (source_from == "measured") & (source_to == "measured")
+    models = (source_from == "imputed") & (source_to == "imputed")
+    known = np.isin(source_from, ["measured", "imputed"]) & np.isin(
+        source_to, ["measured", "imputed"]
+    )
+    out = np.select([fits, models, known], ["measured", "imputed", "mixed"], "none").astype(object)
+    out[~matched] = None
+    return out
+
+
 def _take_text(values: pd.Series, index: np.ndarray, present: np.ndarray) -> np.ndarray:
     out = np.full(len(index), None, dtype=object)
     out[present] = values.astype(object).to_numpy()[index[present]]
@@ -364,13 +382,15 @@ def match_trees(
         table[f"{attribute}_delta"] = after - before
         table[f"{attribute}_per_year"] = (after - before) / years
     if "dbh_source" in a.columns and "dbh_source" in b.columns:
-        # a DBH measured in one epoch and imputed in the other is no growth measurement
+        # diameter growth is measured only between two stem fits: a model estimate (in
+        # either epoch) minus anything is no growth measurement
         source_from = _take_text(a["dbh_source"], idx_a, has_a)
         source_to = _take_text(b["dbh_source"], idx_b, has_b)
         table["dbh_source_from"], table["dbh_source_to"] = source_from, source_to
-        mixed = has_a & has_b & (source_from != source_to)
-        table["dbh_mixed_sources"] = mixed
-        table.loc[mixed, ["dbh_m_delta", "dbh_m_per_year"]] = np.nan
+        growth = dbh_growth_source(source_from, source_to, has_a & has_b)
+        table["dbh_growth_source"] = pd.array(growth, dtype="string")
+        table["dbh_mixed_sources"] = growth == "mixed"
+        table.loc[growth != "measured", ["dbh_m_delta", "dbh_m_per_year"]] = np.nan
     table["suspicious"] = (table["status"] == "grown") & (
         table["height_m_delta"] < -height_tolerance_m
     )

@@ -1,4 +1,4 @@
-"""Height-diameter model: a DBH for every tree whose stem could not be fitted.
+"""Height-diameter model: a DBH for the trees whose stem could not be fitted.
 
 Näslund's height curve ``h = 1.3 + d² / (a + b d)²`` (Näslund 1937; d in cm, h in m) is
 the standard height-diameter form of Nordic forest inventories. Solved for the diameter,
@@ -191,5 +191,6 @@ def tree_summary(trees: pd.DataFrame, model: HeightDiameterModel | None) -> dict
         "trees_on_observed_ground": int(trees["observed"].sum()) if len(trees) else 0,
         "trees_dbh_measured": int((source == "measured").sum()) if source is not None else 0,
         "trees_dbh_imputed": int((source == "imputed").sum()) if source is not None else 0,
+        "trees_dbh_none": int((source == "none").sum()) if source is not None else 0,
         "height_diameter_model": model.to_dict() if model is not None else None,
     }

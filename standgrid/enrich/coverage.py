@@ -4,8 +4,9 @@ A pixel (default 1 m) is **observed** when ground returns were recorded in it, o
 lies in a gap narrower than about twice ``closing_radius`` between observed pixels (a
 morphological closing: the ground under a stem, or between two scan lines, is hidden by
 the stem or the sampling, not unsurveyed). Closing never grows the outer edge of the
-survey, and the mask is cut to the catalog's cells. Per-hectare values divide by the
-observed area and count only trees whose stem stands in it; change uses the pixels
+survey, and the mask is cut to the catalog's cells. A stand's observed area is its observed
+pixels' squares clipped to its polygon (:func:`polygon_mask_area`). Per-hectare values divide
+by the observed area and count only trees whose stem stands in it; change uses the pixels
 observed in both epochs. A pixel is **near ground** when a ground return lies within
 ``closing_radius`` of it: the DTM and the CHM are written only there (elsewhere the
 terrain, and so every height above it, is an extrapolation).
@@ -54,10 +55,8 @@ class Coverage:
         return np.take(self.observed, pixels)
 
     def observed_m2(self, polygon: Any) -> float:
-        """Observed area inside ``polygon`` (pixels whose centre it contains)."""
-        return float(polygon_pixel_count(self.observed, self.grid, polygon)) * (
-            self.grid.pixel_size**2
-        )
+        """Observed area inside ``polygon`` (m²): :func:`polygon_mask_area` of the mask."""
+        return polygon_mask_area(self.observed, self.grid, polygon)
 
 
 def ground_hits(grid: RasterGrid, ground_xy: NDArray[np.float64]) -> NDArray[np.int64]:
@@ -141,16 +140,40 @@ def window(grid: RasterGrid, polygon: Any) -> tuple[RasterGrid, tuple[slice, sli
     return sub, (rows, slice(i0, i1))
 
 
-def polygon_pixels(grid: RasterGrid, polygon: Any) -> tuple[tuple[slice, slice], NDArray[np.bool_]]:
-    """The window of ``polygon`` and which of its pixels have their centre inside it."""
+def polygon_mask_area(mask: NDArray[np.bool_], grid: RasterGrid, polygon: Any) -> float:
+    """Area (m²) of the set pixels of ``mask`` inside ``polygon``: each set pixel's square
+    clipped to the polygon (exact to float rounding, ~1e-9 m²; never above the polygon's
+    area). A rectangle on the pixel lattice (a grid cell) is its set pixels × pixel area;
+    otherwise pixels the polygon covers whole count their full area and only those its edge
+    crosses are intersected."""
     import shapely
 
     sub, index = window(grid, polygon)
-    cx, cy = sub.centers()
-    return index, shapely.contains_xy(polygon, cx, cy)
+    set_pixels = mask[index]
+    ps = grid.pixel_size
+    if _on_lattice(polygon, sub):  # the window is exactly the polygon's pixels
+        return float(np.count_nonzero(set_pixels)) * ps**2
+    rows, cols = np.nonzero(set_pixels)
+    if not len(rows):
+        return 0.0
+    xmin = sub.x0 + cols * ps
+    ymin = sub.y0 + (sub.nrows - 1 - rows) * ps  # row 0 is the northern edge
+    squares = shapely.box(xmin, ymin, xmin + ps, ymin + ps)
+    shapely.prepare(polygon)
+    whole = shapely.covers(polygon, squares)
+    edge = ~whole & shapely.intersects(polygon, squares)
+    partial = shapely.area(shapely.intersection(squares[edge], polygon))
+    area = float(np.count_nonzero(whole)) * ps**2 + float(partial.sum())
+    return min(area, float(polygon.area))  # a fully observed polygon: its area, not + 1e-12
 
 
-def polygon_pixel_count(mask: NDArray[np.bool_], grid: RasterGrid, polygon: Any) -> int:
-    """Pixels of ``mask`` set inside ``polygon`` (pixel centres)."""
-    index, inside = polygon_pixels(grid, polygon)
-    return int((mask[index] & inside).sum())
+def _on_lattice(polygon: Any, sub: RasterGrid) -> bool:
+    """Whether ``polygon`` is the rectangle of the pixels of ``sub`` (to 1e-9 pixel)."""
+    if (
+        polygon.geom_type != "Polygon"
+        or len(polygon.interiors)
+        or not polygon.equals(polygon.envelope)
+    ):
+        return False
+    tol = 1e-9 * sub.pixel_size
+    return bool(np.allclose(polygon.bounds, sub.bounds, rtol=0.0, atol=tol))

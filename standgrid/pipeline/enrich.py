@@ -255,7 +255,7 @@ def _enrich_epoch(
         "points per square metre",
     )  # fmt: skip
     write_coverage(txn, paths.raster(epoch, "observed"), coverage, catalog.crs)
-    observed_m2 = float(coverage.observed.sum()) * grid.pixel_size**2
+    observed_m2 = float(sum(s.observed_m2 for s in samples))  # each cell's, clipped to it
     summary = {
         "cells": len(cells),
         "cells_without_ground": sum(s.no_ground for s in samples),

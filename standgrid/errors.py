@@ -176,6 +176,11 @@ class CatalogBusyError(CatalogError, TimeoutError):
     """Another process holds the catalog's writer lock (and did not finish within the wait)."""
 
 
+class MissionFolderConflictError(CatalogError, FileExistsError):
+    """The catalog holds a mission of this name tiled from another folder (replacing it
+    needs ``replace_missions`` / ``--replace``)."""
+
+
 class CatalogConflictError(CatalogError):
     """The catalog changed after it was opened; a transaction on the stale view is refused."""
 

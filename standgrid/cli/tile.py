@@ -118,6 +118,11 @@ def _human(report: dict[str, Any]) -> str:
     "--epoch", default=None, callback=_epoch,
     help="Epoch label (default: the year of each mission).",
 )  # fmt: skip
+@click.option(
+    "--replace", "replace_missions", is_flag=True,
+    help="A mission whose name the catalog holds, tiled from another folder, replaces it"
+    " (else refused). Re-tiling a mission from its own folder needs no --replace.",
+)  # fmt: skip
 @memory_option
 @click.option(
     "--accept-poor-georeference", is_flag=True,
@@ -141,6 +146,7 @@ def tile(
     method: str,
     anchor: tuple[float, float, float, float] | None,
     epoch: str | None,
+    replace_missions: bool,
     memory_mb: int,
     accept_poor_georeference: bool,
     workers: int | None,
@@ -155,7 +161,9 @@ def tile(
     Every point lands in exactly one stand cell (checked); tiles are LAS 1.4 / LAZ named by
     cell id under tiles/<epoch>/, indexed in index.gpkg (cells, payloads, trajectories, GNSS
     fixes, missions, with QGIS styles) and tiles_<epoch>.vpc. Adding missions to an existing
-    catalog merges them into its epochs; re-ingesting a mission replaces its points.
+    catalog merges them into its epochs; re-ingesting a mission (from the folder it was tiled
+    from) replaces its points; a mission of the same name from another folder is refused
+    unless --replace.
 
     How a mission is placed: clouds already in a projected CRS (payload_clouds_in_utm/
     alone, or LAS/LAZ payloads with a CRS) are tiled as they are, without a GNSS fit (PCD/PLY
@@ -190,6 +198,7 @@ def tile(
         accept_poor_georeference=accept_poor_georeference,
         workers=workers,
         scheduler=scheduler,
+        replace_missions=replace_missions,
     )
     report = tile_missions(list(missions), output, options, progress=TerminalProgress(quiet))
     emit(report.to_dict(), as_json, _human)

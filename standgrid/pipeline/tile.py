@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import contextlib
 import math
+import os
 import shutil
 from collections.abc import Sequence
 from dataclasses import dataclass, field
@@ -35,7 +36,12 @@ from standgrid.catalog.setup import (
     settle_tiling,
 )
 from standgrid.engine import SILENT, MemoryBudget, Progress
-from standgrid.errors import CatalogError, TilingError, out_of_space_error
+from standgrid.errors import (
+    CatalogError,
+    MissionFolderConflictError,
+    TilingError,
+    out_of_space_error,
+)
 from standgrid.pipeline.tile_epoch import EpochSettings, Ingest, tile_epoch
 
 if TYPE_CHECKING:
@@ -84,6 +90,10 @@ class TileOptions:
     #: place; the offset is reported). None: always the fresh fit (exact, the default).
     #: See :mod:`standgrid.catalog.placement_policy`.
     placement_tolerance: float | None = None
+    #: A mission of a name the catalog holds, tiled from another folder, replaces it (else
+    #: :class:`~standgrid.errors.MissionFolderConflictError`). Re-ingesting from the same
+    #: folder needs no leave.
+    replace_missions: bool = False
 
     @property
     def grid_request(self) -> GridRequest:
@@ -241,6 +251,25 @@ def _prepare(given: str | Path | Mission, options: TileOptions, progress: Progre
     return Ingest(mission, placement, epoch, date)
 
 
+def refuse_other_folders(catalog: Catalog, ingests: list[Ingest]) -> None:
+    """:class:`MissionFolderConflictError` when a mission's name is in the catalog, tiled
+    from another folder: same name is not the same mission (it would replace its points)."""
+    known = catalog.mission_records
+    for ingest in ingests:
+        record = known.get(ingest.mission.name)
+        if record is None or not record.path:
+            continue
+        here = os.path.realpath(ingest.mission.path)
+        if here != os.path.realpath(record.path):
+            raise MissionFolderConflictError(
+                f"the catalog holds a mission {ingest.mission.name!r} tiled from another "
+                f"folder, {record.path} (now given: {here}); tiling it would replace that "
+                "mission's points. Replace it with --replace (TileOptions.replace_missions), "
+                "or tile into another catalog",
+                path=catalog.root,
+            )
+
+
 def _ingest(
     catalog: Catalog,
     ingests: list[Ingest],
@@ -265,6 +294,8 @@ def _ingest(
             ingest.number = txn.mission_number(ingest.mission.name)
             ingest.to_catalog = ingest.placement.to_catalog(catalog.crs, ingest.mission.name)
         renewed = [i.number for i in ingests]
+        if not options.replace_missions:
+            refuse_other_folders(catalog, ingests)
         # an epoch a re-ingested mission leaves is re-tiled too (without that mission)
         known = catalog.mission_records
         left = {known[i.mission.name].epoch for i in ingests if i.mission.name in known}

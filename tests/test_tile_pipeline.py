@@ -682,3 +682,22 @@ def test_cli_tile_refuses_a_same_name_mission_from_another_folder(tmp_path: Path
     result = CliRunner().invoke(cli, ["tile", str(other), "-o", str(catalog), "-q", "--replace"])
     assert result.exit_code == 0, result.output
     assert catalog_json(catalog)["missions"][M1.name]["path"] == str(other.resolve())
+
+
+def test_crs_auto_adding_to_a_catalog_of_another_continent_is_refused(tmp_path: Path) -> None:
+    """``--crs auto`` adding to a catalog means its CRS; a Wytham (UK) mission lies far
+    outside EPSG:3005 (British Columbia): refused, naming the CRS and where the mission is."""
+    catalog = tmp_path / "bc"
+    tile([M2], catalog, cell_size=20.0, crs="EPSG:3005")  # placed there by an explicit --crs
+    before = snapshot(catalog)
+    with pytest.raises(CRSError) as caught:
+        tile([M1], catalog)
+    message = str(caught.value)
+    assert "EPSG:3005" in message and "area of use" in message, message
+    assert "lat 51.7" in message and "lon -1.3" in message, message
+    assert snapshot(catalog) == before
+    # a catalog in the mission's own UTM zone takes it, with --crs auto
+    utm = tmp_path / "utm"
+    tile([M2], utm, cell_size=20.0)
+    report = tile([M1], utm)
+    assert report.crs == catalog_json(utm)["crs"] == "EPSG:32630"

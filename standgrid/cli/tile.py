@@ -87,9 +87,10 @@ def _human(report: dict[str, Any]) -> str:
 @click.option("--voronoi", is_flag=True, help="Voronoi cells around payload poses, not a grid.")
 @click.option(
     "--crs", "crs_spec", default="auto", show_default=True,
-    help="Output CRS: EPSG:XXXX, WKT2, or auto (the missions' UTM zone; for clouds already"
-    " projected, their own CRS). Also the CRS of PCD/PLY clouds in payload_clouds_in_utm/,"
-    " which name none.",
+    help="Output CRS: EPSG:XXXX, WKT2, or auto (a new catalog: the missions' UTM zone, or"
+    " clouds already projected their own CRS; an existing catalog: its CRS, refused for a"
+    " mission outside its area of use). Also the CRS of PCD/PLY clouds in"
+    " payload_clouds_in_utm/, which name none.",
 )  # fmt: skip
 @click.option(
     "--anchor", type=float, nargs=4, default=None, metavar="LAT LON ALT YAW",

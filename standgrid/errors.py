@@ -99,6 +99,11 @@ class PayloadNotFoundError(StandgridError, LookupError):
     """No payload matches a retrieval query."""
 
 
+class PayloadTooFarError(PayloadNotFoundError):
+    """The payload nearest a GNSS coordinate is beyond the distance allowed (often latitude
+    and longitude given in the wrong order)."""
+
+
 # --- georeferencing ----------------------------------------------------------------------
 
 

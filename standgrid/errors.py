@@ -99,6 +99,11 @@ class PayloadNotFoundError(StandgridError, LookupError):
     """No payload matches a retrieval query."""
 
 
+class PayloadTooFarError(PayloadNotFoundError):
+    """The payload nearest a GNSS coordinate is beyond the distance allowed (often latitude
+    and longitude given in the wrong order)."""
+
+
 # --- georeferencing ----------------------------------------------------------------------
 
 
@@ -174,6 +179,11 @@ class OutOfSpaceError(StandgridError, OSError):
 
 class CatalogBusyError(CatalogError, TimeoutError):
     """Another process holds the catalog's writer lock (and did not finish within the wait)."""
+
+
+class MissionFolderConflictError(CatalogError, FileExistsError):
+    """The catalog holds a mission of this name tiled from another folder (replacing it
+    needs ``replace_missions`` / ``--replace``)."""
 
 
 class CatalogConflictError(CatalogError):

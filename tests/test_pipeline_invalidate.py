@@ -10,6 +10,7 @@ import sqlite3
 from pathlib import Path
 from typing import Any
 
+import httpx
 import laspy
 import numpy as np
 import pandas as pd
@@ -27,6 +28,8 @@ from standgrid.pipeline.compare import compare_epochs
 from standgrid.pipeline.enrich import EnrichOptions, enrich_catalog
 from standgrid.pipeline.status import catalog_status
 from standgrid.pipeline.tile import tile_missions
+from standgrid.serve import create_app
+from standgrid.serve.server import running
 from tests.conftest import BUNDLED_MISSIONS
 from tests.pipeline_fixtures import (
     MISSIONS,
@@ -316,3 +319,40 @@ def test_an_epoch_whose_dbh_model_pooled_a_re_tiled_epoch_is_invalidated_too(
     assert epochs["2028"].invalidated is not None
     assert "pooled the trees of re-tiled epochs 2024" in epochs["2028"].invalidated["reason"]
     assert epochs["2032"].state == "enriched"  # its own model: untouched
+
+
+def test_a_comparison_against_another_catalog_goes_stale_when_that_epoch_changes(
+    pair: EnrichedPair, tmp_path: Path
+) -> None:
+    """``compare --other``: re-tiling (then re-enriching, then removing) the other catalog's
+    epoch leaves this catalog's comparison in place, and ``status`` says it is stale."""
+    here = copy_catalog(pair.path, tmp_path / "c24")
+    other = copy_catalog(pair.path, tmp_path / "c28")
+    compare_epochs(here, CompareOptions("2024", "2028", other_catalog=other))
+    entry = json.loads((here / "catalog.json").read_text())["comparisons"][PAIR]
+    assert entry["other_catalog"] == str(other.resolve())
+    assert entry["other_epoch"]["enrichment"]
+    assert catalog_status(here)["comparisons"][PAIR]["state"] == "present"
+
+    tile_missions([BUNDLED_MISSIONS / MISSIONS["2028"]], other)  # re-tiled there, no buffer
+    seen = catalog_status(here)["comparisons"][PAIR]
+    assert seen["state"] == "stale" and "re-tiled" in seen["reason"], seen
+    assert str(other.resolve()) in seen["reason"]
+    result = CliRunner().invoke(cli, ["status", str(here)])
+    assert result.exit_code == 0, result.output
+    assert f"{PAIR}  stale" in result.output and "run `standgrid compare` again" in result.output
+    with running(create_app(here)) as server:  # the served change layers say so too
+        for layer in ("stand_changes", "tree_changes"):
+            body = httpx.get(f"{server.base_url}/ogc/collections/{layer}").json()
+            assert [s["comparison"] for s in body["standgrid:stale_comparisons"]] == [PAIR]
+            assert "stale" in body["description"]
+
+    enrich_catalog(other, EnrichOptions(epochs=("2028",)))  # enriched, but not what was read
+    seen = catalog_status(here)["comparisons"][PAIR]
+    assert seen["state"] == "stale" and "enriched again" in seen["reason"], seen
+
+    compare_epochs(here, CompareOptions("2024", "2028", other_catalog=other))
+    assert catalog_status(here)["comparisons"][PAIR]["state"] == "present"
+    (other / "catalog.json").rename(other / "catalog.json.gone")
+    seen = catalog_status(here)["comparisons"][PAIR]
+    assert seen["state"] == "stale" and "gone" in seen["reason"], seen

@@ -142,3 +142,77 @@ def test_cli_by_pose_without_z_reports_horizontal_distance(mission) -> None:  # 
     assert row["distance_m"] == pytest.approx(1.0, abs=1e-6)
     full = CliRunner().invoke(cli, [*args, str(z), "--json"])
     assert json.loads(full.output)[0]["distance_m"] == pytest.approx(1.0, abs=1e-6)
+
+
+def _fixed_mission(tmp_path: Path):  # type: ignore[no-untyped-def]
+    """A mission whose GNSS fixes are its nodes placed exactly (known georeference)."""
+    from standgrid.georeference import enu_to_lla
+
+    syn = make_mission(tmp_path, n_nodes=14, spacing=8.0)
+    lla_ref = (51.77, -1.33, 120.0)
+    yaw = 0.7
+    T_enu_map = pose_matrix([30.0, -12.0, 4.0], [0.0, 0.0, np.sin(yaw / 2), np.cos(yaw / 2)])
+    enu = transform_points(T_enu_map, syn.poses[:, :3, 3])
+    k = len(syn.stamps)
+    lat, lon, alt = enu_to_lla(enu[:, 0], enu[:, 1], enu[:, 2], lla_ref)
+    fixes = GnssFixes(
+        np.array([s.ns for s in syn.stamps], dtype=np.int64), lat, lon, alt,
+        np.full(k, 4, np.int8), np.full(k, 0.02), np.full(k, 0.05),
+    )  # fmt: skip
+    (syn.path / "gnss").mkdir()
+    write_gnss(fixes, syn.path / "gnss" / "fixes.txt")
+    return syn, enu, lla_ref
+
+
+def test_by_gnss_gives_each_payloads_distance(tmp_path: Path) -> None:
+    """1 m (0.6 east, 0.8 north) from node 5 at its height: the distance is 1 m, in Python,
+    in the CLI's --json and its human lines."""
+    import json
+
+    from click.testing import CliRunner
+
+    from standgrid.cli import cli
+    from standgrid.georeference import enu_to_lla
+    from standgrid.georeference.retrieval import locate_by_gnss
+
+    syn, enu, lla_ref = _fixed_mission(tmp_path)
+    e, n, u = enu[5] + np.array([0.6, 0.8, 0.0])
+    lat, lon, alt = (float(v) for v in enu_to_lla(e, n, u, lla_ref))
+    found = locate_by_gnss(syn.path, (lat, lon, alt), k=2)
+    assert found.payloads[0].stamp == syn.stamps[5]
+    assert found.distances_m[0] == pytest.approx(1.0, abs=1e-3)
+    assert found.distances_m[0] < found.distances_m[1]
+    args = ["retrieve", "by-gnss", str(syn.path), repr(lat), repr(lon), repr(alt)]
+    result = CliRunner().invoke(cli, [*args, "--json"])
+    assert result.exit_code == 0, result.output
+    assert json.loads(result.output)[0]["distance_m"] == pytest.approx(1.0, abs=1e-3)
+    human = CliRunner().invoke(cli, args)
+    assert human.exit_code == 0 and "  1.00 m  " in human.output, human.output
+    # beyond --max-distance: refused
+    far = CliRunner().invoke(cli, [*args, "--max-distance", "0.5"])
+    assert far.exit_code == 1 and "PayloadTooFarError" in far.output
+
+
+def test_by_gnss_with_latitude_and_longitude_swapped_is_refused(tmp_path: Path) -> None:
+    """The bundled Wytham mission asked for (lon, lat): the nearest payload is thousands of
+    km away; refused with that distance (WGS 84 geodesic) and the hint that swapped, the
+    coordinate lies by a payload. ``max_distance=None`` lifts the limit."""
+    import re
+
+    from pyproj import Geod
+
+    from standgrid.errors import PayloadTooFarError
+    from tests.conftest import BUNDLED_MISSIONS
+
+    folder = BUNDLED_MISSIONS / "2024-05-14-wytham-anymal-coyote"
+    lat, lon = 51.77320, -1.33739
+    assert len(retrieve_payload_by_gnss(folder, (lat, lon))) == 1  # the right order: found
+    with pytest.raises(PayloadTooFarError) as caught:
+        retrieve_payload_by_gnss(folder, (lon, lat))
+    assert isinstance(caught.value, LookupError)
+    message = str(caught.value)
+    km = float(re.search(r"is ([\d,.]+) km away", message).group(1).replace(",", ""))  # type: ignore[union-attr]
+    _, _, truth = Geod(ellps="WGS84").inv(lat, lon, lon, lat)  # (lon, lat) given -> (lat, lon)
+    assert km == pytest.approx(truth / 1000, abs=1.0), message
+    assert "swapped" in message and "latitude first" in message
+    assert len(retrieve_payload_by_gnss(folder, (lon, lat), max_distance=None, k=2)) == 2

@@ -173,6 +173,12 @@ def test_payload_retrieval_matches_the_library(base: str) -> None:
     got = httpx.get(f"{url}/by-gnss", params={"lat": lat, "lon": lon, "k": 2}).json()["payloads"]
     want = retrieve_payload_by_gnss(mission, (lat, lon), k=2)
     assert [p["stamp_ns"] for p in got] == [p.stamp.ns for p in want]
+    from standgrid.georeference.retrieval import locate_by_gnss
+
+    distances = locate_by_gnss(mission, (lat, lon), k=2).distances_m
+    assert [p["distance_m"] for p in got] == pytest.approx(distances, abs=1e-9)
+    swapped = httpx.get(f"{url}/by-gnss", params={"lat": lon, "lon": lat})
+    assert swapped.status_code == 404 and "km away" in swapped.text and "swapped" in swapped.text
     assert httpx.get(f"{url}/by-gnss", params={"lat": 91, "lon": 0}).status_code == 400
 
 

@@ -7,6 +7,7 @@ intensity) and compared with where the GNSS-fitted tiling (or the simulator's tr
 from __future__ import annotations
 
 import hashlib
+import json
 import math
 import shutil
 from pathlib import Path
@@ -28,6 +29,7 @@ from standgrid.pipeline.tile import TileOptions, tile_missions
 from standgrid.pointcloud import PointCloud
 from standgrid.simulate import simulate_mission
 from standgrid.stamps import Stamp
+from tests.conftest import BUNDLED_MISSIONS
 
 CRS = "EPSG:32630"
 Points = dict[tuple[Stamp, float], np.ndarray]
@@ -50,8 +52,9 @@ def reference(sim: Any) -> dict[str, Points]:
     return tiled_points(catalog)
 
 
-def tiled_points(catalog: Path) -> dict[str, Points]:
-    """mission -> {(payload stamp, intensity): xyz} of every point in the catalog's tiles."""
+def tiled_points(catalog: Path, only: str | None = None) -> dict[str, Points]:
+    """mission -> {(payload stamp, intensity): xyz} of every point in the catalog's tiles
+    (``only``: of that mission)."""
     payloads = pyogrio.read_dataframe(catalog / "index.gpkg", layer="payloads")
     key = {
         int(r.payload_id): (r.mission, Stamp(int(r.stamp_sec), int(r.stamp_nsec)))
@@ -63,6 +66,8 @@ def tiled_points(catalog: Path) -> dict[str, Points]:
         xyz = np.column_stack([np.asarray(las.x), np.asarray(las.y), np.asarray(las.z)])
         for pid, value, p in zip(las.payload_id, las.intensity_raw, xyz, strict=True):
             mission, stamp = key[int(pid)]
+            if only is not None and mission != only:
+                continue
             points = out.setdefault(mission, {})
             assert (stamp, float(value)) not in points, "intensity must identify a point"
             points[(stamp, float(value))] = p
@@ -158,7 +163,7 @@ def _projected_copy(made: Any, folder: Path, fmt: str, subfolder: str) -> Path:
         xyz = projector.exact(cloud.xyz)
         out = PointCloud(xyz, dict(cloud.fields))
         path = folder / subfolder / payload.stamp.filename("cloud", fmt)
-        if fmt == "pcd":
+        if fmt in ("pcd", "ply"):
             write_cloud(out, path)  # float64 x y z (large coordinates)
         else:
             intensity = out.fields.pop("intensity")
@@ -193,6 +198,30 @@ def test_projected_clouds_tile_where_the_gnss_fit_puts_them(
           f"{horizontal * 1000:.2f} mm, vertical {vertical * 1000:.2f} mm")  # fmt: skip
     # both sides snap to the tiles' 1 mm lattice; the reference projects through a verified
     # affine (within 1 mm of exact); LAS payloads add their own 1 mm scale
+    assert horizontal <= 0.003 and vertical <= 0.003
+
+
+def catalog_json_crs(catalog: Path) -> str:
+    return str(json.loads((catalog / "catalog.json").read_text())["crs"])
+
+
+def test_projected_clouds_naming_no_crs_take_the_catalog_crs_they_are_added_to(
+    sim: Any, reference: dict[str, Points], tmp_path: Path
+) -> None:
+    """PLY clouds in payload_clouds_in_utm/ name no CRS: into a new catalog they need --crs,
+    added to a catalog (--crs auto) they are in its CRS, and tile where the GNSS fit does."""
+    made, _ = sim
+    folder = _projected_copy(made, tmp_path / made.name, "ply", "payload_clouds_in_utm")
+    catalog = tmp_path / "cat"
+    other = BUNDLED_MISSIONS / "2028-05-20-wytham-frontier-v15"
+    tile_missions([other], catalog, TileOptions(laz=False))  # its UTM zone: the same CRS
+    assert catalog_json_crs(catalog) == CRS
+    with pytest.raises(CRSError, match="--crs"):
+        tile_missions([folder], tmp_path / "new", TileOptions())
+    result = CliRunner().invoke(cli, ["tile", str(folder), "-o", str(catalog), "-q", "--json"])
+    assert result.exit_code == 0, result.output
+    tiled = tiled_points(catalog, only=made.name)[made.name]
+    horizontal, vertical = max_distance(tiled, reference[made.name])
     assert horizontal <= 0.003 and vertical <= 0.003
 
 

@@ -30,6 +30,7 @@ from standgrid.errors import (
     CRSError,
     GeoreferenceError,
     GridMismatchError,
+    MissionFolderConflictError,
     OutputExistsError,
     OutputNotWritableError,
     PointCloudFormatError,
@@ -635,3 +636,68 @@ def test_a_half_built_catalog_of_a_killed_run_is_removed(tmp_path: Path) -> None
     tile([M1], tmp_path / "cat")
     assert not stale.exists()
     assert (tmp_path / "cat" / "catalog.json").is_file()
+
+
+def test_a_same_name_mission_from_another_folder_is_refused_unless_replaced(
+    tmp_path: Path,
+) -> None:
+    """Missions are keyed by name: one of the same name from another folder (here a copy
+    with 6 payloads fewer) would silently replace the catalog's mission. It is refused,
+    naming both folders, leaving the catalog as it was; ``replace_missions`` replaces it."""
+    catalog = tmp_path / "catalog"
+    tile([M1], catalog, cell_size=20.0)
+    other = tmp_path / "elsewhere" / M1.name
+    shutil.copytree(M1, other)
+    for cloud in sorted((other / "payload_clouds").iterdir())[:6]:
+        cloud.unlink()
+    before = snapshot(catalog)
+    with pytest.raises(MissionFolderConflictError) as caught:
+        tile([other], catalog)
+    assert isinstance(caught.value, FileExistsError)
+    assert str(M1.resolve()) in str(caught.value) and str(other.resolve()) in str(caught.value)
+    assert snapshot(catalog) == before
+
+    report = tile([other], catalog, replace_missions=True)
+    entry = catalog_json(catalog)["missions"][M1.name]
+    assert entry["path"] == str(other.resolve())
+    assert (
+        report.points_out == sum(payload_counts(other).values()) < sum(payload_counts(M1).values())
+    )
+    again = tile([other], catalog)  # from its own folder now: re-ingesting needs no leave
+    assert again.points_out == report.points_out
+
+
+def test_cli_tile_refuses_a_same_name_mission_from_another_folder(tmp_path: Path) -> None:
+    from click.testing import CliRunner
+
+    from standgrid.cli import cli
+
+    catalog = tmp_path / "catalog"
+    tile([M1], catalog, cell_size=20.0)
+    other = tmp_path / "elsewhere" / M1.name
+    shutil.copytree(M1, other)
+    result = CliRunner().invoke(cli, ["tile", str(other), "-o", str(catalog), "-q"])
+    assert result.exit_code == 1
+    assert "MissionFolderConflictError" in result.output and "--replace" in result.output
+    result = CliRunner().invoke(cli, ["tile", str(other), "-o", str(catalog), "-q", "--replace"])
+    assert result.exit_code == 0, result.output
+    assert catalog_json(catalog)["missions"][M1.name]["path"] == str(other.resolve())
+
+
+def test_crs_auto_adding_to_a_catalog_of_another_continent_is_refused(tmp_path: Path) -> None:
+    """``--crs auto`` adding to a catalog means its CRS; a Wytham (UK) mission lies far
+    outside EPSG:3005 (British Columbia): refused, naming the CRS and where the mission is."""
+    catalog = tmp_path / "bc"
+    tile([M2], catalog, cell_size=20.0, crs="EPSG:3005")  # placed there by an explicit --crs
+    before = snapshot(catalog)
+    with pytest.raises(CRSError) as caught:
+        tile([M1], catalog)
+    message = str(caught.value)
+    assert "EPSG:3005" in message and "area of use" in message, message
+    assert "lat 51.7" in message and "lon -1.3" in message, message
+    assert snapshot(catalog) == before
+    # a catalog in the mission's own UTM zone takes it, with --crs auto
+    utm = tmp_path / "utm"
+    tile([M2], utm, cell_size=20.0)
+    report = tile([M1], utm)
+    assert report.crs == catalog_json(utm)["crs"] == "EPSG:32630"

@@ -23,7 +23,11 @@ The epoch's ``catalog.json`` entry gets ``enriched = false`` and
 "reason"}``) stays, so ``standgrid status`` lists a lost comparison until it is made
 again. Other epochs' results are untouched. A comparison made with ``--other`` (its "to"
 epoch read from another catalog) is invalidated by its "from" epoch only; comparisons
-stored in *other* catalogs that read this one are not known here.
+stored in *other* catalogs that read this one are not known here. Instead such a comparison
+records what it read (``other_epoch``: the other epoch's :func:`enrichment_stamp` and the
+other catalog's generation), and :func:`other_catalog_change` tells, from one read of the
+other catalog's ``catalog.json``, when that epoch is no longer the one compared (re-tiled,
+re-enriched, gone): ``standgrid status`` and the served change layers report it as stale.
 """
 
 from __future__ import annotations
@@ -40,6 +44,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from standgrid.catalog import paths
+from standgrid.catalog.records import enrichment_stamp
 from standgrid.errors import CatalogError
 
 if TYPE_CHECKING:
@@ -114,6 +119,7 @@ def invalidate_epochs(
             record(epoch)
         entry["enriched"] = False
         entry.pop("enrichment", None)
+        entry.pop("enrichment_id", None)
         if epoch not in done:
             continue
         earlier = entry.get("invalidated") or {}
@@ -163,6 +169,52 @@ def invalidate_comparisons(
     if comparisons:
         _drop_layer_rows(txn, set(), comparisons)
     return sorted(comparisons)
+
+
+def other_epoch_read(target: Catalog, epoch: str) -> dict[str, Any]:
+    """What a comparison read from another catalog's ``epoch`` (its ``other_epoch`` record)."""
+    return {
+        "epoch": epoch,
+        "enrichment": enrichment_stamp(target.epochs[epoch]),
+        "generation": target.generation,
+    }
+
+
+def other_catalog_change(
+    entry: Mapping[str, Any], states: dict[str, dict[str, Any] | None] | None = None
+) -> str | None:
+    """Why a comparison read from another catalog is stale (None: it is not, or it is not
+    against another catalog): that catalog or its "to" epoch is gone, or the epoch is no
+    longer the enrichment compared (re-tiled, re-enriched). Reads the other catalog's
+    ``catalog.json`` once (``states`` caches it per catalog; commits rename it in whole)."""
+    import json
+
+    other = entry.get("other_catalog")
+    if not other:
+        return None
+    states = {} if states is None else states
+    if other not in states:
+        try:
+            states[other] = json.loads((Path(other) / paths.CATALOG_FILE).read_text("utf-8"))
+        except (OSError, ValueError):
+            states[other] = None
+    state = states[other]
+    epoch_to = str(entry.get("to"))
+    if state is None:
+        return f"catalog {other} is gone or unreadable"
+    epoch = (state.get("epochs") or {}).get(epoch_to)
+    if epoch is None:
+        return f"epoch {epoch_to} of {other} is gone"
+    now = enrichment_stamp(epoch)
+    if now is None:
+        stale = epoch.get("invalidated") or {}
+        if stale:
+            return f"epoch {epoch_to} of {other} {stale.get('reason')} at {stale.get('at')}"
+        return f"epoch {epoch_to} of {other} is no longer enriched"
+    compared = (entry.get("other_epoch") or {}).get("enrichment")
+    if compared is not None and compared != now:
+        return f"epoch {epoch_to} of {other} was enriched again since it was compared"
+    return None
 
 
 def without_enrichment(fields: Mapping[str, NDArray[Any]]) -> dict[str, NDArray[Any]]:

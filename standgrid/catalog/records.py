@@ -10,6 +10,8 @@ touches the JSON itself.
 from __future__ import annotations
 
 import copy
+import hashlib
+import json
 from collections.abc import Mapping
 from dataclasses import dataclass, field
 from typing import Any
@@ -125,3 +127,16 @@ class EpochRecord:
     def state(self) -> str:
         """``enriched``, ``stale`` (enriched, then re-tiled) or ``not enriched``."""
         return ENRICHED if self.enriched else STALE if self.invalidated else NOT_ENRICHED
+
+
+def enrichment_stamp(entry: Mapping[str, Any]) -> str | None:
+    """The identity of an epoch's current enrichment, from its ``catalog.json`` entry (None
+    when it is not enriched): the ``enrichment_id`` each enrich records, or for a catalog
+    enriched before ids were recorded, a digest of the enrichment summary. A comparison
+    against another catalog records it, so it can tell when that epoch changed since."""
+    if not entry.get("enriched"):
+        return None
+    if entry.get("enrichment_id"):
+        return str(entry["enrichment_id"])
+    summary = json.dumps(entry.get("enrichment") or {}, sort_keys=True, default=str)
+    return "sha256:" + hashlib.sha256(summary.encode()).hexdigest()[:32]

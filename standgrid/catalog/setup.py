@@ -122,6 +122,52 @@ def check_existing(catalog: Catalog, request: GridRequest) -> None:
         catalog.check_grid(request.definition(catalog.crs))
 
 
+#: Degrees a mission may lie outside its catalog CRS's area of use (UTM: a zone's edge plus
+#: 1 degree keeps the scale error under ~0.25 %; beyond, a projection's numbers drift).
+AREA_OF_USE_MARGIN_DEG = 1.0
+
+
+def existing_crs(path: Path, overwrite: bool, lock_timeout: float | None = 30.0) -> str | None:
+    """The CRS of the catalog at ``path`` that missions are added to (None: a new one)."""
+    if overwrite or not is_catalog(path):
+        return None
+    from standgrid.catalog.store import Catalog
+
+    return Catalog.open(path, lock_timeout=lock_timeout).crs
+
+
+def check_area_of_use(catalog: Catalog, placed: Iterable[tuple[str, Placement]]) -> None:
+    """:class:`CRSError` when a fitted mission (its georeference's origin) lies more than
+    :data:`AREA_OF_USE_MARGIN_DEG` outside the area of use of the catalog's CRS (pyproj
+    ``CRS.area_of_use``; a CRS without one is not checked)."""
+    import pyproj
+
+    area = pyproj.CRS.from_user_input(catalog.crs).area_of_use
+    if area is None:
+        return
+    m = AREA_OF_USE_MARGIN_DEG
+    for name, placement in placed:
+        if placement.fit is None:
+            continue
+        lat, lon = float(placement.fit.lla_ref[0]), float(placement.fit.lla_ref[1])
+        if area.west <= area.east:
+            inside_lon = area.west - m <= lon <= area.east + m
+        else:  # the area crosses the antimeridian
+            inside_lon = lon >= area.west - m or lon <= area.east + m
+        if inside_lon and area.south - m <= lat <= area.north + m:
+            continue
+        crs = pyproj.CRS.from_user_input(catalog.crs)
+        code = crs.to_authority()
+        label = f"{code[0]}:{code[1]} ({crs.name})" if code else crs.name
+        raise CRSError(
+            f"mission {name!r} lies at lat {lat:.5f}, lon {lon:.5f}, outside the area of use "
+            f"of the catalog's CRS {label}: {area.name} (lon {area.west:.2f} to "
+            f"{area.east:.2f}, lat {area.south:.2f} to {area.north:.2f}); tile it into "
+            "another catalog (--crs auto: its UTM zone)",
+            path=catalog.root / CATALOG_FILE,
+        )
+
+
 def create_catalog(
     path: Path, final: Path, lock: FileLock, placements: list[Placement], request: GridRequest
 ) -> Catalog:

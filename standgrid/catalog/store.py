@@ -787,6 +787,7 @@ class Transaction:
         entry = self.state["epochs"][label]
         entry["enriched"] = True
         entry["enrichment"] = _jsonable(dict(summary))
+        entry["enrichment_id"] = uuid.uuid4().hex  # what comparisons from other catalogs read
 
     def record_comparison(self, key: str, entry: Mapping[str, Any]) -> None:
         """Set a comparison's record (its epochs, the other catalog, its outputs)."""

@@ -98,20 +98,33 @@ def by_pose(
 @click.argument("lon", type=float)
 @click.argument("alt", type=float, required=False)
 @click.option("-k", "k", type=int, default=1, show_default=True, help="Number of nearest payloads.")
+@click.option(
+    "--max-distance", type=click.FloatRange(0, min_open=True), default=1000.0,
+    show_default=True, metavar="METRES",
+    help="Refuse when the nearest payload is farther (LAT and LON swapped, another place).",
+)  # fmt: skip
 @json_option
 def by_gnss(
-    mission: Path, lat: float, lon: float, alt: float | None, k: int, as_json: bool
+    mission: Path,
+    lat: float,
+    lon: float,
+    alt: float | None,
+    k: int,
+    max_distance: float,
+    as_json: bool,
 ) -> None:
-    """Payloads nearest a WGS84 coordinate LAT LON [ALT] (needs a georeference).
+    """Payloads nearest a WGS84 coordinate LAT LON [ALT] (needs a georeference), nearest
+    first, with their distance (m) to it.
 
     \b
     Example:
       standgrid retrieve by-gnss MISSION 51.776 -1.338 --json
     """
-    from standgrid.georeference.retrieval import retrieve_payload_by_gnss
+    from standgrid.georeference.retrieval import locate_by_gnss
     from standgrid.mission.model import open_mission
     from standgrid.mission.retrieval import payload_records
 
     opened = open_mission(mission, strict=False)
     coord = (lat, lon) if alt is None else (lat, lon, alt)
-    emit(payload_records(retrieve_payload_by_gnss(opened, coord, k=k)), as_json, _human)
+    found = locate_by_gnss(opened, coord, k=k, max_distance=max_distance)
+    emit(payload_records(found.payloads, found.query_map, opened), as_json, _human)

@@ -32,6 +32,8 @@ def _human(s: dict[str, Any]) -> str:
         other = f" (to from {c['other_catalog']})" if c.get("other_catalog") else ""
         if c["state"] == "present":
             lines.append(f"  {key}  present{other}")
+        elif c["state"] == "stale":
+            lines.append(f"  {key}  stale{other}: {c['reason']}; run `standgrid compare` again")
         else:
             lines.append(f"  {key}  invalidated: {c['reason']}; run `standgrid compare` again")
     return "\n".join(lines)
@@ -44,8 +46,10 @@ def status(catalog: Path, as_json: bool) -> None:
     """List a catalog's epochs and what is enriched, compared or stale.
 
     An epoch is enriched, stale (re-tiled after it was enriched: its rasters, tree list,
-    stand metrics and comparisons were removed; the reason is shown) or not enriched.
-    Reads catalog.json only.
+    stand metrics and comparisons were removed; the reason is shown) or not enriched. A
+    comparison is present, invalidated (removed) or stale (made against another catalog
+    whose epoch was re-tiled, re-enriched or removed since). Reads catalog.json (and that of
+    each other catalog compared against) only.
 
     \b
     Example:

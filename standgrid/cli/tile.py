@@ -87,9 +87,10 @@ def _human(report: dict[str, Any]) -> str:
 @click.option("--voronoi", is_flag=True, help="Voronoi cells around payload poses, not a grid.")
 @click.option(
     "--crs", "crs_spec", default="auto", show_default=True,
-    help="Output CRS: EPSG:XXXX, WKT2, or auto (the missions' UTM zone; for clouds already"
-    " projected, their own CRS). Also the CRS of PCD/PLY clouds in payload_clouds_in_utm/,"
-    " which name none.",
+    help="Output CRS: EPSG:XXXX, WKT2, or auto (a new catalog: the missions' UTM zone, or"
+    " clouds already projected their own CRS; an existing catalog: its CRS, refused for a"
+    " mission outside its area of use). Also the CRS of PCD/PLY clouds in"
+    " payload_clouds_in_utm/, which name none.",
 )  # fmt: skip
 @click.option(
     "--anchor", type=float, nargs=4, default=None, metavar="LAT LON ALT YAW",
@@ -118,6 +119,11 @@ def _human(report: dict[str, Any]) -> str:
     "--epoch", default=None, callback=_epoch,
     help="Epoch label (default: the year of each mission).",
 )  # fmt: skip
+@click.option(
+    "--replace", "replace_missions", is_flag=True,
+    help="A mission whose name the catalog holds, tiled from another folder, replaces it"
+    " (else refused). Re-tiling a mission from its own folder needs no --replace.",
+)  # fmt: skip
 @memory_option
 @click.option(
     "--accept-poor-georeference", is_flag=True,
@@ -141,6 +147,7 @@ def tile(
     method: str,
     anchor: tuple[float, float, float, float] | None,
     epoch: str | None,
+    replace_missions: bool,
     memory_mb: int,
     accept_poor_georeference: bool,
     workers: int | None,
@@ -155,7 +162,9 @@ def tile(
     Every point lands in exactly one stand cell (checked); tiles are LAS 1.4 / LAZ named by
     cell id under tiles/<epoch>/, indexed in index.gpkg (cells, payloads, trajectories, GNSS
     fixes, missions, with QGIS styles) and tiles_<epoch>.vpc. Adding missions to an existing
-    catalog merges them into its epochs; re-ingesting a mission replaces its points.
+    catalog merges them into its epochs; re-ingesting a mission (from the folder it was tiled
+    from) replaces its points; a mission of the same name from another folder is refused
+    unless --replace.
 
     How a mission is placed: clouds already in a projected CRS (payload_clouds_in_utm/
     alone, or LAS/LAZ payloads with a CRS) are tiled as they are, without a GNSS fit (PCD/PLY
@@ -190,6 +199,7 @@ def tile(
         accept_poor_georeference=accept_poor_georeference,
         workers=workers,
         scheduler=scheduler,
+        replace_missions=replace_missions,
     )
     report = tile_missions(list(missions), output, options, progress=TerminalProgress(quiet))
     emit(report.to_dict(), as_json, _human)

@@ -2,22 +2,39 @@
 
 from __future__ import annotations
 
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
+from standgrid.errors import PayloadTooFarError
 from standgrid.geometry import invert_pose, transform_points
-from standgrid.georeference.enu import lla_to_enu
+from standgrid.georeference.enu import enu_to_lla, lla_to_enu
 from standgrid.georeference.mission import georeference_mission
 from standgrid.mission.model import Mission, Payload, open_mission
-from standgrid.mission.retrieval import retrieve_payload_by_pose
+from standgrid.mission.retrieval import query_distances, retrieve_payload_by_pose
+
+#: Metres: the default largest distance from a GNSS query to its nearest payload.
+DEFAULT_MAX_DISTANCE_M = 1000.0
+
+
+@dataclass(frozen=True)
+class GnssMatch:
+    """Payloads found near a GNSS coordinate (nearest first), the coordinate in the map
+    frame (``query_map``) and each payload's distance to it (m, ``distances_m``)."""
+
+    payloads: list[Payload]
+    query_map: NDArray[np.float64]
+    distances_m: list[float]
 
 
 def retrieve_payload_by_gnss(
     mission_folder_path: str | Path | Mission,
     gnss: ArrayLike,
+    *,
+    max_distance: float | None = DEFAULT_MAX_DISTANCE_M,
     **by_pose: Any,
 ) -> list[Payload]:
     """Payloads near a GNSS coordinate ``(lat, lon[, alt])`` (WGS84 degrees, metres).
@@ -27,8 +44,21 @@ def retrieve_payload_by_gnss(
     GNSS fixes) and the coordinate goes LLA -> ENU -> map before
     :func:`retrieve_payload_by_pose` (keyword arguments are passed on). Raises
     :class:`NotGeoreferencedError` (no GNSS and no anchor) or :class:`InsufficientGnssError`
-    when no georeference can be made.
+    when no georeference can be made, and :class:`PayloadTooFarError` when the nearest
+    payload is more than ``max_distance`` metres away (None: no limit). Distances:
+    :func:`locate_by_gnss`.
     """
+    return locate_by_gnss(mission_folder_path, gnss, max_distance=max_distance, **by_pose).payloads
+
+
+def locate_by_gnss(
+    mission_folder_path: str | Path | Mission,
+    gnss: ArrayLike,
+    *,
+    max_distance: float | None = DEFAULT_MAX_DISTANCE_M,
+    **by_pose: Any,
+) -> GnssMatch:
+    """:func:`retrieve_payload_by_gnss` with the map-frame query and each payload's distance."""
     coord = np.asarray(gnss, dtype=np.float64).ravel()
     if coord.shape not in ((2,), (3,)):
         raise ValueError(f"gnss must be (lat, lon) or (lat, lon, alt), got {coord.tolist()}")
@@ -38,7 +68,46 @@ def retrieve_payload_by_gnss(
         else open_mission(mission_folder_path, strict=False)
     )
     xyz_map = gnss_to_map(mission, coord)
-    return retrieve_payload_by_pose(mission, xyz_map, **by_pose)
+    found = retrieve_payload_by_pose(mission, xyz_map, **by_pose)
+    positions = np.array([mission.pose_of(p)[:3, 3] for p in found]).reshape(-1, 3)
+    distances = query_distances(xyz_map, positions)
+    nearest = float(distances.min())
+    if max_distance is not None and nearest > max_distance:
+        raise _too_far(mission, coord, found[int(np.argmin(distances))], max_distance)
+    return GnssMatch(found, xyz_map, [float(d) for d in distances])
+
+
+def _too_far(
+    mission: Mission, coord: NDArray[np.float64], nearest: Payload, max_distance: float
+) -> PayloadTooFarError:
+    """The error for a GNSS query far from every payload: the geodesic distance (WGS 84) to
+    the nearest one and, when latitude and longitude read the other way round land near a
+    payload, that hint."""
+    from pyproj import Geod
+
+    fit = georeference_mission(mission)
+    lat, lon = float(coord[0]), float(coord[1])
+    enu = transform_points(fit.T_enu_map, mission.pose_of(nearest)[:3, 3].reshape(1, 3))[0]
+    at_lat, at_lon, _ = enu_to_lla(enu[0], enu[1], enu[2], fit.lla_ref)
+    _, _, metres = Geod(ellps="WGS84").inv(lon, lat, float(at_lon), float(at_lat))
+    hint = "latitude comes first"
+    if abs(lon) <= 90.0:  # read the other way round, is it near?
+        swapped = coord.copy()
+        swapped[:2] = lon, lat
+        there = gnss_to_map(mission, swapped)
+        other = retrieve_payload_by_pose(mission, there, k=1)[0]
+        away = float(query_distances(there, mission.pose_of(other)[:3, 3].reshape(1, 3))[0])
+        if away <= max_distance:
+            hint = (
+                f"read as latitude {lon}, longitude {lat} (swapped) the nearest payload is "
+                f"{away:.1f} m away: give LAT LON, latitude first"
+            )
+    return PayloadTooFarError(
+        f"the payload nearest latitude {lat}, longitude {lon} is {metres / 1000:,.1f} km "
+        f"away (at {float(at_lat):.5f}, {float(at_lon):.5f}), beyond the {max_distance:g} m "
+        f"allowed; {hint}",
+        path=mission.path,
+    )
 
 
 def gnss_to_map(mission: Mission, coord: NDArray[np.float64]) -> NDArray[np.float64]:

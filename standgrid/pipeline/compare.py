@@ -129,6 +129,7 @@ def _compare(
     (or copied into ``scratch``) before this one's transaction commits."""
     import pandas as pd
 
+    from standgrid.catalog.invalidate import other_epoch_read
     from standgrid.catalog.project import write_catalog_project
     from standgrid.compare import chm_difference, compare_stands, match_trees
     from standgrid.compare.assemble import (
@@ -194,6 +195,7 @@ def _compare(
         per_level.append(changes)
     changes = pd.concat(per_level, ignore_index=True)
 
+    other_read = other_epoch_read(target, epoch_to)  # under the other catalog's reader lock
     chm_to = target.path(paths.raster(epoch_to, "chm"))
     if scratch is not None:  # the other catalog's reader lock is not held across our commit
         chm_to = Path(shutil.copyfile(chm_to, scratch / "chm_to.tif"))
@@ -224,9 +226,11 @@ def _compare(
             if other_catalog is not None and target is not source
             else None
         )
+        entry: dict[str, Any] = {"from": epoch_from, "to": epoch_to, "other_catalog": other}
+        if other is not None:  # what it read there, to tell when that epoch changes
+            entry["other_epoch"] = other_read
         txn.record_comparison(
-            paths.comparison_key(epoch_from, epoch_to),
-            {"from": epoch_from, "to": epoch_to, "other_catalog": other, "outputs": outputs},
+            paths.comparison_key(epoch_from, epoch_to), {**entry, "outputs": outputs}
         )
         write_catalog_project(txn)  # catalog.qgz shows what this transaction commits
     return CompareReport(

@@ -6,6 +6,7 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Any
 
+from standgrid.catalog.invalidate import other_catalog_change
 from standgrid.catalog.records import ENRICHED, NOT_ENRICHED, STALE
 
 __all__ = ["ENRICHED", "NOT_ENRICHED", "STALE", "catalog_status"]
@@ -16,8 +17,10 @@ def catalog_status(catalog_path: str | Path) -> dict[str, Any]:
 
     An epoch is ``enriched``, ``stale`` (it was enriched, then re-tiled: its results were
     removed, ``invalidated`` says when and why) or ``not enriched``. Points are the missions'
-    point counts at ingest (no tile is read). A comparison is ``present``, or ``invalidated``
-    (removed when one of its epochs was re-tiled, and not made again since).
+    point counts at ingest (no tile is read). A comparison is ``present``, ``invalidated``
+    (removed when one of its epochs was re-tiled, and not made again since) or ``stale`` (made
+    against another catalog whose epoch changed since: re-tiled, re-enriched or gone; its
+    results are still there, ``reason`` says why they are out of date).
     """
     from standgrid.catalog import Catalog
 
@@ -38,18 +41,21 @@ def catalog_status(catalog_path: str | Path) -> dict[str, Any]:
         }
         for key, lost in record.comparisons_invalidated.items():
             invalidated.append({"comparison": key, **lost})
-    comparisons = {
-        key: {
+    comparisons: dict[str, dict[str, Any]] = {}
+    others: dict[str, Any] = {}  # each other catalog's catalog.json, read once
+    for key, entry in sorted(catalog.comparisons.items()):
+        comparisons[key] = {
             "from": entry.get("from"),
             "to": entry.get("to"),
             "other_catalog": entry.get("other_catalog"),
             "state": "present",
         }
-        for key, entry in sorted(catalog.comparisons.items())
-    }
+        changed = other_catalog_change(entry, others)
+        if changed is not None:
+            comparisons[key].update(state=STALE, reason=changed)
     for item in sorted(invalidated, key=lambda i: str(i["at"])):  # the latest reason wins
         key = item["comparison"]
-        if comparisons.get(key, {}).get("state") != "present":  # compared again since
+        if comparisons.get(key, {}).get("state") not in ("present", STALE):  # else made again
             epoch_from, _, epoch_to = key.partition("__")
             comparisons[key] = {
                 "from": epoch_from,

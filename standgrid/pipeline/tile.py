@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import contextlib
 import math
+import os
 import shutil
 from collections.abc import Sequence
 from dataclasses import dataclass, field
@@ -27,15 +28,22 @@ from standgrid.catalog.index import CatalogIndex
 from standgrid.catalog.setup import (
     GridRequest,
     absolute_output,
+    check_area_of_use,
     check_existing,
     create_catalog,
+    existing_crs,
     is_catalog,
     refuse_foreign_folder,
     refuse_overlap,
     settle_tiling,
 )
 from standgrid.engine import SILENT, MemoryBudget, Progress
-from standgrid.errors import CatalogError, TilingError, out_of_space_error
+from standgrid.errors import (
+    CatalogError,
+    MissionFolderConflictError,
+    TilingError,
+    out_of_space_error,
+)
 from standgrid.pipeline.tile_epoch import EpochSettings, Ingest, tile_epoch
 
 if TYPE_CHECKING:
@@ -48,7 +56,12 @@ __all__ = ["TileOptions", "TileReport", "tile_missions"]
 
 @dataclass(frozen=True)
 class TileOptions:
-    """How to tile. ``cell_size``/``crs`` of ``None``/``"auto"`` take the catalog's own."""
+    """How to tile. ``cell_size``/``crs`` of ``None``/``"auto"`` take the catalog's own.
+
+    ``crs="auto"``: a new catalog takes the first fitted mission's UTM zone (or the projected
+    clouds' own CRS); missions added to a catalog take its CRS, also as the CRS of projected
+    clouds that name none, and a mission outside that CRS's area of use is refused
+    (:class:`~standgrid.errors.CRSError`)."""
 
     #: ``None``: the catalog's scheme ("grid" for a new catalog).
     scheme: Literal["grid", "voronoi"] | None = None
@@ -84,6 +97,10 @@ class TileOptions:
     #: place; the offset is reported). None: always the fresh fit (exact, the default).
     #: See :mod:`standgrid.catalog.placement_policy`.
     placement_tolerance: float | None = None
+    #: A mission of a name the catalog holds, tiled from another folder, replaces it (else
+    #: :class:`~standgrid.errors.MissionFolderConflictError`). Re-ingesting from the same
+    #: folder needs no leave.
+    replace_missions: bool = False
 
     @property
     def grid_request(self) -> GridRequest:
@@ -163,14 +180,18 @@ def tile_missions(
         raise TilingError(f"placement tolerance {tolerance!r}: give metres >= 0, or None")
     if options.anchor is not None and len(mission_paths) > 1:
         raise CatalogError("an anchor places one mission: tile one mission per --anchor")
-    ingests = [_prepare(path, options, progress) for path in mission_paths]
+    auto = options.crs in ("auto", "", None)
+    path = absolute_output(catalog_path, options.overwrite)
+    # --crs auto adding to a catalog: the catalog's CRS (also that of clouds naming none)
+    held_crs = existing_crs(path, options.overwrite, options.lock_timeout) if auto else None
+    clouds_crs = held_crs or options.crs
+    ingests = [_prepare(given, options, progress, clouds_crs) for given in mission_paths]
     names = [i.mission.name for i in ingests]
     if len(set(names)) != len(names):
         raise CatalogError(
             f"a mission is given twice: {sorted(n for n in names if names.count(n) > 1)}"
         )
 
-    path = absolute_output(catalog_path, options.overwrite)
     refuse_overlap(path, [i.mission.path for i in ingests])
     request = options.grid_request
     placements = [i.placement for i in ingests]
@@ -215,15 +236,18 @@ def tile_missions(
     return report
 
 
-def _prepare(given: str | Path | Mission, options: TileOptions, progress: Progress) -> Ingest:
-    """Open (a folder, without a point cache: each payload is read once) and place a mission."""
+def _prepare(
+    given: str | Path | Mission, options: TileOptions, progress: Progress, crs: str
+) -> Ingest:
+    """Open (a folder, without a point cache: each payload is read once) and place a mission
+    (``crs``: of clouds already projected that name none)."""
     from standgrid.georeference.placement import place_mission
     from standgrid.mission.model import Mission, open_mission
 
     mission = given if isinstance(given, Mission) else open_mission(given, cache_points=0)
     progress.status(f"georeferencing {mission.name}")
     placement = place_mission(
-        mission, crs=options.crs, anchor=options.anchor, method=options.method,
+        mission, crs=crs, anchor=options.anchor, method=options.method,
         accept_poor=options.accept_poor_georeference,
     )  # fmt: skip
     meta = mission.metadata
@@ -239,6 +263,25 @@ def _prepare(given: str | Path | Mission, options: TileOptions, progress: Progre
         )
     date = meta.date.isoformat() if meta is not None else ""
     return Ingest(mission, placement, epoch, date)
+
+
+def refuse_other_folders(catalog: Catalog, ingests: list[Ingest]) -> None:
+    """:class:`MissionFolderConflictError` when a mission's name is in the catalog, tiled
+    from another folder: same name is not the same mission (it would replace its points)."""
+    known = catalog.mission_records
+    for ingest in ingests:
+        record = known.get(ingest.mission.name)
+        if record is None or not record.path:
+            continue
+        here = os.path.realpath(ingest.mission.path)
+        if here != os.path.realpath(record.path):
+            raise MissionFolderConflictError(
+                f"the catalog holds a mission {ingest.mission.name!r} tiled from another "
+                f"folder, {record.path} (now given: {here}); tiling it would replace that "
+                "mission's points. Replace it with --replace (TileOptions.replace_missions), "
+                "or tile into another catalog",
+                path=catalog.root,
+            )
 
 
 def _ingest(
@@ -265,6 +308,10 @@ def _ingest(
             ingest.number = txn.mission_number(ingest.mission.name)
             ingest.to_catalog = ingest.placement.to_catalog(catalog.crs, ingest.mission.name)
         renewed = [i.number for i in ingests]
+        if not options.replace_missions:
+            refuse_other_folders(catalog, ingests)
+        if options.crs in ("auto", "", None):  # the catalog's CRS must suit every mission
+            check_area_of_use(catalog, [(i.mission.name, i.placement) for i in ingests])
         # an epoch a re-ingested mission leaves is re-tiled too (without that mission)
         known = catalog.mission_records
         left = {known[i.mission.name].epoch for i in ingests if i.mission.name in known}

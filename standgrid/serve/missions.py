@@ -189,14 +189,18 @@ def by_gnss(
     lon: Annotated[float, Query(ge=-180, le=180)],
     alt: float | None = None,
     k: Annotated[int, Query(ge=1, le=10_000)] = 1,
+    max_distance: Annotated[
+        float, Query(gt=0, description="metres: a 404 when the nearest payload is farther")
+    ] = 1000.0,
 ) -> JSONResponse:
-    from standgrid.georeference.retrieval import retrieve_payload_by_gnss
+    from standgrid.georeference.retrieval import locate_by_gnss
     from standgrid.mission.retrieval import payload_records
 
     record = _record(request, name)
     coord = (lat, lon) if alt is None else (lat, lon, alt)
-    found = retrieve_payload_by_gnss(_opened(record), coord, k=k)
-    return _payloads(request, record, payload_records(found))
+    mission = _opened(record)
+    found = locate_by_gnss(mission, coord, k=k, max_distance=max_distance)
+    return _payloads(request, record, payload_records(found.payloads, found.query_map, mission))
 
 
 @router.get(

@@ -13,6 +13,7 @@ import orjson
 from fastapi import APIRouter, Request
 from fastapi.responses import JSONResponse, Response
 
+from standgrid.catalog.invalidate import CHANGE_LAYERS, other_catalog_change
 from standgrid.serve import crs as crs_mod
 from standgrid.serve import features
 from standgrid.serve.features import Layer, Page, Query
@@ -104,6 +105,19 @@ def _temporal_extent(snap: Snapshot, layer: Layer) -> list[str | None] | None:
     return [f"{dates[0][:10]}T00:00:00Z", f"{dates[-1][:10]}T23:59:59Z"]
 
 
+def _stale_comparisons(snap: Snapshot) -> list[dict[str, str]]:
+    """Comparisons whose rows the change layers serve though the other catalog they read
+    changed since (re-tiled, re-enriched, gone): key, epochs and why."""
+    others: dict[str, Any] = {}
+    stale = []
+    for key, entry in sorted(snap.catalog.comparisons.items()):
+        reason = other_catalog_change(entry, others)
+        if reason is not None:
+            stale.append({"comparison": key, "epoch_from": str(entry.get("from")),
+                          "epoch_to": str(entry.get("to")), "reason": reason})  # fmt: skip
+    return stale
+
+
 def _collection(request: Request, snap: Snapshot, layer: Layer) -> dict[str, Any]:
     base = f"{_base(request)}/collections/{layer.name}"
     extent: dict[str, Any] = {}
@@ -134,6 +148,13 @@ def _collection(request: Request, snap: Snapshot, layer: Layer) -> dict[str, Any
     own = crs_mod.catalog_crs_uri(snap.catalog.crs)
     if own is not None:
         body["storageCrs"] = own
+    if layer.name in CHANGE_LAYERS:
+        stale = _stale_comparisons(snap)
+        body["standgrid:stale_comparisons"] = stale
+        if stale:
+            body["description"] += "; stale (the other catalog's epoch changed since): " + (
+                "; ".join(f"{s['comparison']}: {s['reason']}" for s in stale)
+            )
     if extent:
         body["extent"] = extent
     return body

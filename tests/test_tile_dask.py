@@ -13,6 +13,7 @@ import subprocess
 import sys
 import time
 from collections.abc import Iterator
+from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
@@ -192,7 +193,9 @@ def test_voronoi_reingest_on_cluster_matches_one_process(tmp_path: Path) -> None
         report = tile_missions(MISSIONS[:1], clustered, options, executor=executor)
         before = {p: p.stat().st_mtime_ns for p in clustered.rglob("*")}
         with pytest.raises(PointCloudFormatError) as error:  # raised on a worker
-            tile_missions([broken], clustered, options, executor=executor)
+            tile_missions(  # the same mission from another folder: replacing it
+                [broken], clustered, replace(options, replace_missions=True), executor=executor
+            )
         assert victim.name in str(error.value)
         assert {p: p.stat().st_mtime_ns for p in clustered.rglob("*")} == before
 

@@ -152,6 +152,11 @@ class EpochNotFoundError(CatalogError, LookupError):
     """The catalog has no such epoch."""
 
 
+class EpochDateError(CatalogError, ValueError):
+    """An epoch has no date (tiled with ``--epoch`` from missions without one) where an
+    operation needs it."""
+
+
 class NotEnrichedError(CatalogError, FileNotFoundError):
     """A table an export needs (tree list, stand metrics) is missing: run ``enrich`` first."""
 

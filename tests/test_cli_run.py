@@ -199,3 +199,37 @@ def test_help_has_an_example(command: str) -> None:
     result = CliRunner().invoke(cli, [command, "--help"])
     assert result.exit_code == 0
     assert "Example:" in result.output
+
+
+def test_compare_help_example_with_another_catalog_runs_verbatim(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """``standgrid compare catalog-2024 --other catalog-2028 --json`` from ``compare --help``,
+    on two catalogs of one epoch each: the epochs are the only ones of each catalog."""
+    import shlex
+
+    help_text = CliRunner().invoke(cli, ["compare", "--help"]).output
+    example = next(line.strip() for line in help_text.splitlines() if "--other" in line
+                   and line.strip().startswith("standgrid compare"))  # fmt: skip
+    words = shlex.split(example)[1:]
+    runner = CliRunner()
+    monkeypatch.chdir(tmp_path)
+    for epoch, name in MISSIONS.items():
+        catalog = f"catalog-{epoch}"
+        tiled = runner.invoke(cli, ["tile", str(BUNDLED_MISSIONS / name), "-o", catalog, "-q"])
+        assert tiled.exit_code == 0, tiled.output
+        assert runner.invoke(cli, ["enrich", catalog, "-q"]).exit_code == 0
+    result = runner.invoke(cli, words)
+    assert result.exit_code == 0, result.output
+    report = json.loads(result.stdout)
+    assert (report["epoch_from"], report["epoch_to"]) == ("2024", "2028")
+    assert round(report["years"], 2) == 4.02  # the missions' dates, 2024-05-14 to 2028-05-20
+    assert (tmp_path / "catalog-2024" / report["outputs"]["tree_parquet"]).is_file()
+    # giving either epoch alone works too; one catalog of one epoch still needs two
+    for given in (["--to", "2028"], ["--from", "2024"]):
+        again = runner.invoke(cli, [*words, *given])
+        assert again.exit_code == 0, (given, again.output)
+        assert json.loads(again.stdout)["epoch_to"] == "2028"
+    alone = runner.invoke(cli, ["compare", "catalog-2024"])
+    assert alone.exit_code == 1
+    assert "needs two epochs (or --other" in alone.output

@@ -149,10 +149,10 @@ def _stand_polygons(catalog: Catalog) -> pd.DataFrame:
 
 def _years_between(catalog: Catalog, first: str, last: str) -> float | None:
     """Years from ``first``'s date to ``last``'s; None when either epoch has no date."""
-    dates = [catalog.epoch(e).date for e in (first, last)]
-    if dates[0] is None or dates[1] is None:
+    first_date, last_date = (catalog.epoch(e).date for e in (first, last))
+    if first_date is None or last_date is None:
         return None
-    start, end = (dt.date.fromisoformat(d) for d in dates)
+    start, end = dt.date.fromisoformat(first_date), dt.date.fromisoformat(last_date)
     return (end - start).days / 365.25
 
 

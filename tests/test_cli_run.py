@@ -233,3 +233,29 @@ def test_compare_help_example_with_another_catalog_runs_verbatim(
     alone = runner.invoke(cli, ["compare", "catalog-2024"])
     assert alone.exit_code == 1
     assert "needs two epochs (or --other" in alone.output
+
+
+def test_an_existing_output_names_the_cli_flag_and_the_library_stays_neutral(
+    pair: EnrichedPair, tmp_path: Path
+) -> None:
+    """The CLI says ``--overwrite`` (its flag); the library's message says ``overwrite``
+    without a flag's dashes (a script passes ``overwrite=True``)."""
+    from standgrid.catalog import Catalog
+    from standgrid.errors import OutputExistsError
+    from standgrid.growth.treelist import generic_tree_list, write_tree_list
+
+    out = tmp_path / "trees.csv"
+    args = ["export", "trees", str(pair.path), "-o", str(out), "-q"]
+    assert CliRunner().invoke(cli, args).exit_code == 0
+    first = out.read_bytes()
+    again = CliRunner().invoke(cli, args)
+    assert again.exit_code == 1
+    assert _error_lines(again.output) == [
+        f"Error: OutputExistsError: {out}: exists (--overwrite replaces it)"
+    ]
+    assert out.read_bytes() == first
+    with Catalog.reading(pair.path) as catalog:
+        table = generic_tree_list(catalog, None, level=1)
+    with pytest.raises(OutputExistsError) as refused:
+        write_tree_list(table, out, crs=catalog.crs, fmt=None, overwrite=False)
+    assert str(refused.value).endswith("exists (overwrite replaces it)")

@@ -59,6 +59,7 @@ from standgrid._atomic import (
 from standgrid.catalog.paths import CATALOG_FILE
 from standgrid.catalog.records import EpochRecord, MissionRecord, TilingSettings
 from standgrid.errors import (
+    OVERWRITE_HINT,
     CatalogBusyError,
     CatalogConflictError,
     CatalogError,
@@ -355,7 +356,7 @@ class Catalog:
             if root.is_dir() and any(root.iterdir()):
                 if not overwrite:
                     kind = "a catalog" if (root / CATALOG_FILE).is_file() else "a folder with files"
-                    raise OutputExistsError(f"is {kind} (use overwrite to replace it)", path=root)
+                    raise OutputExistsError(f"is {kind} ({OVERWRITE_HINT})", path=root)
                 if not (root / CATALOG_FILE).is_file():  # overwriting replaces a catalog only
                     check_replaceable(root, overwrite=True, what="a catalog")
                 build = build_folder(root)

@@ -11,7 +11,7 @@ import logging
 
 import click
 
-from standgrid.errors import StandgridError
+from standgrid.errors import OVERWRITE_HINT, OutputExistsError, StandgridError
 
 #: command name -> "module:attribute" of its click command.
 COMMANDS: dict[str, str] = {
@@ -61,7 +61,10 @@ class LazyGroup(click.Group):
         try:
             return super().invoke(ctx)
         except StandgridError as exc:
-            raise click.ClickException(f"{type(exc).__name__}: {exc}") from exc
+            text = str(exc)
+            if isinstance(exc, OutputExistsError):  # the library's hint, as the CLI's flag
+                text = text.replace(OVERWRITE_HINT, f"--{OVERWRITE_HINT}")
+            raise click.ClickException(f"{type(exc).__name__}: {text}") from exc
 
 
 class _StderrLines(logging.Handler):

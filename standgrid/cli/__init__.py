@@ -77,6 +77,7 @@ class _StderrLines(logging.Handler):
 def _say_lock_waits() -> None:
     """Print "waiting for readers/another process" lines (the catalog's lock waits)."""
     logger = logging.getLogger("standgrid.catalog")
+    logger.disabled = False  # a library's dictConfig (pyfvs) may have disabled it
     if not any(isinstance(h, _StderrLines) for h in logger.handlers):
         logger.addHandler(_StderrLines())
         logger.setLevel(logging.INFO)

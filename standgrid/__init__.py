@@ -10,11 +10,12 @@ and ``standgrid --help`` stay instant)::
 
     import standgrid
 
-    mission = standgrid.open_mission("missions/2024-05-14-wytham-anymal-coyote")
-    tiled = standgrid.tile([mission], "catalog", standgrid.TileOptions(buffer=2.0))
-    enriched = standgrid.enrich("catalog", workers=2)  # chunks on a local dask cluster
-    change = standgrid.compare("catalog", standgrid.CompareOptions("2024", "2028"))
-    catalog = standgrid.open_catalog("catalog")     # catalog.epoch_records, .mission_records
+    if __name__ == "__main__":  # workers=N spawns processes that import the script again
+        mission = standgrid.open_mission("missions/2024-05-14-wytham-anymal-coyote")
+        tiled = standgrid.tile([mission], "catalog", standgrid.TileOptions(buffer=2.0))
+        enriched = standgrid.enrich("catalog", workers=2)  # chunks on a local dask cluster
+        change = standgrid.compare("catalog", standgrid.CompareOptions("2024", "2028"))
+        catalog = standgrid.open_catalog("catalog")  # .epoch_records, .mission_records
 
 ``tile``, ``enrich``, ``compare`` and ``run`` are ``pipeline.tile_missions``,
 ``enrich_catalog``, ``compare_epochs`` and ``run_pipeline``. ``standgrid.enrich`` and

@@ -17,6 +17,7 @@ from collections.abc import Callable, Iterator
 from pathlib import Path
 
 from standgrid.errors import (
+    OVERWRITE_HINT,
     OutputExistsError,
     OutputNotWritableError,
     StandgridError,
@@ -142,7 +143,7 @@ def _place_new(tmp: Path, final: Path) -> None:
     except OSError as exc:
         if exc.errno in (errno.EEXIST, errno.ENOTEMPTY, errno.ENOTDIR, errno.EISDIR):
             raise OutputExistsError(
-                "exists (written by another process meanwhile; use overwrite to replace it)",
+                f"exists (written by another process meanwhile; {OVERWRITE_HINT})",
                 path=final,
             ) from exc
         raise
@@ -161,7 +162,7 @@ def check_replaceable(
     if not final.exists() and not final.is_symlink():
         return
     if not overwrite:
-        raise OutputExistsError("exists (use overwrite to replace it)", path=final)
+        raise OutputExistsError(f"exists ({OVERWRITE_HINT})", path=final)
     if (
         final.is_dir()
         and not final.is_symlink()

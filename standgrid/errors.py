@@ -157,12 +157,22 @@ class EpochNotFoundError(CatalogError, LookupError):
     """The catalog has no such epoch."""
 
 
+class EpochDateError(CatalogError, ValueError):
+    """An epoch has no date (tiled with ``--epoch`` from missions without one) where an
+    operation needs it."""
+
+
 class NotEnrichedError(CatalogError, FileNotFoundError):
     """A table an export needs (tree list, stand metrics) is missing: run ``enrich`` first."""
 
 
+#: How a refusal to replace an output says what would: the CLI renders it as its flag.
+OVERWRITE_HINT = "overwrite replaces it"
+
+
 class OutputExistsError(StandgridError, FileExistsError):
-    """An output exists and ``overwrite`` was not asked for."""
+    """An output exists and ``overwrite`` was not asked for (the message says
+    :data:`OVERWRITE_HINT` when asking for it would replace it)."""
 
 
 class OutputNotWritableError(StandgridError, PermissionError):

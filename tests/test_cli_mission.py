@@ -139,3 +139,42 @@ def test_payloads_build(tmp_path: Path) -> None:
     assert result.exit_code != 0 and "OutputExistsError" in result.output
     human = run("payloads", "build", syn.path, "-o", out, "--area", "100", "--overwrite")
     assert human.startswith("1 payloads, 1,600 points")
+
+
+@pytest.mark.parametrize("keep", ["all but the last 100 bytes", "half"])
+def test_info_lists_a_truncated_laz_and_an_empty_pcd_as_problems(tmp_path: Path, keep: str) -> None:
+    """A bundled mission with one payload as a LAZ cut short (its chunk table lost) and one
+    empty PCD: info lists both as problems, counts neither, and goes on."""
+    import shutil
+
+    import laspy
+
+    from standgrid.mission.clouds import read_cloud, read_cloud_header, write_cloud
+    from standgrid.pointcloud import PointCloud
+    from tests.conftest import BUNDLED_MISSIONS
+
+    mission = tmp_path / "2024-05-14-wytham-anymal-coyote"
+    shutil.copytree(BUNDLED_MISSIONS / mission.name, mission)
+    clouds = sorted((mission / "payload_clouds").glob("*.pcd"))
+    total = sum(read_cloud_header(p).points for p in clouds)
+    laz = clouds[0].with_suffix(".laz")
+    write_cloud(PointCloud(read_cloud(clouds[0]).xyz, {}), laz)
+    clouds[0].unlink()
+    with laspy.open(laz) as reader:  # a second reader: a real, compressed LAZ
+        assert reader.header.are_points_compressed
+        cut_points = int(reader.header.point_count)
+    data = laz.read_bytes()
+    laz.write_bytes(data[: len(data) - 100] if keep.startswith("all") else data[: len(data) // 2])
+    empty_points = read_cloud_header(clouds[1]).points
+    clouds[1].write_bytes(b"")
+
+    report = json.loads(run("info", mission, "--json"))
+    assert report["payloads"] == len(clouds) and report["payloads_truncated"] == 2
+    assert report["points"] == total - cut_points - empty_points
+    problems = {Path(p.split(": ", 1)[0]).name: p for p in report["problems"]}
+    assert "truncated: the file ends before its LAZ chunk table" in problems[laz.name]
+    assert "empty file" in problems[clouds[1].name]
+    human = run("info", mission)
+    assert f"problem   {laz}: truncated" in human
+    strict = CliRunner().invoke(cli, ["info", str(mission), "--strict"])
+    assert strict.exit_code == 1 and "PointCloudFormatError" in strict.output

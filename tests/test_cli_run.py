@@ -199,3 +199,63 @@ def test_help_has_an_example(command: str) -> None:
     result = CliRunner().invoke(cli, [command, "--help"])
     assert result.exit_code == 0
     assert "Example:" in result.output
+
+
+def test_compare_help_example_with_another_catalog_runs_verbatim(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """``standgrid compare catalog-2024 --other catalog-2028 --json`` from ``compare --help``,
+    on two catalogs of one epoch each: the epochs are the only ones of each catalog."""
+    import shlex
+
+    help_text = CliRunner().invoke(cli, ["compare", "--help"]).output
+    example = next(line.strip() for line in help_text.splitlines() if "--other" in line
+                   and line.strip().startswith("standgrid compare"))  # fmt: skip
+    words = shlex.split(example)[1:]
+    runner = CliRunner()
+    monkeypatch.chdir(tmp_path)
+    for epoch, name in MISSIONS.items():
+        catalog = f"catalog-{epoch}"
+        tiled = runner.invoke(cli, ["tile", str(BUNDLED_MISSIONS / name), "-o", catalog, "-q"])
+        assert tiled.exit_code == 0, tiled.output
+        assert runner.invoke(cli, ["enrich", catalog, "-q"]).exit_code == 0
+    result = runner.invoke(cli, words)
+    assert result.exit_code == 0, result.output
+    report = json.loads(result.stdout)
+    assert (report["epoch_from"], report["epoch_to"]) == ("2024", "2028")
+    assert round(report["years"], 2) == 4.02  # the missions' dates, 2024-05-14 to 2028-05-20
+    assert (tmp_path / "catalog-2024" / report["outputs"]["tree_parquet"]).is_file()
+    # giving either epoch alone works too; one catalog of one epoch still needs two
+    for given in (["--to", "2028"], ["--from", "2024"]):
+        again = runner.invoke(cli, [*words, *given])
+        assert again.exit_code == 0, (given, again.output)
+        assert json.loads(again.stdout)["epoch_to"] == "2028"
+    alone = runner.invoke(cli, ["compare", "catalog-2024"])
+    assert alone.exit_code == 1
+    assert "needs two epochs (or --other" in alone.output
+
+
+def test_an_existing_output_names_the_cli_flag_and_the_library_stays_neutral(
+    pair: EnrichedPair, tmp_path: Path
+) -> None:
+    """The CLI says ``--overwrite`` (its flag); the library's message says ``overwrite``
+    without a flag's dashes (a script passes ``overwrite=True``)."""
+    from standgrid.catalog import Catalog
+    from standgrid.errors import OutputExistsError
+    from standgrid.growth.treelist import generic_tree_list, write_tree_list
+
+    out = tmp_path / "trees.csv"
+    args = ["export", "trees", str(pair.path), "-o", str(out), "-q"]
+    assert CliRunner().invoke(cli, args).exit_code == 0
+    first = out.read_bytes()
+    again = CliRunner().invoke(cli, args)
+    assert again.exit_code == 1
+    assert _error_lines(again.output) == [
+        f"Error: OutputExistsError: {out}: exists (--overwrite replaces it)"
+    ]
+    assert out.read_bytes() == first
+    with Catalog.reading(pair.path) as catalog:
+        table = generic_tree_list(catalog, None, level=1)
+    with pytest.raises(OutputExistsError) as refused:
+        write_tree_list(table, out, crs=catalog.crs, fmt=None, overwrite=False)
+    assert str(refused.value).endswith("exists (overwrite replaces it)")

@@ -260,10 +260,54 @@ def test_a_voronoi_catalog_is_the_same_for_any_chunk_layout(
     small, large = root / "small", root / "large"
     shutil.copytree(tiled, small)
     shutil.copytree(tiled, large)
-    chunks = [
+    reports = [
         enrich_catalog(out, replace(OPTIONS, memory_budget=MemoryBudget(mb << 20)))
-        .epochs["2024"]["chunks"]
         for out, mb in ((small, 64), (large, 512))
     ]
+    chunks = [report.epochs["2024"]["chunks"] for report in reports]
     assert chunks[0] > chunks[1]
     _assert_same(small, large)
+
+
+def test_ctrl_c_on_a_local_cluster_prints_one_line_and_no_worker_traceback(
+    tiled: Path,
+) -> None:
+    """``standgrid enrich --workers 2`` interrupted as a terminal's Ctrl-C does it (SIGINT to
+    the whole process group, the worker processes included): "Aborted!" and no traceback
+    or dask log line; no process of the group is left; the catalog is as it was."""
+    import signal
+
+    out = tiled.parent / "ctrl_c"
+    shutil.copytree(tiled, out)
+    before = (out / "catalog.json").read_bytes()
+    code = "import sys; sys.argv[0] = 'standgrid'; from standgrid.cli import main; main()"
+    proc = subprocess.Popen(
+        [sys.executable, "-c", code, "enrich", str(out), "--workers", "2", "--memory", "64"],
+        cwd=REPO_ROOT, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+        start_new_session=True,  # its own process group, as a terminal's foreground job
+    )  # fmt: skip
+    assert proc.stderr is not None
+    seen = []
+    for line in proc.stderr:  # the cluster is up and its chunks are running
+        seen.append(line)
+        if "worker(s)" in line:
+            break
+    os.killpg(proc.pid, signal.SIGINT)
+    rest = proc.communicate(timeout=60)[1]
+    err = "".join(seen) + rest
+    assert proc.returncode == 1, err
+    assert err.rstrip().endswith("Aborted!"), err
+    for noise in ("Traceback", "KeyboardInterrupt", "CancelledError", "distributed."):
+        assert noise not in err, err
+    deadline = time.monotonic() + 20
+    while time.monotonic() < deadline:  # the workers stop with the cluster
+        try:
+            os.killpg(proc.pid, 0)
+        except ProcessLookupError:
+            break
+        time.sleep(0.2)
+    else:
+        os.killpg(proc.pid, signal.SIGKILL)
+        pytest.fail("worker processes outlived the interrupted command")
+    assert (out / "catalog.json").read_bytes() == before
+    assert not list(out.glob(".staging/*/files"))

@@ -181,6 +181,7 @@ def test_las_round_trip(tmp_path: Path, ext: str) -> None:
     np.testing.assert_allclose(np.asarray(las.x), xyz[:, 0], atol=1e-6)
     np.testing.assert_array_equal(np.asarray(las["curvature"]), cloud.fields["curvature"])
     assert las.header.parse_crs().to_epsg() == 25832
+    assert las.header.are_points_compressed == (ext == "laz")  # .laz was plain LAS before
     header = read_cloud_header(out)
     assert header.points == n and header.format == ext and "curvature" in header.fields
     np.testing.assert_allclose(header.bounds[0], xyz.min(axis=0), atol=1e-6)  # type: ignore[index]

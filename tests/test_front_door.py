@@ -9,7 +9,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from tests.conftest import BUNDLED_MISSIONS
+from tests.conftest import BUNDLED_MISSIONS, REPO_ROOT
 from tests.pipeline_fixtures import BUFFER_M, CRS, MISSIONS, EnrichedPair, enriched_pair
 
 HEAVY = ("numpy", "scipy", "pandas", "geopandas", "pyogrio", "laspy", "rasterio", "pyproj")
@@ -123,3 +123,25 @@ def test_a_script_through_the_front_door(tmp_path: Path, pair: EnrichedPair) -> 
         (same,) = standgrid.retrieve_payload_by_pose(mission, mission.pose_of(hit)[:3, 3])
         assert same.stamp == hit.stamp
     assert np.isfinite(rows[["x", "y"]].to_numpy()).all()
+
+
+def test_the_readme_python_snippet_runs_as_a_script(tmp_path: Path) -> None:
+    """README's front-door example (it starts dask workers, which Python spawns: they import
+    the script again) run verbatim as a script from a folder holding the bundled data."""
+    import os
+    import re
+
+    readme = (REPO_ROOT / "README.md").read_text(encoding="utf-8")
+    snippet = re.search(r"```python\n(.*?)```", readme, re.S)
+    assert snippet is not None and "workers=" in snippet.group(1)
+    script = tmp_path / "front_door.py"
+    script.write_text(snippet.group(1), encoding="utf-8")
+    (tmp_path / "data").symlink_to(REPO_ROOT / "data")  # the paths it names, not a copy
+    env = {**os.environ, "PYTHONPATH": str(REPO_ROOT)}
+    done = subprocess.run(
+        [sys.executable, str(script)], cwd=tmp_path, env=env, capture_output=True, text=True,
+        timeout=300,
+    )  # fmt: skip
+    assert done.returncode == 0, done.stderr[-3000:]
+    assert "2024 2024-05-14 enriched" in done.stdout and "tiles" in done.stdout
+    assert (tmp_path / "catalog" / "tables" / "tree_list_2024.parquet").is_file()

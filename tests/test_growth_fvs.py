@@ -446,3 +446,53 @@ def test_a_stand_outside_the_geoid_grid_has_null_elev_ft_with_a_reason(
         f"the geoid grid {regional} has no undulation" in r
         for r in report.elev_ft_null_stands.values()
     )
+
+
+def _undated_mission(source: Path, target: Path) -> Path:
+    """A bundled mission without its date: no metadata.yaml, no GNSS, a plain folder name."""
+    import shutil
+
+    shutil.copytree(source, target)
+    (target / "metadata.yaml").unlink()
+    shutil.rmtree(target / "gnss")
+    return target
+
+
+def test_an_epoch_without_a_date_exports_with_its_label_year_or_is_refused_by_name(
+    tmp_path: Path,
+) -> None:
+    """``tile --anchor ... --epoch 2020`` of undated missions makes an epoch without a date:
+    FVS's Inv_Year is then the label when it is a year; an epoch whose label is not a year
+    is refused with a typed error naming it (no traceback, nothing written)."""
+    from click.testing import CliRunner
+
+    from standgrid.cli import cli
+
+    source = BUNDLED_MISSIONS / "2024-05-14-wytham-anymal-coyote"
+    catalog = tmp_path / "cat"
+    runner = CliRunner()
+    for name, epoch in (("plot_a", "2020"), ("plot_b", "plotB")):
+        mission = _undated_mission(source, tmp_path / name)
+        anchor = ["--anchor", "47.0", "8.0", "500", "0"]
+        result = runner.invoke(cli, ["tile", str(mission), "-o", str(catalog), *anchor,
+                                     "--epoch", epoch])  # fmt: skip
+        assert result.exit_code == 0, result.output
+        assert f"epoch {epoch} (no date):" in result.output
+    assert runner.invoke(cli, ["enrich", str(catalog)]).exit_code == 0
+
+    out = tmp_path / "stands.db"
+    refused = runner.invoke(cli, ["export", "fvs", str(catalog), "-o", str(out)])
+    assert refused.exit_code == 1
+    assert isinstance(refused.exception, SystemExit)  # a clean message, not a crash
+    assert "EpochDateError" in refused.output and "'plotB'" in refused.output
+    assert "Traceback" not in refused.output and not out.exists()
+
+    result = runner.invoke(
+        cli, ["export", "fvs", str(catalog), "-o", str(out), "--epoch", "2020", "--json"]
+    )
+    assert result.exit_code == 0, result.output
+    stands, trees = _tables(out)
+    assert len(stands) > 0 and len(trees) > 0
+    assert set(stands["Inv_Year"]) == {2020}
+    assert set(stands["SG_Epoch"]) == {"2020"}
+    assert "2020: no date; Inv_Year 2020 is its label" in result.stdout

@@ -15,7 +15,9 @@ the catalog until after it commits, so two writers never both succeed with one's
 (the second waits up to ``lock_timeout`` seconds, then :class:`CatalogBusyError`).
 ``.<name>.readers.lock`` is taken exclusively only while a commit moves files into place,
 and shared by readers (:meth:`Catalog.reading`, briefly by :meth:`Catalog.open`), so a reader
-holding it sees the old or the new catalog, never a mix.
+holding it sees the old or the new catalog, never a mix. A writer waits for readers up to
+``lock_timeout`` too (then :class:`CatalogBusyError` naming who holds the lock); every
+wait longer than a second is logged (``standgrid.catalog``, INFO; the CLI prints it).
 
 Commit: new and changed files are staged under ``.staging/<txn>/files/<relative path>``
 (the new ``catalog.json`` too). Every staged file is fsynced, then the journal
@@ -34,6 +36,7 @@ from __future__ import annotations
 import contextlib
 import hashlib
 import json
+import logging
 import os
 import re
 import shutil
@@ -56,6 +59,7 @@ from standgrid._atomic import (
 from standgrid.catalog.paths import CATALOG_FILE
 from standgrid.catalog.records import EpochRecord, MissionRecord, TilingSettings
 from standgrid.errors import (
+    OVERWRITE_HINT,
     CatalogBusyError,
     CatalogConflictError,
     CatalogError,
@@ -157,6 +161,45 @@ def lock_paths(path: str | os.PathLike[str]) -> tuple[Path, Path]:
     return root.parent / f".{root.name}.lock", root.parent / f".{root.name}.readers.lock"
 
 
+#: Seconds a lock wait lasts before it is said (a ``standgrid.catalog`` log record).
+WAIT_NOTICE_AFTER = 1.0
+_log = logging.getLogger("standgrid.catalog")
+
+
+def lock_holders(path: Path) -> list[str]:
+    """Who holds an ``flock`` on ``path``: ``pid N: command`` per holder, from Linux's
+    /proc/locks (empty where the system does not say)."""
+    try:
+        st = os.stat(path)
+        lines = Path("/proc/locks").read_text().splitlines()
+    except OSError:
+        return []
+    key = f"{os.major(st.st_dev):02x}:{os.minor(st.st_dev):02x}:{st.st_ino}"
+    pids = sorted(
+        {int(f[4]) for f in (line.split() for line in lines)
+         if len(f) > 5 and f[1] == "FLOCK" and f[5] == key and f[4].isdigit()}
+    )  # fmt: skip
+    holders = []
+    for pid in pids:
+        if pid == os.getpid():
+            holders.append(f"pid {pid}: this process")
+            continue
+        try:
+            words = Path(f"/proc/{pid}/cmdline").read_bytes().split(b"\0")
+            command = " ".join(w.decode(errors="replace") for w in words if w)
+        except OSError:
+            command = ""
+        short = command if len(command) <= 80 else command[:77] + "..."
+        holders.append(f"pid {pid}: {short}" if short else f"pid {pid}")
+    return holders
+
+
+def _catalog_of(lock_path: Path) -> Path:
+    """The catalog folder a lock file beside it is for (see :func:`lock_paths`)."""
+    name = lock_path.name.removeprefix(".").removesuffix(".lock").removesuffix(".readers")
+    return lock_path.parent / name
+
+
 class FileLock:
     """An ``flock`` on one file, exclusive or shared, taken with a timeout."""
 
@@ -170,7 +213,9 @@ class FileLock:
         return self._fd is not None
 
     def acquire(self, timeout: float | None, *, what: str = "writing") -> None:
-        """Take the lock, waiting up to ``timeout`` s (None: for ever), else CatalogBusyError."""
+        """Take the lock, waiting up to ``timeout`` s (None: for ever), else CatalogBusyError
+        naming the catalog and the processes holding the lock. A wait longer than
+        :data:`WAIT_NOTICE_AFTER` is said once (log ``standgrid.catalog``, INFO)."""
         import fcntl
 
         try:
@@ -180,21 +225,35 @@ class FileLock:
             raise OutputNotWritableError(f"cannot open the lock file: {exc.strerror}",
                                          path=self.path) from exc  # fmt: skip
         mode = fcntl.LOCK_SH if self.shared else fcntl.LOCK_EX
-        deadline = None if timeout is None else time.monotonic() + max(0.0, timeout)
+        start = time.monotonic()
+        deadline = None if timeout is None else start + max(0.0, timeout)
         delay = 0.01
+        said = False
         while True:
             try:
                 fcntl.flock(fd, mode | fcntl.LOCK_NB)
                 break
             except BlockingIOError:
-                if deadline is not None and time.monotonic() >= deadline:
+                now = time.monotonic()
+                if deadline is not None and now >= deadline:
+                    holders = lock_holders(self.path)
                     os.close(fd)
+                    held_by = f", held by {'; '.join(holders)}" if holders else ""
                     raise CatalogBusyError(
                         f"another process is {what} this catalog (waited {timeout:g} s for "
-                        f"{self.path.name}); try again when it has finished, or wait longer "
-                        "with --lock-timeout",
-                        path=self.path,
+                        f"{self.path.name}{held_by}); try again when it has finished, or "
+                        "wait longer with --lock-timeout",
+                        path=_catalog_of(self.path),
                     ) from None
+                if not said and now - start >= WAIT_NOTICE_AFTER:
+                    said = True
+                    holders = lock_holders(self.path)
+                    limit = "" if timeout is None else f", up to {timeout:g} s"
+                    _log.info(
+                        "%s: waiting for %s%s%s", _catalog_of(self.path),
+                        "readers to finish" if what == "reading" else f"another process {what} it",
+                        f" ({'; '.join(holders)})" if holders else "", limit,
+                    )  # fmt: skip
                 time.sleep(delay)
                 delay = min(delay * 2, 0.2)
         self._fd = fd
@@ -225,10 +284,13 @@ def writer_lock(
 
 
 @contextlib.contextmanager
-def _readers_excluded(path: str | os.PathLike[str]) -> Iterator[None]:
-    """The readers lock, exclusive: while held no reader looks at the catalog."""
+def _readers_excluded(
+    path: str | os.PathLike[str], timeout: float | None = DEFAULT_LOCK_TIMEOUT
+) -> Iterator[None]:
+    """The readers lock, exclusive: while held no reader looks at the catalog. Waits up to
+    ``timeout`` s for the readers there are, then :class:`CatalogBusyError`."""
     lock = FileLock(lock_paths(path)[1])
-    lock.acquire(None)
+    lock.acquire(timeout, what="reading")
     try:
         yield
     finally:
@@ -294,13 +356,13 @@ class Catalog:
             if root.is_dir() and any(root.iterdir()):
                 if not overwrite:
                     kind = "a catalog" if (root / CATALOG_FILE).is_file() else "a folder with files"
-                    raise OutputExistsError(f"is {kind} (use overwrite to replace it)", path=root)
+                    raise OutputExistsError(f"is {kind} ({OVERWRITE_HINT})", path=root)
                 if not (root / CATALOG_FILE).is_file():  # overwriting replaces a catalog only
                     check_replaceable(root, overwrite=True, what="a catalog")
                 build = build_folder(root)
                 try:
                     cls._make(build, definition, crs, scheme)
-                    publish(build, root)
+                    publish(build, root, timeout=lock_timeout)
                 except BaseException:
                     shutil.rmtree(build, ignore_errors=True)
                     raise
@@ -400,7 +462,7 @@ class Catalog:
         try:
             if _journals(root):  # a dead commit (live ones hold the readers lock): finish it
                 readers.release()
-                with _readers_excluded(root):
+                with _readers_excluded(root, lock_timeout):
                     _roll_forward(root)
                 readers.acquire(lock_timeout, what="committing to")
             state_file = root / CATALOG_FILE
@@ -435,7 +497,7 @@ class Catalog:
         ):
             if not (root / CATALOG_FILE).is_file():
                 raise CatalogNotFoundError("not a standgrid catalog (no catalog.json)", path=root)
-            _recover(root)
+            _recover(root, timeout=lock_timeout)
             catalog = cls(root, _read_state(root / CATALOG_FILE))
             catalog.lock_timeout = lock_timeout
             catalog._writer = lock
@@ -594,7 +656,8 @@ class Transaction:
             self._lock = FileLock(lock_paths(self.catalog._lock_root)[0])
             self._lock.acquire(self.catalog.lock_timeout)
         try:
-            _recover(root, self.catalog._lock_root)  # under the lock: only dead ones are left
+            # under the lock: only dead ones are left
+            _recover(root, self.catalog._lock_root, timeout=self.catalog.lock_timeout)
             current = _read_state(root / CATALOG_FILE)
             if int(current.get("generation", 0)) != self.catalog.generation or (
                 current.get("updated") != self.catalog._state.get("updated")
@@ -607,6 +670,9 @@ class Transaction:
             self.state = json.loads(json.dumps(current))
             _refuse_symlinks(root, STAGING_DIR)
             (self.folder / "files").mkdir(parents=True)
+        except StandgridError:  # CatalogBusyError is an OSError (TimeoutError) too
+            self._release()
+            raise
         except OSError as exc:
             self._release()
             raise OutputNotWritableError(f"cannot stage: {exc}", path=self.folder) from exc
@@ -853,7 +919,7 @@ class Transaction:
         # while its files reach the disk; they wait only for the journal and the renames
         fsync_tree(self.folder / "files")
         self._synced = True
-        with _readers_excluded(self.catalog._lock_root):
+        with _readers_excluded(self.catalog._lock_root, self.catalog.lock_timeout):
             self.prepare()
             self.apply()
 
@@ -1089,9 +1155,12 @@ def _pid_alive(pid: int) -> bool:
     return True
 
 
-def _recover(base: Path, lock_root: Path | None = None) -> list[str]:
-    """Under the writer lock: finish dead commits, drop dead staging and temporary files."""
-    with _readers_excluded(lock_root or base):
+def _recover(
+    base: Path, lock_root: Path | None = None, *, timeout: float | None = DEFAULT_LOCK_TIMEOUT
+) -> list[str]:
+    """Under the writer lock: finish dead commits, drop dead staging and temporary files
+    (waiting up to ``timeout`` s for the readers there are)."""
+    with _readers_excluded(lock_root or base, timeout):
         done = _roll_forward(base)
     for folder in _staging_folders(base):  # no journal: a dead writer's half-staged work
         shutil.rmtree(folder, ignore_errors=True)
@@ -1114,14 +1183,15 @@ def build_folder(final: Path) -> Path:
     return temporary_sibling(_absolute(final).parent / Path(final).name, "build")
 
 
-def publish(build: Path, final: Path) -> None:
+def publish(build: Path, final: Path, *, timeout: float | None = DEFAULT_LOCK_TIMEOUT) -> None:
     """Put the catalog built at ``build`` at ``final``, atomically for readers (call under
     the writer lock). An existing ``final`` is exchanged with it (``renameat2``), so there
     is a catalog at ``final`` at every moment; where the system cannot exchange, the old one
     is moved aside as ``.<name>.old-<pid>-<id>.tmp`` first, and put back by
-    :func:`remove_stale_builds` if the process dies before the new one is in place."""
+    :func:`remove_stale_builds` if the process dies before the new one is in place. Waits up
+    to ``timeout`` s for the catalog's readers, then :class:`CatalogBusyError`."""
     fsync_tree(build)
-    with _readers_excluded(final):
+    with _readers_excluded(final, timeout):
         crash_point("publish")
         if not final.exists():
             os.rename(build, final)

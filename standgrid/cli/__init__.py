@@ -7,10 +7,11 @@ Library errors become clean one-line messages here, in one place.
 from __future__ import annotations
 
 import importlib
+import logging
 
 import click
 
-from standgrid.errors import StandgridError
+from standgrid.errors import OVERWRITE_HINT, OutputExistsError, StandgridError
 
 #: command name -> "module:attribute" of its click command.
 COMMANDS: dict[str, str] = {
@@ -56,10 +57,31 @@ class LazyGroup(click.Group):
         return command
 
     def invoke(self, ctx: click.Context) -> object:
+        _say_lock_waits()
         try:
             return super().invoke(ctx)
         except StandgridError as exc:
-            raise click.ClickException(f"{type(exc).__name__}: {exc}") from exc
+            text = str(exc)
+            if isinstance(exc, OutputExistsError):  # the library's hint, as the CLI's flag
+                text = text.replace(OVERWRITE_HINT, f"--{OVERWRITE_HINT}")
+            raise click.ClickException(f"{type(exc).__name__}: {text}") from exc
+
+
+class _StderrLines(logging.Handler):
+    """Log records as plain lines on stderr (click's stream: CliRunner captures it)."""
+
+    def emit(self, record: logging.LogRecord) -> None:
+        click.echo(self.format(record), err=True)
+
+
+def _say_lock_waits() -> None:
+    """Print "waiting for readers/another process" lines (the catalog's lock waits)."""
+    logger = logging.getLogger("standgrid.catalog")
+    logger.disabled = False  # a library's dictConfig (pyfvs) may have disabled it
+    if not any(isinstance(h, _StderrLines) for h in logger.handlers):
+        logger.addHandler(_StderrLines())
+        logger.setLevel(logging.INFO)
+        logger.propagate = False
 
 
 @click.group(cls=LazyGroup, context_settings={"help_option_names": ["-h", "--help"]})

@@ -48,7 +48,8 @@ def _human(r: dict[str, Any]) -> str:
 @click.option(
     "--other", "other", default=None,
     type=click.Path(exists=True, file_okay=False, path_type=Path),
-    help="Take --to from this catalog (it must be on the same grid).",
+    help="Take --to from this catalog (it must be on the same grid); --from and --to then"
+    " default to the first epoch of CATALOG and the last of this one.",
 )  # fmt: skip
 @click.option(
     "--max-distance", type=float, default=2.0, show_default=True,

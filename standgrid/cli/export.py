@@ -114,7 +114,7 @@ def fvs(
         finally:
             conn.close()
         if keywords.exists() and not overwrite:
-            raise click.ClickException(f"{keywords} exists (use --overwrite to replace it)")
+            raise click.ClickException(f"{keywords} exists (--overwrite replaces it)")
         write_text_atomic(keywords, keyword_file(output.resolve(), ids))
         result["keywords"] = str(keywords)
     if report.species_default_used:

@@ -56,8 +56,9 @@ def info(mission: Path, strict: bool, as_json: bool) -> None:
     """Summarise a mission folder: graph, payloads, points, sensors, time span, extent.
 
     Point counts come from the cloud headers; no point is read. Each file's size is checked
-    against its header (binary PCD and PLY, uncompressed LAS): a truncated file is reported
-    as a problem and its points are not counted (--strict: an error).
+    against its header (binary PCD and PLY, uncompressed LAS, LAZ chunk tables): a truncated
+    file, an empty one or an unreadable header is reported as a problem and its points are
+    not counted (--strict: an error).
 
     \b
     Example:

@@ -24,7 +24,7 @@ lock_timeout_option = click.option(
     type=click.FloatRange(min=0),
     default=30.0,
     show_default=True,
-    help="Seconds to wait while another process writes the catalog (then fail cleanly).",
+    help="Seconds to wait while another process writes (or reads) the catalog, then fail cleanly.",
 )
 quiet_option = click.option("-q", "--quiet", is_flag=True, help="No progress output on stderr.")
 

@@ -51,8 +51,9 @@ def _human(report: dict[str, Any]) -> str:
         )
     for epoch, e in report["epochs"].items():
         lines.append(
-            f"epoch {epoch} ({e['date']}): {e['cells']} tiles, {e['points_out']:,} points,"
-            f" {e['buffer_points']:,} buffer copies, {e['cells_removed']} tiles removed"
+            f"epoch {epoch} ({e['date'] or 'no date'}): {e['cells']} tiles,"
+            f" {e['points_out']:,} points, {e['buffer_points']:,} buffer copies,"
+            f" {e['cells_removed']} tiles removed"
         )
     for name, m in report["missions"].items():
         g = m["georeference"]
@@ -117,7 +118,9 @@ def _human(report: dict[str, Any]) -> str:
 )  # fmt: skip
 @click.option(
     "--epoch", default=None, callback=_epoch,
-    help="Epoch label (default: the year of each mission).",
+    help="Epoch label (default: the year of each mission). Missions without a date (no"
+    " metadata.yaml, no dated folder name) make an epoch without a date: a year as the label"
+    " stands in for it where a year is needed (FVS Inv_Year); comparing needs dates.",
 )  # fmt: skip
 @click.option(
     "--replace", "replace_missions", is_flag=True,

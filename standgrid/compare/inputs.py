@@ -25,12 +25,15 @@ def read_table(catalog: Catalog, rel: str) -> pd.DataFrame:
     return pd.read_parquet(path)
 
 
-def default_epoch(catalog: Catalog, *, first: bool) -> str:
+def default_epoch(catalog: Catalog, *, first: bool, both_from_it: bool = True) -> str:
+    """The first (``first``) or last epoch of ``catalog`` by date. When both epochs come from
+    it (no other catalog), it needs two; else one is enough."""
     records = catalog.epoch_records
     epochs = sorted(records, key=lambda e: (records[e].date or "", e))
-    if len(epochs) < (2 if first else 1):
+    if len(epochs) < (2 if first and both_from_it else 1):
+        needs = "two epochs (or --other: a second catalog)" if both_from_it else "an epoch"
         raise EpochNotFoundError(
-            f"comparing needs two epochs; the catalog has {epochs or 'none'}",
+            f"comparing needs {needs}; the catalog has {epochs or 'none'}",
             path=catalog.root,
         )
     return epochs[0] if first else epochs[-1]

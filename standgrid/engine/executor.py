@@ -195,9 +195,28 @@ def open_executor(
             memory_limit=memory_budget + (1 << 30),
             dashboard_address=None,
             host="127.0.0.1",
+            preload=["standgrid.engine.worker_setup"],  # workers leave Ctrl-C to the client
         )
     try:
         with Client(cluster, direct_to_workers=True) as client:
             yield DaskExecutor(client)
+    except KeyboardInterrupt:
+        with _quiet_dask():  # the shutdown the interrupt asks for is no error to log
+            cluster.close()
+        raise
     finally:
         cluster.close()
+
+
+@contextlib.contextmanager
+def _quiet_dask() -> Iterator[None]:
+    """dask's loggers silenced (errors about tasks and connections cancelled by a close)."""
+    import logging
+
+    logger = logging.getLogger("distributed")
+    level = logger.level
+    logger.setLevel(logging.CRITICAL + 1)
+    try:
+        yield
+    finally:
+        logger.setLevel(level)

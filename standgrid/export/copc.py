@@ -193,9 +193,9 @@ def write_copc_tile(
             path=out,
         )
     if out.exists() and not overwrite:  # before any work; atomic_output checks again
-        from standgrid.errors import OutputExistsError
+        from standgrid.errors import OVERWRITE_HINT, OutputExistsError
 
-        raise OutputExistsError("exists (use overwrite to replace it)", path=out)
+        raise OutputExistsError(f"exists ({OVERWRITE_HINT})", path=out)
     scratch = temporary_sibling(out, "scratch")
     raw = temporary_sibling(out, "copclib")
     try:

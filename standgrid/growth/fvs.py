@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import datetime as dt
 import math
+import re
 import sqlite3
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
@@ -20,9 +21,9 @@ import numpy as np
 import pandas as pd
 
 from standgrid._atomic import atomic_output
-from standgrid.catalog import Catalog, paths
+from standgrid.catalog import Catalog, EpochRecord, paths
 from standgrid.enrich.stands import counted_trees
-from standgrid.errors import FormatError
+from standgrid.errors import EpochDateError, FormatError
 from standgrid.georeference.geoid import GeoidModel, NoGeoidModel, find_geoid
 from standgrid.growth.elevation import above_sea_level, epoch_elevation
 from standgrid.growth.treelist import (
@@ -146,9 +147,29 @@ def _stand_polygons(catalog: Catalog) -> pd.DataFrame:
     return frame
 
 
-def _years_between(catalog: Catalog, first: str, last: str) -> float:
-    dates = [dt.date.fromisoformat(str(catalog.epoch(e).date)) for e in (first, last)]
-    return (dates[1] - dates[0]).days / 365.25
+def _years_between(catalog: Catalog, first: str, last: str) -> float | None:
+    """Years from ``first``'s date to ``last``'s; None when either epoch has no date."""
+    first_date, last_date = (catalog.epoch(e).date for e in (first, last))
+    if first_date is None or last_date is None:
+        return None
+    start, end = dt.date.fromisoformat(first_date), dt.date.fromisoformat(last_date)
+    return (end - start).days / 365.25
+
+
+def inventory_year(record: EpochRecord, catalog_root: Path | None = None) -> tuple[int, bool]:
+    """FVS ``Inv_Year`` of an epoch: its date's year, else its label when the label is a
+    year (then True: taken from the label); an :class:`EpochDateError` naming the epoch
+    when it has neither."""
+    if record.date:
+        return dt.date.fromisoformat(record.date).year, False
+    if re.fullmatch(r"[12][0-9]{3}", record.label):
+        return int(record.label), True
+    raise EpochDateError(
+        f"epoch {record.label!r} has no date and its label is not a year: FVS needs an "
+        "inventory year (export the other epochs with --epoch, or re-tile its missions "
+        "with --epoch YYYY)",
+        path=catalog_root,
+    )
 
 
 def _increments(catalog: Catalog, epoch: str, previous: str | None) -> pd.DataFrame | None:
@@ -244,10 +265,16 @@ def _export_fvs(
     wanted = catalog_epochs(catalog, epochs)
     records = catalog.epoch_records
     order = sorted(records, key=lambda e: (records[e].date or "", e))
+    years_of: dict[str, int] = {}
+    report_notes: list[str] = []
+    for epoch in wanted:  # every epoch refused before anything is read or written
+        years_of[epoch], from_label = inventory_year(records[epoch], catalog.root)
+        if from_label:
+            report_notes.append(f"{epoch}: no date; Inv_Year {years_of[epoch]} is its label")
     stands = read_stands(catalog)
     polygons = _stand_polygons(catalog)
     to_wgs84 = Transformer.from_crs(catalog.crs, "EPSG:4326", always_xy=True)
-    report = FvsExport(Path(out), species_default_used=False)
+    report = FvsExport(Path(out), species_default_used=False, notes=report_notes)
     elevations = {e: epoch_elevation(catalog, e, geoid, heights_above_sea_level) for e in wanted}
     for epoch, elevation in elevations.items():
         if elevation.null_reason is not None:
@@ -279,7 +306,13 @@ def _export_fvs(
             )
             previous = None
         years = _years_between(catalog, previous, epoch) if previous is not None else None
-        year = dt.date.fromisoformat(str(records[epoch].date)).year
+        if previous is not None and years is None:
+            report.notes.append(
+                f"{epoch}: no DG/HTG (epoch {epoch if records[previous].date else previous} "
+                "has no date: the years between the two measurements are unknown)"
+            )
+            incr = None
+        year = years_of[epoch]
         level_rows = stands[(stands["epoch"] == epoch) & (stands["level"] == level)]
         dtm = catalog.path(paths.raster(epoch, "dtm"))
         counted = trees[counted_trees(trees, stands[stands["epoch"] == epoch])]

@@ -812,7 +812,10 @@ def check_las_size(path: Path) -> int:
             fp.seek(offset)
             table = lazrs.read_chunk_table(fp, laz_vlr)
     except Exception as exc:
-        raise PointCloudFormatError(f"unreadable LAZ chunk table ({exc})", path=path) from exc
+        what = "unreadable LAZ chunk table"
+        if _laz_ends_early(path, offset, size, exc):
+            what = "truncated: the file ends before its LAZ chunk table does"
+        raise PointCloudFormatError(f"{what} ({exc})", path=path) from exc
     if table:
         if laz_vlr.uses_variable_size_chunks():
             covered = sum(int(points) for points, _ in table)
@@ -826,6 +829,19 @@ def check_las_size(path: Path) -> int:
                 path=path,
             )
     return count
+
+
+def _laz_ends_early(path: Path, offset: int, size: int, error: Exception) -> bool:
+    """Whether a LAZ chunk table could not be read because the file is cut short: its
+    pointer (the first 8 bytes of the point data) is missing or points past the end, or
+    reading it ran out of bytes (Rust's UnexpectedEof)."""
+    with path.open("rb") as fp:
+        fp.seek(offset)
+        pointer = fp.read(8)
+    if len(pointer) < 8:
+        return True
+    table = int.from_bytes(pointer, "little", signed=True)
+    return table + 8 > size or "failed to fill whole buffer" in str(error)
 
 
 def _read_las(path: Path) -> PointCloud:
@@ -932,4 +948,5 @@ def _write_las(
             las[name] = cast
         else:
             las[name] = values.astype(np.uint8) if values.dtype == np.bool_ else values
-    las.write(str(tmp), do_compress=compressed)
+    with tmp.open("wb") as stream:  # a path's suffix (.tmp) would override do_compress
+        las.write(stream, do_compress=compressed)

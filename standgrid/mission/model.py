@@ -376,11 +376,20 @@ class Mission:
 
 
 def _counted_points(items: list[Payload], problems: list[str], strict: bool) -> tuple[int, int]:
-    """Points the clouds' headers announce, files too short for their header left out (and
-    reported in ``problems``; a strict mission raises). Returns ``(points, truncated files)``."""
+    """Points the clouds' headers announce; files too short for their header, or whose header
+    cannot be read, left out (and reported in ``problems``; a strict mission raises).
+    Returns ``(points, truncated or unreadable files)``."""
     total = bad = 0
     for item in items:
-        header = read_cloud_header(item.path)
+        try:
+            header = read_cloud_header(item.path)
+        except PointCloudFormatError as exc:  # empty, a bad header, a cut LAZ chunk table
+            if strict:
+                raise
+            bad += 1
+            where = f"{item.path}:{exc.line}" if exc.line is not None else str(item.path)
+            problems.append(f"{where}: {exc.message}; not counted")
+            continue
         problem = header.size_problem()
         if problem is None:
             total += header.points

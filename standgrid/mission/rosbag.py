@@ -21,7 +21,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from standgrid._atomic import temporary_sibling
-from standgrid.errors import BagFormatError, MissionNameError, OutputExistsError
+from standgrid.errors import OVERWRITE_HINT, BagFormatError, MissionNameError, OutputExistsError
 from standgrid.geometry import Matrix4, invert_pose, pose_matrix, relative_pose
 from standgrid.mission.sensors import GnssFixes
 from standgrid.pointcloud import PointCloud
@@ -255,7 +255,7 @@ def bag_to_mission(
     paths = [Path(b) for b in bags]
     out_path = Path(out)
     if out_path.exists() and not overwrite:
-        raise OutputExistsError("exists (use overwrite to replace it)", path=out_path)
+        raise OutputExistsError(f"exists ({OVERWRITE_HINT})", path=out_path)
     if node_distance < 0:
         raise ValueError(f"node_distance must be >= 0, got {node_distance}")
     report = BagReport(out_path, topics={})

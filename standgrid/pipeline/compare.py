@@ -150,8 +150,9 @@ def _compare(
     from standgrid.export.styles import raster_style_path
 
     check_same_grid(source.fingerprint, target.fingerprint, label_a="from", label_b="to")
-    epoch_from = epoch_from or default_epoch(source, first=True)
-    epoch_to = epoch_to or default_epoch(target, first=False)
+    one_catalog = target is source
+    epoch_from = epoch_from or default_epoch(source, first=True, both_from_it=one_catalog)
+    epoch_to = epoch_to or default_epoch(target, first=False, both_from_it=one_catalog)
     date_from = enriched_epoch(source, epoch_from)
     date_to = enriched_epoch(target, epoch_to)
 

@@ -225,7 +225,7 @@ def tile_missions(
         try:
             catalog = create_catalog(build, path, lock, placements, request)
             report = _ingest(catalog, ingests, options, executor, progress)
-            publish(build, path)
+            publish(build, path, timeout=options.lock_timeout)
         except BaseException as exc:
             shutil.rmtree(build, ignore_errors=True)
             full = out_of_space_error(exc, path)

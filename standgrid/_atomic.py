@@ -161,6 +161,12 @@ def check_replaceable(
     things (a folder of missions, a home folder) given as an output by mistake."""
     if not final.exists() and not final.is_symlink():
         return
+    if final.is_symlink() and overwrite:
+        raise OutputExistsError(
+            "is a symbolic link: overwriting would replace the link, not what it points to "
+            "(give the folder it points to, or another output)",
+            path=final,
+        )
     if not overwrite:
         raise OutputExistsError(f"exists ({OVERWRITE_HINT})", path=final)
     if (
@@ -216,6 +222,8 @@ def atomic_output(
             _place_new(tmp, final_path)
         elif tmp.is_dir() and final_path.is_dir():
             _swap_folder(tmp, final_path)
+        elif final_path.is_dir():  # a file never replaces a folder, even an empty one
+            raise OutputExistsError("is a folder (the output is a file)", path=final_path)
         else:
             os.replace(tmp, final_path)
         if durable:

@@ -53,8 +53,12 @@ def reader_process(tiled: Path) -> Iterator[subprocess.Popen[str]]:
 
 @pytest.mark.parametrize(
     "args",
-    [["enrich", "{c}"], ["compare", "{c}", "--other", "{c}_other"]],
-    ids=["enrich", "compare"],
+    [
+        ["enrich", "{c}"],
+        ["compare", "{c}", "--other", "{c}_other"],
+        ["tile", str(BUNDLED_MISSIONS / MISSIONS["2024"]), "-o", "{c}"],
+    ],
+    ids=["enrich", "compare", "tile"],
 )
 def test_a_writer_gives_up_waiting_for_a_reader_at_lock_timeout(
     tiled: Path, reader_process: subprocess.Popen[str], args: list[str]

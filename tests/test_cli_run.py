@@ -259,3 +259,18 @@ def test_an_existing_output_names_the_cli_flag_and_the_library_stays_neutral(
     with pytest.raises(OutputExistsError) as refused:
         write_tree_list(table, out, crs=catalog.crs, fmt=None, overwrite=False)
     assert str(refused.value).endswith("exists (overwrite replaces it)")
+
+
+def test_run_replaces_a_mission_from_another_folder_only_with_replace(tmp_path: Path) -> None:
+    """The hint of the refusal names ``--replace``, which ``run`` has as ``tile`` does."""
+    import shutil
+
+    mission = next(p for p in sorted(BUNDLED_MISSIONS.iterdir()) if p.is_dir())
+    out = tmp_path / "catalog"
+    assert CliRunner().invoke(cli, ["tile", str(mission), "-o", str(out), "-q"]).exit_code == 0
+    copy = shutil.copytree(mission, tmp_path / "elsewhere" / mission.name)
+    refused = CliRunner().invoke(cli, ["run", str(copy), "-o", str(out), "-q"])
+    assert refused.exit_code == 1
+    assert "MissionFolderConflictError" in refused.output and "--replace" in refused.output
+    replaced = CliRunner().invoke(cli, ["run", str(copy), "-o", str(out), "-q", "--replace"])
+    assert replaced.exit_code == 0, replaced.output

@@ -187,6 +187,14 @@ def test_atomic_folder_replace_rolls_back_when_the_new_folder_cannot_move_in(
         tmp.write_text("new")
     assert [p.name for p in target.iterdir()] == ["notes.txt"]
     assert [p.name for p in tmp_path.iterdir()] == ["out"]
+    empty = tmp_path / "empty"
+    empty.mkdir()
+    with (  # a file output onto an empty folder: a typed error, the folder stays
+        pytest.raises(errors.OutputExistsError, match="is a folder"),
+        atomic_output(empty) as tmp,
+    ):
+        tmp.write_text("new")
+    assert empty.is_dir() and not any(empty.iterdir())
 
 
 def _is_out_folder(path: Path) -> bool:

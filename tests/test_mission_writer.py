@@ -100,6 +100,11 @@ def test_overwrite_and_failure_leave_no_partial_output(tmp_path: Path) -> None:
     with pytest.raises(OutputExistsError, match="not a mission folder"):
         write_mission(open_mission(out), other, overwrite=True)
     assert [p.name for p in other.iterdir()] == ["thesis.tex"]
+    # a folder with a mission's parts and other things is not a mission folder either
+    (other / "metadata.yaml").write_text("name: notes\n")
+    with pytest.raises(OutputExistsError, match="not a mission folder"):
+        write_mission(open_mission(out), other, overwrite=True)
+    assert sorted(p.name for p in other.iterdir()) == ["metadata.yaml", "thesis.tex"]
 
 
 def test_scans_written_only_on_request(tmp_path: Path) -> None:

@@ -140,3 +140,35 @@ def test_an_enriched_epoch_is_re_tiled_in_place_and_kept_when_nothing_changed(
     grown = tile_missions([live.path], catalog, options).to_dict()["epochs"]["2024"]
     assert grown["payloads_unchanged"] == 6 and 0 < grown["cells_rewritten"] < grown["cells"]
     assert Catalog.open(catalog).epoch("2024").state == "stale" and not chm.exists()
+
+
+def test_the_source_field_rules_version_is_in_the_digest_of_clouds_with_those_fields_only(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """Bumping the rules for withheld / scan_angle_rank / point_source_id re-reads the
+    payloads carrying them (LAS), not every payload: a PCD payload's digest, hence its
+    tiles and its epoch's enrichment, stay as they were."""
+    import laspy
+
+    from standgrid.catalog import increment
+    from standgrid.catalog.increment import placement_digest, source_digest
+
+    pcd = sorted(next(BUNDLED_MISSIONS.iterdir()).glob("payload_clouds/*.pcd"))[0]
+    las_path = tmp_path / "cloud.las"
+    las = laspy.create(point_format=1, file_version="1.2")
+    las.x, las.y, las.z = np.arange(10.0), np.arange(10.0), np.arange(10.0)
+    las.write(las_path)
+    placement = placement_digest({"method": "anchor"})
+
+    def digests() -> list[str]:
+        return [
+            source_digest({"path": path, "frame": "base", "file_to_base": None,
+                           "pose": np.eye(4), "gps_time": 1.5, "point_source_id": 1,
+                           "payload_id": 65536}, placement, {"intensity": np.float32})
+            for path in (pcd, las_path)
+        ]  # fmt: skip
+
+    before = digests()
+    monkeypatch.setattr(increment, "SOURCE_FIELD_RULES", increment.SOURCE_FIELD_RULES + 1)
+    after = digests()
+    assert after[0] == before[0] and after[1] != before[1]

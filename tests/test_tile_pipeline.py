@@ -572,6 +572,20 @@ def test_existing_folder_needs_overwrite(tmp_path: Path) -> None:
     tile([M1], folder)  # an empty folder becomes the catalog
     tile([M1], folder, overwrite=True)  # a catalog is replaced
     assert (folder / "catalog.json").is_file()
+    # another tool's catalog.json (a STAC catalog) does not make a folder a catalog
+    stac = tmp_path / "stac"
+    (stac / "items").mkdir(parents=True)
+    (stac / "catalog.json").write_text('{"type": "Catalog", "id": "mine"}')
+    (stac / "items" / "a.json").write_text("{}")
+    with pytest.raises(OutputExistsError, match="overwriting replaces only a catalog"):
+        tile([M1], stac, overwrite=True)
+    assert (stac / "items" / "a.json").is_file()
+    # a symbolic link is not replaced by the catalog (nor is what it points to)
+    link = tmp_path / "link"
+    link.symlink_to(stac)
+    with pytest.raises(OutputExistsError, match="symbolic link"):
+        tile([M1], link, overwrite=True)
+    assert link.is_symlink() and (stac / "items" / "a.json").is_file()
 
 
 def test_interrupted_run_leaves_the_catalog_intact(tmp_path: Path) -> None:

@@ -15,7 +15,6 @@ import pyogrio
 import pyproj
 import pytest
 
-from standgrid.errors import CatalogError
 from standgrid.pipeline.tile import TileOptions, tile_missions
 from tests.conftest import real_file
 
@@ -146,7 +145,7 @@ def test_point_format_1_source_withheld_scan_angle_rank_and_flight_lines(
     assert set(np.unique(got["point_source_id"]).tolist()) == {summary["number"]}
 
 
-def test_point_format_6_scan_angle_passes_unchanged_and_zero_lines_add_nothing(
+def test_point_format_6_scan_angle_passes_unchanged_and_zero_lines_are_kept(
     tmp_path: Path,
 ) -> None:
     n = 2000
@@ -161,19 +160,22 @@ def test_point_format_6_scan_angle_passes_unchanged_and_zero_lines_add_nothing(
     got = _tiles(tmp_path / "cat")
     stored = _by_time(got["gps_time"], got["scan_angle"], np.asarray(las.gps_time))
     assert np.array_equal(stored, angles)
-    # point_source_id 0 everywhere: no source_point_source_id dimension
-    assert "source_point_source_id" not in got["extra"]
+    # the source's point_source_id (0 everywhere here) is kept as it is
+    assert np.array_equal(got["source_point_source_id"], np.zeros(n, np.uint16))
 
 
-def test_flight_lines_after_a_first_payload_without_any_are_refused(tmp_path: Path) -> None:
+def test_flight_lines_after_a_first_payload_without_any_are_kept(tmp_path: Path) -> None:
+    """Every LAS payload carries its point_source_id: a first payload of 0s does not decide
+    for the others (their flight lines used to be refused)."""
     first = _las(1, "1.2", 300, seed=6, first_time=1e5)
     second = _las(1, "1.2", 300, seed=7, first_time=2e5)
     second.point_source_id = np.full(300, 12, np.uint16)
     mission = _mission(tmp_path, [first, second])
-    with pytest.raises(CatalogError, match="point_source_id") as caught:
-        tile_missions([mission], tmp_path / "cat", TileOptions(laz=False))
-    assert f"cloud_{STAMP + 1}_" in str(caught.value)
-    assert not (tmp_path / "cat").exists()
+    tile_missions([mission], tmp_path / "cat", TileOptions(laz=False))
+    got = _tiles(tmp_path / "cat")
+    times = np.concatenate([np.asarray(first.gps_time), np.asarray(second.gps_time)])
+    lines = np.r_[np.zeros(300, np.uint16), np.full(300, 12, np.uint16)]
+    assert np.array_equal(_by_time(got["gps_time"], got["source_point_source_id"], times), lines)
 
 
 @pytest.mark.parametrize("relative", ["lidR/MixedConifer.laz", "las_chablais3.laz"])
@@ -201,11 +203,8 @@ def test_real_als_scan_angles_and_flight_lines_reach_the_tiles(
     assert np.abs(got["scan_angle"] * SCAN_ANGLE_UNIT_DEG).max() == pytest.approx(
         np.abs(rank).max(), abs=0.003
     )
-    if lines.any():
-        assert np.array_equal(np.sort(got["source_point_source_id"]), np.sort(lines))
-        print(f"\n{relative}: flight lines {lines.min()}..{lines.max()} kept")
-    else:
-        assert "source_point_source_id" not in got["extra"]
+    assert np.array_equal(np.sort(got["source_point_source_id"]), np.sort(lines))
+    print(f"\n{relative}: flight lines {lines.min()}..{lines.max()} kept")
     print(f"\n{relative}: scan_angle_rank {rank.min()}..{rank.max()} -> scan_angle "
           f"{got['scan_angle'].min()}..{got['scan_angle'].max()} (0.006 degree units)")  # fmt: skip
 

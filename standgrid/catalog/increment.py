@@ -52,9 +52,12 @@ def placement_digest(placement: dict[str, Any]) -> str:
 
 
 #: Version of how a payload's fields reach its tiles (``partition.chunks.source_fields``):
-#: bumped when a rule changes, so every payload is read again (2: source-withheld points
-#: left out, scan_angle_rank as scan_angle, the source's point_source_id kept).
+#: bumped when a rule changes, so the payloads carrying those fields are read again (2:
+#: source-withheld points left out, scan_angle_rank as scan_angle, the source's
+#: point_source_id kept). Payloads without them keep their digest (and their tiles).
 SOURCE_FIELD_RULES = 2
+#: The fields those rules apply to.
+SOURCE_RULE_FIELDS = frozenset({"withheld", "scan_angle_rank", "point_source_id"})
 
 
 def source_digest(source: dict[str, Any], placement: str, schema: Any) -> str:
@@ -62,8 +65,9 @@ def source_digest(source: dict[str, Any], placement: str, schema: Any) -> str:
     device, inode, size, modification and change times, as git and make tell a changed file;
     any write changes them, a copied folder has new ones), frame, file -> base transform and
     node pose (to 1e-9), stamp (GPS time), mission number, payload id, the mission's
-    placement (:func:`placement_digest`), the epoch's field schema and the version of the
-    rules bringing a source's fields to the tiles (:data:`SOURCE_FIELD_RULES`)."""
+    placement (:func:`placement_digest`), the epoch's field schema and, for a cloud with
+    fields those rules apply to, the version of the rules bringing a source's fields to the
+    tiles (:data:`SOURCE_FIELD_RULES`)."""
     from standgrid.errors import PointCloudFormatError
     from standgrid.mission.clouds import check_cloud_file
 
@@ -83,7 +87,6 @@ def source_digest(source: dict[str, Any], placement: str, schema: Any) -> str:
         rounded = None if value is None else np.round(np.asarray(value, np.float64), 9) + 0.0
         digest.update(b"-" if rounded is None else rounded.tobytes())
     described = {
-        "source_field_rules": SOURCE_FIELD_RULES,
         "frame": source["frame"],
         "gps_time": float(source["gps_time"]).hex(),
         "point_source_id": int(source["point_source_id"]),
@@ -97,8 +100,22 @@ def source_digest(source: dict[str, Any], placement: str, schema: Any) -> str:
             if name not in (*ENRICH_POINT_FIELDS, "classification")
         },
     }
+    if _has_rule_fields(path):
+        described["source_field_rules"] = SOURCE_FIELD_RULES
     digest.update(json.dumps(described, sort_keys=True, default=str).encode())
     return digest.hexdigest()
+
+
+def _has_rule_fields(path: Path) -> bool:
+    """Whether the cloud's header names a field :data:`SOURCE_FIELD_RULES` applies to (an
+    unreadable header counts as yes: reading the payload will say what is wrong)."""
+    from standgrid.errors import StandgridError
+    from standgrid.mission.clouds import read_cloud_header
+
+    try:
+        return bool(SOURCE_RULE_FIELDS & set(read_cloud_header(path).fields))
+    except StandgridError:
+        return True
 
 
 @dataclass(frozen=True)

@@ -9,7 +9,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any, Literal
 
 from standgrid._atomic import check_replaceable
-from standgrid.catalog.store import CATALOG_FILE
+from standgrid.catalog.store import CATALOG_FILE, is_standgrid_catalog
 from standgrid.errors import (
     CRSError,
     GridMismatchError,
@@ -83,7 +83,9 @@ def refuse_overlap(output: Path, inputs: Iterable[str | Path]) -> None:
 
 
 def is_catalog(path: Path) -> bool:
-    return (path / CATALOG_FILE).is_file()
+    """True when ``path`` holds a standgrid catalog (its ``catalog.json`` says so; another
+    tool's catalog.json, a STAC catalog, is not one)."""
+    return is_standgrid_catalog(path)
 
 
 def refuse_foreign_folder(path: Path) -> None:
@@ -169,7 +171,12 @@ def check_area_of_use(catalog: Catalog, placed: Iterable[tuple[str, Placement]])
 
 
 def create_catalog(
-    path: Path, final: Path, lock: FileLock, placements: list[Placement], request: GridRequest
+    path: Path,
+    final: Path,
+    lock: FileLock,
+    placements: list[Placement],
+    request: GridRequest,
+    lock_timeout: float | None,
 ) -> Catalog:
     """A new, empty catalog at ``path`` (to be published at ``final``) in the requested (or
     the missions' UTM, or their clouds' own projected) CRS."""
@@ -185,7 +192,9 @@ def create_catalog(
         lat, lon = (fit.lla_ref[0], fit.lla_ref[1]) if fit is not None else (None, None)
         crs = crs_to_text(resolve_crs(request.crs, lon=lon, lat=lat))
     scheme = request.scheme or "grid"
-    return Catalog.build(path, request.definition(crs), crs, scheme, final=final, held=lock)
+    catalog = Catalog.build(path, request.definition(crs), crs, scheme, final=final, held=lock)
+    catalog.lock_timeout = lock_timeout
+    return catalog
 
 
 def settle_tiling(

@@ -355,9 +355,9 @@ class Catalog:
             remove_stale_builds(root)
             if root.is_dir() and any(root.iterdir()):
                 if not overwrite:
-                    kind = "a catalog" if (root / CATALOG_FILE).is_file() else "a folder with files"
+                    kind = "a catalog" if is_standgrid_catalog(root) else "a folder with files"
                     raise OutputExistsError(f"is {kind} ({OVERWRITE_HINT})", path=root)
-                if not (root / CATALOG_FILE).is_file():  # overwriting replaces a catalog only
+                if not is_standgrid_catalog(root):  # overwriting replaces a catalog only
                     check_replaceable(root, overwrite=True, what="a catalog")
                 build = build_folder(root)
                 try:
@@ -930,6 +930,17 @@ class Transaction:
 
 
 # --- reading and checking state -----------------------------------------------------------
+
+
+def is_standgrid_catalog(root: Path) -> bool:
+    """True when ``root/catalog.json`` is a standgrid catalog's (its ``format``); another
+    tool's catalog.json (a STAC catalog) is not."""
+    try:
+        with open(root / CATALOG_FILE, encoding="utf-8") as stream:
+            state = json.load(stream)
+    except (OSError, ValueError):
+        return False
+    return isinstance(state, dict) and state.get("format") == FORMAT_NAME
 
 
 def _read_state(path: Path) -> dict[str, Any]:

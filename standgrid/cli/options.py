@@ -128,3 +128,11 @@ def status(message: str, quiet: bool = False) -> None:
     """A progress line on stderr."""
     if not quiet:
         click.echo(message, err=True)
+
+
+#: ``tile`` and ``run``: a mission of a name the catalog holds, from another folder.
+replace_option = click.option(
+    "--replace", "replace_missions", is_flag=True,
+    help="A mission whose name the catalog holds, tiled from another folder, replaces it"
+    " (else refused). Re-tiling a mission from its own folder needs no --replace.",
+)  # fmt: skip

@@ -16,6 +16,7 @@ from standgrid.cli.options import (
     output_option,
     overwrite_option,
     quiet_option,
+    replace_option,
 )
 
 QGIS_GUIDE = """\
@@ -71,6 +72,7 @@ def _human(r: dict[str, Any]) -> str:
     help="Tile even when a GNSS fit's RMSE is far beyond the fixes' stated accuracy.",
 )  # fmt: skip
 @overwrite_option
+@replace_option
 @cluster_options
 @lock_timeout_option
 @json_option
@@ -83,6 +85,7 @@ def run(
     buffer: float | None,
     accept_poor_georeference: bool,
     overwrite: bool,
+    replace_missions: bool,
     workers: int | None,
     scheduler: str | None,
     lock_timeout: float,
@@ -108,6 +111,7 @@ def run(
             crs=crs_spec,
             buffer=buffer,
             overwrite=overwrite,
+            replace_missions=replace_missions,
             lock_timeout=lock_timeout,
             accept_poor_georeference=accept_poor_georeference,
         ),

@@ -18,6 +18,7 @@ from standgrid.cli.options import (
     output_option,
     overwrite_option,
     quiet_option,
+    replace_option,
 )
 
 
@@ -122,11 +123,7 @@ def _human(report: dict[str, Any]) -> str:
     " metadata.yaml, no dated folder name) make an epoch without a date: a year as the label"
     " stands in for it where a year is needed (FVS Inv_Year); comparing needs dates.",
 )  # fmt: skip
-@click.option(
-    "--replace", "replace_missions", is_flag=True,
-    help="A mission whose name the catalog holds, tiled from another folder, replaces it"
-    " (else refused). Re-tiling a mission from its own folder needs no --replace.",
-)  # fmt: skip
+@replace_option
 @memory_option
 @click.option(
     "--accept-poor-georeference", is_flag=True,

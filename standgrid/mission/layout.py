@@ -234,9 +234,19 @@ def discover_layout(path: str | Path) -> MissionLayout:
 
 
 def is_mission_folder(path: str | Path) -> bool:
-    """True when ``path`` is a folder holding anything a mission is made of (what writing a
-    mission with overwrite may replace)."""
-    return Path(path).is_dir() and discover_layout(path).is_mission
+    """True when ``path`` is a mission folder holding nothing else (what writing a mission
+    with overwrite may replace): a folder with any entry the mission layout does not know
+    (notes, a thesis, other missions) is not one."""
+    root = Path(path)
+    if not root.is_dir():
+        return False
+    layout = discover_layout(root)
+    known = {
+        *GRAPH_NAMES, *POSES_CSV_NAMES, "metadata.yaml", *PAYLOAD_FOLDERS, *LAYER_FOLDERS,
+        *(name.split("/")[0] for name in SCAN_FOLDERS), "payloads", "images_rectified", "gnss",
+    }  # fmt: skip
+    strangers = [p for p in root.iterdir() if p.name not in known]
+    return layout.is_mission and not layout.unrecognised and not strangers
 
 
 def layer_name(folder: CloudFolder) -> str:

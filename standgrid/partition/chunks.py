@@ -75,8 +75,9 @@ def source_fields(cloud: PointCloud, source: Path) -> tuple[PointCloud, int]:
       stored as the LAS 1.4 ``scan_angle`` (0.006 degree units, off by at most 0.003
       degrees; :func:`~standgrid.las_fields.scan_angle_from_rank`). A ``scan_angle``
       (formats 6-10, or a PLY/PCD field) is taken as given, in 0.006 degree units.
-    - ``point_source_id`` (a flight line): the tiler sets the mission number there, so a
-      source value other than 0 anywhere is kept as ``source_point_source_id`` (uint16).
+    - ``point_source_id`` (a flight line): the tiler sets the mission number there, so the
+      source's values are kept as ``source_point_source_id`` (uint16; every LAS source has
+      the dimension, so every payload of a LAS mission carries it, 0 or not).
     """
     fields = cloud.fields
     if not {WITHHELD, "scan_angle_rank", "point_source_id"} & fields.keys():
@@ -96,8 +97,7 @@ def source_fields(cloud: PointCloud, source: Path) -> tuple[PointCloud, int]:
                 path=source,
             )
         ids = las_dimension_values("point_source_id", fields.pop("point_source_id"), source)
-        if ids.any():
-            fields[SOURCE_POINT_SOURCE_ID] = ids.astype(np.uint16, copy=False)
+        fields[SOURCE_POINT_SOURCE_ID] = ids.astype(np.uint16, copy=False)
     return PointCloud(cloud.xyz, fields), withheld
 
 

@@ -65,14 +65,6 @@ def conform(cloud: PointCloud, schema: Schema, source: Path) -> PointCloud:
     exactly is refused: ``PointCloudFormatError`` naming ``source``), fill absent fields
     (:data:`FILL_VALUES`, else NaN or 0)."""
     unknown = sorted(set(cloud.fields) - set(schema) - {WITHHELD})
-    if unknown == [SOURCE_POINT_SOURCE_ID]:
-        raise CatalogError(
-            "point_source_id (flight line) values other than 0 here, but 0 at every point of "
-            f"the epoch's first payload, so its tiles have no {SOURCE_POINT_SOURCE_ID!r} field "
-            "to keep them in: every payload of a mission must carry the same fields (tile "
-            "this payload as a mission of its own)",
-            path=source,
-        )
     if unknown:
         raise CatalogError(
             f"fields {unknown} appear here but not in the epoch's first payload; "

@@ -206,14 +206,16 @@ def tile_missions(
         lock = stack.enter_context(writer_lock(path, timeout=options.lock_timeout))
         remove_stale_builds(path)
         if is_catalog(path) and not options.overwrite:
-            with Catalog.writing(path, held=lock) as catalog:
+            with Catalog.writing(path, held=lock, lock_timeout=options.lock_timeout) as catalog:
                 check_existing(catalog, request)
                 return _ingest(catalog, ingests, options, executor, progress)
         refuse_foreign_folder(path)
         if path.is_dir() and not any(path.iterdir()):
             # an empty folder (maybe the current one) becomes the catalog in place
             try:
-                catalog = create_catalog(path, path, lock, placements, request)
+                catalog = create_catalog(
+                    path, path, lock, placements, request, options.lock_timeout
+                )
                 return _ingest(catalog, ingests, options, executor, progress)
             except BaseException:
                 for child in path.iterdir():  # back to the empty folder it was
@@ -223,7 +225,7 @@ def tile_missions(
         # only when complete: a failure or a kill leaves nothing, or the old catalog.
         build = build_folder(path)
         try:
-            catalog = create_catalog(build, path, lock, placements, request)
+            catalog = create_catalog(build, path, lock, placements, request, options.lock_timeout)
             report = _ingest(catalog, ingests, options, executor, progress)
             publish(build, path, timeout=options.lock_timeout)
         except BaseException as exc:

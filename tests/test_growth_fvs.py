@@ -496,3 +496,22 @@ def test_an_epoch_without_a_date_exports_with_its_label_year_or_is_refused_by_na
     assert set(stands["Inv_Year"]) == {2020}
     assert set(stands["SG_Epoch"]) == {"2020"}
     assert "2020: no date; Inv_Year 2020 is its label" in result.stdout
+
+
+def test_an_existing_keyword_file_is_refused_before_anything_is_written(
+    catalog: Path, tmp_path: Path
+) -> None:
+    from click.testing import CliRunner
+
+    from standgrid.cli import cli
+
+    keywords = tmp_path / "stands.key"
+    keywords.write_text("mine\n")
+    out = tmp_path / "stands.db"
+    args = ["export", "fvs", str(catalog), "-o", str(out), "--keywords", str(keywords)]
+    result = CliRunner().invoke(cli, [*args, "--species", "DF"])
+    assert result.exit_code == 1 and "--overwrite replaces it" in result.output
+    assert keywords.read_text() == "mine\n" and not out.exists()  # the .db was written first
+    result = CliRunner().invoke(cli, [*args, "--species", "DF", "--overwrite"])
+    assert result.exit_code == 0, result.output
+    assert out.is_file() and "DSNIN" in keywords.read_text()  # the new keyword file

@@ -100,6 +100,8 @@ def fvs(
     from standgrid._atomic import write_text_atomic
     from standgrid.growth.fvs import export_fvs, keyword_file
 
+    if keywords is not None and keywords.exists() and not overwrite:  # before writing anything
+        raise click.ClickException(f"{keywords} exists (--overwrite replaces it)")
     status(f"exporting FVS stands from {catalog} ...", quiet or as_json)
     report = export_fvs(
         catalog, output, level=level, epochs=epochs or None, variant=variant, species=species,
@@ -113,8 +115,6 @@ def fvs(
             ids = [r[0] for r in conn.execute("SELECT Stand_ID FROM FVS_StandInit")]
         finally:
             conn.close()
-        if keywords.exists() and not overwrite:
-            raise click.ClickException(f"{keywords} exists (--overwrite replaces it)")
         write_text_atomic(keywords, keyword_file(output.resolve(), ids))
         result["keywords"] = str(keywords)
     if report.species_default_used:

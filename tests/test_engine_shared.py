@@ -110,3 +110,36 @@ def test_every_concurrent_task_thread_runs_openmp_on_one_thread() -> None:
         t.join(20)
     assert seen["run_limited"] and set(seen["run_limited"]) == {1}
     assert set(seen["one_thread"]) == {1}
+
+
+def _second_leaves_last() -> None:
+    """Two threads hold the BLAS limit; the one that set it leaves first."""
+    first_in, second_in, first_out = threading.Event(), threading.Event(), threading.Event()
+
+    def first() -> None:
+        with ONE_THREAD_BLAS.held():
+            first_in.set()
+            second_in.wait(5)
+        first_out.set()
+
+    def second() -> None:
+        first_in.wait(5)
+        with ONE_THREAD_BLAS.held():
+            second_in.set()
+            first_out.wait(5)  # the first (which set the limit) has left: this one is last
+
+    threads = [threading.Thread(target=first), threading.Thread(target=second)]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join(10)
+
+
+def test_the_pool_limit_is_restored_whichever_thread_leaves_last() -> None:
+    """The last thread out restores the BLAS limit the first one set, whichever it is (the
+    restore used to run on the leaving thread, and did not take when that was not the
+    thread that had set it: the process stayed at one BLAS thread)."""
+    before = _blas_threads()
+    for _ in range(6):
+        _second_leaves_last()
+        assert _blas_threads() == before

@@ -13,6 +13,10 @@ from __future__ import annotations
 import contextlib
 import threading
 from collections.abc import Callable, Iterator
+from concurrent.futures import ThreadPoolExecutor
+from typing import TypeVar
+
+T = TypeVar("T")
 
 
 class ProcessWide:
@@ -40,10 +44,27 @@ class ProcessWide:
                     undo()
 
 
+_SETTINGS_THREAD: ThreadPoolExecutor | None = None
+_SETTINGS_LOCK = threading.Lock()
+
+
+def _on_settings_thread(call: Callable[[], T]) -> T:
+    """Run ``call`` on one long-lived thread of this process: a pool limit restored from
+    another thread than the one that set it does not take (threadpoolctl 3.8 with OpenBLAS
+    0.3.30: the process stayed at one BLAS thread about half the time)."""
+    global _SETTINGS_THREAD
+    with _SETTINGS_LOCK:
+        if _SETTINGS_THREAD is None:
+            _SETTINGS_THREAD = ThreadPoolExecutor(1, thread_name_prefix="standgrid-settings")
+        pool = _SETTINGS_THREAD
+    return pool.submit(call).result()
+
+
 def _limit_blas() -> Callable[[], None]:
     from threadpoolctl import threadpool_limits
 
-    return threadpool_limits(1, user_api="blas").restore_original_limits
+    limiter = _on_settings_thread(lambda: threadpool_limits(1, user_api="blas"))
+    return lambda: _on_settings_thread(limiter.restore_original_limits)
 
 
 #: BLAS pools of this process at one thread while any task runs. (An OpenMP limit is the

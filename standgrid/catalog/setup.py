@@ -13,6 +13,7 @@ from standgrid.catalog.store import CATALOG_FILE, is_standgrid_catalog
 from standgrid.errors import (
     CRSError,
     GridMismatchError,
+    MissionFolderConflictError,
     OutputExistsError,
     OutputNotWritableError,
     OutputOverlapsInputError,
@@ -215,3 +216,23 @@ def settle_tiling(
     )
     txn.set_tiling_settings(settings)
     return settings
+
+
+def refuse_other_folders(catalog: Catalog, missions: Iterable[tuple[str, Path]]) -> None:
+    """:class:`MissionFolderConflictError` when a mission's name (of ``(name, folder)``) is in
+    the catalog, tiled from another folder: the same name is not the same mission (tiling it
+    would replace that mission's points)."""
+    known = catalog.mission_records
+    for name, folder in missions:
+        record = known.get(name)
+        if record is None or not record.path:
+            continue
+        here = os.path.realpath(folder)
+        if here != os.path.realpath(record.path):
+            raise MissionFolderConflictError(
+                f"the catalog holds a mission {name!r} tiled from another folder, "
+                f"{record.path} (now given: {here}); tiling it would replace that mission's "
+                "points. Replace it with --replace (TileOptions.replace_missions), or tile "
+                "into another catalog",
+                path=catalog.root,
+            )

@@ -17,7 +17,6 @@ from __future__ import annotations
 
 import contextlib
 import math
-import os
 import shutil
 from collections.abc import Sequence
 from dataclasses import dataclass, field
@@ -34,13 +33,13 @@ from standgrid.catalog.setup import (
     existing_crs,
     is_catalog,
     refuse_foreign_folder,
+    refuse_other_folders,
     refuse_overlap,
     settle_tiling,
 )
 from standgrid.engine import SILENT, MemoryBudget, Progress
 from standgrid.errors import (
     CatalogError,
-    MissionFolderConflictError,
     TilingError,
     out_of_space_error,
 )
@@ -99,7 +98,7 @@ class TileOptions:
     placement_tolerance: float | None = None
     #: A mission of a name the catalog holds, tiled from another folder, replaces it (else
     #: :class:`~standgrid.errors.MissionFolderConflictError`). Re-ingesting from the same
-    #: folder needs no leave.
+    #: folder is always allowed.
     replace_missions: bool = False
 
     @property
@@ -267,25 +266,6 @@ def _prepare(
     return Ingest(mission, placement, epoch, date)
 
 
-def refuse_other_folders(catalog: Catalog, ingests: list[Ingest]) -> None:
-    """:class:`MissionFolderConflictError` when a mission's name is in the catalog, tiled
-    from another folder: same name is not the same mission (it would replace its points)."""
-    known = catalog.mission_records
-    for ingest in ingests:
-        record = known.get(ingest.mission.name)
-        if record is None or not record.path:
-            continue
-        here = os.path.realpath(ingest.mission.path)
-        if here != os.path.realpath(record.path):
-            raise MissionFolderConflictError(
-                f"the catalog holds a mission {ingest.mission.name!r} tiled from another "
-                f"folder, {record.path} (now given: {here}); tiling it would replace that "
-                "mission's points. Replace it with --replace (TileOptions.replace_missions), "
-                "or tile into another catalog",
-                path=catalog.root,
-            )
-
-
 def _ingest(
     catalog: Catalog,
     ingests: list[Ingest],
@@ -311,7 +291,7 @@ def _ingest(
             ingest.to_catalog = ingest.placement.to_catalog(catalog.crs, ingest.mission.name)
         renewed = [i.number for i in ingests]
         if not options.replace_missions:
-            refuse_other_folders(catalog, ingests)
+            refuse_other_folders(catalog, [(i.mission.name, i.mission.path) for i in ingests])
         if options.crs in ("auto", "", None):  # the catalog's CRS must suit every mission
             check_area_of_use(catalog, [(i.mission.name, i.placement) for i in ingests])
         # an epoch a re-ingested mission leaves is re-tiled too (without that mission)

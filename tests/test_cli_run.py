@@ -201,6 +201,7 @@ def test_help_has_an_example(command: str) -> None:
     assert "Example:" in result.output
 
 
+@pytest.mark.slow  # a whole CLI run or a cluster in a subprocess (CI runs it)
 def test_compare_help_example_with_another_catalog_runs_verbatim(
     tmp_path: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:

@@ -270,6 +270,7 @@ def test_a_voronoi_catalog_is_the_same_for_any_chunk_layout(
     _assert_same(small, large)
 
 
+@pytest.mark.slow  # a whole CLI run or a cluster in a subprocess (CI runs it)
 def test_ctrl_c_on_a_local_cluster_prints_one_line_and_no_worker_traceback(
     tiled: Path,
 ) -> None:

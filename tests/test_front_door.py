@@ -125,6 +125,7 @@ def test_a_script_through_the_front_door(tmp_path: Path, pair: EnrichedPair) -> 
     assert np.isfinite(rows[["x", "y"]].to_numpy()).all()
 
 
+@pytest.mark.slow  # a whole CLI run or a cluster in a subprocess (CI runs it)
 def test_the_readme_python_snippet_runs_as_a_script(tmp_path: Path) -> None:
     """README's front-door example (it starts dask workers, which Python spawns: they import
     the script again) run verbatim as a script from a folder holding the bundled data."""

@@ -153,7 +153,7 @@ def test_compare_json_on_an_existing_catalog(
     statuses = pd.read_parquet(catalog / report["outputs"]["tree_parquet"])["status"]
     counts = statuses.value_counts().reindex(report["trees"], fill_value=0).to_dict()
     assert report["trees"] == counts
-    assert report["trees"]["removed"] >= 27  # the simulated harvest
+    assert report["trees"]["removed"] >= 25  # the simulated harvest: 27 trees, 90 % found
     assert report["stands"] == {"in_both": 28, "from_only": 0, "to_only": 0}
     changes = pd.read_parquet(catalog / report["outputs"]["stand_parquet"])
     measured = changes["null_reason"].isna()

@@ -142,7 +142,7 @@ def test_tables_and_layers_written_and_read_back(tmp_path):
     assert lower == -upper and upper > 0  # centred on zero: diverging
     tree_qml = ET.fromstring(styles["tree_changes"].split("\n", 1)[1])
     categories = {c.get("value") for c in tree_qml.iter("category")}
-    assert categories == {"grown", "new", "removed"}
+    assert categories == {"grown", "new", "removed", "missed"}
 
 
 def test_chosen_style_field_and_geodataframe_input(tmp_path):

@@ -240,7 +240,8 @@ def test_bad_tree_tables_are_refused():
 
 def _brute_force_cost(before: pd.DataFrame, after: pd.DataFrame) -> float:
     """Minimum total cost over every partial one-to-one matching (the documented objective)."""
-    from standgrid.compare.trees import UNMATCHED_COST, _pair_costs
+    from standgrid.enrich.identity import UNMATCHED_COST
+    from standgrid.enrich.identity import pair_costs as _pair_costs
 
     n, m = len(before), len(after)
     cost = np.full((n, m), np.inf)
@@ -273,7 +274,8 @@ def _brute_force_cost(before: pd.DataFrame, after: pd.DataFrame) -> float:
 
 
 def _result_cost(result) -> float:
-    from standgrid.compare.trees import UNMATCHED_COST, _pair_costs
+    from standgrid.enrich.identity import UNMATCHED_COST
+    from standgrid.enrich.identity import pair_costs as _pair_costs
 
     grown = result.grown
     costs, _ = _pair_costs(
@@ -370,7 +372,7 @@ def test_real_tree_positions_with_simulated_second_epoch():
 
 def test_sparse_solver_of_large_components_equals_dense(monkeypatch):
     """A regeneration-dense stand (6000 stems/ha): candidates chain into big components."""
-    import standgrid.compare.trees as trees_module
+    import standgrid.enrich.identity as trees_module
 
     rng = np.random.default_rng(5)
     n = 600

@@ -7,18 +7,11 @@ import pandas as pd
 import pytest
 from scipy.spatial import cKDTree
 
+from standgrid.enrich.circles import fit_circle, fit_circles, kasa_circle, link_clusters
 from standgrid.enrich.ground import classify_ground
 from standgrid.enrich.rasters import RasterGrid, dtm_from_ground, height_above_ground
-from standgrid.enrich.trees import (
-    fit_circle,
-    fit_circles,
-    fit_stems,
-    kasa_circle,
-    link_clusters,
-    segment_trees,
-    tree_id_from_xy,
-    xy_from_tree_id,
-)
+from standgrid.enrich.stems import find_stems
+from standgrid.enrich.trees import segment_trees, tree_id_from_xy, xy_from_tree_id
 from standgrid.errors import EnrichError
 from tests.conftest import real_file
 
@@ -96,7 +89,7 @@ def match(
 @pytest.mark.parametrize("seed", [0, 1, 2])
 def test_detection_f1_and_height_on_synthetic_crowns(seed: int) -> None:
     xyz, h, truth = synthetic_stand(seed)
-    seg = segment_trees(xyz, h, fit_dbh=False)
+    seg = segment_trees(xyz, h, stems=False)
     table = seg.table
     tall_truth = truth[truth["height"] > 10].reset_index(drop=True)
     tall_detected = table[table["height_m"] > 10].reset_index(drop=True)
@@ -123,14 +116,14 @@ def test_detection_f1_and_height_on_synthetic_crowns(seed: int) -> None:
 
 def test_tree_ids_are_stable_across_overlapping_blocks() -> None:
     xyz, h, _ = synthetic_stand(3)
-    whole = segment_trees(xyz, h, fit_dbh=False).table
+    whole = segment_trees(xyz, h, stems=False).table
     xmid = X0 + 30.0
     halo = 6.0
     owned_parts = []
     for xmin, xmax in ((X0 - 10, xmid), (xmid, X0 + 80)):
         sel = (xyz[:, 0] >= xmin - halo) & (xyz[:, 0] < xmax + halo)
         seg = segment_trees(
-            xyz[sel], h[sel], fit_dbh=False, keep_bounds=(xmin, Y0 - 10, xmax, Y0 + 80)
+            xyz[sel], h[sel], stems=False, keep_bounds=(xmin, Y0 - 10, xmax, Y0 + 80)
         )
         owned = seg.owned()
         assert ((owned["x"] >= xmin) & (owned["x"] < xmax)).all()
@@ -208,26 +201,32 @@ def test_segment_trees_attaches_dbh_to_the_right_trees() -> None:
     assert (stem_offset[table["dbh_m"].notna()] < 0.2).all()
 
 
-def test_fit_stems_rejects_implausible_clusters() -> None:
+def test_find_stems_rejects_blobs_and_a_shrub_is_no_tree() -> None:
     rng = np.random.default_rng(1)
     blob = np.column_stack(
-        [rng.normal(5, 0.3, 300), rng.normal(5, 0.3, 300), rng.uniform(1.2, 1.4, 300)]
+        [rng.normal(5, 0.3, 600), rng.normal(5, 0.3, 600), rng.uniform(0.5, 1.95, 600)]
     )
     stem = np.column_stack(
-        [*arc_points(rng, 9.0, 9.0, 0.15, 360, 400, 0.003).T, rng.uniform(1.0, 2.6, 400)]
+        [*arc_points(rng, 9.0, 9.0, 0.15, 360, 1200, 0.003).T, rng.uniform(0.5, 6.0, 1200)]
     )
-    # a shrub: a stem-like cross-section at 1.3 m, but nothing above 1.8 m
+    # a shrub: stem-like cross-sections from 1.0 to 1.8 m, nothing above
     shrub = np.column_stack(
-        [*arc_points(rng, 2.0, 9.0, 0.2, 360, 200, 0.003).T, rng.uniform(1.0, 1.8, 200)]
+        [*arc_points(rng, 2.0, 9.0, 0.2, 360, 300, 0.003).T, rng.uniform(1.0, 1.8, 300)]
     )
-    xyz = np.concatenate([blob, stem, shrub])
-    stems = fit_stems(xyz, xyz[:, 2], link_distance=0.15)
-    ok = stems[stems["ok"]]
-    assert len(ok) == 1 and abs(ok["dbh_m"].iloc[0] - 0.30) < 0.01
-    shrub_row = stems[np.hypot(stems["x"] - 2.0, stems["y"] - 9.0) < 0.1]
-    assert len(shrub_row) == 1 and not shrub_row["ok"].iloc[0]
-    assert "no stem at" in str(shrub_row["reason"].iloc[0])
-    assert stems.loc[~stems["ok"], "reason"].notna().all() and (~stems["ok"]).any()
+    # a cone of twigs: round, but narrowing by 30 cm per m
+    z = rng.uniform(0.5, 1.95, 600)
+    cone = np.column_stack([*arc_points(rng, 6.0, 2.0, 1.0, 360, 600, 0.003).T, z])
+    cone[:, :2] = (cone[:, :2] - (6.0, 2.0)) * (0.6 - 0.15 * z)[:, None] + (6.0, 2.0)
+    xyz = np.concatenate([blob, stem, shrub, cone])
+    found = find_stems(xyz, xyz[:, 2]).table
+    assert len(found) == 2, found
+    tree = found[np.hypot(found["stem_x"] - 9.0, found["stem_y"] - 9.0) < 0.05]
+    assert len(tree) == 1 and abs(tree["dbh_m"].iloc[0] - 0.30) < 0.01
+    assert tree["lean_deg"].iloc[0] < 1.0 and tree["stem_high_m"].iloc[0] >= 3.4
+    # the shrub's short "stem" is found, but a tree must reach 2 m: it is none
+    trees = segment_trees(xyz, xyz[:, 2]).table
+    assert len(trees) == 1 and trees["detected_by"].iloc[0] == "both"  # its top: its own
+    assert np.hypot(trees["x"].iloc[0] - 9.0, trees["y"].iloc[0] - 9.0) < 0.05
 
 
 def single_linkage(xy: np.ndarray, distance: float) -> tuple[int, np.ndarray]:
@@ -273,14 +272,17 @@ def test_fit_circles_fits_each_set_as_fit_circle() -> None:
     assert together[3] is None and together[0] is not None
 
 
-def test_fit_stems_within_bounds_is_fit_stems_on_the_points_inside() -> None:
+def test_find_stems_within_bounds_keeps_the_stems_standing_inside() -> None:
+    """Stems are chosen by where they stand, from all their points: the same stems as over
+    the whole stand, those inside the bounds."""
     xyz, h, _ = synthetic_stand(4, stems=True)
     bounds = (X0 + 10.0, Y0 + 12.0, X0 + 40.0, Y0 + 35.0)
-    x, y = xyz[:, 0], xyz[:, 1]
+    whole = find_stems(xyz, h).table
+    x, y = whole["stem_x"], whole["stem_y"]
     inside = (x >= bounds[0]) & (x < bounds[2]) & (y >= bounds[1]) & (y < bounds[3])
-    within = fit_stems(xyz, h, within=bounds)
-    assert within["ok"].sum() >= 3
-    pd.testing.assert_frame_equal(within, fit_stems(xyz[inside], h[inside]))
+    within = find_stems(xyz, h, within=bounds).table
+    assert len(within) >= 3
+    pd.testing.assert_frame_equal(within, whole[inside].reset_index(drop=True))
 
 
 @pytest.mark.realdata
@@ -294,13 +296,12 @@ def test_dbh_on_real_terrestrial_pine_plot() -> None:
         (0.0, 0.0, 10.0, 10.0), origin=(0.0, 0.0), cell_size=10.0, pixel_size=0.5
     )
     h = height_above_ground(xyz, dtm_from_ground(xyz[ground], grid), grid)
-    stems = fit_stems(xyz, h)
-    ok = stems[stems["ok"]]
+    ok = find_stems(xyz, h).table
     assert len(ok) >= 10
     assert ok["dbh_m"].between(0.05, 0.6).all()
     assert 0.12 <= ok["dbh_m"].median() <= 0.35
-    assert ok["rmse_m"].median() < 0.01  # tight circles: these are stems
-    assert (ok["n_inliers"] >= 12).all()
+    assert ok["dbh_rmse_m"].median() < 0.01  # tight circles: these are stems
+    assert (ok["stem_circles"] >= 3).all()
 
 
 @pytest.mark.realdata
@@ -309,7 +310,7 @@ def test_real_mixed_conifer_trees_agree_with_lidr_segmentation() -> None:
 
     las = laspy.read(real_file("als/lidR/MixedConifer.laz"))
     xyz = np.column_stack([las.x, las.y, las.z])  # height-normalised already
-    seg = segment_trees(xyz, xyz[:, 2], fit_dbh=False)
+    seg = segment_trees(xyz, xyz[:, 2], stems=False)
     tree_id = np.asarray(las.treeID)
     lidr = pd.DataFrame({"x": xyz[:, 0], "y": xyz[:, 1], "z": xyz[:, 2], "t": tree_id})
     lidr_tops = lidr[lidr["t"] > 0].sort_values("z").groupby("t").tail(1)

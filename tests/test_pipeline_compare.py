@@ -265,7 +265,7 @@ def test_tables_written_and_identical_in_csv_and_parquet(pair: EnrichedPair, ste
 def test_report_counts_match_the_tables(pair: EnrichedPair) -> None:
     report = pair.report["compare"]
     trees = _tree_changes(pair)["status"].value_counts().to_dict()
-    statuses = ("grown", "new", "removed", "unobserved")
+    statuses = ("grown", "new", "removed", "missed", "unobserved")
     assert report["trees"] == {s: trees.get(s, 0) for s in statuses}
     assert report["trees"]["unobserved"] == 0  # both campaigns surveyed the same ground
     stands = _stand_changes(pair)
@@ -348,7 +348,7 @@ def test_change_layers_with_diverging_and_status_styles(pair: EnrichedPair) -> N
     # trees: one colour per status (categorical, the library's documented choice)
     tree_qml = styles["tree_changes"]
     assert 'attr="status"' in tree_qml
-    for status in ("grown", "new", "removed"):
+    for status in ("grown", "new", "removed", "missed"):
         assert f'value="{status}"' in tree_qml
 
 

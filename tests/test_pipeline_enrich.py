@@ -46,12 +46,14 @@ DOCUMENTED_METRICS = [
     "pz_below0p5", "pz0p5to2", "pz2to5", "pz5to10", "pz10to20", "pz20to30", "pz30plus",
     "n_trees", "n_dbh_measured", "n_dbh_imputed", "dbh_measured_share", "stems_ha",
     "basal_area_m2_ha", "qmd_cm", "mean_height_m",
-    "dominant_height_m", "dominant_by", "null_reason",
+    "dominant_height_m", "dominant_by", "n_trees_by_stem", "stem_detected_share",
+    "tree_detection_note", "null_reason",
 ]  # fmt: skip
 DOCUMENTED_TREE_COLUMNS = [
-    "cell_id", "stand_id", "epoch", "tree_id", "x", "y", "z_ground", "height_m", "crown_area_m2",
-    "n_points", "dbh_m", "dbh_reason", "stem_x", "stem_y", "dbh_rmse_m", "dbh_n_points",
-    "dbh_arc_deg", "owned", "observed", "dbh_source", "dbh_se_m",
+    "cell_id", "stand_id", "epoch", "tree_id", "tree_uid", "x", "y", "z_ground", "height_m",
+    "top_x", "top_y", "crown_area_m2", "n_points", "detected_by", "dbh_m", "dbh_se_m",
+    "dbh_reason", "stem_x", "stem_y", "dbh_rmse_m", "dbh_n_points", "dbh_arc_deg", "lean_deg",
+    "stem_low_m", "stem_high_m", "owned", "observed", "dbh_source",
 ]  # fmt: skip
 
 

@@ -110,6 +110,10 @@ def test_viewer_map_epochs_metrics_and_cell_view(
         picks = np.linspace(0, len(rows) - 1, 12).astype(int)
         for r, c in zip(rows[picks], cols[picks], strict=True):
             x, y = src.xy(r, c)
+            # the map holds a value once its COG tile is loaded (slower on a loaded machine)
+            view.page.wait_for_function(
+                "([x, y]) => window.standgrid.chmAt(x, y) !== null", arg=[x, y], timeout=30_000
+            )
             shown = view.js("([x, y]) => window.standgrid.chmAt(x, y)", [x, y])
             assert shown == pytest.approx(float(chm[r, c]), abs=1e-4), (x, y)
 

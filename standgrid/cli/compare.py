@@ -23,6 +23,8 @@ def _human(r: dict[str, Any]) -> str:
         f"{r['epoch_from']} -> {r['epoch_to']} ({r['years']:.2f} years) in {r['catalog']}",
         f"trees: {trees.get('grown', 0)} grown, {trees.get('new', 0)} new,"
         f" {trees.get('removed', 0)} removed (harvested or fallen),"
+        f" {trees.get('missed', 0)} missed (a stem stands there in both surveys, one did not"
+        " make it a tree),"
         f" {trees.get('unobserved', 0)} unobserved (outside the ground both epochs observed:"
         " neither harvest nor ingrowth)",
         f"stand cells: {stands['in_both']} in both epochs, {stands['from_only']} only in"

@@ -34,6 +34,17 @@ def _human(results: list[dict[str, Any]]) -> str:
               show_default=True, help="Points per ~20 m payload (density knob).")  # fmt: skip
 @click.option("--write-georef", is_flag=True,
               help="Also write the true GNSS_LLA_REF / GNSS_LLA_TO_MAP.")  # fmt: skip
+@click.option("--forest", type=click.Choice(["plantation", "mixed"]), default="plantation",
+              show_default=True,
+              help="plantation: evenly spaced vertical trees; mixed: overstorey, understorey, "
+                   "snags, leaning and forked stems, shrubs (scan it with a ray-casting "
+                   "--scanner).")  # fmt: skip
+@click.option("--scanner", type=click.Choice(["surface", "handheld", "legged", "airborne"]),
+              default="surface", show_default=True,
+              help="surface: points on the true surfaces (no occlusion); handheld, legged, "
+                   "airborne: ray casting with occlusion and porous crowns.")  # fmt: skip
+@click.option("--lane-spacing", type=click.FloatRange(min=2.0), default=32.0, show_default=True,
+              help="Largest spacing of the robot's serpentine lanes, metres.")  # fmt: skip
 @overwrite_option
 @json_option
 @quiet_option
@@ -44,6 +55,9 @@ def simulate(
     area: float,
     points_per_payload: int,
     write_georef: bool,
+    forest: str,
+    scanner: str,
+    lane_spacing: float,
     overwrite: bool,
     as_json: bool,
     quiet: bool,
@@ -57,20 +71,20 @@ def simulate(
     Example:
       standgrid simulate data --seed 7 --area 80 --points-per-payload 7000
       standgrid simulate /tmp/bench --epochs 1 --area 200 --points-per-payload 500000 --json
+      standgrid simulate canopy --area 100 --forest mixed --scanner handheld --lane-spacing 15
     """
-    from standgrid.simulate.mission import simulate_mission
+    from standgrid.simulate.mission import SimulationConfig, simulate_mission
 
+    try:
+        config = SimulationConfig(
+            area=area, points_per_payload=points_per_payload, write_georef=write_georef,
+            forest=forest, scanner_kind=scanner, lane_spacing=lane_spacing,
+        )  # fmt: skip
+    except ValueError as exc:
+        raise click.UsageError(str(exc)) from exc
     results = []
     for epoch in range(1, epochs + 1):
         status(f"simulating epoch {epoch} (seed {seed}) ...", quiet or as_json)
-        sim = simulate_mission(
-            out_root,
-            seed=seed,
-            epoch=epoch,
-            overwrite=overwrite,
-            area=area,
-            points_per_payload=points_per_payload,
-            write_georef=write_georef,
-        )
+        sim = simulate_mission(out_root, seed=seed, epoch=epoch, overwrite=overwrite, config=config)
         results.append(sim.summary())
     emit(results, as_json, _human)

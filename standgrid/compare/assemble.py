@@ -20,8 +20,8 @@ if TYPE_CHECKING:
 def locate_trees(matches: Any, trees_from: pd.DataFrame, trees_to: pd.DataFrame) -> Any:
     """Give every matched tree its cell, 1 ha stand and stem position.
 
-    A tree's stand is where enrich put it (the cell holding its top, half-open), taken from
-    the tree lists: the later epoch's for grown and new trees, the earlier one's for removed
+    A tree's stand is where enrich put it (the cell it stands in, half-open), taken from the
+    tree lists: the later epoch's for grown and new trees, the earlier one's for removed
     trees; so is its stem position (the fitted stem, or the top without a stem fit).
     """
     table = matches.table.copy()

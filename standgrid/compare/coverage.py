@@ -99,8 +99,16 @@ def stand_change(
             "co_observed_m2": area,
             "co_observed_fraction": fraction,
         }
-        before = trees[trees["status"].isin(["grown", "removed"])]["dbh_m_from"]
-        after = trees[trees["status"].isin(["grown", "new"])]["dbh_m_to"]
+        # a missed tree stands in both surveys: counted in both, with the DBH one measured
+        missed = trees[trees["status"] == "missed"]
+        either = missed["dbh_m_from"].fillna(missed["dbh_m_to"])
+        before = pd.concat(
+            [trees[trees["status"].isin(["grown", "removed"])]["dbh_m_from"], either]
+        )
+        after = pd.concat(
+            [trees[trees["status"].isin(["grown", "new"])]["dbh_m_to"],
+             missed["dbh_m_to"].fillna(missed["dbh_m_from"])]
+        )  # fmt: skip
         sides = {"from": _per_ha(before, area), "to": _per_ha(after, area)}
         for metric in CO_OBSERVED_METRICS:
             a, b = sides["from"][metric], sides["to"][metric]
@@ -108,7 +116,7 @@ def stand_change(
             row[f"{metric}_delta"] = b - a
             row[f"{metric}_per_year"] = (b - a) / years
         counts = trees["status"].value_counts()
-        for status in ("grown", "removed", "new"):
+        for status in ("grown", "removed", "new", "missed"):
             n = int(counts.get(status, 0))
             row[f"trees_{status}"] = n
             row[f"trees_{status}_per_ha"] = n / area * 10_000.0 if area > 0 else math.nan

@@ -32,8 +32,13 @@ STAND_LAYER = "stand_changes"
 TREE_LAYER = "tree_changes"
 KEY_COLUMNS = ("cell_id", "epoch_from", "epoch_to")
 DEFAULT_STYLE_FIELDS = ("tree_height_growth_m_per_year", "zq95_per_year")
-#: Colours of the tree statuses (grown green, new blue, removed red).
-STATUS_COLOURS = {"grown": "#1a9641", "new": "#2c7bb6", "removed": "#d7191c"}
+#: Colours of the tree statuses (grown green, new blue, removed red, missed grey).
+STATUS_COLOURS = {
+    "grown": "#1a9641",
+    "new": "#2c7bb6",
+    "removed": "#d7191c",
+    "missed": "#969696",
+}
 
 
 @dataclass(frozen=True)

@@ -57,6 +57,7 @@ from typing import Any, TypeAlias
 import numpy as np
 import pandas as pd
 
+from standgrid.enrich.identity import pair_trees
 from standgrid.errors import FormatError, StandgridError
 
 DAYS_PER_YEAR = 365.25
@@ -64,9 +65,6 @@ REQUIRED_TREE_COLUMNS = ("tree_id", "x", "y", "height_m")
 #: Numeric tree attributes compared between epochs (absent columns give null changes).
 TREE_ATTRIBUTES = ("height_m", "dbh_m", "crown_area_m2")
 STATUSES = ("grown", "new", "removed")
-UNMATCHED_COST = 1.0
-#: Components with more trees than this are solved sparse (dense needs (n+m)^2 floats).
-DENSE_LIMIT = 400
 
 DateLike: TypeAlias = dt.date | dt.datetime | str | np.datetime64 | pd.Timestamp
 
@@ -153,112 +151,6 @@ def _check_trees(trees: pd.DataFrame, name: str) -> pd.DataFrame:
     return trees
 
 
-def _pair_costs(
-    h_from: np.ndarray,
-    h_to: np.ndarray,
-    distance: np.ndarray,
-    *,
-    max_distance: float,
-    max_height_loss: float,
-    max_height_gain: float,
-) -> tuple[np.ndarray, np.ndarray]:
-    """Cost of each candidate pair and whether the pair is allowed (see module docstring)."""
-    base = np.where(h_from > 0, h_from, np.nan)
-    relative = (h_to - h_from) / base
-    relative = np.nan_to_num(relative, nan=0.0)
-    loss = np.maximum(0.0, -relative)
-    gain = np.maximum(0.0, relative)
-    allowed = loss <= max_height_loss
-    cost = (
-        (distance / max_distance) ** 2
-        + (loss / max_height_loss) ** 2
-        + (gain / max_height_gain) ** 2
-    )
-    return cost, allowed
-
-
-def _solve_dense(
-    nr: int, nc: int, r: np.ndarray, c: np.ndarray, w: np.ndarray
-) -> tuple[np.ndarray, np.ndarray]:
-    """One component, dense square augmentation solved by ``linear_sum_assignment``."""
-    from scipy.optimize import linear_sum_assignment
-
-    forbidden = 1e6  # larger than any total of allowed costs in one component
-    matrix = np.full((nr + nc, nc + nr), forbidden)
-    matrix[r, c] = w
-    matrix[np.arange(nr), nc + np.arange(nr)] = UNMATCHED_COST  # from tree unmatched
-    matrix[nr + np.arange(nc), np.arange(nc)] = UNMATCHED_COST  # to tree unmatched
-    matrix[nr:, nc:] = 0.0
-    row_ind, col_ind = linear_sum_assignment(matrix)
-    real = (row_ind < nr) & (col_ind < nc) & (matrix[row_ind, col_ind] < forbidden)
-    return row_ind[real], col_ind[real]
-
-
-def _solve_sparse(
-    nr: int, nc: int, r: np.ndarray, c: np.ndarray, w: np.ndarray
-) -> tuple[np.ndarray, np.ndarray]:
-    """One large component: the same augmentation kept sparse (memory ~ candidate pairs).
-
-    Rows: from trees, then one dummy per to tree; columns: to trees, then one dummy per
-    from tree. Edges: candidate pairs (cost w), tree -> own dummy (unmatched cost), and
-    dummy -> dummy along each candidate pair reversed (cost 0). Every edge gets the same
-    +1 offset (a full matching has nr + nc edges, so the optimum is unchanged) because
-    the sparse solver cannot store zero weights.
-    """
-    from scipy.sparse import coo_matrix
-    from scipy.sparse.csgraph import min_weight_full_bipartite_matching
-
-    size = nr + nc
-    rows = np.concatenate([r, np.arange(nr), nr + np.arange(nc), nr + c])
-    cols = np.concatenate([c, nc + np.arange(nr), np.arange(nc), nc + r])
-    weights = 1.0 + np.concatenate(
-        [w, np.full(nr, UNMATCHED_COST), np.full(nc, UNMATCHED_COST), np.zeros(len(r))]
-    )
-    graph = coo_matrix((weights, (rows, cols)), shape=(size, size)).tocsr()
-    row_ind, col_ind = min_weight_full_bipartite_matching(graph)
-    real = (row_ind < nr) & (col_ind < nc)
-    return row_ind[real], col_ind[real]
-
-
-def _assign(
-    n_from: int, n_to: int, rows: np.ndarray, cols: np.ndarray, cost: np.ndarray
-) -> tuple[np.ndarray, np.ndarray]:
-    """Optimal partial one-to-one assignment over sparse candidate pairs.
-
-    Solved per connected component of the candidate graph, each with the square
-    "unmatched" augmentation (dummy rows/columns at :data:`UNMATCHED_COST`): dense for
-    components up to :data:`DENSE_LIMIT` trees, sparse above (a very dense stand can link
-    thousands of trees into one component).
-    """
-    from scipy.sparse import coo_matrix
-    from scipy.sparse.csgraph import connected_components
-
-    if len(rows) == 0:
-        return np.empty(0, np.int64), np.empty(0, np.int64)
-    size = n_from + n_to
-    graph = coo_matrix((np.ones(len(rows)), (rows, cols + n_from)), shape=(size, size)).tocsr()
-    _, labels = connected_components(graph, directed=False)
-    pair_component = labels[rows]
-    order = np.argsort(pair_component, kind="stable")
-    splits = np.flatnonzero(np.diff(pair_component[order])) + 1
-    matched_from: list[np.ndarray] = []
-    matched_to: list[np.ndarray] = []
-    for group in np.split(order, splits):
-        r, c, w = rows[group], cols[group], cost[group]
-        if len(group) == 1:  # lone pair: match it when cheaper than two unmatched trees
-            keep = w < 2 * UNMATCHED_COST
-            matched_from.append(r[keep])
-            matched_to.append(c[keep])
-            continue
-        ur, r_local = np.unique(r, return_inverse=True)
-        uc, c_local = np.unique(c, return_inverse=True)
-        solve = _solve_dense if len(ur) + len(uc) <= DENSE_LIMIT else _solve_sparse
-        i, j = solve(len(ur), len(uc), r_local, c_local, w)
-        matched_from.append(ur[i])
-        matched_to.append(uc[j])
-    return np.concatenate(matched_from), np.concatenate(matched_to)
-
-
 def _nullable_ids(values: pd.Series, index: np.ndarray, present: np.ndarray) -> pd.Series:
     """Ids taken at ``index`` where ``present``, null elsewhere, keeping integer ids integer."""
     picked = values.to_numpy()[np.where(present, index, 0)] if len(values) else None
@@ -295,6 +187,17 @@ def _take_text(values: pd.Series, index: np.ndarray, present: np.ndarray) -> np.
     return out
 
 
+def _same_uid(a: pd.DataFrame, b: pd.DataFrame) -> tuple[np.ndarray, np.ndarray]:
+    """Rows of ``a`` and ``b`` holding the same ``tree_uid``."""
+    for name, frame in (("trees_from", a), ("trees_to", b)):
+        if "tree_uid" not in frame.columns or frame["tree_uid"].isna().any():
+            raise FormatError(f"{name}: tree table lacks tree_uid (enrich the epoch again)")
+    uid_a = a["tree_uid"].to_numpy(np.int64)
+    uid_b = b["tree_uid"].to_numpy(np.int64)
+    _, rows_a, rows_b = np.intersect1d(uid_a, uid_b, return_indices=True)
+    return rows_a.astype(np.int64), rows_b.astype(np.int64)
+
+
 def match_trees(
     trees_from: pd.DataFrame,
     trees_to: pd.DataFrame,
@@ -305,14 +208,15 @@ def match_trees(
     max_height_loss: float = 0.30,
     max_height_gain: float = 1.0,
     height_tolerance_m: float = 0.5,
+    by_uid: bool = False,
 ) -> TreeMatches:
     """Match trees of two epochs one to one (rule and thresholds: module docstring).
 
     Tree tables need ``tree_id``, ``x``, ``y`` (float64, projected metres) and ``height_m``;
     ``dbh_m`` and ``crown_area_m2`` are compared when present. Other columns are ignored.
+    ``by_uid``: the trees of one catalog's epochs, paired by their ``tree_uid`` (given by the
+    same rule when each epoch was enriched, :mod:`standgrid.enrich.identity`).
     """
-    from scipy.spatial import cKDTree
-
     if not max_distance > 0 or not 0 < max_height_loss < 1 or not max_height_gain > 0:
         raise ChangeInputError(
             "need max_distance > 0, 0 < max_height_loss < 1 and max_height_gain > 0"
@@ -325,23 +229,13 @@ def match_trees(
     h_a = a["height_m"].to_numpy(dtype=np.float64)
     h_b = b["height_m"].to_numpy(dtype=np.float64)
 
-    if len(a) and len(b):
-        neighbours = cKDTree(xy_b).query_ball_point(xy_a, r=max_distance)
-        counts = np.fromiter((len(n) for n in neighbours), np.int64, len(neighbours))
-        rows = np.repeat(np.arange(len(a), dtype=np.int64), counts)
-        cols = np.fromiter((j for n in neighbours for j in n), np.int64, int(counts.sum()))
+    if by_uid:
+        match_a, match_b = _same_uid(a, b)
     else:
-        rows = cols = np.empty(0, np.int64)
-    distance = np.hypot(*(xy_b[cols] - xy_a[rows]).T) if len(rows) else np.empty(0)
-    cost, allowed = _pair_costs(
-        h_a[rows],
-        h_b[cols],
-        distance,
-        max_distance=max_distance,
-        max_height_loss=max_height_loss,
-        max_height_gain=max_height_gain,
-    )
-    match_a, match_b = _assign(len(a), len(b), rows[allowed], cols[allowed], cost[allowed])
+        match_a, match_b = pair_trees(
+            xy_a, h_a, xy_b, h_b, max_distance=max_distance,
+            max_height_loss=max_height_loss, max_height_gain=max_height_gain,
+        )  # fmt: skip
 
     unmatched_a = np.setdiff1d(np.arange(len(a)), match_a)
     unmatched_b = np.setdiff1d(np.arange(len(b)), match_b)

@@ -3,8 +3,10 @@
 - :mod:`.ground`: ``classify_ground`` (Cloth Simulation Filter).
 - :mod:`.rasters`: ``RasterGrid`` aligned to the stand grid, ``dtm_from_ground``,
   ``height_above_ground``, ``chm``, ``density``, ``write_cog`` / ``read_raster``.
-- :mod:`.trees`: ``segment_trees`` (CHM tops + watershed crowns, DBH from stems), ``fit_stems``,
-  ``fit_circle``, stable ``tree_id_from_xy``.
+- :mod:`.stems`: ``find_stems`` (stems as vertical chains of circles: position, lean, DBH).
+- :mod:`.crowns`: ``grow_crowns`` (every point to the stem it grows from: shortest paths).
+- :mod:`.trees`: ``segment_trees`` (stems first, crowns from stems, canopy tops where no stem
+  is seen), stable ``tree_id_from_xy``; :mod:`.circles`: ``fit_circle``, ``fit_circles``.
 - :mod:`.metrics`: ``area_metrics`` (lidR ``stdmetrics_z`` set per cell), ``tree_metrics``
   (stems/ha, basal area, QMD, mean and dominant height). Definitions: docs/METRICS.md.
 """
@@ -38,7 +40,6 @@ from standgrid.enrich.trees import (
     TreeSegmentation,
     default_window,
     fit_circle,
-    fit_stems,
     kasa_circle,
     segment_trees,
     tree_id_from_xy,
@@ -66,7 +67,6 @@ __all__ = [
     "density",
     "dtm_from_ground",
     "fit_circle",
-    "fit_stems",
     "height_above_ground",
     "kasa_circle",
     "read_raster",

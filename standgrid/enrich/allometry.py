@@ -112,7 +112,8 @@ def impute_dbh(trees: Any, model: HeightDiameterModel | None) -> Any:
     """Fill ``dbh_m`` of the trees without a measured DBH; returns a new table.
 
     Adds ``dbh_source`` (``measured`` | ``imputed`` | ``none``) and ``dbh_se_m``; measured
-    trees keep their fit (standard error ``2 rmse / sqrt(n)`` of the circle fit). Without a
+    trees keep their fit and its standard error (the table's ``dbh_se_m``, else ``2 rmse /
+    sqrt(n)`` of the circle fit). Without a
     model, unmeasured trees keep a null DBH and ``dbh_reason`` says why.
     """
     import pandas as pd
@@ -122,7 +123,9 @@ def impute_dbh(trees: Any, model: HeightDiameterModel | None) -> Any:
     measured = np.isfinite(dbh)
     source = np.where(measured, "measured", "none").astype(object)
     se = np.full(len(table), np.nan)
-    if "dbh_rmse_m" in table.columns and "dbh_n_points" in table.columns:
+    if "dbh_se_m" in table.columns:  # a stem's own (its circles' spread and residuals)
+        se[measured] = table["dbh_se_m"].to_numpy(dtype=np.float64)[measured]
+    elif "dbh_rmse_m" in table.columns and "dbh_n_points" in table.columns:
         rmse = table["dbh_rmse_m"].to_numpy(dtype=np.float64)
         n = table["dbh_n_points"].to_numpy(dtype=np.float64)
         with np.errstate(invalid="ignore", divide="ignore"):

@@ -28,7 +28,7 @@ REASON_NO_TREES = "no trees detected"
 REASON_NO_DBH = "basal area and QMD unknown: trees without a DBH"
 
 
-def _fmt(value: float) -> str:
+def fmt_break(value: float) -> str:
     """2 -> '2', 0.5 -> '0p5' (column-name safe)."""
     text = f"{value:g}"
     return text.replace(".", "p").replace("-", "m")
@@ -37,9 +37,9 @@ def _fmt(value: float) -> str:
 def strata_columns(strata: Sequence[float] = DEFAULT_STRATA) -> list[str]:
     """Names of the strata proportions: ``pz_below0p5``, ``pz0p5to2``, ..., ``pz30plus``."""
     edges = list(strata)
-    names = [f"pz_below{_fmt(edges[0])}"]
-    names += [f"pz{_fmt(lo)}to{_fmt(hi)}" for lo, hi in pairwise(edges)]
-    names.append(f"pz{_fmt(edges[-1])}plus")
+    names = [f"pz_below{fmt_break(edges[0])}"]
+    names += [f"pz{fmt_break(lo)}to{fmt_break(hi)}" for lo, hi in pairwise(edges)]
+    names.append(f"pz{fmt_break(edges[-1])}plus")
     return names
 
 
@@ -146,7 +146,7 @@ def area_metrics_sorted(
         n_first = np.bincount(dense[f], minlength=len(measured))
         above = np.bincount(dense[f & (h > height_break)], minlength=len(measured))
         with np.errstate(invalid="ignore", divide="ignore"):
-            table[f"cover_first_above{_fmt(height_break)}"] = np.where(
+            table[f"cover_first_above{fmt_break(height_break)}"] = np.where(
                 n_first > 0, 100.0 * above / np.maximum(n_first, 1), np.nan
             )
 
@@ -280,7 +280,7 @@ def _sorted_metrics(
         out["zkurt"] = np.where(varies, n * m4 / (m2 * m2), np.nan)
         out["zentropy"] = _entropy(count_below, zmax, entropy_bin)
         out["pzabovezmean"] = 100.0 * (n - count_below(zmean, inclusive=True)) / n
-        out[f"pzabove{_fmt(height_break)}"] = (
+        out[f"pzabove{fmt_break(height_break)}"] = (
             100.0 * (n - count_below(height_break, inclusive=True)) / n
         )
         for p in QUANTILE_PERCENTS:  # R quantile type 7 (numpy 'linear')
@@ -345,7 +345,7 @@ def _metric_names(height_break: float, strata: list[float]) -> list[str]:
         "zkurt",
         "zentropy",
         "pzabovezmean",
-        f"pzabove{_fmt(height_break)}",
+        f"pzabove{fmt_break(height_break)}",
         *(f"zq{p}" for p in QUANTILE_PERCENTS),
         *(f"zpcum{k}" for k in range(1, 10)),
         *strata_columns(strata),

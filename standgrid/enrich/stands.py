@@ -18,6 +18,7 @@ import numpy as np
 import pandas as pd
 from numpy.typing import NDArray
 
+from standgrid.enrich.metrics import fmt_break
 from standgrid.errors import EnrichError
 
 INSUFFICIENT_COVERAGE = "insufficient_coverage"
@@ -36,7 +37,31 @@ SAMPLE_COLUMNS = (
     "density_pts_m2",
 )
 #: Counts of the tree sample: null with the metrics, never "changed" either.
-TREE_COUNT_COLUMNS = ("n_trees", "n_dbh_measured", "n_dbh_imputed", "dbh_measured_share")
+TREE_COUNT_COLUMNS = (
+    "n_trees",
+    "n_dbh_measured",
+    "n_dbh_imputed",
+    "dbh_measured_share",
+    "n_trees_by_stem",
+    "stem_detected_share",
+    "tree_detection_note",
+)
+#: Below this share of trees found from their stem, the trees come from canopy tops
+#: (airborne data, or stems a ground robot could not see): the stand table says what that
+#: misses.
+MIN_STEM_SHARE = 0.5
+#: Share of returns above the height break over a stand that shows a canopy stands there.
+MIN_CANOPY_PERCENT = 10.0
+TOPS_ONLY_NOTE = (
+    "trees found from canopy tops ({by_stem} of {n} from their stem): trees under the "
+    "canopy (understorey, suppressed) are not seen from above, so stems_ha and "
+    "basal_area_m2_ha are lower bounds"
+)
+NO_TOP_IN_STAND = (
+    "no tree top in the stand, yet {cover:.0f} % of its returns are canopy above {brk:g} m: "
+    "the crowns over it belong to trees whose tops stand in neighbouring stands (trees "
+    "found from canopy tops), so its stems and basal area are unknown, not 0"
+)
 
 
 @dataclass(frozen=True)
@@ -118,22 +143,41 @@ class StandSample:
 
 
 def stand_row(
-    sample: StandSample, rule: CoverageRule, *, height_break: float = 2.0
+    sample: StandSample,
+    rule: CoverageRule,
+    *,
+    height_break: float = 2.0,
+    tops_only: bool = False,
 ) -> dict[str, Any]:
     """One ``stand_metrics`` row (columns: docs/METRICS.md)."""
-    return stand_rows_of([sample], rule, height_break=height_break)[0]
+    return stand_rows_of([sample], rule, height_break=height_break, tops_only=tops_only)[0]
 
 
 def stand_rows_of(
-    samples: list[StandSample], rule: CoverageRule, *, height_break: float = 2.0
+    samples: list[StandSample],
+    rule: CoverageRule,
+    *,
+    height_break: float = 2.0,
+    tops_only: bool = False,
 ) -> list[dict[str, Any]]:
     """The ``stand_metrics`` row of each sample (area metrics measured where not yet, tree
-    metrics for many at once)."""
+    metrics for many at once). ``tops_only``: the epoch's trees come mostly from canopy tops
+    (:func:`tops_only`), so a stand under canopy without a tree top of its own has unknown
+    stems, not none."""
     measure_heights(samples, height_break=height_break)
     rows: list[dict[str, Any]] = []
     for start in range(0, len(samples), TREE_BATCH):
-        rows += _batch_rows(samples[start : start + TREE_BATCH], rule)
+        batch = samples[start : start + TREE_BATCH]
+        rows += _batch_rows(batch, rule, height_break, tops_only)
     return rows
+
+
+def tops_only(trees: pd.DataFrame) -> bool:
+    """Whether fewer than :data:`MIN_STEM_SHARE` of ``trees`` were found from their stem
+    (airborne data: the stand table says what canopy tops miss)."""
+    if not len(trees) or "detected_by" not in trees.columns:
+        return False
+    return float(trees["detected_by"].isin(("stem", "both")).mean()) < MIN_STEM_SHARE
 
 
 #: Heights measured at once (~100 MB of working arrays).
@@ -184,7 +228,9 @@ def _measure_batch(samples: list[StandSample], height_break: float, sort_heights
         sample.area = row
 
 
-def _batch_rows(samples: list[StandSample], rule: CoverageRule) -> list[dict[str, Any]]:
+def _batch_rows(
+    samples: list[StandSample], rule: CoverageRule, height_break: float, tops: bool
+) -> list[dict[str, Any]]:
     from standgrid.enrich.metrics import tree_metrics
 
     keys = np.arange(len(samples), dtype=np.int64)
@@ -203,10 +249,41 @@ def _batch_rows(samples: list[StandSample], rule: CoverageRule) -> list[dict[str
         cells=keys,
         dbh_measured=None if source is None else (source == "measured").to_numpy(dtype=bool),
     )
-    return [
-        _row(sample, sample.area or {}, tree_row, rule)
-        for sample, tree_row in zip(samples, tree_table.to_dict("records"), strict=True)
-    ]
+    by_stem = np.zeros(len(samples), dtype=np.int64)
+    if "detected_by" in trees.columns and len(trees):
+        stem_found = trees["detected_by"].isin(("stem", "both")).to_numpy(dtype=bool)
+        by_stem = np.bincount(trees["_key"].to_numpy(np.int64)[stem_found], minlength=len(samples))
+    rows = []
+    for k, (sample, tree_row) in enumerate(
+        zip(samples, tree_table.to_dict("records"), strict=True)
+    ):
+        _detection(tree_row, int(by_stem[k]), sample.area or {}, height_break, tops)
+        rows.append(_row(sample, sample.area or {}, tree_row, rule))
+    return rows
+
+
+def _detection(
+    tree_row: dict[str, Any],
+    by_stem: int,
+    area_row: dict[str, Any],
+    height_break: float,
+    tops: bool,
+) -> None:
+    """Say in ``tree_row`` how its trees were found and what that misses (in place): trees
+    found from their stem, their share, a note where most came from canopy tops, and null
+    counts for a stand under canopy whose trees' tops all stand elsewhere."""
+    n = int(tree_row["n_trees"])
+    tree_row["n_trees_by_stem"] = by_stem
+    tree_row["stem_detected_share"] = by_stem / n if n else math.nan
+    note = None
+    if n and by_stem < MIN_STEM_SHARE * n:
+        note = TOPS_ONLY_NOTE.format(by_stem=by_stem, n=n)
+    cover = float(area_row.get(f"pzabove{fmt_break(height_break)}", math.nan))
+    if not n and tops and cover >= MIN_CANOPY_PERCENT:
+        for name in ("stems_ha", "basal_area_m2_ha", "qmd_cm"):
+            tree_row[name] = math.nan
+        tree_row["null_reason"] = NO_TOP_IN_STAND.format(cover=cover, brk=height_break)
+    tree_row["tree_detection_note"] = note
 
 
 def _row(
@@ -380,6 +457,7 @@ def stand_rows(
     for stand in stands:
         frames = [by_cell[m] for m in stand.members if m in by_cell]
         stand.trees = pd.concat(frames, ignore_index=True) if frames else empty
-    return stand_rows_of(cells, rule, height_break=height_break) + stand_rows_of(
-        stands, rule, height_break=height_break
+    tops = tops_only(trees)
+    return stand_rows_of(cells, rule, height_break=height_break, tops_only=tops) + stand_rows_of(
+        stands, rule, height_break=height_break, tops_only=tops
     )

@@ -1,31 +1,36 @@
-"""Individual trees: crowns from the canopy height model, stems (DBH) from a slice at 1.3 m.
+"""Individual trees: stems first, crowns grown from them, canopy tops where no stem is seen.
 
-Segmentation (points already height-normalised, i.e. ground removed by height):
+Points already height-normalised (``heights`` = height above ground):
 
-1. a canopy height model (CHM) of the points above ``min_height`` at ``pixel_size``, lightly
-   smoothed (3x3 Gaussian);
-2. tree tops = CHM local maxima within a height-dependent circular window (lidR ``lmf``,
-   default diameter ``2 + 0.05 h`` m, 2-6 m), plateaus merged;
-3. crowns = marker-controlled watershed of the inverted CHM (scikit-image), a pixel kept
-   only while it is at least ``crown_fraction`` of its tree's height;
-4. points get the label of their pixel's crown (points above ``point_min_height``).
+1. **stems** (:mod:`.stems`): vertical chains of circles fitted in thin slices from 0.7 m to
+   3.4 m; every stem is a tree (overstorey, understorey, dead snags), its DBH measured;
+2. **canopy tops**: a canopy height model (CHM) of the points above ``min_height`` at
+   ``pixel_size``, lightly smoothed (3x3 Gaussian), its local maxima within a
+   height-dependent circular window (lidR ``lmf``, diameter ``2 + 0.05 h`` m, 2-6 m) and a
+   marker-controlled watershed of the inverted CHM (scikit-image), a pixel kept only while
+   it is at least ``crown_fraction`` of its top's height;
+3. **tops on stems** (:func:`_tops_of_stems`): each top goes to the stem it stands over,
+   the stoutest, whose crown grows into it (``detected_by = both``); a top no stem carries
+   is a tree of its own (``detected_by = top``: airborne scans, stems hidden from a ground
+   robot); stems without a top of their own (understorey under a crown, snags) are
+   ``detected_by = stem``;
+4. **crowns** (:mod:`.crowns`): every point goes to the tree it is nearest to along the
+   vegetation (directed shortest paths through a voxel graph from every trunk and apex,
+   dear going down), so each tree's height is its own top and a small tree under a big
+   crown keeps its own height.
 
-Each tree's position is its highest point; its ``tree_id`` is derived from that position at
-0.1 m (:func:`tree_id_from_xy`), so the same tree found in two overlapping processing blocks
-has the same id. Process blocks with a halo wider than a crown and keep a tree in the block
-that contains its top (``keep_bounds``; half-open, like the stand cells).
-
-DBH: points 1.3 +- 0.15 m above ground are linked into clusters (``link_distance``); each
-cluster gets a RANSAC circle (3-point samples) refined by robust geometric least squares
-(soft-L1 loss, iteratively reweighted Gauss-Newton) seeded by the algebraic (Kasa) fit, and is
-rejected with a reason when it has too few inliers, a large residual, a short arc or an
-implausible radius. Accepted stems are matched to the nearest tree top in whose crown
-they stand (or within ``max_stem_offset``).
+A tree stands where its stem is at breast height (``x``, ``y`` = ``stem_x``, ``stem_y``),
+or under its top when no stem was seen; its top is its highest point (``top_x``, ``top_y``,
+``height_m``). Its ``tree_id`` is derived from where it stands at 0.1 m
+(:func:`tree_id_from_xy`), so the same tree found in two overlapping processing blocks has
+the same id. Process blocks with a halo wider than a crown and keep a tree in the block that
+contains it (``keep_bounds``; half-open, like the stand cells).
 """
 
 from __future__ import annotations
 
-from collections.abc import Callable, Sequence
+import math
+from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
 
@@ -33,43 +38,83 @@ import numpy as np
 import pandas as pd
 from numpy.typing import NDArray
 
+from standgrid.enrich.circles import CircleFit, fit_circle, fit_circles, kasa_circle, link_clusters
+from standgrid.enrich.crowns import CrownOptions, VoxelGraph
 from standgrid.enrich.ground import PointsLike, as_xyz
 from standgrid.enrich.rasters import RasterGrid, chm
+from standgrid.enrich.stems import StemOptions, StemSet, empty_stems, find_stems, stem_points
 from standgrid.errors import EnrichError
+
+__all__ = [
+    "TREE_COLUMNS",
+    "CircleFit",
+    "TreeSegmentation",
+    "default_window",
+    "fit_circle",
+    "fit_circles",
+    "kasa_circle",
+    "link_clusters",
+    "segment_trees",
+    "tree_id_from_xy",
+    "xy_from_tree_id",
+]
 
 ID_RESOLUTION_M = 0.1
 #: Each canopy point also marks a disc of this radius in the CHM (lidR's ``subcircle``): a
 #: pit-free surface, so sparse crowns do not split into several tops.
 CHM_SUBCIRCLE_M = 0.2
-#: With ``keep_bounds``, stems are fitted this far around the block's own area only (a stem
-#: stands within its crown, and a tree is kept where its top is).
-STEM_SEARCH_MARGIN_M = 3.0
+#: With ``keep_bounds``, stems are looked for this far around the block's own area: a stem
+#: there may grow into the crowns above the block's own points.
+STEM_SEARCH_MARGIN_M = 8.0
+#: A stem carries a canopy top at most this many times its DBH above breast height (a
+#: slenderness h/d of 150: understorey stems under a crown whose own stem was not seen do
+#: not take it over).
+MAX_SLENDERNESS = 150.0
+BREAST_HEIGHT_M = 1.3
+#: Open air (m) between a trunk's top and a crown over it that costs a stem as much as
+#: leaving the crown unpaired (a snag under another tree's crown).
+CROWN_GAP_SCALE_M = 10.0
+#: An apex the CHM missed is looked for this far (m) from a stem's axis.
+APEX_REACH_M = 1.5
+#: The highest points over a stem tried as its apex.
+APEX_TRIES = 50
+#: A top-only tree's DBH reason names a stem fit rejected this close to it (m).
+REJECTED_FIT_REACH_M = 1.0
 _X_OFFSET = 1 << 30
 _Y_OFFSET = 1 << 31
 
 REASON_NO_STEM = "no stem points at 1.3 m near the tree"
+#: How a tree was found (the ``detected_by`` column).
+STEM, BOTH, TOP = "stem", "both", "top"
 TREE_COLUMNS = [
     "tree_id",
     "x",
     "y",
     "z_ground",
     "height_m",
+    "top_x",
+    "top_y",
     "crown_area_m2",
     "n_points",
+    "detected_by",
     "dbh_m",
+    "dbh_se_m",
     "dbh_reason",
     "stem_x",
     "stem_y",
     "dbh_rmse_m",
     "dbh_n_points",
     "dbh_arc_deg",
+    "lean_deg",
+    "stem_low_m",
+    "stem_high_m",
     "owned",
     "crown",
 ]
 
 
 def tree_id_from_xy(x: NDArray[np.float64], y: NDArray[np.float64]) -> NDArray[np.int64]:
-    """Stable int64 id of a tree top: its x, y rounded to 0.1 m, packed as
+    """Stable int64 id of a tree position: its x, y rounded to 0.1 m, packed as
     ``(round(x/0.1) + 2**30) << 32 | (round(y/0.1) + 2**31)`` (|x| < 1.07e7 m, |y| < 2.1e7 m)."""
     ix = np.round(np.asarray(x, dtype=np.float64) / ID_RESOLUTION_M).astype(np.int64) + _X_OFFSET
     iy = np.round(np.asarray(y, dtype=np.float64) / ID_RESOLUTION_M).astype(np.int64) + _Y_OFFSET
@@ -79,7 +124,7 @@ def tree_id_from_xy(x: NDArray[np.float64], y: NDArray[np.float64]) -> NDArray[n
 
 
 def xy_from_tree_id(tree_id: NDArray[np.int64]) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
-    """The 0.1 m tree-top position encoded in ``tree_id``."""
+    """The 0.1 m tree position encoded in ``tree_id``."""
     ids = np.asarray(tree_id, dtype=np.int64)
     ix = (ids >> 32) - _X_OFFSET
     iy = (ids & 0xFFFFFFFF) - _Y_OFFSET
@@ -97,19 +142,32 @@ def default_window(height: NDArray[np.float64]) -> NDArray[np.float64]:
 @dataclass(frozen=True)
 class TreeSegmentation:
     """``table``: one row per tree (columns :data:`TREE_COLUMNS`; ``crown`` holds shapely
-    polygons); ``labels``: per point, 1-based row of ``table`` (uint32, 0 = no tree)."""
+    polygons of the owned trees); ``labels``: per point, 1-based row of ``table`` (uint32,
+    0 = no tree)."""
 
     table: pd.DataFrame
     labels: NDArray[np.uint32]
 
     def owned(self) -> pd.DataFrame:
-        """The trees whose top lies in the block (``keep_bounds``) of the segmentation."""
+        """The trees standing in the block (``keep_bounds``) of the segmentation."""
         return self.table[self.table["owned"].to_numpy(dtype=bool)].reset_index(drop=True)
 
     def point_tree_ids(self) -> NDArray[np.int64]:
         """Per point, the stable ``tree_id`` of its tree (0 = none)."""
         ids = np.concatenate([[0], self.table["tree_id"].to_numpy(dtype=np.int64)])
         return ids[self.labels]
+
+
+@dataclass(frozen=True)
+class _Tops:
+    """Canopy tops: the CHM lattice, its crown segments (0 = none), each kept segment's
+    number and highest point (a row of the points), and each point's segment."""
+
+    grid: RasterGrid
+    crowns: NDArray[np.int64]
+    seeds: NDArray[np.int64]
+    top_rows: NDArray[np.int64]
+    point_segment: NDArray[np.int64]
 
 
 def segment_trees(
@@ -122,26 +180,121 @@ def segment_trees(
     crown_fraction: float = 0.3,
     point_min_height: float = 0.5,
     keep_bounds: tuple[float, float, float, float] | None = None,
-    fit_dbh: bool = True,
-    max_stem_offset: float = 1.0,
-    stem_options: dict[str, Any] | None = None,
+    stems: bool = True,
+    stem_options: StemOptions | None = None,
+    crown_options: CrownOptions | None = None,
 ) -> TreeSegmentation:
-    """Segment trees in height-normalised points (``heights`` = height above ground)."""
-    from scipy import ndimage
-    from skimage.measure import label as label_regions
-    from skimage.segmentation import watershed
-
+    """Trees in height-normalised points (``heights`` = height above ground; module doc).
+    ``stems=False``: canopy tops only (the airborne recipe)."""
     xyz = as_xyz(points)
     h = np.asarray(heights, dtype=np.float64)
     if h.shape != (len(xyz),):
         raise EnrichError(f"{h.shape} heights for {len(xyz)} points")
-    labels = np.zeros(len(xyz), dtype=np.uint32)
     finite = np.isfinite(h)
-    canopy = finite & (h >= min_height)
-    if not canopy.any():
-        return TreeSegmentation(_empty_table(), labels)
+    search = None
+    if keep_bounds is not None:  # stems that can reach the block's own points
+        x0, y0, x1, y1 = keep_bounds
+        m = STEM_SEARCH_MARGIN_M
+        search = (x0 - m, y0 - m, x1 + m, y1 + m)
+    found = find_stems(xyz, h, within=search, options=stem_options) if stems else empty_stems()
+    tops = _canopy_tops(xyz, h, finite, pixel_size, min_height, window, crown_fraction)
 
-    # 1. CHM on a lattice aligned to multiples of the pixel size (same pixels in every block)
+    # trees: the stems (numbered first), each with the canopy top it carries, then the tops
+    # no stem carries; every tree grows its crown from its stem and its apex
+    n_stems = len(found)
+    graph = VoxelGraph(xyz, h, crown_options)
+    # the trunks' voxels (a voxel centre is up to half a voxel's diagonal off its points)
+    stem_voxels, stem_of = stem_points(
+        graph.centres, graph.heights, found.table, widen=graph.voxel_size / math.sqrt(2)
+    )
+    stem_reach, _ = graph.reach(stem_voxels, stem_of)  # crowns grown from the stems alone
+    trunk_top = np.full(n_stems, -np.inf)  # where each trunk was last seen
+    np.maximum.at(trunk_top, stem_of, graph.heights[stem_voxels])
+    stem_top = _tops_of_stems(found.table, tops, xyz, h, graph, stem_reach, trunk_top)
+    top_tree = np.full(len(tops.seeds), -1, dtype=np.int64)
+    top_tree[stem_top[stem_top >= 0]] = np.flatnonzero(stem_top >= 0)
+    top_only = np.flatnonzero((top_tree < 0) & ~_secondary_tops(tops, xyz, h, graph,
+                                                                stem_reach, stem_top))  # fmt: skip
+    top_tree[top_only] = n_stems + np.arange(len(top_only))
+    # a stem carrying no canopy top may have one the CHM smoothed away (a sparse apex)
+    lone = np.flatnonzero(stem_top < 0)
+    apex = _apexes_over_stems(found.table.iloc[lone], tops, xyz, h, finite, min_height, window)
+    has_apex = apex >= 0
+    seeded = top_tree >= 0  # a secondary top is its tree's crown, no seed
+    sources = np.concatenate([stem_voxels, graph.voxels(tops.top_rows[seeded]),
+                              graph.voxels(apex[has_apex])])  # fmt: skip
+    source_trees = np.concatenate([stem_of, top_tree[seeded], lone[has_apex]])
+    label = graph.labels(graph.reach(sources, source_trees)[0])
+    label[~(finite & (h >= point_min_height))] = -1
+
+    # a tree's top is its apex (the canopy top it carries), else its highest point; a stem
+    # tree too short to be a tree (a stump, a shrub's stems) is dropped
+    n_trees = n_stems + len(top_only)
+    labelled = np.flatnonzero(label >= 0)
+    if not len(labelled):
+        return TreeSegmentation(_empty_table(), np.zeros(len(xyz), dtype=np.uint32))
+    tree_of = label[labelled]
+    highest = np.full(n_trees, -np.inf)
+    np.maximum.at(highest, tree_of, h[labelled])
+    at_top = labelled[h[labelled] >= highest[tree_of]]
+    order = at_top[np.lexsort((xyz[at_top, 1], xyz[at_top, 0], label[at_top]))]
+    first = np.concatenate([[True], label[order][1:] != label[order][:-1]])
+    top_row = np.full(n_trees, -1, dtype=np.int64)
+    top_row[label[order][first]] = order[first]
+    top_row[top_tree[seeded]] = tops.top_rows[seeded]
+    top_row[lone[has_apex]] = apex[has_apex]
+    highest = np.where(top_row >= 0, h[np.maximum(top_row, 0)], highest)
+    kept = (top_row >= 0) & (highest >= min_height)
+    row_of_tree = np.zeros(n_trees, dtype=np.int64)  # 1-based table row, 0 = dropped
+    row_of_tree[np.flatnonzero(kept)] = np.arange(1, int(kept.sum()) + 1)
+    labels = np.zeros(len(xyz), dtype=np.uint32)
+    labels[labelled] = row_of_tree[tree_of]
+
+    carries_top = stem_top >= 0
+    carries_top[lone[has_apex]] = True
+    table = _table(xyz, h, found, carries_top, top_row, kept, labels, keep_bounds)
+    owned = np.flatnonzero(table["owned"].to_numpy(dtype=bool))
+    crowns: list[object] = [None] * len(table)
+    for k, (polygon, area) in _footprints(xyz, h, labels, table, owned, pixel_size,
+                                          crown_fraction).items():  # fmt: skip
+        crowns[k] = polygon
+        table.loc[k, "crown_area_m2"] = area
+    table["crown"] = crowns
+    table["tree_id"] = _unique_ids(table)
+    return TreeSegmentation(table[TREE_COLUMNS], labels)
+
+
+def _empty_table() -> pd.DataFrame:
+    table = pd.DataFrame({name: pd.Series(dtype=float) for name in TREE_COLUMNS})
+    for column in ("tree_id", "n_points", "dbh_n_points"):
+        table[column] = table[column].astype(np.int64)
+    table["owned"] = table["owned"].astype(bool)
+    for column in ("dbh_reason", "detected_by"):
+        table[column] = table[column].astype("string")
+    table["crown"] = table["crown"].astype(object)
+    return table
+
+
+def _canopy_tops(
+    xyz: NDArray[np.float64],
+    h: NDArray[np.float64],
+    finite: NDArray[np.bool_],
+    pixel_size: float,
+    min_height: float,
+    window: Callable[[NDArray[np.float64]], NDArray[np.float64]],
+    crown_fraction: float,
+) -> _Tops:
+    """CHM local maxima and their watershed crowns (steps 3 of the module doc)."""
+    from scipy import ndimage
+    from skimage.measure import label as label_regions
+    from skimage.segmentation import watershed
+
+    canopy = finite & (h >= min_height)
+    none = np.zeros(0, dtype=np.int64)
+    if not canopy.any():
+        grid = RasterGrid(0.0, 0.0, pixel_size, 1, 1)
+        return _Tops(grid, np.zeros((1, 1), np.int64), none, none, np.zeros(len(xyz), np.int64))
+    # a CHM on a lattice aligned to multiples of the pixel size (same pixels in every block)
     canopy_index = np.flatnonzero(canopy)
     canopy_xyz = xyz.take(canopy_index, axis=0)
     cx, cy = canopy_xyz[:, 0], canopy_xyz[:, 1]
@@ -158,7 +311,7 @@ def segment_trees(
     raw = np.nan_to_num(raw, nan=0.0).astype(np.float64)
     smooth = ndimage.gaussian_filter(raw, sigma=0.5, truncate=2.0)
 
-    # 2. tree tops: local maxima within a height-dependent circular window
+    # tops: local maxima within a height-dependent circular window
     radius_px = np.maximum(np.round(window(smooth) / 2.0 / pixel_size).astype(np.int64), 1)
     is_top = np.zeros(smooth.shape, dtype=bool)
     candidate = smooth >= min_height
@@ -170,16 +323,16 @@ def segment_trees(
         is_top |= use & (smooth >= local_max)
     markers = label_regions(is_top, connectivity=2)  # a plateau of equal maxima is one top
 
-    # 3. crowns: watershed of the inverted CHM, cut where the canopy drops below the tree
+    # crowns: watershed of the inverted CHM, cut where the canopy drops below the top
     crowns = watershed(-smooth, markers, mask=smooth >= min_height)
     n_seeds = int(markers.max())
     if n_seeds == 0:
-        return TreeSegmentation(_empty_table(), labels)
+        return _Tops(grid, crowns, none, none, np.zeros(len(xyz), np.int64))
     seed_height = ndimage.maximum(raw, labels=crowns, index=np.arange(1, n_seeds + 1))
     seed_height = np.concatenate([[0.0], np.asarray(seed_height, dtype=np.float64)])
     crowns[raw < crown_fraction * seed_height[crowns]] = 0
 
-    # 4. points by pixel; a tree is its canopy points (top = highest point)
+    # each point's crown segment by its pixel; a segment's top is its highest canopy point
     pixel, col = grid.pixel_of(xyz[:, 0], xyz[:, 1])
     outside = (pixel < 0) | (pixel >= grid.nrows) | (col < 0) | (col >= grid.ncols)
     pixel *= grid.ncols
@@ -187,580 +340,352 @@ def segment_trees(
     # one lookup: the points outside the raster read the 0 appended after its pixels
     pixel[outside] = crowns.size
     del col, outside
-    pixel_label = np.append(crowns.ravel(), 0).astype(np.int64)[pixel]
-    in_tree = (pixel_label > 0) & canopy
+    point_segment = np.append(crowns.ravel(), 0).astype(np.int64)[pixel]
+    in_tree = (point_segment > 0) & canopy
     if not in_tree.any():
-        return TreeSegmentation(_empty_table(), labels)
+        return _Tops(grid, crowns, none, none, point_segment)
     idx = np.flatnonzero(in_tree)
     # highest point per crown; ties broken by x then y (deterministic across blocks): only
     # the points as high as their crown's highest are sorted
-    crown_of, height_of = pixel_label[idx], h[idx]
+    crown_of, height_of = point_segment[idx], h[idx]
     highest = np.full(n_seeds + 1, -np.inf)
     np.maximum.at(highest, crown_of, height_of)
     at_top = height_of >= highest[crown_of]
     idx = idx[at_top]
     order = idx[np.lexsort((xyz[idx, 1], xyz[idx, 0], crown_of[at_top]))]
-    seg = pixel_label[order]
+    seg = point_segment[order]
     first = np.concatenate([[True], seg[1:] != seg[:-1]])
-    tops = order[first]
-    seeds = seg[first]
+    return _Tops(grid, crowns, seg[first], order[first], point_segment)
 
-    top_x, top_y = xyz[tops, 0], xyz[tops, 1]
-    n_trees = len(tops)
-    row_of_seed = np.zeros(n_seeds + 1, dtype=np.int64)
-    row_of_seed[seeds] = np.arange(1, n_trees + 1)
-    # crowns without a tree and the points outside any crown (pixel label 0) read 0
-    point_rows = row_of_seed[pixel_label]
-    point_rows[~(finite & (h >= point_min_height))] = 0
-    labels = point_rows.astype(np.uint32)
 
-    crown_pixels = np.bincount(crowns.ravel(), minlength=n_seeds + 1)[seeds]
+def _tops_of_stems(
+    stems: pd.DataFrame,
+    tops: _Tops,
+    xyz: NDArray[np.float64],
+    h: NDArray[np.float64],
+    graph: VoxelGraph,
+    stem_reach: NDArray[np.int64],
+    trunk_top: NDArray[np.float64],
+) -> NDArray[np.int64]:
+    """The canopy top (index into ``tops.seeds``) each stem carries, or -1.
+
+    A stem can carry a top higher than its observed part if it is stout enough (height above
+    breast height at most :data:`MAX_SLENDERNESS` times the DBH) and its axis, carried up,
+    passes within ``reach = 1 m + 0.08 x height`` of the top, or it stands under the top's
+    crown. Stems and tops are then paired one to one at the least total cost, each pair
+    costing ``(offset / reach)^2``, plus 0.25 when the stem is not the one whose crown, grown
+    through the vegetation from the trunks alone (``stem_reach``), reaches the apex first,
+    plus ``1 - dbh / the stoutest candidate's``, plus ``(gap / 10 m)^2`` (at most 1) for
+    the open air between where the trunk was last seen and the crown's lowest point over
+    it, and each unpaired stem or top 1 (the optimal assignment of
+    :mod:`standgrid.enrich.identity`): a crown goes to the stem it grows from and stands
+    over, the stoutest under it whose trunk runs into it; a small tree under a big crown
+    and a snag under another tree's crown keep none."""
+    from standgrid.enrich.identity import solve_pairs
+
+    n = len(stems)
+    stem_top = np.full(n, -1, dtype=np.int64)
+    if not n or not len(tops.seeds):
+        return stem_top
+    from scipy.spatial import cKDTree
+
+    sx, sy = stems["stem_x"].to_numpy(), stems["stem_y"].to_numpy()
+    ax, ay = stems["axis_dx"].to_numpy(), stems["axis_dy"].to_numpy()
+    dbh, high = stems["dbh_m"].to_numpy(), stems["stem_high_m"].to_numpy()
+    tx, ty, th = xyz[tops.top_rows, 0], xyz[tops.top_rows, 1], h[tops.top_rows]
+    row, col = tops.grid.pixel_of(sx, sy)
+    inside = (row >= 0) & (row < tops.grid.nrows) & (col >= 0) & (col < tops.grid.ncols)
+    under = np.zeros(n, dtype=np.int64)  # the crown segment each stem's foot stands in
+    under[inside] = tops.crowns[row[inside], col[inside]]
+    reach_max = 1.0 + 0.08 * float(th.max())
+    lean = float(np.hypot(ax, ay).max()) * float(th.max())
+    near = cKDTree(np.column_stack([sx, sy])).query_ball_point(
+        np.column_stack([tx, ty]), reach_max + lean
+    )
+    counts = np.fromiter((len(v) for v in near), np.int64, len(near))
+    top = np.repeat(np.arange(len(near)), counts)
+    stem = np.fromiter((v for n_ in near for v in n_), np.int64, int(counts.sum()))
+    dz = th[top] - BREAST_HEIGHT_M
+    off = np.hypot(tx[top] - sx[stem] - ax[stem] * dz, ty[top] - sy[stem] - ay[stem] * dz)
+    reach = 1.0 + 0.08 * th[top]
+    ok = (th[top] > high[stem]) & (dz <= MAX_SLENDERNESS * dbh[stem])
+    ok &= (off <= reach) | (under[stem] == tops.seeds[top])
+    top, stem, off, reach = top[ok], stem[ok], off[ok], reach[ok]
+    grown_into = stem_reach[graph.voxels(tops.top_rows)][top] == stem
+    stoutest = np.zeros(len(tops.seeds))
+    np.maximum.at(stoutest, top, dbh[stem])
+    thinner = 1.0 - dbh[stem] / np.maximum(stoutest[top], 1e-9)
+    gap = _crown_gaps(stems, trunk_top, stem, top, tops, graph)
+    cost = np.minimum(off / reach, 1.0) ** 2 + np.where(grown_into, 0.0, 0.25) + thinner
+    cost += np.minimum(gap / CROWN_GAP_SCALE_M, 1.0) ** 2
+    paired_stem, paired_top = solve_pairs(n, len(tops.seeds), stem, top, cost)
+    stem_top[paired_stem] = paired_top
+    return stem_top
+
+
+def _crown_gaps(
+    stems: pd.DataFrame,
+    trunk_top: NDArray[np.float64],
+    stem: NDArray[np.int64],
+    top: NDArray[np.int64],
+    tops: _Tops,
+    graph: VoxelGraph,
+) -> NDArray[np.float64]:
+    """For each (stem, top) pair, the widest open air (m) in the column over the stem's
+    trunk top: the largest vertical gap between the voxels of the top's crown segment within
+    :data:`APEX_REACH_M` of the stem's axis, from the trunk's top up (a live tree's trunk
+    runs on into its crown; a snag ends in open air under another tree's crown);
+    :data:`CROWN_GAP_SCALE_M` when no such voxel is over the stem."""
+    gaps = np.zeros(len(stem))
+    if not len(stem):
+        return gaps
+    # every voxel's crown segment (0: none), by its column on the CHM's lattice
+    row, col = tops.grid.pixel_of(graph.centres[:, 0], graph.centres[:, 1])
+    inside = (row >= 0) & (row < tops.grid.nrows) & (col >= 0) & (col < tops.grid.ncols)
+    segment = np.zeros(len(graph.centres), dtype=np.int64)
+    segment[inside] = tops.crowns[row[inside], col[inside]]
+    wanted = np.isin(segment, tops.seeds[top])
+    rows = np.flatnonzero(wanted)
+    rows = rows[np.argsort(segment[rows], kind="stable")]
+    seg = segment[rows]
+    sx, sy = stems["stem_x"].to_numpy(), stems["stem_y"].to_numpy()
+    ax, ay = stems["axis_dx"].to_numpy(), stems["axis_dy"].to_numpy()
+    vx, vy, vh = graph.centres[rows, 0], graph.centres[rows, 1], graph.heights[rows]
+    for k, (s_k, t_k) in enumerate(zip(stem.tolist(), top.tolist(), strict=True)):
+        seed = tops.seeds[t_k]
+        a, b = np.searchsorted(seg, seed), np.searchsorted(seg, seed, "right")
+        dz = vh[a:b] - BREAST_HEIGHT_M
+        off = np.hypot(vx[a:b] - sx[s_k] - ax[s_k] * dz, vy[a:b] - sy[s_k] - ay[s_k] * dz)
+        column = np.sort(vh[a:b][(off <= APEX_REACH_M) & (vh[a:b] >= trunk_top[s_k])])
+        # the widest empty layer between the trunk's top and the crown's highest voxel
+        levels = np.concatenate([[trunk_top[s_k]], column])
+        gaps[k] = float(np.diff(levels).max()) if len(column) else CROWN_GAP_SCALE_M
+    return gaps
+
+
+def _secondary_tops(
+    tops: _Tops,
+    xyz: NDArray[np.float64],
+    h: NDArray[np.float64],
+    graph: VoxelGraph,
+    stem_reach: NDArray[np.int64],
+    stem_top: NDArray[np.int64],
+) -> NDArray[np.bool_]:
+    """The canopy tops no stem carries that are a lower maximum of another tree's crown: the
+    crown of the stem that reaches the apex first (grown from the trunks alone) carries a
+    higher top within ``1 m + 0.08 x its height`` of it. A tree whose stem was not seen keeps
+    its top where no such stem's crown reaches it first."""
+    secondary = np.zeros(len(tops.seeds), dtype=bool)
+    if not len(tops.seeds) or not len(stem_top):
+        return secondary
+    carried = np.zeros(len(tops.seeds), dtype=bool)
+    carried[stem_top[stem_top >= 0]] = True
+    reacher = stem_reach[graph.voxels(tops.top_rows)]
+    own = np.where(reacher >= 0, stem_top[np.maximum(reacher, 0)], -1)
+    k = np.flatnonzero(~carried & (own >= 0))
+    main = own[k]
+    a, b = tops.top_rows[k], tops.top_rows[main]
+    near = np.hypot(xyz[a, 0] - xyz[b, 0], xyz[a, 1] - xyz[b, 1]) <= 1.0 + 0.08 * h[b]
+    secondary[k[near & (h[a] < h[b])]] = True
+    return secondary
+
+
+def _apexes_over_stems(
+    stems: pd.DataFrame,
+    tops: _Tops,
+    xyz: NDArray[np.float64],
+    h: NDArray[np.float64],
+    finite: NDArray[np.bool_],
+    min_height: float,
+    window: Callable[[NDArray[np.float64]], NDArray[np.float64]],
+) -> NDArray[np.int64]:
+    """Per stem, the row of the apex above it that the canopy height model missed, or -1.
+
+    The apex is the highest point within :data:`APEX_REACH_M` of the stem's axis carried up
+    to it, above the stem's observed part, that is a local maximum of the points (the
+    highest within half the window at its height, as lidR's ``lmf`` on points) and not
+    within that distance of a top already found; the stem must be stout enough to carry
+    it (:data:`MAX_SLENDERNESS`). A small tree under another's crown gets none: the
+    highest point over it lies on that crown's flank, below its top."""
+    apex = np.full(len(stems), -1, dtype=np.int64)
+    if not len(stems):
+        return apex
+    from scipy.spatial import cKDTree
+
+    sx, sy = stems["stem_x"].to_numpy(), stems["stem_y"].to_numpy()
+    ax, ay = stems["axis_dx"].to_numpy(), stems["axis_dy"].to_numpy()
+    dbh, high = stems["dbh_m"].to_numpy(), stems["stem_high_m"].to_numpy()
+    # the canopy points that can be an apex over these stems, or decide one (its window)
+    lean_reach = float(np.nanmax(h, initial=0.0)) * np.hypot(ax, ay)
+    margin = float((APEX_REACH_M + lean_reach).max()) + float(window(np.array([np.inf]))[0])
+    x, y = xyz[:, 0], xyz[:, 1]
+    canopy = np.flatnonzero(
+        finite & (h >= min_height)
+        & (x >= sx.min() - margin) & (x <= sx.max() + margin)
+        & (y >= sy.min() - margin) & (y <= sy.max() + margin)
+    )  # fmt: skip
+    if len(canopy):
+        dist, _ = cKDTree(np.column_stack([sx, sy])).query(
+            xyz[canopy, :2], distance_upper_bound=margin
+        )
+        canopy = canopy[np.isfinite(dist)]
+    if not len(canopy):
+        return apex
+    index = cKDTree(xyz[canopy, :2])
+    top_xy = xyz[tops.top_rows, :2]
+    found_tops = cKDTree(top_xy) if len(top_xy) else None
+    near = index.query_ball_point(np.column_stack([sx, sy]), APEX_REACH_M + lean_reach)
+    for k, rows in enumerate(near):
+        cand = canopy[np.asarray(rows, dtype=np.int64)]
+        cand = cand[(h[cand] > high[k]) & (h[cand] - BREAST_HEIGHT_M <= MAX_SLENDERNESS * dbh[k])]
+        dz = h[cand] - BREAST_HEIGHT_M
+        off = np.hypot(xyz[cand, 0] - sx[k] - ax[k] * dz, xyz[cand, 1] - sy[k] - ay[k] * dz)
+        cand = cand[off <= APEX_REACH_M]
+        if not len(cand):
+            continue
+        # the highest of them that is a local maximum (a higher point may be a neighbour's
+        # crown leaning over)
+        for best in cand[np.lexsort((xyz[cand, 1], xyz[cand, 0], -h[cand]))[:APEX_TRIES]]:
+            radius = float(window(np.array([h[best]]))[0]) / 2.0
+            around = canopy[index.query_ball_point(xyz[best, :2], radius)]
+            if (h[around] > h[best]).any():
+                continue  # on a crown's flank
+            if found_tops is not None and found_tops.query_ball_point(xyz[best, :2], radius):
+                break  # the top there is another tree's
+            apex[k] = best
+            break
+    return apex
+
+
+def _table(
+    xyz: NDArray[np.float64],
+    h: NDArray[np.float64],
+    found: StemSet,
+    has_top: NDArray[np.bool_],
+    top_row: NDArray[np.int64],
+    kept: NDArray[np.bool_],
+    labels: NDArray[np.uint32],
+    keep_bounds: tuple[float, float, float, float] | None,
+) -> pd.DataFrame:
+    """One row per kept tree: the stem trees, then the top-only trees."""
+    stems = found.table
+    n_stems = len(stems)
+    rows = top_row[kept]
+    n = len(rows)
+    is_stem = np.flatnonzero(kept) < n_stems
+    stem_rows = np.flatnonzero(kept[:n_stems])
+    top_x, top_y = xyz[rows, 0], xyz[rows, 1]
+    x, y = top_x.copy(), top_y.copy()
+    x[is_stem] = stems["stem_x"].to_numpy()[stem_rows]
+    y[is_stem] = stems["stem_y"].to_numpy()[stem_rows]
     table = pd.DataFrame(
         {
-            "tree_id": tree_id_from_xy(top_x, top_y),
-            "x": top_x,
-            "y": top_y,
-            "z_ground": xyz[tops, 2] - h[tops],
-            "height_m": h[tops],
-            "crown_area_m2": crown_pixels * pixel_size**2,
-            "n_points": np.bincount(point_rows, minlength=n_trees + 1)[1:],
+            "tree_id": np.zeros(n, dtype=np.int64),
+            "x": x,
+            "y": y,
+            "z_ground": xyz[rows, 2] - h[rows],
+            "height_m": h[rows],
+            "top_x": top_x,
+            "top_y": top_y,
+            "crown_area_m2": np.nan,
+            "n_points": np.bincount(labels, minlength=n + 1)[1:],
         }
     )
-    table["crown"] = _crown_polygons(crowns, seeds, grid)
+    detected = np.full(n, TOP, dtype=object)
+    detected[is_stem] = np.where(has_top[stem_rows], BOTH, STEM)
+    table["detected_by"] = pd.array(detected, dtype="string")
+    for column in ("dbh_m", "dbh_se_m", "stem_x", "stem_y", "dbh_rmse_m", "dbh_arc_deg",
+                   "lean_deg", "stem_low_m", "stem_high_m"):  # fmt: skip
+        values = np.full(n, np.nan)
+        values[is_stem] = stems[column].to_numpy(dtype=np.float64)[stem_rows]
+        table[column] = values
+    n_used = np.zeros(n, dtype=np.int64)
+    n_used[is_stem] = stems["dbh_n_points"].to_numpy(dtype=np.int64)[stem_rows]
+    table["dbh_n_points"] = n_used
+    reasons = np.full(n, None, dtype=object)
+    reasons[~is_stem] = _no_dbh_reasons(found.rejected, top_x[~is_stem], top_y[~is_stem])
+    table["dbh_reason"] = pd.array(reasons, dtype="string")
     if keep_bounds is None:
         table["owned"] = True
     else:
-        xmin, ymin, xmax, ymax = keep_bounds
-        table["owned"] = (top_x >= xmin) & (top_x < xmax) & (top_y >= ymin) & (top_y < ymax)
-
-    table["dbh_m"] = np.nan
-    table["dbh_reason"] = pd.array([REASON_NO_STEM] * n_trees, dtype="string")
-    table["stem_x"] = np.nan
-    table["stem_y"] = np.nan
-    table["dbh_rmse_m"] = np.nan
-    table["dbh_n_points"] = 0
-    table["dbh_arc_deg"] = np.nan
-    if fit_dbh:
-        within = None
-        if keep_bounds is not None:  # only stems that can belong to the block's own trees
-            x0, y0, x1, y1 = keep_bounds
-            m = STEM_SEARCH_MARGIN_M
-            within = (x0 - m, y0 - m, x1 + m, y1 + m)
-        stems = fit_stems(xyz, h, within=within, **(stem_options or {}))
-        _attach_stems(table, stems, crowns, row_of_seed, grid, max_stem_offset)
-    return TreeSegmentation(table[TREE_COLUMNS], labels)
-
-
-def _empty_table() -> pd.DataFrame:
-    table = pd.DataFrame({name: pd.Series(dtype=float) for name in TREE_COLUMNS})
-    table["tree_id"] = table["tree_id"].astype(np.int64)
-    table["n_points"] = table["n_points"].astype(np.int64)
-    table["dbh_n_points"] = table["dbh_n_points"].astype(np.int64)
-    table["owned"] = table["owned"].astype(bool)
-    table["dbh_reason"] = table["dbh_reason"].astype("string")
-    table["crown"] = table["crown"].astype(object)
+        x0, y0, x1, y1 = keep_bounds
+        table["owned"] = (x >= x0) & (x < x1) & (y >= y0) & (y < y1)
     return table
 
 
-def _crown_polygons(
-    crowns: NDArray[np.int64], seeds: NDArray[np.int64], grid: RasterGrid
-) -> list[object]:
-    """Outline of each crown's pixels (shapely (Multi)Polygon, in map coordinates)."""
+def _no_dbh_reasons(
+    rejected: pd.DataFrame, x: NDArray[np.float64], y: NDArray[np.float64]
+) -> list[str]:
+    """Why a top-only tree has no DBH: the nearest rejected breast-height fit within
+    :data:`REJECTED_FIT_REACH_M` of its top, else no stem points."""
+    reasons = [REASON_NO_STEM] * len(x)
+    if not len(rejected) or not len(x):
+        return reasons
+    from scipy.spatial import cKDTree
+
+    dist, nearest = cKDTree(rejected[["x", "y"]].to_numpy()).query(np.column_stack([x, y]))
+    why = rejected["reason"].to_numpy(dtype=object)
+    for k in np.flatnonzero(dist <= REJECTED_FIT_REACH_M):
+        reasons[k] = f"stem fit rejected: {why[nearest[k]]}"
+    return reasons
+
+
+def _unique_ids(table: pd.DataFrame) -> NDArray[np.int64]:
+    """Tree ids from where the trees stand; a tree on another's 0.1 m position (a top over
+    another tree's stem) moves north by 0.1 m steps until free (stem trees come first)."""
+    ids = tree_id_from_xy(table["x"].to_numpy(), table["y"].to_numpy())
+    seen: set[int] = set()
+    for k, value in enumerate(ids.tolist()):
+        while value in seen:
+            value += 1
+        seen.add(value)
+        ids[k] = value
+    return ids
+
+
+def _footprints(
+    xyz: NDArray[np.float64],
+    h: NDArray[np.float64],
+    labels: NDArray[np.uint32],
+    table: pd.DataFrame,
+    rows: NDArray[np.int64],
+    pixel_size: float,
+    crown_fraction: float,
+) -> dict[int, tuple[Any, float]]:
+    """Crown outline and area of the stem trees ``rows`` of ``table``: the pixels (on the
+    CHM's lattice) of their points at least ``crown_fraction`` of their height up, gaps of a
+    pixel closed."""
     from rasterio import features
+    from scipy import ndimage
     from shapely.geometry import shape
     from shapely.ops import unary_union
 
-    parts: dict[int, list[object]] = {}
-    raster = crowns.astype(np.int32)
-    for geometry, value in features.shapes(raster, mask=raster > 0, transform=grid.transform):
-        parts.setdefault(int(value), []).append(shape(geometry))
-    return [unary_union(parts[int(s)]) if int(s) in parts else None for s in seeds]
-
-
-def _attach_stems(
-    table: pd.DataFrame,
-    stems: pd.DataFrame,
-    crowns: NDArray[np.int64],
-    row_of_seed: NDArray[np.int64],
-    grid: RasterGrid,
-    max_offset: float,
-) -> None:
-    """Give each tree the nearest accepted stem in its crown (or within ``max_offset`` of its
-    top); one stem per tree. Trees without a stem keep NaN and the reason of the nearest
-    rejected fit, if any."""
-    if stems.empty:
-        return
-    from scipy.spatial import cKDTree
-
-    sx, sy = stems["x"].to_numpy(), stems["y"].to_numpy()
-    row, col = grid.pixel_of(sx, sy)
-    inside = (row >= 0) & (row < grid.nrows) & (col >= 0) & (col < grid.ncols)
-    stem_tree = np.zeros(len(stems), dtype=np.int64)  # 1-based table row of the crown
-    stem_tree[inside] = row_of_seed[crowns[row[inside], col[inside]]]
-    tx, ty = table["x"].to_numpy(), table["y"].to_numpy()
-    # candidate (stem, tree) pairs: the crown a stem stands in, and tops within max_offset
-    near = cKDTree(np.column_stack([tx, ty])).query_ball_point(
-        np.column_stack([sx, sy]), max_offset
-    )
-    candidates = {(s, t) for s, trees in enumerate(near) for t in trees}
-    candidates |= {(s, int(t) - 1) for s, t in enumerate(stem_tree) if t > 0}
-    if not candidates:
-        return
-    pairs = np.array(sorted(candidates), dtype=np.int64)
-    dist = np.hypot(sx[pairs[:, 0]] - tx[pairs[:, 1]], sy[pairs[:, 0]] - ty[pairs[:, 1]])
-    pairs = pairs[np.argsort(dist, kind="stable")]
-    ok = stems["ok"].to_numpy(dtype=bool)
-    stem_reason = stems["reason"].to_numpy(dtype=object)
-    stem_dbh = stems["dbh_m"].to_numpy(dtype=float)
-    stem_rmse = stems["rmse_m"].to_numpy(dtype=float)
-    stem_inliers = stems["n_inliers"].to_numpy(dtype=np.int64)
-    stem_arc = stems["arc_deg"].to_numpy(dtype=float)
-    used_stem, used_tree = set(), set()
-    reasons = table["dbh_reason"].to_numpy(dtype=object, copy=True)
-    dbh = table["dbh_m"].to_numpy(dtype=float, copy=True)
-    stem_x = table["stem_x"].to_numpy(dtype=float, copy=True)
-    stem_y = table["stem_y"].to_numpy(dtype=float, copy=True)
-    rmse = table["dbh_rmse_m"].to_numpy(dtype=float, copy=True)
-    n_used = table["dbh_n_points"].to_numpy(dtype=np.int64, copy=True)
-    arc = table["dbh_arc_deg"].to_numpy(dtype=float, copy=True)
-    for s, t in pairs.tolist():
-        if s in used_stem or t in used_tree:
-            continue
-        if not ok[s]:
-            if reasons[t] == REASON_NO_STEM:
-                reasons[t] = f"stem fit rejected: {stem_reason[s]}"
-            continue
-        used_stem.add(s)
-        used_tree.add(t)
-        dbh[t] = stem_dbh[s]
-        stem_x[t], stem_y[t] = sx[s], sy[s]
-        rmse[t] = stem_rmse[s]
-        n_used[t] = stem_inliers[s]
-        arc[t] = stem_arc[s]
-        reasons[t] = None
-    table["dbh_m"] = dbh
-    table["stem_x"], table["stem_y"], table["dbh_rmse_m"] = stem_x, stem_y, rmse
-    table["dbh_n_points"], table["dbh_arc_deg"] = n_used, arc
-    table["dbh_reason"] = pd.array(reasons, dtype="string")
-
-
-# --- stems and circle fits ----------------------------------------------------------------
-
-
-@dataclass(frozen=True)
-class CircleFit:
-    """A fitted stem cross-section: centre, radius, inlier RMSE, inliers, arc covered."""
-
-    x: float
-    y: float
-    radius: float
-    rmse: float
-    n_inliers: int
-    arc_deg: float
-
-
-def kasa_circle(xy: NDArray[np.float64]) -> tuple[float, float, float]:
-    """Algebraic least-squares circle (Kasa): centre x, y and radius."""
-    mean = xy.mean(axis=0)
-    local = xy - mean
-    a = np.column_stack([local, np.ones(len(local))])
-    b = (local**2).sum(axis=1)
-    sol, *_ = np.linalg.lstsq(a, b, rcond=None)
-    cx, cy = sol[0] / 2.0, sol[1] / 2.0
-    r2 = sol[2] + cx * cx + cy * cy
-    return float(cx + mean[0]), float(cy + mean[1]), float(np.sqrt(max(r2, 0.0)))
-
-
-def fit_circle(
-    xy: NDArray[np.float64],
-    *,
-    inlier_tolerance: float = 0.02,
-    iterations: int = 300,
-    seed: int = 0,
-    max_ransac_points: int = 1500,
-) -> CircleFit | None:
-    """Robust circle: RANSAC over 3-point circles scored by MSAC (truncated squared residual),
-    then geometric least squares (soft-L1) on the inliers of the best circle, started from
-    their algebraic fit. ``None`` when fewer than 3 points."""
-    return fit_circles(
-        [xy],
-        inlier_tolerance=inlier_tolerance,
-        iterations=iterations,
-        seed=seed,
-        max_ransac_points=max_ransac_points,
-    )[0]
-
-
-def fit_circles(
-    point_sets: Sequence[NDArray[np.float64]],
-    *,
-    inlier_tolerance: float = 0.02,
-    iterations: int = 300,
-    seed: int = 0,
-    max_ransac_points: int = 1500,
-) -> list[CircleFit | None]:
-    """:func:`fit_circle` of each point set (each with the same ``seed``); the 3-point circles
-    of all sets computed together, and their geometric refinements iterated together."""
-    rng = np.random.default_rng(seed)
-    seeded = rng.bit_generator.state
-    means, locals_, scored, triples = [], [], [], []
-    for xy in point_sets:
-        pts = np.asarray(xy, dtype=np.float64)
-        if len(pts) < 3:
-            continue
-        rng.bit_generator.state = seeded  # as a fresh default_rng(seed)
-        mean = pts.mean(axis=0)
-        local = pts - mean
-        n = len(local)
-        scored.append(
-            local if n <= max_ransac_points else local[rng.choice(n, max_ransac_points, False)]
-        )
-        samples = rng.integers(0, n, size=(iterations, 3))
-        distinct = (
-            (samples[:, 0] != samples[:, 1])
-            & (samples[:, 0] != samples[:, 2])
-            & (samples[:, 1] != samples[:, 2])
-        )
-        triples.append(local[samples[distinct]])
-        means.append(mean)
-        locals_.append(local)
-    if not locals_:
-        return [None] * len(point_sets)
-    centres, radii = _circles_through(np.concatenate(triples))
-    cut = np.cumsum([len(t) for t in triples])[:-1]
-    circles = [
-        _msac_circle(local, score_pts, c, r, inlier_tolerance)
-        for local, score_pts, c, r in zip(
-            locals_, scored, np.split(centres, cut), np.split(radii, cut), strict=True
-        )
-    ]
-    # geometric fits on the inliers of the RANSAC circles, started from their Kasa fits
-    refine, inlier_sets, starts = [], [], []
-    for k, (local, (cx, cy, r)) in enumerate(zip(locals_, circles, strict=True)):
-        inliers = np.abs(np.hypot(local[:, 0] - cx, local[:, 1] - cy) - r) < inlier_tolerance
-        if inliers.sum() >= 3:
-            refine.append(k)
-            inlier_sets.append(local[inliers])
-            starts.append(kasa_circle(local[inliers]))
-    if refine:
-        refined = _geometric_circles(inlier_sets, np.array(starts), inlier_tolerance / 2.0)
-        for k, (cx, cy, r) in zip(refine, refined.tolist(), strict=True):
-            circles[k] = (cx, cy, r)
-    fits = iter(
-        _circle_fit(local, mean, circle, inlier_tolerance)
-        for local, mean, circle in zip(locals_, means, circles, strict=True)
-    )
-    return [next(fits) if len(xy) >= 3 else None for xy in point_sets]
-
-
-def _msac_circle(
-    local: NDArray[np.float64],
-    score_pts: NDArray[np.float64],
-    centres: NDArray[np.float64],
-    radii: NDArray[np.float64],
-    inlier_tolerance: float,
-) -> tuple[float, float, float]:
-    """The candidate circle (x, y, r) of least MSAC cost on ``score_pts``; the Kasa fit of
-    ``local`` when none (of radius < 5 m) has 3 inliers."""
-    good = np.isfinite(radii) & (radii < 5.0)
-    if good.any():
-        c, radius = centres[good], radii[good]
-        # distances of every scored point to every candidate centre, |p - c|^2 expanded
-        # (one matrix product; local coordinates of a stem keep it exact to ~1e-16 m^2),
-        # then distance - radius, in place (-2 c exactly scales the product by -2)
-        resid = (c * -2.0) @ score_pts.T
-        resid += (score_pts**2).sum(axis=1)[None, :]
-        resid += (c**2).sum(axis=1)[:, None]
-        if resid.min() < 0.0:  # round-off where a point is at a centre
-            np.maximum(resid, 0.0, out=resid)
-        np.sqrt(resid, out=resid)
-        resid -= radius[:, None]
-        # MSAC: truncated squared residuals, so a tight circle beats a loose one that
-        # happens to touch as many points; min(d^2, tol^2) is min(|d|, tol)^2 to the bit
-        # (rounding a square is monotonic)
-        cost = np.square(resid)
-        np.minimum(cost, inlier_tolerance * inlier_tolerance, out=cost)
-        k = int(np.argmin(cost.sum(axis=1)))
-        if (np.abs(resid[k]) < inlier_tolerance).sum() >= 3:
-            return float(c[k, 0]), float(c[k, 1]), float(radius[k])
-    return kasa_circle(local)
-
-
-def _circle_fit(
-    local: NDArray[np.float64],
-    mean: NDArray[np.float64],
-    circle: tuple[float, float, float],
-    inlier_tolerance: float,
-) -> CircleFit:
-    """``circle`` (in ``local`` coordinates) with its inliers' RMSE, count and arc."""
-    cx, cy, r = circle
-    dist = np.hypot(local[:, 0] - cx, local[:, 1] - cy) - r
-    inliers = np.abs(dist) < inlier_tolerance
-    n_in = int(inliers.sum())
-    rmse = float(np.sqrt(np.mean(dist[inliers] ** 2))) if n_in else float("inf")
-    angles = np.arctan2(local[inliers, 1] - cy, local[inliers, 0] - cx)
-    sectors = np.floor((angles + np.pi) / (2 * np.pi) * 36).astype(np.int64) % 36
-    n_sectors = int(np.count_nonzero(np.bincount(sectors, minlength=36)))
-    return CircleFit(cx + mean[0], cy + mean[1], r, rmse, n_in, 10.0 * n_sectors)
-
-
-def _geometric_circles(
-    point_sets: Sequence[NDArray[np.float64]],
-    starts: NDArray[np.float64],
-    scale: float,
-    iterations: int = 50,
-) -> NDArray[np.float64]:
-    """Geometric circle fits (x, y, r per row) with the soft-L1 loss of scale ``scale`` (the
-    minimiser of ``sum(2 * scale^2 * (sqrt(1 + (d_i / scale)^2) - 1))``, d_i = distance to
-    the circle, as ``scipy.optimize.least_squares(loss="soft_l1")``), by iteratively
-    reweighted Gauss-Newton from ``starts``, all point sets at once: a set stops when its
-    step is below 1e-10 (or its normal equations are singular)."""
-    p = np.array(starts, dtype=np.float64).reshape(-1, 3)
-    xy = np.concatenate(point_sets)
-    x, y = xy[:, 0], xy[:, 1]
-    active = np.arange(len(p))  # the sets still iterating, their points one after the other
-    sizes = np.array([len(s) for s in point_sets])
-    for _ in range(iterations):
-        if not len(active):
-            break
-        first = np.concatenate([[0], np.cumsum(sizes[:-1])])
-        q = np.repeat(p[active], sizes, axis=0)
-        dx, dy = x - q[:, 0], y - q[:, 1]
-        dist = np.maximum(np.sqrt(dx * dx + dy * dy), 1e-12)
-        resid = dist - q[:, 2]
-        weight = 1.0 / np.sqrt(1.0 + (resid / scale) ** 2)
-        # Jacobian rows (-ux, -uy, -1): the 3 x 3 normal equations by sums per set
-        ux, uy = dx / dist, dy / dist
-        wx, wy = weight * ux, weight * uy
-        terms = (wx * ux, wx * uy, wx, wy * uy, wy, weight, wx * resid, wy * resid, weight * resid)
-        sums = np.stack([np.add.reduceat(t, first) for t in terms], -1)
-        normal = sums[:, [[0, 1, 2], [1, 3, 4], [2, 4, 5]]]  # (sets, 3, 3)
-        step, solved = _solve_each(normal, sums[:, 6:])
-        p[active[solved]] += step[solved]
-        done = ~solved | (np.abs(step).max(axis=1) < 1e-10)
-        if done.any():
-            kept = np.repeat(~done, sizes)
-            x, y = x[kept], y[kept]
-            active, sizes = active[~done], sizes[~done]
-    p[:, 2] = np.abs(p[:, 2])
-    return p
-
-
-def _solve_each(
-    a: NDArray[np.float64], b: NDArray[np.float64]
-) -> tuple[NDArray[np.float64], NDArray[np.bool_]]:
-    """Solutions of the stacked systems ``a[i] x = b[i]`` and which were solvable (not
-    singular; the others' solution is 0)."""
-    step = np.zeros(b.shape)
-    try:
-        step[:] = np.linalg.solve(a, b[..., None])[..., 0]
-        return step, np.ones(len(a), dtype=bool)
-    except np.linalg.LinAlgError:
-        solved = np.zeros(len(a), dtype=bool)
-        for i in range(len(a)):
-            try:
-                step[i] = np.linalg.solve(a[i], b[i])
-                solved[i] = True
-            except np.linalg.LinAlgError:
-                pass
-        return step, solved
-
-
-def _circles_through(tri: NDArray[np.float64]) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
-    """Circumcircles of (K, 3, 2) point triples: centres (K, 2), radii (K,) (inf if collinear)."""
-    a, b, c = tri[:, 0], tri[:, 1], tri[:, 2]
-    d = 2.0 * (
-        a[:, 0] * (b[:, 1] - c[:, 1])
-        + b[:, 0] * (c[:, 1] - a[:, 1])
-        + c[:, 0] * (a[:, 1] - b[:, 1])
-    )
-    sa, sb, sc = (a**2).sum(1), (b**2).sum(1), (c**2).sum(1)
-    with np.errstate(divide="ignore", invalid="ignore"):
-        ux = (sa * (b[:, 1] - c[:, 1]) + sb * (c[:, 1] - a[:, 1]) + sc * (a[:, 1] - b[:, 1])) / d
-        uy = (sa * (c[:, 0] - b[:, 0]) + sb * (a[:, 0] - c[:, 0]) + sc * (b[:, 0] - a[:, 0])) / d
-        r = np.hypot(a[:, 0] - ux, a[:, 1] - uy)
-    r[~np.isfinite(r)] = np.inf
-    return np.column_stack([ux, uy]), r
-
-
-def fit_stems(
-    points: PointsLike,
-    heights: NDArray[np.floating],
-    *,
-    breast_height: float = 1.3,
-    slice_half_width: float = 0.15,
-    link_distance: float = 0.2,
-    min_points: int = 12,
-    inlier_tolerance: float = 0.02,
-    max_rmse: float = 0.02,
-    min_arc_deg: float = 90.0,
-    min_radius: float = 0.025,
-    max_radius: float = 0.6,
-    check_height: float = 2.3,
-    min_check_points: int = 5,
-    within: tuple[float, float, float, float] | None = None,
-) -> pd.DataFrame:
-    """Stems at breast height: one row per point cluster of the slice, with the circle fit.
-
-    A fit is confirmed only when the stem continues: at least ``min_check_points`` points at
-    ``check_height`` +- ``slice_half_width`` lie on the same circle (within
-    max(3 cm, 30 % of the radius), allowing for taper). A shrub or a stump whose cross-section
-    at 1.3 m looks like a stem has nothing there.
-
-    Columns: x, y, dbh_m, rmse_m, n_points, n_inliers, arc_deg, ok, reason (why a fit was
-    rejected). Clusters are connected components of the slice points within
-    ``link_distance`` of each other. ``within``: only the points in these half-open bounds
-    (xmin, ymin, xmax, ymax).
-    """
-    from scipy.spatial import cKDTree
-
-    xyz = as_xyz(points)
-    h = np.asarray(heights, dtype=np.float64)
-
-    # the points of both slices (and between: a margin far wider than rounding), in bounds
-    low = min(breast_height, check_height) - slice_half_width - 1e-6
-    high = max(breast_height, check_height) + slice_half_width + 1e-6
-    band = np.flatnonzero((h >= low) & (h <= high))  # NaN heights are in no slice
-    if within is not None:
-        x0, y0, x1, y1 = within
-        x, y = xyz[:, 0][band], xyz[:, 1][band]
-        band = band[(x >= x0) & (x < x1) & (y >= y0) & (y < y1)]
-
-    def slice_at(height: float) -> NDArray[np.float64]:
-        return xyz[band[np.abs(h[band] - height) <= slice_half_width], :2]
-
-    xy = slice_at(breast_height)
-    above = slice_at(check_height)
-    columns = ["x", "y", "dbh_m", "rmse_m", "n_points", "n_inliers", "arc_deg", "ok", "reason"]
-    if len(xy) < min_points:
-        return pd.DataFrame({c: [] for c in columns})
-    origin = xy.min(axis=0)
-    local = xy - origin
-    # built once and queried a few times: the unbalanced tree builds in half the time and
-    # finds the same points
-    above_tree = (
-        cKDTree(above - origin, balanced_tree=False, compact_nodes=False) if len(above) else None
-    )
-    n_comp, comp = link_clusters(local, link_distance)
-    sizes = np.bincount(comp, minlength=n_comp)
-    rows = []
-    order = np.argsort(comp, kind="stable")
-    bounds = np.concatenate([[0], np.cumsum(sizes)])
-    # RANSAC samples by index: each cluster's points in a canonical order, so a fit does not
-    # depend on the order the tile stores them in; and counted from the cluster's own corner,
-    # so its arithmetic does not depend on which other points the block holds
-    clusters = [xy[order[bounds[c] : bounds[c + 1]]] for c in np.flatnonzero(sizes >= min_points)]
-    clusters = [members[np.lexsort(members.T[::-1])] for members in clusters]
-    corners = [members.min(axis=0) for members in clusters]
-    clusters = [members - corner for members, corner in zip(clusters, corners, strict=True)]
-    fits = fit_circles(clusters, inlier_tolerance=inlier_tolerance)
-    for members, corner, fit in zip(clusters, corners, fits, strict=True):
-        if fit is None:
-            continue
-        reason = None
-        if fit.n_inliers < min_points:
-            reason = f"{fit.n_inliers} inliers < {min_points}"
-        elif not min_radius <= fit.radius <= max_radius:
-            reason = f"radius {fit.radius:.3f} m outside [{min_radius}, {max_radius}]"
-        elif fit.rmse > max_rmse:
-            reason = f"residual {fit.rmse:.3f} m > {max_rmse}"
-        elif fit.arc_deg < min_arc_deg:
-            reason = f"arc {fit.arc_deg:.0f} deg < {min_arc_deg:.0f}"
-        elif fit.n_inliers < 0.5 * len(members):
-            reason = f"only {fit.n_inliers} of {len(members)} points on the circle"
-        else:
-            ring = max(0.03, 0.3 * fit.radius)
-            on_stem = 0
-            if above_tree is not None:
-                centre = corner - origin + (fit.x, fit.y)
-                near = above_tree.query_ball_point(centre, fit.radius + ring)
-                d = np.hypot(*(above[near] - origin - centre).T) if near else []
-                on_stem = int(np.sum(np.abs(np.asarray(d) - fit.radius) <= ring))
-            if on_stem < min_check_points:
-                reason = f"no stem at {check_height} m above the circle ({on_stem} points)"
-        rows.append(
-            {
-                "x": fit.x + corner[0],
-                "y": fit.y + corner[1],
-                "dbh_m": 2.0 * fit.radius,
-                "rmse_m": fit.rmse,
-                "n_points": len(members),
-                "n_inliers": fit.n_inliers,
-                "arc_deg": fit.arc_deg,
-                "ok": reason is None,
-                "reason": reason,
-            }
-        )
-    table = pd.DataFrame(rows, columns=columns)
-    table["reason"] = table["reason"].astype("string")
-    table["ok"] = table["ok"].astype(bool)
-    return table
-
-
-def link_clusters(xy: NDArray[np.float64], distance: float) -> tuple[int, NDArray[np.int64]]:
-    """Connected components of the points linked when within ``distance`` (single linkage),
-    numbered in the order of their first point: ``(count, label per point)``.
-
-    Exact, without listing every pair (dense stem slices have ~100 neighbours per point):
-    two points in squares of side ``distance / sqrt(5)`` that share an edge are within the
-    distance, so the components of the occupied squares' edge graph are parts of clusters;
-    any two of those whose points come within the distance of each other are then merged.
-    """
-    import shapely
-    from scipy.spatial import cKDTree
-
-    n = len(xy)
-    if n == 0:
-        return 0, np.zeros(0, dtype=np.int64)
-    if distance > 0:
-        side = distance / np.sqrt(5.0) * (1.0 - 1e-9)  # the margin covers rounding
-        square = np.floor(xy / side).astype(np.int64)
-        square -= square.min(axis=0)
-        stride = int(square[:, 1].max()) + 2  # key of the square (i, j): i * stride + j
-        squares, of_point = np.unique(square[:, 0] * stride + square[:, 1], return_inverse=True)
-        rows, cols = [], []
-        for step in (stride, 1):  # the next square in x, in y
-            pos = np.minimum(np.searchsorted(squares, squares + step), len(squares) - 1)
-            hit = squares[pos] == squares + step
-            rows.append(np.flatnonzero(hit))
-            cols.append(pos[hit])
-        _, part = _components(len(squares), np.concatenate(rows), np.concatenate(cols))
-        comp = part[of_point.ravel()]
-    else:
-        comp = np.arange(n)
-    # parts that come within the distance of each other
-    order = np.argsort(comp, kind="stable")
-    starts = np.flatnonzero(np.r_[True, np.diff(comp[order]) != 0])
-    lo = np.minimum.reduceat(xy[order], starts) - distance
-    hi = np.maximum.reduceat(xy[order], starts) + distance
-    boxes = shapely.box(lo[:, 0], lo[:, 1], hi[:, 0], hi[:, 1])
-    a, b = shapely.STRtree(boxes).query(boxes, predicate="intersects")
-    members = np.split(order, starts[1:])
-    touching = []
-    for i, j in zip(a[a < b], b[a < b], strict=True):
-        d, _ = cKDTree(xy[members[j]]).query(xy[members[i]], distance_upper_bound=distance)
-        if (d <= distance).any():
-            touching.append((i, j))
-    pairs = np.array(touching, dtype=np.int64).reshape(-1, 2)
-    count, merged = _components(len(starts), pairs[:, 0], pairs[:, 1])
-    comp = merged[comp]
-    # number the clusters in the order of their first point
-    first = np.full(count, n)
-    np.minimum.at(first, comp, np.arange(n))
-    rank = np.empty(count, dtype=np.int64)
-    rank[np.argsort(first)] = np.arange(count)
-    return count, rank[comp]
-
-
-def _components(
-    n: int, rows: NDArray[np.int64], cols: NDArray[np.int64]
-) -> tuple[int, NDArray[np.int64]]:
-    """Connected components of the undirected graph on ``n`` nodes with edges ``rows``-``cols``,
-    numbered in the order of their first node."""
-    from scipy.sparse import coo_matrix
-    from scipy.sparse.csgraph import connected_components
-
-    count, comp = connected_components(
-        coo_matrix((np.ones(len(rows)), (rows, cols)), shape=(n, n)), directed=False
-    )
-    return int(count), comp.astype(np.int64)
+    out: dict[int, tuple[Any, float]] = {}
+    if not len(rows):
+        return out
+    wanted = np.zeros(len(table) + 1, dtype=bool)
+    wanted[rows + 1] = True
+    tree_height = np.concatenate([[np.inf], table["height_m"].to_numpy(dtype=np.float64)])
+    pick = np.flatnonzero(wanted[labels])
+    pick = pick[h[pick] >= crown_fraction * tree_height[labels[pick]]]
+    tree = labels[pick].astype(np.int64) - 1
+    order = np.argsort(tree, kind="stable")
+    pick, tree = pick[order], tree[order]
+    starts = np.flatnonzero(np.concatenate([[True], tree[1:] != tree[:-1]]))
+    ends = np.append(starts[1:], len(tree))
+    for a, b in zip(starts.tolist(), ends.tolist(), strict=True):
+        k = int(tree[a])
+        pts = xyz[pick[a:b]]
+        col = np.floor(pts[:, 0] / pixel_size).astype(np.int64)
+        row = np.floor(pts[:, 1] / pixel_size).astype(np.int64)
+        c0, r0 = col.min() - 1, row.min() - 1
+        mask = np.zeros((row.max() - r0 + 2, col.max() - c0 + 2), dtype=bool)
+        mask[row.max() + 1 - row, col - c0] = True  # rows from the north
+        mask = ndimage.binary_closing(mask, structure=np.ones((3, 3), bool), border_value=0)
+        mask |= ndimage.binary_fill_holes(mask)
+        transform = RasterGrid(c0 * pixel_size, r0 * pixel_size, pixel_size,
+                               mask.shape[1], mask.shape[0]).transform  # fmt: skip
+        shapes = features.shapes(mask.astype(np.uint8), mask=mask, transform=transform)
+        polygon = unary_union([shape(g) for g, _ in shapes])
+        out[k] = (polygon, float(mask.sum()) * pixel_size**2)
+    return out

@@ -59,7 +59,7 @@ TREE_COLUMNS = {
     "Stand_ID": "TEXT", "Plot_ID": "INTEGER", "Tree_ID": "INTEGER", "Tree_Count": "REAL",
     "History": "INTEGER", "Species": "TEXT", "DBH": "REAL", "DG": "REAL", "Ht": "REAL",
     "HTG": "REAL", "CrRatio": "INTEGER",
-    "SG_Tree_ID": "TEXT", "SG_DBH_Source": "TEXT",
+    "SG_Tree_ID": "TEXT", "SG_Tree_UID": "INTEGER", "SG_DBH_Source": "TEXT",
 }  # fmt: skip
 
 
@@ -412,6 +412,11 @@ def _tree_rows(
             "HTG": htg.to_numpy(),
             "CrRatio": _crown_ratio(trees).to_numpy(),
             "SG_Tree_ID": trees["tree_id"].astype(np.int64).astype(str).to_numpy(),
+            "SG_Tree_UID": (
+                trees["tree_uid"].astype("Int64").to_numpy()
+                if "tree_uid" in trees.columns
+                else pd.array([pd.NA] * len(trees), dtype="Int64")
+            ),
             "SG_DBH_Source": trees["dbh_source"].astype(object).to_numpy(),
         }
     )

@@ -31,7 +31,8 @@ FORMATS = {
 }
 #: The generic tree list, in order (docs/TREES.md describes each column).
 TREE_COLUMNS = [
-    "epoch", "date", "stand_id", "cell_id", "tree_id", "x", "y", "stem_x", "stem_y",
+    "epoch", "date", "stand_id", "cell_id", "tree_id", "tree_uid", "detected_by", "x", "y",
+    "stem_x", "stem_y",
     "lon", "lat", "z_ground", "height_m", "dbh_cm", "dbh_source", "dbh_se_cm", "dbh_reason",
     "basal_area_m2", "crown_area_m2", "crown_diameter_m", "n_points", "counted", "stand_area_m2",
     "trees_per_ha", "crs",
@@ -132,6 +133,12 @@ def generic_tree_list(
                 "stand_id": trees.get("stand_id", pd.Series(pd.NA, index=trees.index)),
                 "cell_id": trees.get("cell_id", pd.Series(pd.NA, index=trees.index)),
                 "tree_id": trees["tree_id"].astype(np.int64),
+                "tree_uid": trees.get("tree_uid", pd.Series(pd.NA, index=trees.index)).astype(
+                    "Int64"
+                ),
+                "detected_by": trees.get(
+                    "detected_by", pd.Series(pd.NA, index=trees.index)
+                ).astype("string"),
                 "x": trees["x"].astype(float),
                 "y": trees["y"].astype(float),
                 "stem_x": trees.get("stem_x", np.nan),

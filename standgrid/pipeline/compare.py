@@ -140,6 +140,7 @@ def _compare(
         presence,
         with_coverage,
     )
+    from standgrid.compare.evidence import MISSED, confirm_change
     from standgrid.compare.inputs import (
         default_epoch,
         enriched_epoch,
@@ -147,6 +148,7 @@ def _compare(
         read_table,
     )
     from standgrid.compare.stands import check_same_grid
+    from standgrid.enrich.identity import MAX_DISTANCE_M
     from standgrid.export.styles import raster_style_path
 
     check_same_grid(source.fingerprint, target.fingerprint, label_a="from", label_b="to")
@@ -160,8 +162,16 @@ def _compare(
     metrics_to = epoch_metrics(target, epoch_to)
     trees_from = read_table(source, paths.tree_list(epoch_from, "parquet"))
     trees_to = read_table(target, paths.tree_list(epoch_to, "parquet"))
+    # one catalog's epochs: the same trees by their tree_uid (paired by this rule, at the
+    # default distance, when each was enriched)
+    by_uid = (
+        one_catalog
+        and max_distance == MAX_DISTANCE_M
+        and {"tree_uid"} <= set(trees_from.columns) & set(trees_to.columns)
+    )
     matches = match_trees(
-        trees_from, trees_to, date_from=date_from, date_to=date_to, max_distance=max_distance
+        trees_from, trees_to, date_from=date_from, date_to=date_to, max_distance=max_distance,
+        by_uid=by_uid,
     )
     cells = _cell_polygons(source, target, metrics_from, metrics_to)
     co = CoObserved.read(
@@ -170,6 +180,13 @@ def _compare(
     ).within(measured_cells(cells, metrics_from), measured_cells(cells, metrics_to))
     matches = locate_trees(matches, trees_from, trees_to)
     matches = replace(matches, table=mark_unobserved(matches.table, co))
+    # removed and new only where the other survey's points show the place empty
+    matches = replace(
+        matches,
+        table=confirm_change(
+            matches.table, source, epoch_from, target, epoch_to, trees_from, trees_to
+        ),
+    )
     per_level = []
     for level in sorted(set(metrics_from["level"]) | set(metrics_to["level"])):
         a = metrics_from[metrics_from["level"] == level]
@@ -241,7 +258,7 @@ def _compare(
         years=matches.years,
         trees={
             status: int((matches.table["status"] == status).sum())
-            for status in ("grown", "new", "removed", UNOBSERVED)
+            for status in ("grown", "new", "removed", MISSED, UNOBSERVED)
         },
         stands=presence(changes[changes["level"] == 0]),
         stands_1ha=presence(changes[changes["level"] == 1]),

@@ -120,8 +120,10 @@ def _enrich(
                 f"comparisons {', '.join(lost)} removed (their inputs change): compare again"
             )
         models = height_diameter_models(catalog, {e: r.trees for e, r in results.items()})
+        uids = _tree_uids(catalog, {e: r.trees for e, r in results.items()})
         for epoch, result in results.items():
             trees = impute_dbh(result.trees, models[epoch])
+            trees.insert(int(trees.columns.get_loc("tree_id")) + 1, "tree_uid", uids[epoch])
             rows = stand_rows(
                 result.samples, result.stands, trees, rule, height_break=options.height_break
             )
@@ -265,6 +267,22 @@ def _enrich_epoch(
         "observed_fraction": observed_m2 / float(sum(p.area for p in polygons)),
     }
     return _EpochResult(samples, stands.result(), trees, summary)
+
+
+def _tree_uids(catalog: Catalog, trees: dict[str, pd.DataFrame]) -> dict[str, Any]:
+    """Each epoch's ``tree_uid``s: its trees paired with those of the catalog's other
+    enriched epochs (:func:`standgrid.enrich.identity.assign_tree_uids`)."""
+    import pandas as pd
+
+    from standgrid.enrich.identity import assign_tree_uids
+
+    others = {}
+    for epoch, record in catalog.epoch_records.items():
+        path = catalog.path(paths.tree_list(epoch, "parquet"))
+        if epoch not in trees and record.state == "enriched" and path.exists():
+            others[epoch] = pd.read_parquet(path, columns=None)
+    dates = {e: r.date or e for e, r in catalog.epoch_records.items()}
+    return assign_tree_uids(trees, dates, others)
 
 
 def _epoch_cells(catalog: Catalog, epoch: str, partition: Partition) -> list[ChunkCell]:

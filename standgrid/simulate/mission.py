@@ -22,6 +22,7 @@ from standgrid.mission.layout import is_mission_folder
 from standgrid.mission.posegraph import Edge, PoseGraph, Vertex
 from standgrid.mission.sensors import GnssFixes
 from standgrid.pointcloud import PointCloud
+from standgrid.simulate.canopy import generate_mixed_forest
 from standgrid.simulate.chain import FrameChain
 from standgrid.simulate.forest import Shrubs, Trees, generate_forest, grow_forest
 from standgrid.simulate.gnss import (
@@ -29,6 +30,12 @@ from standgrid.simulate.gnss import (
     SimulatedGnss,
     simulate_gnss,
     simulate_imu,
+)
+from standgrid.simulate.raycast import (
+    BARK_ROUGHNESS,
+    RAYCAST_SCANNERS,
+    SHRUB_FOLIAGE_DENSITY,
+    raycast_scan,
 )
 from standgrid.simulate.scanner import ScannerModel, ScanPoints, scan
 from standgrid.simulate.terrain import Terrain, random_terrain
@@ -50,6 +57,10 @@ from standgrid.stamps import NS_PER_S, Stamp
 SITE_LON, SITE_LAT = -1.3370, 51.7735
 SITE_CRS = "EPSG:32630"
 PLACE = "wytham"
+#: Stands: today's even plantation, or a mixed stand (:mod:`standgrid.simulate.canopy`).
+FORESTS = ("plantation", "mixed")
+#: Scanners: points sampled on the true surfaces, or a ray caster with occlusion.
+SCANNER_KINDS = ("surface", *RAYCAST_SCANNERS)
 
 
 @dataclass(frozen=True)
@@ -99,6 +110,29 @@ class SimulationConfig:
     new_trees: int = 3
     scanner: ScannerModel = field(default_factory=ScannerModel)
     gnss: GnssModel = field(default_factory=GnssModel)
+    #: "plantation" (evenly spaced, vertical stems) or "mixed" (overstorey, understorey,
+    #: snags, leaning and forked stems; ``density_ha`` applies to the plantation only).
+    forest: str = "plantation"
+    #: "surface" (``scanner``: points on the true surfaces, no occlusion) or a ray-casting
+    #: scanner of :data:`~standgrid.simulate.raycast.RAYCAST_SCANNERS`.
+    scanner_kind: str = "surface"
+    #: Largest spacing (m) of the serpentine lanes (under-canopy surveys: ~15 m).
+    lane_spacing: float = 32.0
+
+    def __post_init__(self) -> None:
+        if self.forest not in FORESTS:
+            raise ValueError(f"forest must be one of {', '.join(FORESTS)}, got {self.forest!r}")
+        if self.scanner_kind not in SCANNER_KINDS:
+            raise ValueError(
+                f"scanner must be one of {', '.join(SCANNER_KINDS)}, got {self.scanner_kind!r}"
+            )
+        if self.forest == "mixed" and self.scanner_kind == "surface":
+            raise ValueError(
+                "the surface scanner draws only vertical plantation stems: scan the mixed "
+                f"forest with a ray-casting scanner ({', '.join(RAYCAST_SCANNERS)})"
+            )
+        if self.lane_spacing <= 0:
+            raise ValueError(f"lane spacing must be positive, got {self.lane_spacing}")
 
 
 @dataclass(frozen=True, eq=False)
@@ -141,9 +175,13 @@ class SimulatedMission:
         """
         span = self.spans[k]
         rng = np.random.default_rng([self.seed, self.epoch, 3000 + k])
-        w = self.world
-        pts = scan(rng, self.node_crs[span.first : span.last + 1], w.trees, w.shrubs, w.terrain,
-                   w.bounds, self.config.points_per_payload, self.config.scanner)  # fmt: skip
+        w, config = self.world, self.config
+        sensors = self.node_crs[span.first : span.last + 1]
+        world = (w.trees, w.shrubs, w.terrain, w.bounds, config.points_per_payload)
+        if config.scanner_kind == "surface":
+            pts = scan(rng, sensors, *world, config.scanner)
+        else:
+            pts = raycast_scan(rng, sensors, *world, RAYCAST_SCANNERS[config.scanner_kind])
         base = transform_points(
             invert_pose(self.true_poses[span.centre]), self.chain.crs_to_map(pts.xyz)
         )
@@ -192,7 +230,10 @@ def build_world(seed: int, epoch: int, config: SimulationConfig) -> World:
     bounds = stand_bounds(config.area)
     rng = _rng(seed, 0)
     terrain = random_terrain(rng, bounds)
-    trees, shrubs = generate_forest(rng, bounds, terrain, density_ha=config.density_ha)
+    if config.forest == "mixed":
+        trees, shrubs = generate_mixed_forest(rng, bounds, terrain)
+    else:
+        trees, shrubs = generate_forest(rng, bounds, terrain, density_ha=config.density_ha)
     if epoch == 2:
         box = None
         if config.harvest_box is not None:
@@ -267,7 +308,9 @@ def run_simulation(
     world = build_world(seed, epoch, config)
     rng = _rng(seed, epoch)
     # Trajectory in the CRS: nodes every ~1.5 m, sensor above the true ground.
-    waypoints = serpentine_waypoints(rng, world.bounds, along=spec.lanes_along)
+    waypoints = serpentine_waypoints(
+        rng, world.bounds, along=spec.lanes_along, max_line_spacing=config.lane_spacing
+    )
     if config.survey_polygon is not None:
         x0, y0 = world.bounds[:2]
         outline = [(x0 + u, y0 + v) for u, v in config.survey_polygon]
@@ -429,7 +472,39 @@ def write_truth_folder(sim: SimulatedMission, folder: Path, config: SimulationCo
         "gnss_h_std_meaning": "horizontal RMS error; per axis h_std / sqrt(2)",
         "trees_dbh_height": "DBH at 1.3 m above ground; stems taper linearly to the tree top",
     }
+    if (config.forest, config.scanner_kind, config.lane_spacing) != ("plantation", "surface",
+                                                                     32.0):  # fmt: skip
+        info.update(_opt_in_truth(config))
     write_truth_json(info, folder / "truth.json")
+
+
+def _opt_in_truth(config: SimulationConfig) -> dict[str, Any]:
+    """Truth of the opt-in knobs (forest, ray-casting scanner, lanes); left out of a default
+    simulation's truth.json, which stays as it was."""
+    info: dict[str, Any] = {"forest": config.forest, "lane_spacing_m": config.lane_spacing}
+    if config.scanner_kind == "surface":
+        info["scanner"] = {"kind": "surface", "max_range_m": config.scanner.max_range,
+                           "noise_std_m": config.scanner.noise_std}  # fmt: skip
+        return info
+    model = RAYCAST_SCANNERS[config.scanner_kind]
+    info["scanner"] = {
+        "kind": model.kind,
+        "max_range_m": model.max_range,
+        "min_range_m": model.min_range,
+        "noise_std_m": model.noise_std,
+        "noise": "Gaussian, along the ray",
+        "elevation_deg": list(model.elevation_deg),
+        "rings": model.rings,
+        "altitude_above_nodes_m": list(model.altitude),
+        "bark_roughness_std_m": BARK_ROUGHNESS,
+        "shrub_foliage_density_per_m": SHRUB_FOLIAGE_DENSITY,
+        "occlusion": "first hit per ray; crowns and shrubs porous (foliage_density)",
+    }
+    info["trees_dbh_height"] = (
+        "DBH at 1.3 m along the stem axis, perpendicular to it; heights vertical above "
+        "z_ground; stem taper, forks and crowns as in standgrid.simulate.canopy"
+    )
+    return info
 
 
 def _prepare(final: Path, overwrite: bool, replaces: Any, what: str) -> None:

@@ -3,7 +3,10 @@
 ``<out_root>/truth/<mission>/``:
   truth.json        crs, lla_ref, T_map_enu (4x4), seed, epoch, date, terrain, stand bounds, ...
   trees.csv         tree_id, x, y, z_ground, dbh_m, height_m, crown_base_m, crown_radius_m,
-                    species, status
+                    species, status; then, for stands other than a plantation of vertical
+                    overstorey trees (when left out, read as those defaults): kind,
+                    lean_deg, lean_azimuth_deg, fork_height_m (empty: none), x_bh, y_bh,
+                    foliage_density (see :class:`~standgrid.simulate.forest.Trees`)
   shrubs.csv        x, y, z_ground, radius_m, height_m (understory)
   true_poses.csv    the true T_map_base of every node (pose CSV format)
   gnss_truth.csv    sec, nsec, true antenna x, y, z (CRS), outlier flag of every written fix
@@ -32,6 +35,10 @@ from standgrid.stamps import Stamp
 TREE_COLUMNS = (
     "tree_id", "x", "y", "z_ground", "dbh_m", "height_m", "crown_base_m", "crown_radius_m",
     "species", "status",
+)  # fmt: skip
+#: Columns of a mixed stand, after :data:`TREE_COLUMNS`.
+STAND_COLUMNS = (
+    "kind", "lean_deg", "lean_azimuth_deg", "fork_height_m", "x_bh", "y_bh", "foliage_density",
 )  # fmt: skip
 SHRUB_COLUMNS = ("x", "y", "z_ground", "radius_m", "height_m")
 GNSS_TRUTH_HEADER = "sec,nsec,x,y,z,outlier"
@@ -113,18 +120,27 @@ def _fmt(v: float, digits: int) -> str:
 
 
 def write_trees_csv(trees: Trees, path: Path) -> None:
+    """The tree list; the :data:`STAND_COLUMNS` too unless it is a plain plantation."""
+    stand = not trees.is_plantation
     with path.open("w", encoding="utf-8", newline="") as fh:
         out = csv.writer(fh, lineterminator="\n")
-        out.writerow(TREE_COLUMNS)
+        out.writerow(TREE_COLUMNS + STAND_COLUMNS if stand else TREE_COLUMNS)
         for k in range(len(trees)):
-            out.writerow(
-                [
-                    int(trees.tree_id[k]), _fmt(trees.x[k], 4), _fmt(trees.y[k], 4),
-                    _fmt(trees.z_ground[k], 4), _fmt(trees.dbh[k], 4), _fmt(trees.height[k], 3),
-                    _fmt(trees.crown_base[k], 3), _fmt(trees.crown_radius[k], 3),
-                    str(trees.species[k]), str(trees.status[k]),
-                ]
-            )  # fmt: skip
+            row = [
+                int(trees.tree_id[k]), _fmt(trees.x[k], 4), _fmt(trees.y[k], 4),
+                _fmt(trees.z_ground[k], 4), _fmt(trees.dbh[k], 4), _fmt(trees.height[k], 3),
+                _fmt(trees.crown_base[k], 3), _fmt(trees.crown_radius[k], 3),
+                str(trees.species[k]), str(trees.status[k]),
+            ]  # fmt: skip
+            if stand:
+                fork = trees.fork_height_m[k]
+                row += [
+                    str(trees.kind[k]), _fmt(trees.lean_deg[k], 3),
+                    _fmt(trees.lean_azimuth_deg[k], 3),
+                    _fmt(fork, 3) if np.isfinite(fork) else "", _fmt(trees.x_bh[k], 4),
+                    _fmt(trees.y_bh[k], 4), _fmt(trees.foliage_density[k], 4),
+                ]  # fmt: skip
+            out.writerow(row)
 
 
 def write_shrubs_csv(shrubs: Shrubs, path: Path) -> None:
@@ -176,8 +192,13 @@ def _trees_from_csv(path: Path) -> Trees:
     try:
 
         def col(name: str) -> NDArray[np.float64]:
-            return np.array([float(r[name]) for r in rows], dtype=np.float64)
+            blank = "nan" if name == "fork_height_m" else ""  # empty fork height: no fork
+            return np.array([float(r[name] or blank) for r in rows], dtype=np.float64)
 
+        stand: dict[str, Any] = {}
+        if rows and "kind" in rows[0]:  # a mixed stand's columns
+            stand["kind"] = np.array([r["kind"] for r in rows], dtype=np.str_)
+            stand.update({c: col(c) for c in STAND_COLUMNS[1:]})
         return Trees(
             tree_id=np.array([int(r["tree_id"]) for r in rows], dtype=np.int64),
             x=col("x"), y=col("y"), z_ground=col("z_ground"), dbh=col("dbh_m"),
@@ -185,6 +206,7 @@ def _trees_from_csv(path: Path) -> Trees:
             crown_radius=col("crown_radius_m"),
             species=np.array([r["species"] for r in rows], dtype=np.str_),
             status=np.array([r["status"] for r in rows], dtype=np.str_),
+            **stand,
         )  # fmt: skip
     except (KeyError, ValueError) as exc:
         raise FormatError(f"bad tree list: {exc}", path=path) from exc

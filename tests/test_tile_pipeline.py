@@ -474,14 +474,38 @@ def test_two_missions_of_one_epoch_merge_into_shared_tiles(tmp_path: Path) -> No
 
 
 def test_reingest_keeps_the_other_missions_points_in_place(tmp_path: Path) -> None:
-    catalog = tmp_path / "catalog"
-    tile([M1, M2], catalog, cell_size=20.0, laz=False, epoch="campaign")
-    other = {p.name: records(laspy.read(p)) for p in tile_files(catalog)}
-    tile([M1], catalog, epoch="campaign")
-    again = {p.name: records(laspy.read(p)) for p in tile_files(catalog)}
-    assert sorted(again) == sorted(other)
-    for name in other:
-        assert np.array_equal(again[name], other[name]), name
+    """Re-ingesting M1 alone: M2's points stay exactly where they were; M1 is registered
+    to M2 (held where the catalog has it) and lands within a centimetre of where the joint
+    alignment of both put it. Without alignment, every point is where it was."""
+    for align in (True, False):
+        catalog = tmp_path / f"catalog_{align}"
+        tile([M1, M2], catalog, cell_size=20.0, laz=False, epoch="campaign", align=align)
+        before = {p.name: records(laspy.read(p)) for p in tile_files(catalog)}
+        report = tile([M1], catalog, epoch="campaign", align=align)
+        after = {p.name: records(laspy.read(p)) for p in tile_files(catalog)}
+        if not align:
+            assert report.alignment is None
+            assert sorted(after) == sorted(before)
+            for name in before:
+                assert np.array_equal(after[name], before[name]), name
+            continue
+        assert report.alignment is not None
+        assert report.alignment["references"] == [M2.name]
+        assert report.alignment["missions"][M1.name]["registered_with"] == [M2.name]
+        number = {"m1": 1.0, "m2": 2.0}
+        for key, keep in (("m2", True), ("m1", False)):
+            was = np.concatenate([r[r[:, 4] == number[key]] for r in before.values()])
+            now = np.concatenate([r[r[:, 4] == number[key]] for r in after.values()])
+            assert len(was) == len(now)
+            if keep:
+                was, now = was[np.lexsort(was.T[::-1])], now[np.lexsort(now.T[::-1])]
+                assert np.array_equal(was, now)
+                continue
+            # each payload's points, moved rigidly by less than a centimetre
+            for payload in np.unique(was[:, 5]):
+                a, b = was[was[:, 5] == payload, :3], now[now[:, 5] == payload, :3]
+                assert len(a) == len(b)
+                assert np.abs(a.mean(axis=0) - b.mean(axis=0)).max() < 0.01
 
 
 def test_voronoi_cells(tmp_path: Path) -> None:
@@ -604,8 +628,9 @@ def test_interrupted_run_leaves_the_catalog_intact(tmp_path: Path) -> None:
             [broken], catalog, TileOptions(), progress=CallbackProgress(on_status=messages.append)
         )
     assert victim.name in str(info.value)
-    # it failed midway: inside the catalog transaction, while tiling the epoch
-    assert any(m.startswith("tiling epoch 2028") for m in messages)
+    # it failed midway: inside the catalog transaction, while aligning the mission to the
+    # catalog's (reading its payloads for stems) or tiling the epoch
+    assert any(m.startswith(("tiling epoch 2028", "aligning: landmarks of")) for m in messages)
     assert snapshot(catalog) == before
     assert not (catalog / ".staging").exists()
     victim.write_bytes(data)

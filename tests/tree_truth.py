@@ -75,6 +75,8 @@ class Scores:
     dbh_rmse_cm: float
     height_rmse_m: dict[str, float]
     height_bias_m: dict[str, float]
+    #: share of the detections there paired with a true tree (a tree found twice: one not)
+    precision: float = float("nan")
 
     def line(self) -> str:
         recall = ", ".join(f"{k} {v:.3f}" for k, v in self.recall.items())
@@ -120,6 +122,7 @@ def scores(found: pd.DataFrame, truth: pd.DataFrame, inside: object) -> Scores:
         dbh_rmse_cm=float(np.sqrt(np.mean(dbh_err**2))),
         height_rmse_m={k: float(np.sqrt(np.mean(height_err[kind == k] ** 2))) for k in KINDS},
         height_bias_m={k: float(np.mean(height_err[kind == k])) for k in KINDS},
+        precision=tp / max(tp + fp, 1),
     )
 
 

@@ -169,6 +169,7 @@ def mission_row(
 
     fit = placement.fit
     meta = metadata_extra(mission)
+    aligned = placement.alignment or {}
     return {
         "mission": mission.name,
         "number": number,
@@ -183,6 +184,12 @@ def mission_row(
         "n_used": 0 if fit is None else int(fit.n_used),
         "n_rejected": 0 if fit is None else int(fit.n_rejected),
         "placement_offset_m": float(placement_offset_m),
+        # alignment (standgrid.align): DRMS 1-sigma, absolute and relative to the missions
+        # it was registered with; null when not aligned
+        "aligned": bool(aligned.get("aligned", False)),
+        "registered_with": ",".join(aligned.get("registered_with", ())),
+        "sigma_h_m": aligned.get("sigma_h_m"),
+        "sigma_rel_m": aligned.get("sigma_rel_m"),
         "grid_fingerprint": catalog.fingerprint,
         "crs": catalog.crs,
     }

@@ -22,6 +22,7 @@ COMMANDS: dict[str, str] = {
     "simulate": "standgrid.cli.simulate:simulate",
     "georef": "standgrid.cli.georef:georef",
     "tile": "standgrid.cli.tile:tile",
+    "align": "standgrid.cli.align:align",
     "enrich": "standgrid.cli.enrich:enrich",
     "compare": "standgrid.cli.compare:compare",
     "run": "standgrid.cli.run:run",

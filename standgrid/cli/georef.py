@@ -92,6 +92,12 @@ def georef(
         "uncertainty": None if fit.uncertainty is None else fit.uncertainty.to_dict(),
         "warnings": [] if fit.uncertainty is None else list(fit.uncertainty.warnings),
     }
+    from standgrid.align.graph import placement_sigma
+
+    honest = placement_sigma(fit, opened.trajectory()[1]) if fit.uncertainty else None
+    # the fit's covariance sees white noise; under a canopy errors are correlated and biased
+    report["placement_sigma_h_m"] = None if honest is None else honest[0]
+    report["placement_sigma_how"] = None if honest is None else honest[1]
     for warning in report["warnings"]:
         status(f"warning: {warning}", quiet)
     if as_json:
@@ -127,6 +133,11 @@ def _human(r: dict[str, Any]) -> str:
             f"             up to {_num(u['sigma_horizontal_max_m'])} m horizontally along the "
             f"fixes; GNSS baseline {_num(u['baseline_m'], 1)} m",
         ]
+    if r.get("placement_sigma_h_m") is not None:
+        sigma.append(
+            f"placement    1-sigma {r['placement_sigma_h_m']:.3f} m horizontally (DRMS, the "
+            f"largest along the trajectory; {r['placement_sigma_how']})"
+        )
     sigma += [f"WARNING      {w}" for w in r.get("warnings", [])]
     return "\n".join(
         [

@@ -131,6 +131,13 @@ def status(message: str, quiet: bool = False) -> None:
 
 
 #: ``tile`` and ``run``: a mission of a name the catalog holds, from another folder.
+no_align_option = click.option(
+    "--no-align", "no_align", is_flag=True,
+    help="Place each mission by its own GNSS fit alone (default: missions given together"
+    " that overlap are registered to each other on their stems and ground, and placed by one"
+    " graph with their GNSS).",
+)  # fmt: skip
+
 replace_option = click.option(
     "--replace", "replace_missions", is_flag=True,
     help="A mission whose name the catalog holds, tiled from another folder, replaces it"

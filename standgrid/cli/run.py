@@ -13,6 +13,7 @@ from standgrid.cli.options import (
     emit,
     json_option,
     lock_timeout_option,
+    no_align_option,
     output_option,
     overwrite_option,
     quiet_option,
@@ -73,6 +74,7 @@ def _human(r: dict[str, Any]) -> str:
 )  # fmt: skip
 @overwrite_option
 @replace_option
+@no_align_option
 @cluster_options
 @lock_timeout_option
 @json_option
@@ -86,6 +88,7 @@ def run(
     accept_poor_georeference: bool,
     overwrite: bool,
     replace_missions: bool,
+    no_align: bool,
     workers: int | None,
     scheduler: str | None,
     lock_timeout: float,
@@ -112,6 +115,7 @@ def run(
             buffer=buffer,
             overwrite=overwrite,
             replace_missions=replace_missions,
+            align=not no_align,
             lock_timeout=lock_timeout,
             accept_poor_georeference=accept_poor_georeference,
         ),

@@ -45,6 +45,15 @@ def _human(results: list[dict[str, Any]]) -> str:
                    "airborne: ray casting with occlusion and porous crowns.")  # fmt: skip
 @click.option("--lane-spacing", type=click.FloatRange(min=2.0), default=32.0, show_default=True,
               help="Largest spacing of the robot's serpentine lanes, metres.")  # fmt: skip
+@click.option("--gnss", "gnss", type=click.Choice(["demo", "canopy"]), default="demo",
+              show_default=True,
+              help="demo: canopy noise with RTK windows, honest stated accuracies; canopy: "
+                   "as under a forest canopy (a 1 m bias per recording, a 2 m Gauss-Markov "
+                   "walk over 120 s, 0.3 m noise, RTK float or single fixes stating 0.5 m).",
+              )  # fmt: skip
+@click.option("--second-robot", is_flag=True,
+              help="Also a second robot's mission over the same stand on the first "
+                   "campaign's day.")  # fmt: skip
 @overwrite_option
 @json_option
 @quiet_option
@@ -58,6 +67,8 @@ def simulate(
     forest: str,
     scanner: str,
     lane_spacing: float,
+    gnss: str,
+    second_robot: bool,
     overwrite: bool,
     as_json: bool,
     quiet: bool,
@@ -72,18 +83,21 @@ def simulate(
       standgrid simulate data --seed 7 --area 80 --points-per-payload 7000
       standgrid simulate /tmp/bench --epochs 1 --area 200 --points-per-payload 500000 --json
       standgrid simulate canopy --area 100 --forest mixed --scanner handheld --lane-spacing 15
+      standgrid simulate robots --gnss canopy --second-robot --forest mixed --scanner legged
     """
+    from standgrid.simulate.gnss import gnss_model
     from standgrid.simulate.mission import SimulationConfig, simulate_mission
 
     try:
         config = SimulationConfig(
             area=area, points_per_payload=points_per_payload, write_georef=write_georef,
             forest=forest, scanner_kind=scanner, lane_spacing=lane_spacing,
+            gnss=gnss_model(gnss),
         )  # fmt: skip
     except ValueError as exc:
         raise click.UsageError(str(exc)) from exc
     results = []
-    for epoch in range(1, epochs + 1):
+    for epoch in [*range(1, epochs + 1), *([3] if second_robot else [])]:
         status(f"simulating epoch {epoch} (seed {seed}) ...", quiet or as_json)
         sim = simulate_mission(out_root, seed=seed, epoch=epoch, overwrite=overwrite, config=config)
         results.append(sim.summary())

@@ -15,6 +15,7 @@ from standgrid.cli.options import (
     lock_timeout_option,
     memory_option,
     mission_argument,
+    no_align_option,
     output_option,
     overwrite_option,
     quiet_option,
@@ -69,10 +70,43 @@ def _human(report: dict[str, Any]) -> str:
             if rmse is not None
             else f"  {name}: #{m['number']}, {m['payloads']} payloads, {m['points']:,} points"
         )
+    lines += alignment_lines(report.get("alignment"))
     from standgrid.catalog import paths
 
     lines.append(f"open {Path(report['catalog']) / paths.INDEX} in QGIS")
     return "\n".join(lines)
+
+
+def alignment_lines(alignment: dict[str, Any] | None) -> list[str]:
+    """What alignment did, for people: each registration, each mission's 1-sigma."""
+    if not alignment:
+        return []
+    lines = ["alignment (1-sigma DRMS: absolute / relative to the missions it shares stems with)"]
+    for r in alignment["registrations"]:
+        if r["accepted"]:
+            lines.append(
+                f"  {r['moving']} onto {r['fixed']}: {r['stems_matched']} stems, moved "
+                f"{r['t_m'][0]:+.3f} {r['t_m'][1]:+.3f} m, {r['yaw_deg']:+.3f} deg, "
+                f"dz {r['dz_m']:+.3f} m; residual {r['rms_m']:.3f} m; GICP {r['gicp']}"
+            )
+        else:
+            lines.append(f"  {r['moving']} onto {r['fixed']}: not registered: {r['reason']}")
+    for name, m in alignment["missions"].items():
+        if m.get("held"):
+            continue
+        rel = m["sigma_rel_m"]
+        lines.append(
+            f"  {name}: {'aligned' if m['aligned'] else 'GNSS only'}, moved {m['moved_m']:.3f} m;"
+            f" 1-sigma {m['sigma_h_m']:.3f} m"
+            + (f" / {rel:.3f} m" if rel is not None else "")
+            + (
+                f" (GNSS alone {m['sigma_prior_m']:.3f} m)"
+                if m["sigma_prior_m"] is not None
+                else " (no GNSS: placed by registration alone)"
+            )
+        )
+    lines += [f"  WARNING {w}" for w in alignment["warnings"]]
+    return lines
 
 
 @click.command("tile")
@@ -125,6 +159,7 @@ def _human(report: dict[str, Any]) -> str:
 )  # fmt: skip
 @replace_option
 @memory_option
+@no_align_option
 @click.option(
     "--accept-poor-georeference", is_flag=True,
     help="Tile even when a GNSS fit's RMSE is far beyond the fixes' stated accuracy.",
@@ -148,6 +183,7 @@ def tile(
     anchor: tuple[float, float, float, float] | None,
     epoch: str | None,
     replace_missions: bool,
+    no_align: bool,
     memory_mb: int,
     accept_poor_georeference: bool,
     workers: int | None,
@@ -200,6 +236,7 @@ def tile(
         workers=workers,
         scheduler=scheduler,
         replace_missions=replace_missions,
+        align=not no_align,
     )
     report = tile_missions(list(missions), output, options, progress=TerminalProgress(quiet))
     emit(report.to_dict(), as_json, _human)

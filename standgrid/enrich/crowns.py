@@ -7,7 +7,7 @@ within ``link`` m of each other are joined by two directed edges, each as long a
 its vertical part counted ``down_weight`` (3) times going down: a tree grows up and out
 from its stem, so a small tree's crown is reached from its own stem below, not from the big
 crown above it (:class:`VoxelGraph`). From the voxels of every
-tree's sources (its trunk, :func:`standgrid.enrich.stems.stem_points` of the voxel centres,
+tree's sources (its trunk, :func:`standgrid.features.stems.stem_points` of the voxel centres,
 and the apex of its canopy top) a multi-source shortest-path search (scipy's Dijkstra)
 gives every voxel the tree it is reached from first, up to a path of ``max_path`` m
 (:meth:`VoxelGraph.reach`): a crown goes to the tree it grows from, and a small tree under a

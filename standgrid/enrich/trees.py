@@ -38,12 +38,18 @@ import numpy as np
 import pandas as pd
 from numpy.typing import NDArray
 
-from standgrid.enrich.circles import CircleFit, fit_circle, fit_circles, kasa_circle, link_clusters
 from standgrid.enrich.crowns import CrownOptions, VoxelGraph
 from standgrid.enrich.ground import PointsLike, as_xyz
 from standgrid.enrich.rasters import RasterGrid, chm
-from standgrid.enrich.stems import StemOptions, StemSet, empty_stems, find_stems, stem_points
 from standgrid.errors import EnrichError
+from standgrid.features.circles import (
+    CircleFit,
+    fit_circle,
+    fit_circles,
+    kasa_circle,
+    link_clusters,
+)
+from standgrid.features.stems import StemOptions, StemSet, empty_stems, find_stems, stem_points
 
 __all__ = [
     "TREE_COLUMNS",
@@ -547,7 +553,10 @@ def _apexes_over_stems(
         # crown leaning over)
         for best in cand[np.lexsort((xyz[cand, 1], xyz[cand, 0], -h[cand]))[:APEX_TRIES]]:
             radius = float(window(np.array([h[best]]))[0]) / 2.0
-            around = canopy[index.query_ball_point(xyz[best, :2], radius)]
+            # over a stem, a local maximum within the apex reach: the stem says where the
+            # tree is, so a neighbour's crown touching this one just beyond is no flank
+            flank = min(radius, APEX_REACH_M)
+            around = canopy[index.query_ball_point(xyz[best, :2], flank)]
             if (h[around] > h[best]).any():
                 continue  # on a crown's flank
             if found_tops is not None and found_tops.query_ball_point(xyz[best, :2], radius):

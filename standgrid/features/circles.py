@@ -170,9 +170,10 @@ def kasa_circles(
     0..n_sets-1), all at once: the least-squares ``x^2 + y^2 = a x + b y + c`` of each set
     in coordinates centred on its mean (NaN for a set of fewer than 3 points)."""
     count = np.bincount(owner, minlength=n_sets).astype(np.float64)
-    mean = np.column_stack(
-        [np.bincount(owner, xy[:, i], minlength=n_sets) for i in range(2)]
-    ) / np.maximum(count, 1.0)[:, None]
+    mean = (
+        np.column_stack([np.bincount(owner, xy[:, i], minlength=n_sets) for i in range(2)])
+        / np.maximum(count, 1.0)[:, None]
+    )
     u, v = (xy - mean[owner]).T
     w = u * u + v * v
 
@@ -339,9 +340,6 @@ def link_clusters(xy: NDArray[np.float64], distance: float) -> tuple[int, NDArra
     distance, so the components of the occupied squares' edge graph are parts of clusters;
     any two of those whose points come within the distance of each other are then merged.
     """
-    import shapely
-    from scipy.spatial import cKDTree
-
     n = len(xy)
     if n == 0:
         return 0, np.zeros(0, dtype=np.int64)
@@ -361,21 +359,11 @@ def link_clusters(xy: NDArray[np.float64], distance: float) -> tuple[int, NDArra
         comp = part[of_point.ravel()]
     else:
         comp = np.arange(n)
-    # parts that come within the distance of each other
-    order = np.argsort(comp, kind="stable")
-    starts = np.flatnonzero(np.r_[True, np.diff(comp[order]) != 0])
-    lo = np.minimum.reduceat(xy[order], starts) - distance
-    hi = np.maximum.reduceat(xy[order], starts) + distance
-    boxes = shapely.box(lo[:, 0], lo[:, 1], hi[:, 0], hi[:, 1])
-    a, b = shapely.STRtree(boxes).query(boxes, predicate="intersects")
-    members = np.split(order, starts[1:])
-    touching = []
-    for i, j in zip(a[a < b], b[a < b], strict=True):
-        d, _ = cKDTree(xy[members[j]]).query(xy[members[i]], distance_upper_bound=distance)
-        if (d <= distance).any():
-            touching.append((i, j))
-    pairs = np.array(touching, dtype=np.int64).reshape(-1, 2)
-    count, merged = _components(len(starts), pairs[:, 0], pairs[:, 1])
+    # parts that come within the distance of each other: two such points both lie in
+    # squares with a square of another part at most 3 squares away (distance / side is
+    # sqrt(5)); only those frontier points are paired, in one k-d tree
+    pairs = _touching_parts(xy, comp, distance)
+    count, merged = _components(int(comp.max()) + 1, pairs[:, 0], pairs[:, 1])
     comp = merged[comp]
     # number the clusters in the order of their first point
     first = np.full(count, n)
@@ -383,6 +371,40 @@ def link_clusters(xy: NDArray[np.float64], distance: float) -> tuple[int, NDArra
     rank = np.empty(count, dtype=np.int64)
     rank[np.argsort(first)] = np.arange(count)
     return count, rank[comp]
+
+
+def _touching_parts(
+    xy: NDArray[np.float64], comp: NDArray[np.int64], distance: float
+) -> NDArray[np.int64]:
+    """Pairs of parts (labels ``comp``) with points within ``distance`` of each other."""
+    from scipy.spatial import cKDTree
+
+    if distance <= 0 or len(xy) < 2:
+        return np.zeros((0, 2), dtype=np.int64)
+    side = distance / np.sqrt(5.0) * (1.0 - 1e-9)
+    reach = 3  # squares: ceil(sqrt(5)) covers a distance from any point of a square
+    square = np.floor(xy / side).astype(np.int64)
+    square -= square.min(axis=0) - reach  # j +- reach stays within its row
+    stride = int(square[:, 1].max()) + reach + 1
+    keys = square[:, 0] * stride + square[:, 1]
+    squares, first, of_point = np.unique(keys, return_index=True, return_inverse=True)
+    of_point = of_point.ravel()
+    part = comp[first]  # a square's points are all of one part (edge-linked squares)
+    frontier = np.zeros(len(squares), dtype=bool)
+    for di in range(-reach, reach + 1):
+        for dj in range(-reach, reach + 1):
+            if di == 0 and dj == 0:
+                continue
+            other = squares + di * stride + dj
+            pos = np.minimum(np.searchsorted(squares, other), len(squares) - 1)
+            frontier |= (squares[pos] == other) & (part[pos] != part)
+    rows = np.flatnonzero(frontier[of_point])
+    if len(rows) < 2:
+        return np.zeros((0, 2), dtype=np.int64)
+    found = cKDTree(xy[rows]).query_pairs(distance, output_type="ndarray")
+    a, b = comp[rows[found[:, 0]]], comp[rows[found[:, 1]]]
+    apart = a != b
+    return np.unique(np.column_stack([a[apart], b[apart]]), axis=0)
 
 
 def _components(

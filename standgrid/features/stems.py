@@ -3,7 +3,7 @@
 Height-normalised points are cut into thin horizontal slices (bands) from 0.7 m to 3.4 m
 above ground, every 0.3 m, breast height (1.3 m) among them. In each band the points are
 linked into clusters (single linkage), and each cluster of stem size gets a robust circle
-(RANSAC, then soft-L1 least squares: :func:`standgrid.enrich.circles.fit_circles`),
+(RANSAC, then soft-L1 least squares: :func:`standgrid.features.circles.fit_circles`),
 accepted on its inliers, residual, arc and radius. Accepted circles of neighbouring bands
 (up to two bands apart, a band hidden by a branch or a shrub) are linked when each is the
 other's nearest one within a lean of ``max_lean_deg`` and a plausible change of radius, so
@@ -27,7 +27,7 @@ import numpy as np
 import pandas as pd
 from numpy.typing import NDArray
 
-from standgrid.enrich.circles import CircleFits, fit_packed, link_clusters
+from standgrid.features.circles import CircleFits, fit_packed, link_clusters
 
 #: Columns of a stem table (one row per stem; positions at breast height, CRS metres).
 STEM_COLUMNS = [

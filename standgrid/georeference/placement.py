@@ -38,6 +38,8 @@ class Placement:
 
     fit: GeoreferenceFit | None
     source_crs: str | None = None
+    #: How alignment with other missions moved it (:mod:`standgrid.align`), None: GNSS only.
+    alignment: dict[str, Any] | None = None
 
     def to_catalog(self, crs: str, name: str) -> ToCatalog:
         """The recipe into the catalog CRS ``crs`` (``name``: the mission's, for messages)."""
@@ -48,18 +50,28 @@ class Placement:
 
     def record(self) -> dict[str, Any]:
         """What the catalog stores about how the mission was placed."""
+        out: dict[str, Any]
         if self.fit is None:
-            return {"format": "standgrid.georeference/1", "method": "projected",
-                    "source_crs": self.source_crs}  # fmt: skip
-        return self.fit.to_dict()
+            out = {"format": "standgrid.georeference/1", "method": "projected",
+                   "source_crs": self.source_crs}  # fmt: skip
+        else:
+            out = self.fit.to_dict()
+        if self.alignment is not None:
+            out["alignment"] = self.alignment
+        return out
 
     def summary(self) -> dict[str, Any]:
         """The headline figures of the placement (the tile report's ``georeference``)."""
+        out: dict[str, Any]
         if self.fit is None:
-            return {"method": "projected", "source_crs": self.source_crs, "fixes_used": 0,
-                    "fixes_rejected": 0, "rmse_horizontal_m": None,
-                    "uncertainty": None}  # fmt: skip
-        return fit_summary(self.fit)
+            out = {"method": "projected", "source_crs": self.source_crs, "fixes_used": 0,
+                   "fixes_rejected": 0, "rmse_horizontal_m": None,
+                   "uncertainty": None}  # fmt: skip
+        else:
+            out = fit_summary(self.fit)
+        if self.alignment is not None:
+            out["alignment"] = self.alignment
+        return out
 
 
 @dataclass(frozen=True)

@@ -40,6 +40,7 @@ from standgrid.catalog.setup import (
 from standgrid.engine import SILENT, MemoryBudget, Progress
 from standgrid.errors import (
     CatalogError,
+    NotGeoreferencedError,
     TilingError,
     out_of_space_error,
 )
@@ -50,7 +51,7 @@ if TYPE_CHECKING:
     from standgrid.engine import Executor
     from standgrid.mission.model import Mission
 
-__all__ = ["TileOptions", "TileReport", "tile_missions"]
+__all__ = ["TileOptions", "TileReport", "realign_catalog", "tile_missions"]
 
 
 @dataclass(frozen=True)
@@ -100,6 +101,13 @@ class TileOptions:
     #: :class:`~standgrid.errors.MissionFolderConflictError`). Re-ingesting from the same
     #: folder is always allowed.
     replace_missions: bool = False
+    #: Register the missions given together to each other on their stems and ground, and
+    #: place them by one graph with their GNSS (:mod:`standgrid.align`), when two or more
+    #: overlap. False: each mission by its own GNSS fit alone.
+    align: bool = True
+    #: Epoch by mission name (over ``epoch`` and the mission's year): a catalog's own
+    #: labels when its missions are re-tiled (``standgrid align``).
+    epochs: tuple[tuple[str, str], ...] = ()
 
     @property
     def grid_request(self) -> GridRequest:
@@ -121,6 +129,8 @@ class TileReport:
     #: Epochs not tiled whose results were removed too (their DBH imputation pooled the trees
     #: of re-tiled epochs): epoch -> what was removed.
     also_invalidated: dict[str, dict[str, Any]] = field(default_factory=dict)
+    #: What alignment did (:meth:`standgrid.align.AlignResult.to_dict`); None: not run.
+    alignment: dict[str, Any] | None = None
 
     @property
     def points_in(self) -> int:
@@ -149,6 +159,7 @@ class TileReport:
             "workers": self.workers,
             "epochs": self.epochs,
             "also_invalidated": self.also_invalidated,
+            "alignment": self.alignment,
             "missions": self.missions,
         }
 
@@ -247,12 +258,26 @@ def _prepare(
 
     mission = given if isinstance(given, Mission) else open_mission(given, cache_points=0)
     progress.status(f"georeferencing {mission.name}")
-    placement = place_mission(
-        mission, crs=crs, anchor=options.anchor, method=options.method,
-        accept_poor=options.accept_poor_georeference,
-    )  # fmt: skip
+    try:
+        placement = place_mission(
+            mission, crs=crs, anchor=options.anchor, method=options.method,
+            accept_poor=options.accept_poor_georeference,
+        )  # fmt: skip
+    except NotGeoreferencedError as exc:
+        # no GNSS and no anchor: the catalog (or the missions given with it) may place it
+        if not options.align or mission.graph is None or mission.is_projected:
+            raise
+        from standgrid.align.stage import provisional_placement
+
+        try:
+            placement = provisional_placement(mission)
+        except NotGeoreferencedError:
+            raise exc from None
     meta = mission.metadata
-    if options.epoch is not None:
+    labels = dict(options.epochs)
+    if mission.name in labels:
+        epoch = labels[mission.name]
+    elif options.epoch is not None:
         epoch = options.epoch
     elif meta is not None:
         epoch = str(meta.date.year)
@@ -286,6 +311,19 @@ def _ingest(
         by_hand = options.anchor is not None or options.method != TileOptions.method
         tolerance = None if by_hand else options.placement_tolerance
         settings = EpochSettings(tiling, options.memory_budget, tolerance)
+        if options.align and not by_hand:
+            from standgrid.pipeline.align import align_ingests
+
+            report.alignment = align_ingests(catalog, txn, ingests, progress)
+        from standgrid.align.stage import is_provisional
+
+        for ingest in ingests:  # a mission without GNSS that nothing registered with
+            if is_provisional(ingest.placement):
+                raise NotGeoreferencedError(
+                    "no GNSS fixes and no pose-graph anchor, and no other mission (given, or "
+                    "in the catalog) registers with it: give --anchor LAT LON ALT YAW",
+                    path=ingest.mission.path,
+                )
         for ingest in ingests:
             ingest.number = txn.mission_number(ingest.mission.name)
             ingest.to_catalog = ingest.placement.to_catalog(catalog.crs, ingest.mission.name)
@@ -328,3 +366,34 @@ def _ingest(
                 report.also_invalidated[epoch] = removed
     progress.status(f"tiled {report.points_out} points into {cells} cells")
     return report
+
+
+def realign_catalog(
+    catalog_path: str | Path,
+    options: TileOptions = TileOptions(),
+    *,
+    progress: Progress = SILENT,
+    executor: Executor | None = None,
+) -> TileReport:
+    """Re-tile every mission of a catalog from the folder it was tiled from, in its own
+    epoch, aligned all together (``standgrid align``). Raises
+    :class:`~standgrid.errors.CatalogError` when a mission's folder is gone."""
+    from dataclasses import replace
+
+    from standgrid.catalog import Catalog
+
+    path = Path(catalog_path)
+    records = Catalog.open(path, lock_timeout=options.lock_timeout).mission_records
+    if not records:
+        raise CatalogError("no missions in the catalog: nothing to align", path=path)
+    gone = sorted(n for n, r in records.items() if not r.path or not Path(r.path).is_dir())
+    if gone:
+        raise CatalogError(
+            f"cannot re-align: the folders of {', '.join(gone)} are gone (tile them again "
+            "from where they are now, with --replace)",
+            path=path,
+        )
+    missions = [Path(str(r.path)) for _, r in sorted(records.items())]
+    epochs = tuple(sorted((n, r.epoch) for n, r in records.items()))
+    settings = replace(options, align=True, epochs=epochs, overwrite=False)
+    return tile_missions(missions, path, settings, progress=progress, executor=executor)

@@ -30,6 +30,40 @@ class GnssModel:
     outlier_m: tuple[float, float] = (10.0, 40.0)
     #: Open sky: every fix RTK fixed with ``rtk_h_std`` noise (outliers included).
     open_sky: bool = False
+    #: Horizontal RMS (m) of one bias drawn per recording (0: none), added to every fix.
+    bias_h_m: float = 0.0
+    #: Horizontal RMS (m) of a first-order Gauss-Markov error (multipath under a canopy)
+    #: with correlation time ``walk_tau_s`` (0: none), added to every fix.
+    walk_h_m: float = 0.0
+    walk_tau_s: float = 120.0
+    #: The horizontal accuracy the receiver states for every non-RTK fix (None: the true
+    #: white-noise sigma); under a canopy receivers state far less than the real error.
+    stated_h_m: float | None = None
+    #: Share of the non-RTK fixes flagged RTK float (the rest: DGPS 40 %, single).
+    float_share: float = 0.0
+
+    @classmethod
+    def under_canopy(cls) -> GnssModel:
+        """GNSS as under a forest canopy: 0.3 m white noise, a Gauss-Markov walk of 2 m over
+        120 s, a 1 m bias per recording, RTK float or single fixes stating 0.5 m, no RTK
+        fixed windows, 2 % multipath outliers."""
+        return cls(
+            canopy_h_std=(0.3, 0.3), rtk_windows=0, bias_h_m=1.0, walk_h_m=2.0,
+            walk_tau_s=120.0, stated_h_m=0.5, float_share=0.5,
+        )  # fmt: skip
+
+
+#: ``standgrid simulate --gnss``: the models by name.
+GNSS_MODELS = ("demo", "canopy")
+
+
+def gnss_model(name: str) -> GnssModel:
+    """The GNSS model called ``name`` (:data:`GNSS_MODELS`)."""
+    if name == "demo":
+        return GnssModel()
+    if name == "canopy":
+        return GnssModel.under_canopy()
+    raise ValueError(f"GNSS model must be one of {', '.join(GNSS_MODELS)}, got {name!r}")
 
 
 @dataclass(frozen=True, eq=False)
@@ -62,6 +96,20 @@ def interpolate_positions(
     t = (t_ns - node_ns[0]).astype(np.float64)
     tn = (node_ns - node_ns[0]).astype(np.float64)
     return np.column_stack([np.interp(t, tn, node_xyz[:, k]) for k in range(3)])
+
+
+def _gauss_markov(
+    rng: np.random.Generator, t_s: NDArray[np.float64], sigma: float, tau_s: float
+) -> NDArray[np.float64]:
+    """A stationary first-order Gauss-Markov process (per axis ``sigma``) at times ``t_s``,
+    two independent axes."""
+    out = np.empty((len(t_s), 2))
+    out[0] = rng.normal(0.0, sigma, 2)
+    phi = np.exp(-np.diff(t_s) / tau_s)
+    step = rng.normal(0.0, 1.0, (len(t_s) - 1, 2)) * (sigma * np.sqrt(1.0 - phi**2))[:, None]
+    for k in range(1, len(t_s)):
+        out[k] = phi[k - 1] * out[k - 1] + step[k - 1]
+    return out
 
 
 def simulate_gnss(
@@ -98,6 +146,17 @@ def simulate_gnss(
             rng.normal(0, 1, n) * v_std,
         ]
     )
+    # correlated errors are drawn only when asked for: the default stream stays as it was
+    if model.walk_h_m > 0 and n:
+        err[:, :2] += _gauss_markov(rng, t_s, model.walk_h_m / np.sqrt(2), model.walk_tau_s)
+    if model.bias_h_m > 0:
+        err[:, :2] += rng.normal(0.0, model.bias_h_m / np.sqrt(2), 2)
+    if model.float_share > 0:
+        floating = ~rtk & (rng.random(n) < model.float_share)
+        quality = np.where(floating, FixQuality.RTK_FLOAT, quality)
+    if model.stated_h_m is not None:
+        h_std = np.where(rtk, h_std, model.stated_h_m)
+        v_std = h_std * np.where(rtk, 1.5, 1.8)
     outlier = (~rtk | model.open_sky) & (rng.random(n) < model.outlier_fraction)
     k = int(outlier.sum())
     bearing = rng.uniform(0, 2 * np.pi, k)

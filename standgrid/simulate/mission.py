@@ -84,7 +84,12 @@ EPOCHS: dict[int, EpochSpec] = {
                  ("velodyne-vlp16", "gnss", "imu")),
     2: EpochSpec(dt.date(2028, 5, 20), dt.time(10, 15), "frontier", "v15", 1.2, "x",
                  ("hesai-xt32", "gnss", "imu", "cameras")),
+    # a second robot over the same stand on the first campaign's day (same trees)
+    3: EpochSpec(dt.date(2024, 5, 14), dt.time(13, 40), "spot", "lynx", 0.6, "x",
+                 ("ouster-os0", "gnss", "imu")),
 }  # fmt: skip
+#: The mission of ``EPOCHS[k]`` scans the world of this campaign (1: 2024, 2: 2028).
+CAMPAIGN_OF = {1: 1, 2: 2, 3: 1}
 
 
 @dataclass(frozen=True)
@@ -249,7 +254,7 @@ def build_world(seed: int, epoch: int, config: SimulationConfig) -> World:
             new_trees=config.new_trees,
         )
     elif epoch != 1:
-        raise ValueError(f"epoch must be 1 or 2, got {epoch}")
+        raise ValueError(f"campaign must be 1 or 2, got {epoch}")
     return World(bounds, terrain, trees, shrubs)
 
 
@@ -305,7 +310,7 @@ def run_simulation(
     """Simulate one mission in memory (nothing written)."""
     config = config or SimulationConfig()
     spec = EPOCHS[epoch]
-    world = build_world(seed, epoch, config)
+    world = build_world(seed, CAMPAIGN_OF[epoch], config)
     rng = _rng(seed, epoch)
     # Trajectory in the CRS: nodes every ~1.5 m, sensor above the true ground.
     waypoints = serpentine_waypoints(
@@ -475,6 +480,8 @@ def write_truth_folder(sim: SimulatedMission, folder: Path, config: SimulationCo
     if (config.forest, config.scanner_kind, config.lane_spacing) != ("plantation", "surface",
                                                                      32.0):  # fmt: skip
         info.update(_opt_in_truth(config))
+    if config.gnss != GnssModel():
+        info["gnss_model"] = {k: v for k, v in vars(config.gnss).items()}
     write_truth_json(info, folder / "truth.json")
 
 

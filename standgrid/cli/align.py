@@ -1,0 +1,61 @@
+"""``standgrid align``: re-align a catalog's missions to each other and re-tile them."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+import click
+
+from standgrid.cli.options import (
+    TerminalProgress,
+    cluster_options,
+    emit,
+    json_option,
+    lock_timeout_option,
+    quiet_option,
+)
+
+
+def _human(report: dict[str, Any]) -> str:
+    from standgrid.cli.tile import alignment_lines
+
+    lines = [
+        f"catalog  {report['catalog']}: {len(report['missions'])} missions re-tiled, "
+        f"{report['points_out']:,} points"
+    ]
+    lines += alignment_lines(report.get("alignment")) or ["nothing to align (one mission)"]
+    return "\n".join(lines)
+
+
+@click.command("align")
+@click.argument("catalog", type=click.Path(exists=True, file_okay=False, path_type=Path))
+@cluster_options
+@lock_timeout_option
+@json_option
+@quiet_option
+def align(
+    catalog: Path,
+    workers: int | None,
+    scheduler: str | None,
+    lock_timeout: float,
+    as_json: bool,
+    quiet: bool,
+) -> None:
+    """Register CATALOG's missions to each other on their stems and ground, place them by
+    one graph with their GNSS, and re-tile them (each in its own epoch).
+
+    Prints every registration (accepted, or refused with its reason) and each mission's
+    placement 1-sigma, absolute and relative. Every mission is read again from the folder
+    it was tiled from. The enrichment and comparisons of re-tiled epochs are removed
+    (`standgrid status` says so): run `standgrid enrich` again.
+
+    \b
+    Example:
+      standgrid align catalog
+    """
+    from standgrid.pipeline.tile import TileOptions, realign_catalog
+
+    options = TileOptions(workers=workers, scheduler=scheduler, lock_timeout=lock_timeout)
+    report = realign_catalog(catalog, options, progress=TerminalProgress(quiet))
+    emit(report.to_dict(), as_json, _human)

@@ -166,9 +166,9 @@ def test_a_mission_placed_nowhere_near_is_found_by_the_global_stem_search() -> N
     from standgrid.align.register import register_global
 
     rng = np.random.default_rng(11)
-    world = _stems(rng, 200, side=70.0)
-    fixed = world[:150]
-    shared = world[50:]
+    world = _stems(rng, 400, side=100.0)  # more stems than the search's 150 stoutest
+    fixed = world[:300]
+    shared = world[100:]
     seen = shared + np.column_stack(
         [rng.normal(0, 0.01, (len(shared), 2)), np.zeros((len(shared), 2))]
     )
@@ -182,7 +182,7 @@ def test_a_mission_placed_nowhere_near_is_found_by_the_global_stem_search() -> N
     back = (moving[:, :2] - reg.pivot) @ rot.T + reg.pivot + reg.t
     err = np.hypot(*(back - shared[:, :2]).T)
     assert np.median(err) < 0.02 and err.max() < 0.06
-    assert reg.stems_matched >= 95
+    assert reg.stems_matched >= 190
     # the covariance moved to the new pivot still says centimetres
     assert math.sqrt(reg.covariance[0][0] + reg.covariance[1][1]) < 0.1
     # a stand of other stems: nothing alike enough, refused

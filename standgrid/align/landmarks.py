@@ -11,6 +11,7 @@ points normalised to that ground. Crowns are left out: they grow and move betwee
 
 from __future__ import annotations
 
+import zipfile
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -190,6 +191,7 @@ def landmarks_key(mission: Mission) -> str:
     import hashlib
 
     digest = hashlib.sha256(b"standgrid.align.landmarks/1")
+    digest.update(f"{mission.name};".encode())
     files = [p.path for p in mission.payloads]
     graph = getattr(mission.graph, "source", None)
     if graph is not None:
@@ -225,5 +227,5 @@ def load_landmarks(path: Path, key: str) -> Landmarks | None:
                 str(data["name"]), str(data["frame"]), data["stems"], data["ground"],
                 data["points"].astype(np.float64) + origin, data["nodes"],
             )  # fmt: skip
-    except (OSError, KeyError, ValueError):
-        return None
+    except (OSError, KeyError, ValueError, EOFError, zipfile.BadZipFile):
+        return None  # a damaged cache is no cache: the landmarks are found again

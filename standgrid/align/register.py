@@ -304,6 +304,9 @@ GLOBAL_YAW_STEP_DEG = 2.0
 GLOBAL_CELL_M = 1.0
 #: The stoutest stems of each side used by the global search (its cost grows as n^2).
 GLOBAL_STEMS = 150
+#: The global search looks this far (m) beyond the mission's extent around where its
+#: metadata puts it.
+GLOBAL_REACH_M = 150.0
 
 
 def _pairs(stems: FloatArray) -> tuple[NDArray[np.int64], NDArray[np.int64], FloatArray]:
@@ -319,11 +322,13 @@ def _stoutest(stems: FloatArray) -> FloatArray:
     return stems[np.argsort(-stems[:, 3], kind="stable")[:GLOBAL_STEMS]]
 
 
-def global_guess(moving: FloatArray, fixed: FloatArray) -> tuple[float, FloatArray, float] | None:
-    """Yaw (about the moving stems' centre) and translation that put the moving stems on
-    the fixed ones, from any start: every pair of moving stems matched to fixed pairs of
-    the same length and like DBHs votes for the rotation and shift between them. Returns
-    ``(yaw, t, votes)`` or None."""
+def global_guess(
+    moving: FloatArray, fixed: FloatArray, about: FloatArray
+) -> tuple[float, FloatArray, float, float] | None:
+    """Yaw (about the point ``about``) and translation that put the moving stems on the
+    fixed ones, from any start: every pair of moving stems matched to fixed pairs of the
+    same length and like DBHs votes for the rotation and shift between them. Returns
+    ``(yaw, t, votes, best rival's votes)`` or None."""
     ms, fs = _stoutest(moving), _stoutest(fixed)
     if len(ms) < 3 or len(fs) < 3:
         return None
@@ -360,13 +365,22 @@ def global_guess(moving: FloatArray, fixed: FloatArray) -> tuple[float, FloatArr
     yk = np.floor(np.mod(np.degrees(yaw), 360.0) / GLOBAL_YAW_STEP_DEG).astype(np.int64)
     xk = np.floor(shift / GLOBAL_CELL_M).astype(np.int64)
     keys = np.column_stack([yk, xk])
-    _, inverse, votes = np.unique(keys, axis=0, return_inverse=True, return_counts=True)
+    bins, inverse, votes = np.unique(keys, axis=0, return_inverse=True, return_counts=True)
     best = int(np.argmax(votes))
     inverse = inverse.ravel()
     chosen = inverse == best
     mean_yaw = math.atan2(float(np.mean(s[chosen])), float(np.mean(c[chosen])))
-    # the shift for that yaw (the votes' mean), about the moving stems' centre
-    return mean_yaw, shift[chosen].mean(axis=0), float(votes[best])
+    # a rival: the best bin more than a yaw bin (wrapping) or two shift cells away
+    turns = round(360.0 / GLOBAL_YAW_STEP_DEG)
+    dyaw = np.abs(bins[:, 0] - bins[best, 0])
+    dyaw = np.minimum(dyaw, turns - dyaw)
+    far = (dyaw > 1) | (np.abs(bins[:, 1:] - bins[best, 1:]).max(axis=1) > 2)
+    rival = float(votes[far].max()) if far.any() else 0.0
+    # the shift for that yaw (the votes' mean) about the stout stems' centre, moved to one
+    # about ``about`` (the centre the caller turns about)
+    rot = _rot(mean_yaw)
+    t = shift[chosen].mean(axis=0) + (rot - np.eye(2)) @ (np.asarray(about) - centre)
+    return mean_yaw, t, float(votes[best]), rival
 
 
 def register_global(
@@ -382,12 +396,26 @@ def register_global(
         return Registration(moving.name, fixed.name, False,
                             f"too few stems: {len(ms)} and {len(fs)} (at least "
                             f"{options.min_stems} each)")  # fmt: skip
-    guess = global_guess(ms, fs)
+    # the other side's stems near where the metadata put this mission (its extent plus
+    # GLOBAL_REACH_M): the stoutest of a large catalog would lie mostly elsewhere
+    centre0 = ms[:, :2].mean(axis=0)
+    extent = float(np.max(np.hypot(*(ms[:, :2] - centre0).T)))
+    near = np.hypot(*(fs[:, :2] - centre0).T) <= extent + GLOBAL_REACH_M
+    if near.sum() < options.min_stems:
+        return Registration(moving.name, fixed.name, False,
+                            f"no overlap: {int(near.sum())} stems within "
+                            f"{GLOBAL_REACH_M:.0f} m of where its metadata puts it")  # fmt: skip
+    centre = ms[:, :2].mean(axis=0)
+    guess = global_guess(ms, fs[near], centre)
     if guess is None:
         return Registration(moving.name, fixed.name, False,
                             "no stems alike: the global search found no pair of stems")  # fmt: skip
-    yaw0, t0, votes = guess
-    centre = ms[:, :2].mean(axis=0)
+    yaw0, t0, votes, rival = guess
+    if rival >= options.max_peak_ratio * votes:
+        return Registration(moving.name, fixed.name, False,
+                            f"ambiguous: the global search's second placement gathers "
+                            f"{rival / votes:.0%} of the best one's votes",
+                            peak_ratio=rival / votes)  # fmt: skip
     rot0 = _rot(yaw0)
 
     def first(p: FloatArray) -> FloatArray:

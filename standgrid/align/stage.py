@@ -145,6 +145,8 @@ def align_missions(
 ) -> AlignResult:
     """Align ``items`` (missions and their current placements) in the catalog CRS ``crs``;
     ``landmarks``: those already found, by mission name (else found here)."""
+    # in name order: the same missions give the same placements however they were listed
+    items = sorted(items, key=lambda item: item[0].name)
     names = [m.name for m, _ in items]
     placements = {m.name: p for m, p in items}
     found = dict(landmarks or {})

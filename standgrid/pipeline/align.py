@@ -88,6 +88,13 @@ def _references(
     if not len(new_nodes):
         return []
     tree = cKDTree(new_nodes)
+    from standgrid.align.register import GLOBAL_REACH_M
+    from standgrid.align.stage import is_provisional
+
+    # a mission placed only by its metadata may be that far off: look as far as its search
+    reach = REFERENCE_REACH_M
+    if any(is_provisional(i.placement) for i in ingests):
+        reach += GLOBAL_REACH_M
     out = []
     for name, record in sorted(catalog.mission_records.items()):
         if name in given or not record.path or not Path(record.path).is_dir():
@@ -101,7 +108,7 @@ def _references(
         except StandgridError:
             continue  # a reference that cannot be read is no reference
         if len(nodes):
-            d, _ = tree.query(nodes[:, :2], distance_upper_bound=REFERENCE_REACH_M)
+            d, _ = tree.query(nodes[:, :2], distance_upper_bound=reach)
             if np.isfinite(d).any():
                 out.append((mission, placement, _recorded_sigma(record, mission, crs)))
     return out

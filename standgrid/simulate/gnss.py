@@ -42,6 +42,13 @@ class GnssModel:
     #: Share of the non-RTK fixes flagged RTK float (the rest: DGPS 40 %, single).
     float_share: float = 0.0
 
+    def __post_init__(self) -> None:
+        if not self.walk_tau_s > 0:
+            raise ValueError(f"walk_tau_s must be positive, got {self.walk_tau_s}")
+        for name in ("bias_h_m", "walk_h_m", "float_share"):
+            if not getattr(self, name) >= 0:
+                raise ValueError(f"{name} must be >= 0, got {getattr(self, name)}")
+
     @classmethod
     def under_canopy(cls) -> GnssModel:
         """GNSS as under a forest canopy: 0.3 m white noise, a Gauss-Markov walk of 2 m over

@@ -27,7 +27,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from standgrid.align.register import Registration
+from standgrid.align.register import Registration, rot2d
 
 FloatArray = NDArray[np.float64]
 
@@ -58,6 +58,13 @@ class Prior:
     sigma_yaw: float
     sigma_z: float
     how: str
+
+    def sigma_at(self, nodes: FloatArray) -> float:
+        """The largest horizontal DRMS 1-sigma over ``nodes`` (same frame as ``centre``)."""
+        if not len(nodes):
+            return math.sqrt(2.0) * self.sigma_xy
+        lever2 = np.sum((np.asarray(nodes)[:, :2] - np.asarray(self.centre)) ** 2, axis=1)
+        return float(np.sqrt(2.0 * self.sigma_xy**2 + self.sigma_yaw**2 * lever2).max())
 
 
 def correlation_time(stamps_ns: NDArray[np.int64], residuals: FloatArray) -> float:
@@ -129,12 +136,8 @@ def placement_sigma(
     nodes = np.asarray(nodes_map, dtype=np.float64).reshape(-1, 3)
     if not len(nodes):
         return None
-    prior = gnss_prior(fit, nodes, np.zeros(3), bias_m)
-    if prior.how == "anchor":
-        return None
-    lever2 = np.sum((nodes[:, :2] - nodes[:, :2].mean(axis=0)) ** 2, axis=1)
-    sigma = float(np.sqrt(2.0 * prior.sigma_xy**2 + prior.sigma_yaw**2 * lever2).max())
-    return sigma, prior.how
+    prior = gnss_prior(fit, nodes, nodes.mean(axis=0), bias_m)
+    return None if prior.how == "anchor" else (prior.sigma_at(nodes), prior.how)
 
 
 def unplaced_prior(centre_crs: FloatArray) -> Prior:
@@ -188,11 +191,6 @@ class Solution:
     prior_misfit: dict[str, float]
 
 
-def _rot(yaw: float) -> FloatArray:
-    c, s = math.cos(yaw), math.sin(yaw)
-    return np.array([[c, -s], [s, c]])
-
-
 def solve(
     names: list[str], priors: dict[str, Prior], registrations: list[Registration]
 ) -> Solution:
@@ -216,7 +214,7 @@ def solve(
     measured: dict[tuple[str, str], Any] = {}
     for r in accepted:
         pv = np.asarray(r.pivot) - origin
-        rot = _rot(r.yaw)
+        rot = rot2d(r.yaw)
         g = np.asarray(r.t) + pv - rot @ pv
         j = np.eye(3)
         j[:2, 2] = -np.array([[0.0, -1.0], [1.0, 0.0]]) @ rot @ pv
@@ -254,7 +252,7 @@ def solve(
     for i, n in enumerate(names):
         pose = result.atPose2(key[n])
         cov = np.asarray(marginals.marginalCovariance(key[n]))
-        rot = _rot(pose.theta())
+        rot = rot2d(pose.theta())
         world = np.eye(3)
         world[:2, :2] = rot
         corrections[n] = Correction(
@@ -266,7 +264,7 @@ def solve(
         joint = marginals.jointMarginalCovariance(gtsam.KeyVector([key[r.moving], key[r.fixed]]))
         full = np.asarray(joint.fullMatrix())
         world = np.eye(6)  # each block from its own body frame to the CRS axes
-        world[:2, :2], world[3:5, 3:5] = _rot(thetas[r.moving]), _rot(thetas[r.fixed])
+        world[:2, :2], world[3:5, 3:5] = rot2d(thetas[r.moving]), rot2d(thetas[r.fixed])
         full = world @ full @ world.T
         at = np.asarray(r.pivot) - origin
         jm = np.array([[1.0, 0.0, -at[1]], [0.0, 1.0, at[0]]])

@@ -102,7 +102,7 @@ class Registration:
         return out
 
 
-def _rot(yaw: float) -> FloatArray:
+def rot2d(yaw: float) -> FloatArray:
     c, s = math.cos(yaw), math.sin(yaw)
     return np.array([[c, -s], [s, c]])
 
@@ -180,7 +180,7 @@ def register(
     best: tuple[float, FloatArray, float, float] | None = None
     for yaw_deg in np.arange(-YAW_SEARCH_DEG, YAW_SEARCH_DEG + 1e-9, YAW_STEP_DEG):
         turned = ms.copy()
-        turned[:, :2] = (ms[:, :2] - pivot) @ _rot(math.radians(yaw_deg)).T + pivot
+        turned[:, :2] = (ms[:, :2] - pivot) @ rot2d(math.radians(yaw_deg)).T + pivot
         voted = _votes(turned, fs, options.search_radius)
         if voted is not None and (best is None or voted[1] > best[2]):
             best = (math.radians(yaw_deg), *voted)
@@ -200,7 +200,7 @@ def register(
     t = np.asarray(shift, dtype=np.float64)
     rows = cols = np.zeros(0, dtype=np.int64)
     for tolerance in MATCH_TOLERANCES_M:
-        moved = (ms[:, :2] - pivot) @ _rot(yaw).T + pivot + t
+        moved = (ms[:, :2] - pivot) @ rot2d(yaw).T + pivot + t
         rows, cols = _match(moved, tree, tolerance)
         if len(rows) < max(3, options.min_stems // 2):
             return Registration(name, other, False,
@@ -208,13 +208,13 @@ def register(
                                 stems_matched=len(rows), peak_ratio=ratio)  # fmt: skip
         ca, yaw, cb = _procrustes(ms[rows, :2], fs[cols, :2])
         # b = R (a - ca) + cb  ==  R (a - pivot) + pivot + t
-        t = cb - pivot - _rot(yaw) @ (ca - pivot)
+        t = cb - pivot - rot2d(yaw) @ (ca - pivot)
     if len(rows) < options.min_stems:
         return Registration(name, other, False,
                             f"too little overlap: {len(rows)} stems matched within "
                             f"{MATCH_TOLERANCES_M[-1]} m (at least {options.min_stems})",
                             stems_matched=len(rows), peak_ratio=ratio)  # fmt: skip
-    moved = (ms[rows, :2] - pivot) @ _rot(yaw).T + pivot + t
+    moved = (ms[rows, :2] - pivot) @ rot2d(yaw).T + pivot + t
     resid = moved - fs[cols, :2]
     rms = float(np.sqrt(np.mean(np.sum(resid**2, axis=1)) / 2.0))  # per axis
     dz_stems = float(np.median(fs[cols, 2] - ms[rows, 2]))
@@ -225,7 +225,7 @@ def register(
             gicp_note = result
         else:
             g_yaw, g_t, g_dz = result
-            g_moved = (ms[rows, :2] - pivot) @ _rot(g_yaw).T + pivot + g_t
+            g_moved = (ms[rows, :2] - pivot) @ rot2d(g_yaw).T + pivot + g_t
             shift_m = float(np.max(np.hypot(*(g_moved - moved).T)))
             if shift_m <= GICP_AGREE_M:
                 yaw, t, dz, gicp_note = g_yaw, g_t, g_dz, f"kept (moved the stems {shift_m:.3f} m)"
@@ -278,7 +278,7 @@ def _gicp(
     if len(src) < 1000 or len(dst) < 1000:
         return "left out: too few points in the overlap"
     init = np.eye(4)
-    init[:2, :2] = _rot(yaw)
+    init[:2, :2] = rot2d(yaw)
     init[:2, 3] = t
     init[2, 3] = dz
     try:
@@ -378,7 +378,7 @@ def global_guess(
     rival = float(votes[far].max()) if far.any() else 0.0
     # the shift for that yaw (the votes' mean) about the stout stems' centre, moved to one
     # about ``about`` (the centre the caller turns about)
-    rot = _rot(mean_yaw)
+    rot = rot2d(mean_yaw)
     t = shift[chosen].mean(axis=0) + (rot - np.eye(2)) @ (np.asarray(about) - centre)
     return mean_yaw, t, float(votes[best]), rival
 
@@ -416,7 +416,7 @@ def register_global(
                             f"ambiguous: the global search's second placement gathers "
                             f"{rival / votes:.0%} of the best one's votes",
                             peak_ratio=rival / votes)  # fmt: skip
-    rot0 = _rot(yaw0)
+    rot0 = rot2d(yaw0)
 
     def first(p: FloatArray) -> FloatArray:
         out = p.copy()
@@ -430,7 +430,7 @@ def register_global(
         return replace(fine, reason=f"global search ({votes:.0f} votes) then {fine.reason}")
     # compose: p -> R1 (R0 (p - c) + c + t0 - pv) + pv + t1, about c: R1 R0 (p - c) + c + t
     pv = np.asarray(fine.pivot)
-    rot1 = _rot(fine.yaw)
+    rot1 = rot2d(fine.yaw)
     t = rot1 @ (centre + t0 - pv) + pv + np.asarray(fine.t) - centre
     yaw = math.atan2(math.sin(yaw0 + fine.yaw), math.cos(yaw0 + fine.yaw))
     # the covariance of (t about c, yaw): the fine one moved from its pivot to c

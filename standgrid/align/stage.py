@@ -215,7 +215,7 @@ def align_missions(
             "aligned": n in linked,
             "registered_with": sorted(partners),
             "prior": priors[n].how,
-            "sigma_prior_m": None if n in unplaced else round(_prior_sigma(priors[n], nodes), 4),
+            "sigma_prior_m": None if n in unplaced else round(priors[n].sigma_at(nodes), 4),
             "held": n in held,
             "sigma_h_m": None if n in held else round(sigma_h, 4),
             "sigma_rel_m": None
@@ -240,14 +240,6 @@ def align_missions(
             continue
         result.placements[n] = _corrected(mission, placement, crs, corr, info)
     return result
-
-
-def _prior_sigma(prior: Prior, nodes: FloatArray) -> float:
-    """The largest DRMS 1-sigma over ``nodes`` of the placement before alignment."""
-    if not len(nodes):
-        return math.sqrt(2.0) * prior.sigma_xy
-    lever2 = np.sum((nodes[:, :2] - np.asarray(prior.centre)) ** 2, axis=1)
-    return float(np.sqrt(2.0 * prior.sigma_xy**2 + prior.sigma_yaw**2 * lever2).max())
 
 
 def _corrected(mission: Mission, placement: Placement, crs: str, corr: Any,

@@ -92,6 +92,7 @@ def source_digest(source: dict[str, Any], placement: str, schema: Any) -> str:
         "point_source_id": int(source["point_source_id"]),
         "payload_id": int(source["payload_id"]),
         "placement": placement,
+
         # the fields the points are written with; enrichment's own fields (reset in every
         # rewritten tile, added to the epoch's schema by enrich) are not the payload's
         "schema": {
@@ -100,6 +101,8 @@ def source_digest(source: dict[str, Any], placement: str, schema: Any) -> str:
             if name not in (*ENRICH_POINT_FIELDS, "classification")
         },
     }
+    if source.get("span") is not None:  # a plain scan's part of its file
+        described["part"] = [source["span"], source.get("window")]
     if _has_rule_fields(path):
         described["source_field_rules"] = SOURCE_FIELD_RULES
     digest.update(json.dumps(described, sort_keys=True, default=str).encode())

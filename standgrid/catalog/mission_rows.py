@@ -81,6 +81,10 @@ def _projected_centre(
     """Centre of a projected cloud's bounding box, in the catalog CRS (LAS: from the header)."""
     from standgrid.mission.clouds import read_cloud_header
 
+    if payload.site is not None:
+        site = np.asarray(payload.site, dtype=np.float64)[None, :]
+        x, y, z = to_catalog.projected_points(site)[0]
+        return float(x), float(y), float(z)
     header = read_cloud_header(payload.path)
     if header.bounds is not None:
         lo, hi = header.bounds
@@ -93,9 +97,14 @@ def _projected_centre(
 
 
 def trajectory_rows(mission: Mission, to_catalog: ToCatalog, epoch: str) -> list[dict[str, Any]]:
-    """The ``trajectories`` row of a fitted mission with a graph of 2+ nodes (else none)."""
+    """The ``trajectories`` row of a fitted mission with a graph of 2+ nodes, or of a plain
+    scan with its trajectory (else none)."""
     import shapely
 
+    if to_catalog.fit is None and mission.scan_path is not None and len(mission.scan_path) > 1:
+        xyz = to_catalog.projected_points(mission.scan_path)  # a plain scan's trajectory
+        return [{"mission": mission.name, "epoch": epoch,
+                 "geometry": shapely.LineString(xyz[:, :2])}]  # fmt: skip
     if to_catalog.fit is None or mission.graph is None or len(mission.graph) < 2:
         return []
     xyz = to_catalog.projector.exact(mission.graph.positions)
@@ -224,6 +233,8 @@ def payload_rows(
             sources.append(
                 {
                     "path": payload.path,
+                    "span": payload.span,
+                    "window": payload.window,
                     "frame": payload.frame,
                     "file_to_base": mission.file_to_base(payload),
                     "pose": mission.pose_of(payload) if fitted else None,

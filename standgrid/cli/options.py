@@ -55,14 +55,42 @@ def cluster_options(command: F) -> F:
     )(command)
 
 
-def mission_argument(nargs: int = 1) -> Callable[[F], F]:
-    """A mission folder argument (one, or several with ``nargs=-1``)."""
+def mission_argument(nargs: int = 1, scans: bool = False) -> Callable[[F], F]:
+    """A mission folder argument (one, or several with ``nargs=-1``); ``scans``: plain scan
+    files (LAS/LAZ/COPC, VPC) are taken too."""
     return click.argument(
         "missions" if nargs != 1 else "mission",
         nargs=nargs,
         required=True,
-        type=click.Path(exists=True, file_okay=False, path_type=Path),
+        type=click.Path(exists=True, file_okay=scans, path_type=Path),
     )
+
+
+def scan_options(command: F) -> F:
+    """``--date`` and ``--trajectory``: for plain scans (LAS/LAZ/COPC files, folders, VPCs)."""
+
+    def _date(ctx: click.Context, param: click.Parameter, value: str | None) -> Any:
+        import datetime as dt
+
+        if value is None:
+            return None
+        try:
+            return dt.date.fromisoformat(value)
+        except ValueError:
+            raise click.BadParameter(f"a date YYYY-MM-DD: {value!r}") from None
+
+    command = click.option(
+        "--trajectory", type=click.Path(exists=True, dir_okay=False, path_type=Path),
+        default=None,
+        help="A plain scan's trajectory (time, x, y, z CSV/TXT in the scan's CRS and GPS time"
+        " base, as SLAM scanners export it): payloads follow it (~20 m of travel each), for"
+        " footprints and Voronoi cells.",
+    )(command)  # fmt: skip
+    return click.option(
+        "--date", "scan_date", default=None, callback=_date, metavar="YYYY-MM-DD",
+        help="A plain scan's date (default: its GPS time when adjusted standard, else the"
+        " header's creation date); the epoch is its year.",
+    )(command)  # fmt: skip
 
 
 def output_option(required: bool = True, help: str = "Output folder.") -> Callable[[F], F]:

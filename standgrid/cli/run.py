@@ -18,6 +18,7 @@ from standgrid.cli.options import (
     overwrite_option,
     quiet_option,
     replace_option,
+    scan_options,
 )
 
 QGIS_GUIDE = """\
@@ -62,9 +63,10 @@ def _human(r: dict[str, Any]) -> str:
 @click.command("run")
 @click.argument(
     "paths", nargs=-1, required=True,
-    type=click.Path(exists=True, file_okay=False, path_type=Path),
+    type=click.Path(exists=True, path_type=Path),
 )  # fmt: skip
 @output_option(help="Catalog folder.")
+@scan_options
 @click.option("--grid", "cell_size", type=float, default=None, help="Cell size (default 20 m).")
 @click.option("--crs", "crs_spec", default="auto", show_default=True, help="Output CRS.")
 @click.option("--buffer", type=float, default=None, help="Tile buffer in metres (default 0).")
@@ -85,6 +87,8 @@ def run(
     cell_size: float | None,
     crs_spec: str,
     buffer: float | None,
+    scan_date: Any,
+    trajectory: Path | None,
     accept_poor_georeference: bool,
     overwrite: bool,
     replace_missions: bool,
@@ -95,7 +99,8 @@ def run(
     as_json: bool,
     quiet: bool,
 ) -> None:
-    """Run the whole path: tile PATHS (missions, or folders of missions) into -o CATALOG,
+    """Run the whole path: tile PATHS (missions, folders of missions, or plain scans: LAS/LAZ/
+    COPC files, folders of tiles, VPCs) into -o CATALOG,
     enrich every epoch, compare the first epoch with the last, and say what to open in QGIS.
 
     \b
@@ -118,6 +123,8 @@ def run(
             align=not no_align,
             lock_timeout=lock_timeout,
             accept_poor_georeference=accept_poor_georeference,
+            scan_date=scan_date,
+            trajectory=trajectory,
         ),
         progress=TerminalProgress(quiet),
         workers=workers,

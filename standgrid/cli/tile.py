@@ -20,6 +20,7 @@ from standgrid.cli.options import (
     overwrite_option,
     quiet_option,
     replace_option,
+    scan_options,
 )
 
 
@@ -110,7 +111,7 @@ def alignment_lines(alignment: dict[str, Any] | None) -> list[str]:
 
 
 @click.command("tile")
-@mission_argument(nargs=-1)
+@mission_argument(nargs=-1, scans=True)
 @output_option(help="Catalog folder (created, or added to when it is a catalog).")
 @click.option(
     "--grid", "cell_size", type=float, default=None,
@@ -157,6 +158,7 @@ def alignment_lines(alignment: dict[str, Any] | None) -> list[str]:
     " metadata.yaml, no dated folder name) make an epoch without a date: a year as the label"
     " stands in for it where a year is needed (FVS Inv_Year); comparing needs dates.",
 )  # fmt: skip
+@scan_options
 @replace_option
 @memory_option
 @no_align_option
@@ -182,6 +184,8 @@ def tile(
     method: str,
     anchor: tuple[float, float, float, float] | None,
     epoch: str | None,
+    scan_date: Any,
+    trajectory: Path | None,
     replace_missions: bool,
     no_align: bool,
     memory_mb: int,
@@ -193,7 +197,11 @@ def tile(
     as_json: bool,
     quiet: bool,
 ) -> None:
-    """Georeference MISSIONs and tile them into the catalog -o CATALOG.
+    """Georeference MISSIONs (or plain scans) and tile them into the catalog -o CATALOG.
+
+    A MISSION is a mission folder, or a plain scan: a georeferenced LAS/LAZ/COPC file, a
+    folder of such tiles (one mission) or a VPC, tiled in its own CRS (--crs where the files
+    name none), dated by its header (or --date), named after the file or folder.
 
     Every point lands in exactly one stand cell (checked); tiles are LAS 1.4 / LAZ named by
     cell id under tiles/<epoch>/, indexed in index.gpkg (cells, payloads, trajectories, GNSS
@@ -210,6 +218,8 @@ def tile(
     \b
     Example:
       standgrid tile data/missions/* -o catalog
+      standgrid tile SCAN.laz -o catalog
+      standgrid tile TILES_FOLDER -o catalog --trajectory traj.txt --voronoi
       standgrid tile M1 M2 -o catalog --grid 100 --crs EPSG:25832 --buffer 5 --las
       standgrid tile data/missions/* -o catalog --copc
       standgrid tile NO_GNSS -o catalog --anchor 51.7733 -1.3372 147.6 78.1
@@ -237,6 +247,8 @@ def tile(
         scheduler=scheduler,
         replace_missions=replace_missions,
         align=not no_align,
+        scan_date=scan_date,
+        trajectory=trajectory,
     )
     report = tile_missions(list(missions), output, options, progress=TerminalProgress(quiet))
     emit(report.to_dict(), as_json, _human)

@@ -779,6 +779,9 @@ def check_las_size(path: Path) -> int:
     import laspy
     import lazrs
 
+    from standgrid.mission.las_header import check_las_header
+
+    check_las_header(path)
     try:
         with laspy.open(path) as reader:
             header = reader.header
@@ -859,16 +862,52 @@ def _read_las(path: Path) -> PointCloud:
     return _las_points_to_cloud(las.points)
 
 
+def read_las_part(
+    path: str | Path, span: tuple[int, int], window: tuple[float, float] | None = None
+) -> PointCloud:
+    """Points ``[start, stop)`` of a LAS/LAZ file (a LAZ file is decompressed from the chunk
+    holding ``start``), and of those only the GPS times in ``window`` ``[lo, hi)``."""
+    import laspy
+
+    src = Path(path)
+    check_cloud_file(src)
+    count = check_las_size(src)
+    start, stop = span
+    if not 0 <= start <= stop <= count:
+        raise PointCloudFormatError(f"points {start}..{stop} of a file of {count}", path=src)
+    try:
+        with laspy.open(src) as reader:
+            reader.seek(start)
+            points = reader.read_points(stop - start)
+    except Exception as exc:  # laspy, lazrs (a RuntimeError), OS errors
+        raise PointCloudFormatError(f"unreadable LAS/LAZ ({exc})", path=src) from exc
+    if len(points) != stop - start:
+        raise PointCloudFormatError(
+            f"points {start}..{stop}: the file holds {start + len(points)}", path=src
+        )
+    cloud = _las_points_to_cloud(points)
+    if window is not None:
+        if "gps_time" not in cloud.fields:
+            raise PointCloudFormatError("no GPS time: points cannot be cut by time", path=src)
+        t = np.asarray(cloud.fields["gps_time"], dtype=np.float64)
+        cloud = cloud.select((t >= window[0]) & (t < window[1]))
+    _check_coordinates(cloud.xyz, src)
+    return cloud
+
+
 def _las_header(path: Path) -> CloudHeader:
     """The header of a LAS/LAZ file. An uncompressed file shorter than its header announces
     is not an error here: :meth:`CloudHeader.size_problem` says so (readers raise); a LAZ
     file's count is checked against its chunk table (it has no ``data_bytes``)."""
     import laspy
 
+    from standgrid.mission.las_header import check_las_header
+
+    check_las_header(path)
     try:
         with laspy.open(path) as reader:
             header = reader.header
-    except (laspy.errors.LaspyException, ValueError, OSError, EOFError) as exc:
+    except (laspy.errors.LaspyException, ValueError, OSError, EOFError, struct.error) as exc:
         raise PointCloudFormatError(f"unreadable LAS/LAZ header ({exc})", path=path) from exc
     if header.are_points_compressed:
         check_las_size(path)

@@ -69,6 +69,13 @@ class Payload:
     sensor: str | None = None
     #: The projected CRS of a ``utm``-frame cloud, when its file says (LAS/LAZ CRS VLR).
     crs: str | None = field(default=None, hash=False, compare=False)
+    #: A plain scan's payload is a part of a LAS/LAZ file: its points ``[start, stop)`` ...
+    span: tuple[int, int] | None = field(default=None, hash=False, compare=False)
+    #: ... of GPS times in ``[lo, hi)`` (a trajectory segment); None: all of them.
+    window: tuple[float, float] | None = field(default=None, hash=False, compare=False)
+    #: Where a plain scan's payload was taken from, in its CRS (the trajectory's position),
+    #: if known; else the centre of the file's box stands in.
+    site: tuple[float, float, float] | None = field(default=None, hash=False, compare=False)
 
 
 class CloudCache:
@@ -127,6 +134,8 @@ class Mission:
         self.payloads = payloads
         #: Per-node scans (``individual_clouds`` etc.), the input of ``payloads build``.
         self.scans = scans
+        #: A plain scan's trajectory in its CRS ``(N, 3)``, when one was given.
+        self.scan_path: NDArray[np.float64] | None = None
         self.gnss = gnss
         self.imu = imu
         self.images = images
@@ -189,6 +198,9 @@ class Mission:
                 -1, 3
             )
         items = self.payloads or self.scans
+        if items and all(p.site is not None for p in items):  # a plain scan: in its CRS
+            stamps = np.array([p.stamp.ns for p in items], dtype=np.int64)
+            return stamps, np.array([p.site for p in items], dtype=np.float64).reshape(-1, 3)
         stamps = np.array([p.stamp.ns for p in items], dtype=np.int64)
         positions = np.array([self.pose_of(p)[:3, 3] for p in items], dtype=np.float64)
         return stamps, positions.reshape(-1, 3)
@@ -233,6 +245,10 @@ class Mission:
             raise MissionConsistencyError(
                 f"a {payload.frame}-frame cloud is not in a projected CRS", path=payload.path
             )
+        if payload.span is not None:
+            from standgrid.mission.clouds import read_las_part
+
+            return read_las_part(payload.path, payload.span, payload.window)
         return self.read_cloud(payload.path)
 
     def load_payload(
@@ -486,6 +502,9 @@ def _las_crs(path: Path) -> Any:
     """The CRS a LAS/LAZ header carries (pyproj.CRS), or None."""
     import laspy
 
+    from standgrid.mission.las_header import check_las_header
+
+    check_las_header(path)
     try:
         with laspy.open(path) as reader:
             return reader.header.parse_crs()

@@ -53,6 +53,9 @@ class PayloadTask:
     payload_id: int
     #: The footprint when the payload has fewer than 3 points (its pose point).
     fallback_footprint: Any = None
+    #: A part of a plain scan's file: points ``[start, stop)``, GPS times in ``[lo, hi)``.
+    span: tuple[int, int] | None = None
+    window: tuple[float, float] | None = None
 
 
 @dataclass(frozen=True)
@@ -103,9 +106,13 @@ def source_fields(cloud: PointCloud, source: Path) -> tuple[PointCloud, int]:
 
 def payload_chunk(task: PayloadTask) -> PayloadChunk:
     """Read one payload and bring it into the catalog CRS, snapped to the 1 mm lattice."""
-    from standgrid.mission.clouds import read_cloud
+    from standgrid.mission.clouds import read_cloud, read_las_part
 
-    cloud, withheld = source_fields(read_cloud(task.path), task.path)
+    if task.span is not None:
+        raw = read_las_part(task.path, task.span, task.window)
+    else:
+        raw = read_cloud(task.path)
+    cloud, withheld = source_fields(raw, task.path)
     check_las_fields(cloud, task.path)
     if task.to_catalog.fit is None:  # already in a projected CRS
         xyz = task.to_catalog.projected_points(cloud.xyz)

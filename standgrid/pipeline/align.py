@@ -6,6 +6,7 @@ overlap (held where the catalog placed them: the reference), through
 
 from __future__ import annotations
 
+import datetime as dt
 import threading
 from collections import OrderedDict
 from pathlib import Path
@@ -67,6 +68,13 @@ def _recorded(record: Any) -> Placement | None:
     return Placement(GeoreferenceFit.without_fixes((lat, lon, alt), T, str(geo["method"])))
 
 
+def _record_date(record: Any) -> dt.date:
+    try:
+        return dt.date.fromisoformat(str(record.date))
+    except (AttributeError, ValueError):
+        return dt.date(2000, 1, 1)
+
+
 def _nodes_crs(mission: Mission, placement: Placement, crs: str) -> np.ndarray:
     nodes = mission.trajectory()[1]
     if placement.fit is None:
@@ -82,6 +90,7 @@ def _references(
 
     from standgrid.errors import StandgridError
     from standgrid.mission.model import open_mission
+    from standgrid.mission.scan import ScanOptions, is_scan, open_scan
 
     given = {i.mission.name for i in ingests}
     new_nodes = np.concatenate([_nodes_crs(i.mission, i.placement, crs)[:, :2] for i in ingests])
@@ -97,13 +106,16 @@ def _references(
         reach += GLOBAL_REACH_M
     out = []
     for name, record in sorted(catalog.mission_records.items()):
-        if name in given or not record.path or not Path(record.path).is_dir():
+        if name in given or not record.path or not Path(record.path).exists():
             continue
         placement = _recorded(record)
         if placement is None:
             continue
         try:
-            mission = open_mission(record.path, cache_points=0)
+            if is_scan(record.path):  # a plain scan: its landmarks need neither date nor path
+                mission = open_scan(record.path, ScanOptions(crs=crs, date=_record_date(record)))
+            else:
+                mission = open_mission(record.path, cache_points=0)
             nodes = _nodes_crs(mission, placement, crs)
         except StandgridError:
             continue  # a reference that cannot be read is no reference

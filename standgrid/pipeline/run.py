@@ -24,13 +24,18 @@ class RunReport:
 
 
 def expand_missions(paths: Sequence[str | Path]) -> list[Path]:
-    """Mission folders as given; a folder that is not a mission stands for the missions in it."""
+    """Mission folders and plain scans (:func:`~standgrid.mission.scan.is_scan`) as given; a
+    folder that is neither stands for the missions in it."""
     from standgrid.mission.collection import MissionCollection
     from standgrid.mission.layout import discover_layout
+    from standgrid.mission.scan import is_scan
 
     found: list[Path] = []
     for raw in paths:
         path = Path(raw)
+        if is_scan(path):
+            found.append(path)
+            continue
         if not path.is_dir():
             raise MissionNotFoundError("no such folder", path=path)
         if discover_layout(path).is_mission:
@@ -65,9 +70,7 @@ def run_pipeline(
     # one cluster (or this process) for both stages
     budget = max(tile_options.memory_budget.bytes, enrich_options.memory_budget.bytes)
     with open_executor(workers, scheduler, memory_budget=budget) as executor:
-        tiled = tile_missions(
-            missions, catalog, tile_options, progress=progress, executor=executor
-        )
+        tiled = tile_missions(missions, catalog, tile_options, progress=progress, executor=executor)
         enriched = enrich_catalog(
             catalog, enrich_options, progress=progress, executor=executor, lock_timeout=timeout
         )

@@ -16,6 +16,7 @@ the catalog, its index and its VPCs.
 from __future__ import annotations
 
 import contextlib
+import datetime as dt
 import math
 import shutil
 from collections.abc import Sequence
@@ -108,6 +109,11 @@ class TileOptions:
     #: Epoch by mission name (over ``epoch`` and the mission's year): a catalog's own
     #: labels when its missions are re-tiled (``standgrid align``).
     epochs: tuple[tuple[str, str], ...] = ()
+    #: Plain scans (LAS/LAZ/COPC files, folders of tiles, VPCs): their date when the header
+    #: gives none (or to override it), and a scanner trajectory file
+    #: (:mod:`standgrid.mission.scan`).
+    scan_date: dt.date | None = None
+    trajectory: Path | None = None
 
     @property
     def grid_request(self) -> GridRequest:
@@ -255,8 +261,18 @@ def _prepare(
     (``crs``: of clouds already projected that name none)."""
     from standgrid.georeference.placement import place_mission
     from standgrid.mission.model import Mission, open_mission
+    from standgrid.mission.scan import ScanOptions, is_scan, open_scan
 
-    mission = given if isinstance(given, Mission) else open_mission(given, cache_points=0)
+    if isinstance(given, Mission):
+        mission = given
+    elif is_scan(given):
+        scan = ScanOptions(crs=crs, date=options.scan_date, trajectory=options.trajectory)
+        mission = open_scan(given, scan)
+    else:
+        if options.trajectory is not None:
+            raise CatalogError("--trajectory is for plain scans (LAS/LAZ files or folders of "
+                               "them); a mission has its pose graph", path=Path(given))  # fmt: skip
+        mission = open_mission(given, cache_points=0)
     progress.status(f"georeferencing {mission.name}")
     try:
         placement = place_mission(

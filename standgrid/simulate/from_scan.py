@@ -25,6 +25,7 @@ from scipy.spatial import cKDTree
 from standgrid._atomic import atomic_output, check_replaceable
 from standgrid.errors import CRSError, FormatError, MissionNotFoundError
 from standgrid.geometry import Matrix4, invert_pose, transform_points
+from standgrid.mission.las_header import check_las_header
 from standgrid.mission.layout import is_mission_folder
 from standgrid.mission.posegraph import PoseGraph
 from standgrid.pointcloud import PointCloud
@@ -88,6 +89,7 @@ def _read_scans(
     for path in paths:
         if not path.is_file():
             raise MissionNotFoundError("scan file not found", path=path)
+        check_las_header(path)
         try:
             las = laspy.read(path)
             file_crs = las.header.parse_crs()

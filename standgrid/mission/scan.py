@@ -1,0 +1,430 @@
+"""Plain scans: a georeferenced LAS/LAZ/COPC file, a folder of such tiles, or a VPC, as a mission.
+
+A forest GIS analyst's data is a scan a commercial handheld, backpack, terrestrial or
+airborne scanner wrote, already in a projected CRS. :func:`open_scan` makes it a
+:class:`~standgrid.mission.model.Mission` of projected payloads, so it tiles, enriches and
+serves like a robot's mission:
+
+- the mission is named after the file (``las_chablais3.laz`` -> ``las_chablais3``) or the
+  folder; a folder of tiles (or a VPC's files) is one mission;
+- its CRS is the files' own (one for all; ``crs`` only where the files name none);
+- its date is ``date``, else the points' GPS time when the header flags it adjusted
+  standard GPS time, else the header's creation date;
+- payloads are parts of the files (at most ``part_points`` points each, read with a seek:
+  a big file streams through the partition engine part by part); every point is in exactly
+  one part, so tiles of a folder conserve their edge points exactly once;
+- with a ``trajectory`` (a time-stamped CSV/TXT of positions, as SLAM scanners export),
+  each payload is instead the points of one trajectory segment (about ``segment_m`` of
+  travel) by GPS time, placed at the trajectory, so footprints and Voronoi cells follow
+  the scanner's path. Points before the trajectory's start (after its end) go to the first
+  (last) segment.
+"""
+
+from __future__ import annotations
+
+import datetime as dt
+import json
+import math
+import re
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+
+from standgrid.errors import (
+    CRSError,
+    MetadataError,
+    MissionNotFoundError,
+    PointCloudFormatError,
+    SensorLogFormatError,
+)
+from standgrid.stamps import NS_PER_S, Stamp
+
+#: Suffixes of a plain scan file (``.copc.laz`` ends in ``.laz``) and of a virtual point cloud.
+SCAN_SUFFIXES = (".las", ".laz")
+VPC_SUFFIX = ".vpc"
+#: Most points in one payload of a plain scan (about 100 MB of points and fields in memory).
+PART_POINTS = 2_000_000
+#: Metres of travel per trajectory segment (a robot mission's payload spacing).
+SEGMENT_M = 20.0
+#: Points read at a time when a trajectory's segments are found in the files' GPS times.
+TIME_CHUNK = 1_000_000
+#: Seconds between the GPS epoch (1980-01-06) and the UNIX epoch.
+_GPS_EPOCH_UNIX = 315_964_800
+
+
+@dataclass(frozen=True)
+class ScanOptions:
+    """How to read plain scans: ``crs`` for files that name none, the ``date`` (else from the
+    header), an optional ``trajectory`` file, and the payload sizes."""
+
+    crs: str = "auto"
+    date: dt.date | None = None
+    trajectory: Path | None = None
+    part_points: int = PART_POINTS
+    segment_m: float = SEGMENT_M
+
+
+def scan_name(path: Path) -> str:
+    """The mission name of a scan: the file name without ``.copc.laz``/``.laz``/``.las``/
+    ``.vpc``, or the folder's name."""
+    name = path.name
+    for suffix in (".copc.laz", ".laz", ".las", VPC_SUFFIX):
+        if name.lower().endswith(suffix) and len(name) > len(suffix):
+            return name[: -len(suffix)]
+    return name
+
+
+def _las_files(folder: Path) -> list[Path]:
+    return sorted(
+        p
+        for p in folder.iterdir()
+        if p.is_file() and not p.name.startswith(".") and p.suffix.lower() in SCAN_SUFFIXES
+    )
+
+
+def is_scan(path: str | Path) -> bool:
+    """Whether ``path`` is a plain scan: a LAS/LAZ/COPC file, a VPC, or a folder of LAS/LAZ
+    files that holds no mission (no pose graph, metadata, payload or sensor folder)."""
+    from standgrid.mission.layout import discover_layout
+
+    src = Path(path)
+    if src.is_file():
+        return src.suffix.lower() in (*SCAN_SUFFIXES, VPC_SUFFIX)
+    if not src.is_dir() or not _las_files(src):
+        return False
+    return not discover_layout(src).is_mission
+
+
+def scan_files(path: Path) -> list[Path]:
+    """The LAS/LAZ files of a scan: the file, the folder's files, or the VPC's assets."""
+    if path.is_dir():
+        files = _las_files(path)
+    elif path.suffix.lower() == VPC_SUFFIX:
+        files = _vpc_files(path)
+    else:
+        files = [path]
+    if not files:
+        raise MissionNotFoundError("no LAS/LAZ file in the scan", path=path)
+    for f in files:
+        if not f.is_file():
+            raise MissionNotFoundError("a file of the scan is missing", path=f)
+    return files
+
+
+def _vpc_files(path: Path) -> list[Path]:
+    """The point-cloud assets of a virtual point cloud (a STAC ItemCollection, as PDAL and
+    QGIS write it), relative hrefs taken from the VPC's folder."""
+    try:
+        if path.stat().st_size > 64 * 1024 * 1024:
+            raise MetadataError("a VPC of more than 64 MB", path=path)
+        doc = json.loads(path.read_text(encoding="utf-8"))
+        features = doc["features"]
+        hrefs = [
+            asset["href"]
+            for feature in features
+            for asset in feature["assets"].values()
+            if str(asset.get("href", "")).lower().endswith(SCAN_SUFFIXES)
+        ]
+    except (OSError, UnicodeDecodeError, ValueError, KeyError, TypeError, AttributeError) as exc:
+        raise MetadataError(f"not a virtual point cloud (STAC ItemCollection): {exc}",
+                            path=path) from exc  # fmt: skip
+    files = []
+    for href in hrefs:
+        if re.match(r"^[a-z][a-z0-9+.-]*://", href, re.I):
+            raise MetadataError(f"asset {href!r}: only files beside the VPC are read", path=path)
+        files.append((path.parent / href).resolve())
+    return list(dict.fromkeys(files))
+
+
+@dataclass(frozen=True)
+class _FileFacts:
+    path: Path
+    points: int
+    crs: str | None
+    gps_standard: bool
+    has_time: bool
+    created: dt.date | None
+    box: tuple[NDArray[np.float64], NDArray[np.float64]]
+
+
+def _facts(path: Path) -> _FileFacts:
+    import laspy
+
+    from standgrid.mission.clouds import check_las_size
+    from standgrid.mission.model import _crs_text
+
+    count = check_las_size(path)
+    try:
+        with laspy.open(path) as reader:
+            header = reader.header
+            crs = header.parse_crs()
+            created = header.creation_date
+            standard = header.global_encoding.gps_time_type == laspy.header.GpsTimeType.STANDARD
+            has_time = "gps_time" in header.point_format.dimension_names
+            box = (np.asarray(header.mins, np.float64), np.asarray(header.maxs, np.float64))
+    except Exception as exc:  # laspy, pyproj and OS errors alike
+        raise PointCloudFormatError(f"unreadable LAS/LAZ header ({exc})", path=path) from exc
+    if created is not None and created.year < 1990:
+        created = None
+    return _FileFacts(path, count, None if crs is None else _crs_text(crs), bool(standard),
+                      has_time, created, box)  # fmt: skip
+
+
+def _first_gps_time(path: Path) -> float | None:
+    """The median GPS time of the file's first thousand points (None without times)."""
+    import laspy
+
+    with laspy.open(path) as reader:
+        points = reader.read_points(min(1000, reader.header.point_count))
+    t = np.asarray(points["gps_time"], dtype=np.float64)
+    t = t[np.isfinite(t) & (t != 0)]
+    return float(np.median(t)) if len(t) else None
+
+
+def adjusted_gps_to_date(seconds: float) -> dt.date:
+    """The UTC date of an adjusted standard GPS time (GPS seconds - 1e9), leap seconds
+    counted."""
+    from standgrid.stamps import gps_leap_seconds
+
+    unix = seconds + 1e9 + _GPS_EPOCH_UNIX
+    unix -= float(gps_leap_seconds(int(unix)))
+    return dt.datetime.fromtimestamp(unix, dt.UTC).date()
+
+
+def _date(facts: list[_FileFacts], options: ScanOptions, path: Path) -> tuple[dt.date, str]:
+    if options.date is not None:
+        return options.date, "--date"
+    first = facts[0]
+    if first.gps_standard and first.has_time and first.points:
+        t = _first_gps_time(first.path)
+        if t is not None:
+            day = adjusted_gps_to_date(t)
+            if 1990 <= day.year <= 2100:
+                return day, "GPS time"
+    if first.created is not None:
+        return first.created, "header creation date"
+    raise MetadataError(
+        "the scan's header gives no date (no adjusted standard GPS time, no creation date): "
+        "give it (--date YYYY-MM-DD)",
+        path=path,
+    )
+
+
+def _crs(facts: list[_FileFacts], options: ScanOptions, path: Path) -> str:
+    from standgrid.georeference import crs_to_text, resolve_crs
+
+    own = {f.crs for f in facts if f.crs is not None}
+    if len(own) > 1:
+        raise CRSError(f"the scan's files are in several CRSs: {sorted(own)}", path=path)
+    if own:
+        if len(own) == 1 and any(f.crs is None for f in facts):
+            missing = next(f.path for f in facts if f.crs is None)
+            raise CRSError(f"names no CRS while the others are in {own.pop()}", path=missing)
+        return own.pop()
+    if options.crs in ("auto", "", None):
+        raise CRSError(
+            "the scan names no CRS (no WKT or GeoTIFF VLR): give it (--crs EPSG:XXXX)",
+            path=path,
+        )
+    return crs_to_text(resolve_crs(options.crs))
+
+
+def open_scan(path: str | Path, options: ScanOptions = ScanOptions()) -> Any:
+    """A plain scan (file, folder of tiles, VPC) as a mission of projected payloads (module
+    doc). Raises a typed error naming the file for anything it cannot use."""
+    from standgrid.mission.layout import MissionLayout
+    from standgrid.mission.metadata import MissionMetadata
+    from standgrid.mission.model import CloudCache, Mission, Payload
+
+    src = Path(path).absolute()
+    if not src.exists():
+        raise MissionNotFoundError("scan not found", path=src)
+    if options.part_points < 1:
+        raise ValueError("part_points must be >= 1")
+    facts = [_facts(f) for f in scan_files(src)]
+    crs = _crs(facts, options, src)
+    day, date_source = _date(facts, options, src)
+    name = scan_name(src)
+    base = int(dt.datetime(day.year, day.month, day.day, tzinfo=dt.UTC).timestamp())
+    parts: list[tuple[Path, tuple[int, int] | None, Any, Any]] = []
+    path_xyz = None
+    if options.trajectory is not None:
+        parts, path_xyz = _trajectory_parts(facts, options, src)
+    else:
+        for f in facts:
+            centre = tuple(float(v) for v in 0.5 * (f.box[0] + f.box[1]))
+            if f.points <= options.part_points:
+                parts.append((f.path, None, None, centre))
+                continue
+            for start in range(0, f.points, options.part_points):
+                stop = min(start + options.part_points, f.points)
+                parts.append((f.path, (start, stop), None, centre))
+    payloads = [
+        Payload(
+            Stamp.from_ns(base * NS_PER_S + k),
+            None,
+            file,
+            "utm",
+            {},
+            "point_cloud",
+            crs=crs,
+            span=span,
+            window=window,
+            site=site,
+        )
+        for k, (file, span, window, site) in enumerate(parts)
+    ]
+    metadata = MissionMetadata(name=name, date=day, place=None, robot=None,
+                               sources={"date": date_source})  # fmt: skip
+    mission = Mission(
+        layout=MissionLayout(root=src), metadata=metadata, graph=None, payloads=payloads,
+        scans=[], gnss=None, imu=None, images=[], problems=[], strict=True, source_poses={},
+        cache=CloudCache(0),
+    )  # fmt: skip
+    mission.name = name
+    mission.scan_path = path_xyz
+    return mission
+
+
+# --- trajectories --------------------------------------------------------------------------
+
+_TIME_NAMES = ("time", "timestamp", "gps_time", "gpstime", "t", "sec", "seconds")
+_AXES = {"x": ("x", "easting", "e"), "y": ("y", "northing", "n"), "z": ("z", "elevation", "h")}
+#: A trajectory file bigger than this is refused (a day of 1 kHz poses is ~50 MB of text).
+MAX_TRAJECTORY_BYTES = 512 * 1024 * 1024
+
+
+def read_trajectory(path: Path) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    """Times ``(N,)`` and positions ``(N, 3)`` of a scanner's trajectory file: CSV or
+    whitespace-separated text, with a header naming ``time``/``timestamp``/``gps_time`` and
+    ``x y z`` (or ``easting northing elevation``) columns, or without a header the first four
+    columns as time, x, y, z. Times must increase; rows are checked (file and line)."""
+    try:
+        if path.stat().st_size > MAX_TRAJECTORY_BYTES:
+            raise SensorLogFormatError("trajectory file larger than 512 MB", path=path)
+        lines = path.read_text(encoding="utf-8", errors="strict").splitlines()
+    except (OSError, UnicodeDecodeError) as exc:
+        raise SensorLogFormatError(f"cannot read the trajectory: {exc}", path=path) from exc
+    rows: list[tuple[int, list[str]]] = []
+    header: list[str] | None = None
+    for number, line in enumerate(lines, 1):
+        text = line.strip()
+        if not text:
+            continue
+        tokens = [t for t in re.split(r"[,;\s]+", text.lstrip("#%/ ")) if t]
+        if not rows and header is None and not _numeric(tokens[0]):
+            header = [t.strip().lower() for t in tokens]
+            continue
+        if text.startswith(("#", "//")):
+            continue
+        rows.append((number, tokens))
+    if header is None:
+        cols = [0, 1, 2, 3]
+    else:
+        cols = [_column(header, _TIME_NAMES, "time", path)]
+        cols += [_column(header, _AXES[a], a, path) for a in "xyz"]
+    values = np.empty((len(rows), 4), dtype=np.float64)
+    for i, (number, tokens) in enumerate(rows):
+        try:
+            values[i] = [float(tokens[c]) for c in cols]
+        except (IndexError, ValueError):
+            raise SensorLogFormatError(
+                f"expected numbers in columns {[c + 1 for c in cols]} (time, x, y, z)",
+                path=path, line=number,
+            ) from None  # fmt: skip
+        if not np.all(np.isfinite(values[i])):
+            raise SensorLogFormatError("a value is not finite", path=path, line=number)
+        if i and values[i, 0] <= values[i - 1, 0]:
+            raise SensorLogFormatError(
+                f"time {values[i, 0]!r} does not increase", path=path, line=number
+            )
+    if len(values) < 2:
+        raise SensorLogFormatError("a trajectory needs at least two positions", path=path)
+    return values[:, 0], values[:, 1:]
+
+
+def _numeric(token: str) -> bool:
+    try:
+        float(token)
+    except ValueError:
+        return False
+    return True
+
+
+def _column(header: list[str], names: tuple[str, ...], what: str, path: Path) -> int:
+    for name in names:
+        if name in header:
+            return header.index(name)
+    raise SensorLogFormatError(f"no {what} column in the header {header}", path=path, line=1)
+
+
+def segment_times(
+    times: NDArray[np.float64], xyz: NDArray[np.float64], segment_m: float
+) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    """Where the trajectory is cut every ``segment_m`` of horizontal travel: the cut times
+    (the first segment's start, every cut, the last position's time) and each segment's
+    middle position ``(K, 3)``."""
+    step = np.hypot(np.diff(xyz[:, 0]), np.diff(xyz[:, 1]))
+    travel = np.concatenate([[0.0], np.cumsum(step)])
+    n = max(1, math.ceil(travel[-1] / segment_m))
+    marks = np.linspace(0.0, travel[-1], n + 1) if travel[-1] > 0 else np.array([0.0, 0.0])
+    # the time at each mark of travel (travel is non-decreasing in time)
+    cuts = np.interp(marks, travel, times)
+    cuts[0], cuts[-1] = times[0], times[-1]
+    middle = np.interp(0.5 * (cuts[:-1] + cuts[1:]), times, np.arange(len(times), dtype=float))
+    lo = np.floor(middle).astype(int)
+    hi = np.minimum(lo + 1, len(times) - 1)
+    frac = (middle - lo)[:, None]
+    sites = xyz[lo] * (1 - frac) + xyz[hi] * frac
+    return cuts, sites
+
+
+def _trajectory_parts(
+    facts: list[_FileFacts], options: ScanOptions, src: Path
+) -> tuple[list[tuple[Path, tuple[int, int] | None, Any, Any]], NDArray[np.float64]]:
+    """One payload per (trajectory segment, file holding points of it): the file's points
+    between the first and last chunk of GPS times that meet the segment, cut to its times."""
+    import laspy
+
+    assert options.trajectory is not None
+    times, xyz = read_trajectory(options.trajectory)
+    cuts, sites = segment_times(times, xyz, options.segment_m)
+    lows = cuts[:-1].copy()
+    highs = cuts[1:].copy()
+    lows[0], highs[-1] = -math.inf, math.inf
+    parts: list[tuple[Path, tuple[int, int] | None, Any, Any]] = []
+    span_t = [math.inf, -math.inf]
+    per_file: list[tuple[_FileFacts, list[tuple[int, int, float, float]]]] = []
+    for f in facts:
+        if not f.has_time:
+            raise PointCloudFormatError(
+                "no per-point GPS time: a trajectory cannot be matched to the points", path=f.path
+            )
+        chunks = []
+        with laspy.open(f.path) as reader:
+            start = 0
+            for points in reader.chunk_iterator(TIME_CHUNK):
+                t = np.asarray(points["gps_time"], dtype=np.float64)
+                if len(t):
+                    chunks.append((start, start + len(t), float(t.min()), float(t.max())))
+                    span_t = [min(span_t[0], chunks[-1][2]), max(span_t[1], chunks[-1][3])]
+                start += len(t)
+        per_file.append((f, chunks))
+    if span_t[0] > times[-1] or span_t[1] < times[0]:
+        raise SensorLogFormatError(
+            f"the trajectory's times {times[0]:.3f}..{times[-1]:.3f} s do not meet the points' "
+            f"GPS times {span_t[0]:.3f}..{span_t[1]:.3f} s (same time base: adjusted standard "
+            "GPS time or GPS week seconds, as the points)",
+            path=options.trajectory,
+        )
+    for k in range(len(lows)):
+        site = tuple(float(v) for v in sites[k])
+        for f, chunks in per_file:
+            meet = [c for c in chunks if c[3] >= lows[k] and c[2] < highs[k]]
+            if meet:
+                span = (meet[0][0], meet[-1][1])
+                parts.append((f.path, span, (float(lows[k]), float(highs[k])), site))
+    return parts, xyz

@@ -277,3 +277,35 @@ def test_a_robot_mission_aligns_to_a_georeferenced_scan(tmp_path: Path) -> None:
     assert np.median(gnss_error) > 0.5  # the canopy GNSS alone is off
     assert aligned.max() < 0.1 and added.max() < 0.1
     assert sigma is not None and aligned.max() < 3 * sigma + 0.02
+
+
+def test_dense_segments_are_read_in_parts_every_point_once(tmp_path: Path) -> None:
+    scan, trajectory, _ = _walk_scan(tmp_path)
+    mission = open_scan(scan, ScanOptions(trajectory=trajectory, part_points=5_000))
+    assert len(mission.payloads) > 6
+    report = tile_missions([mission], tmp_path / "cat", TileOptions(scheme="voronoi"))
+    assert report.points_in == report.points_out == 48_000
+    import geopandas as gpd
+
+    assert len(gpd.read_file(tmp_path / "cat" / "index.gpkg", layer="cells")) == 6
+    _same_points(_tiles_xyz(tmp_path / "cat"), _source_xyz([scan]))
+
+
+@pytest.mark.slow
+def test_a_folder_of_copc_tiles_is_one_scan(tmp_path: Path) -> None:
+    """COPC tiles (a catalog's own, cut on a 20 m grid) tiled again as one plain scan on
+    another grid: every point once, edge points included, CRS kept."""
+    scan = _real("las_chablais3.laz")
+    day = dt.date(2019, 7, 1)
+    tile_missions([scan], tmp_path / "a", TileOptions(copc=True, scan_date=day))
+    folder = tmp_path / "a" / "tiles" / "2019"
+    assert all(p.name.endswith(".copc.laz") for p in folder.iterdir())
+    report = tile_missions([folder], tmp_path / "b", TileOptions(cell_size=15.0, scan_date=day))
+    assert report.crs == "EPSG:2154" and report.points_out == 92_097
+    _same_points(_tiles_xyz(tmp_path / "b"), _source_xyz([scan]))
+    # the flight lines of the first source survive both tilings
+    lines = np.concatenate(
+        [laspy.read(t).source_point_source_id for t in (tmp_path / "b" / "tiles").rglob("*.laz")]
+    )
+    source = np.asarray(laspy.read(scan).point_source_id)
+    assert np.array_equal(np.bincount(lines), np.bincount(source))

@@ -10,9 +10,10 @@ serves like a robot's mission:
 - its CRS is the files' own (one for all; ``crs`` only where the files name none);
 - its date is ``date``, else the points' GPS time when the header flags it adjusted
   standard GPS time, else the header's creation date;
-- payloads are parts of the files (at most ``part_points`` points each, read with a seek:
-  a big file streams through the partition engine part by part); every point is in exactly
-  one part, so tiles of a folder conserve their edge points exactly once;
+- payloads are parts of the files (at most ``part_points`` points each, read with a seek,
+  sized by the memory budget: :func:`part_points_for`; a big file streams through the
+  partition engine part by part); every point is in exactly one part, so tiles of a folder
+  conserve their edge points exactly once;
 - with a ``trajectory`` (a time-stamped CSV/TXT of positions, as SLAM scanners export),
   each payload is instead the points of one trajectory segment (about ``segment_m`` of
   travel) by GPS time, placed at the trajectory, so footprints and Voronoi cells follow
@@ -53,6 +54,14 @@ SEGMENT_M = 20.0
 TIME_CHUNK = 1_000_000
 #: Seconds between the GPS epoch (1980-01-06) and the UNIX epoch.
 _GPS_EPOCH_UNIX = 315_964_800
+
+
+def part_points_for(budget_bytes: int) -> int:
+    """Points per part of a plain scan under a memory budget: three parts are in flight at
+    once (one partitioned, two read ahead) at ~150 bytes a point as they are converted,
+    beside the partition engine's own budget; a thirtieth of the budget for each keeps them
+    out of the way (50,000 to :data:`PART_POINTS`)."""
+    return int(min(PART_POINTS, max(50_000, budget_bytes // 5000)))
 
 
 @dataclass(frozen=True)
@@ -424,7 +433,11 @@ def _trajectory_parts(
         site = tuple(float(v) for v in sites[k])
         for f, chunks in per_file:
             meet = [c for c in chunks if c[3] >= lows[k] and c[2] < highs[k]]
-            if meet:
-                span = (meet[0][0], meet[-1][1])
-                parts.append((f.path, span, (float(lows[k]), float(highs[k])), site))
+            if not meet:
+                continue
+            window = (float(lows[k]), float(highs[k]))
+            # a dense segment is read in parts too (the memory budget), each cut to its times
+            for start in range(meet[0][0], meet[-1][1], options.part_points):
+                stop = min(start + options.part_points, meet[-1][1])
+                parts.append((f.path, (start, stop), window, site))
     return parts, xyz

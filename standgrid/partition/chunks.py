@@ -14,7 +14,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 from numpy.typing import NDArray
 
-from standgrid.errors import MissionConsistencyError, PointCloudFormatError
+from standgrid.errors import MissionConsistencyError
 from standgrid.las_fields import (
     LAS_CHECKED_FIELDS,
     check_finite_gps_time,
@@ -80,7 +80,9 @@ def source_fields(cloud: PointCloud, source: Path) -> tuple[PointCloud, int]:
       (formats 6-10, or a PLY/PCD field) is taken as given, in 0.006 degree units.
     - ``point_source_id`` (a flight line): the tiler sets the mission number there, so the
       source's values are kept as ``source_point_source_id`` (uint16; every LAS source has
-      the dimension, so every payload of a LAS mission carries it, 0 or not).
+      the dimension, so every payload of a LAS mission carries it, 0 or not). A source that
+      has both (a catalog's tile tiled again) keeps its ``source_point_source_id``: its
+      ``point_source_id`` is the other catalog's mission number.
     """
     fields = cloud.fields
     if not {WITHHELD, "scan_angle_rank", "point_source_id"} & fields.keys():
@@ -94,11 +96,10 @@ def source_fields(cloud: PointCloud, source: Path) -> tuple[PointCloud, int]:
     fields = rank_as_scan_angle({k: v for k, v in cloud.fields.items() if k != WITHHELD}, source)
     if "point_source_id" in fields:
         if SOURCE_POINT_SOURCE_ID in fields:
-            raise PointCloudFormatError(
-                f"fields 'point_source_id' and {SOURCE_POINT_SOURCE_ID!r} both: the tiles keep "
-                f"a source's point_source_id as {SOURCE_POINT_SOURCE_ID!r}; rename one",
-                path=source,
-            )
+            # a tile of a catalog tiled again: its point_source_id is that catalog's mission
+            # number, its source_point_source_id the first source's flight line: kept
+            las_dimension_values("point_source_id", fields.pop("point_source_id"), source)
+            return PointCloud(cloud.xyz, fields), withheld
         ids = las_dimension_values("point_source_id", fields.pop("point_source_id"), source)
         fields[SOURCE_POINT_SOURCE_ID] = ids.astype(np.uint16, copy=False)
     return PointCloud(cloud.xyz, fields), withheld

@@ -204,9 +204,16 @@ class PoorGeoreferenceError(GeoreferenceError):
     """A georeference fit whose residuals are far beyond the fixes' stated accuracy."""
 
 
+class MisplacedMissionError(GeoreferenceError):
+    """A georeference that puts the mission far from where its own metadata says it was
+    (often latitude and longitude swapped in the GNSS log)."""
+
+
 #: errno values that mean "no room left to write".
 _FULL_ERRNOS = {28, 27, 122}  # ENOSPC, EFBIG, EDQUOT
 _FULL_TEXTS = ("no space left on device", "file too large", "disk quota exceeded")
+#: SQLite's SQLITE_FULL, as SQLite, GDAL and pyogrio say it.
+_SQLITE_FULL_TEXT = "database or disk is full"
 
 
 def out_of_space_error(exc: BaseException, path: str | PathLike[str]) -> OutOfSpaceError | None:
@@ -220,8 +227,10 @@ def out_of_space_error(exc: BaseException, path: str | PathLike[str]) -> OutOfSp
             return current
         code = getattr(current, "errno", None)
         text = str(current).lower()
-        if (isinstance(current, OSError) and code in _FULL_ERRNOS) or any(
-            t in text for t in _FULL_TEXTS
+        if (
+            (isinstance(current, OSError) and code in _FULL_ERRNOS)
+            or any(t in text for t in _FULL_TEXTS)
+            or _SQLITE_FULL_TEXT in text
         ):
             where = getattr(current, "filename", None) or path
             reason = (
@@ -235,6 +244,55 @@ def out_of_space_error(exc: BaseException, path: str | PathLike[str]) -> OutOfSp
                 path=where,
             )
         current = current.__cause__ or current.__context__
+    return None
+
+
+#: Bytes of free space below which a write that failed without an errno (SQLite's "disk
+#: I/O error", GDAL's "failed to commit", copclib's streams) is taken for a full disk.
+FULL_DISK_SLACK = 1 << 20
+
+
+def short_of_room_error(
+    exc: BaseException | None, written: str | PathLike[str], path: str | PathLike[str]
+) -> OutOfSpaceError | None:
+    """:func:`out_of_space_error`, else an :class:`OutOfSpaceError` naming ``path`` when the
+    writer of ``written`` (a file, maybe partly written) failed without saying why, and the
+    file system had less than its size + :data:`FULL_DISK_SLACK` bytes free, or the file
+    reached the process's file-size limit (``RLIMIT_FSIZE``); else None."""
+    import os
+    import resource
+
+    if exc is not None:
+        full = out_of_space_error(exc, path)
+        if full is not None:
+            return full
+    target = Path(written)
+    size = 0
+    for candidate in (target, target.with_name(target.name + "-journal"),
+                      target.with_name(target.name + "-wal")):  # fmt: skip
+        try:
+            size = max(size, candidate.stat().st_size)
+        except OSError:
+            continue
+    why = f" ({type(exc).__name__}: {exc})" if exc is not None else ""
+    limit = resource.getrlimit(resource.RLIMIT_FSIZE)[0]
+    if limit != resource.RLIM_INFINITY and size + FULL_DISK_SLACK // 16 >= limit:
+        return OutOfSpaceError(
+            f"file-size limit ({limit} bytes) reached while writing{why}; the previous state "
+            "is kept",
+            path=path,
+        )
+    try:
+        stat = os.statvfs(target.parent)
+    except OSError:
+        return None
+    free = stat.f_bavail * stat.f_frsize
+    if free < size + FULL_DISK_SLACK:
+        return OutOfSpaceError(
+            f"out of disk space while writing ({free // 1024} KiB free){why}; the previous "
+            "state is kept",
+            path=path,
+        )
     return None
 
 

@@ -228,7 +228,7 @@ def test_status_reports_stale_epoch_and_invalidated_comparison(retiled: dict[str
 
 
 def test_compare_refuses_the_stale_epoch(retiled: dict[str, Any]) -> None:
-    with pytest.raises(EnrichError, match="not enriched"):
+    with pytest.raises(EnrichError, match=r"stale: .*re-run `standgrid enrich"):
         compare_epochs(retiled["root"], CompareOptions("2024", "2028"))
 
 

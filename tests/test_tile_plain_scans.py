@@ -17,7 +17,14 @@ from click.testing import CliRunner
 
 from standgrid.cli import cli
 from standgrid.errors import CRSError, SensorLogFormatError
-from standgrid.mission.scan import ScanOptions, open_scan, read_trajectory, segment_times
+from standgrid.mission.scan import (
+    ScanOptions,
+    adjusted_gps_to_date,
+    open_scan,
+    read_trajectory,
+    segment_times,
+    week_start,
+)
 from standgrid.pipeline.tile import TileOptions, tile_missions
 from standgrid.stamps import unix_ns_to_adjusted_gps_time
 
@@ -70,6 +77,19 @@ def test_one_file_is_tiled_directly_by_the_cli(tmp_path: Path) -> None:
     _same_points(_tiles_xyz(tmp_path / "cat"), _source_xyz([scan]))
     tile = next((tmp_path / "cat" / "tiles").rglob("*.laz"))
     assert laspy.read(tile).header.parse_crs().to_epsg() == 2154
+    # the scan's GPS week seconds are stored as the adjusted standard time the tiles flag
+    assert "week seconds" in report["missions"]["las_chablais3"]["warnings"][0]
+    times = np.concatenate(
+        [laspy.read(t).gps_time for t in (tmp_path / "cat" / "tiles").rglob("*.laz")]
+    )
+    source = np.asarray(laspy.read(scan).gps_time)
+    offset = week_start(dt.date(2019, 7, 1), float(source.min()))
+    assert np.allclose(np.sort(times) - np.sort(source), offset, atol=1e-6)
+    # 29,216 s into a GPS week is Sunday 08:06: the Sunday nearest to Monday 1 July
+    assert adjusted_gps_to_date(float(times.min())) == dt.date(2019, 6, 30)
+    assert adjusted_gps_to_date(week_start(dt.date(2019, 7, 6), 29_216.0) + 29_216.0) == (
+        dt.date(2019, 7, 7)
+    )
 
 
 def test_a_scan_without_a_date_says_how_to_give_one(tmp_path: Path) -> None:

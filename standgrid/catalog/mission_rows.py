@@ -235,6 +235,7 @@ def payload_rows(
                     "path": payload.path,
                     "span": payload.span,
                     "window": payload.window,
+                    "time_offset": payload.time_offset,
                     "frame": payload.frame,
                     "file_to_base": mission.file_to_base(payload),
                     "pose": mission.pose_of(payload) if fitted else None,

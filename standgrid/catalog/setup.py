@@ -162,13 +162,45 @@ def check_area_of_use(catalog: Catalog, placed: Iterable[tuple[str, Placement]])
         crs = pyproj.CRS.from_user_input(catalog.crs)
         code = crs.to_authority()
         label = f"{code[0]}:{code[1]} ({crs.name})" if code else crs.name
+        hint = _swapped_near_catalog(catalog, lat, lon)
         raise CRSError(
             f"mission {name!r} lies at lat {lat:.5f}, lon {lon:.5f}, outside the area of use "
             f"of the catalog's CRS {label}: {area.name} (lon {area.west:.2f} to "
-            f"{area.east:.2f}, lat {area.south:.2f} to {area.north:.2f}); tile it into "
-            "another catalog (--crs auto: its UTM zone)",
+            f"{area.east:.2f}, lat {area.south:.2f} to {area.north:.2f}); "
+            + (hint or "tile it into another catalog (--crs auto: its UTM zone)"),
             path=catalog.root / CATALOG_FILE,
         )
+
+
+#: Metres: how near the catalog's missions a mission read with latitude and longitude
+#: swapped must lie for the swap hint.
+SWAP_HINT_NEAR_M = 50_000.0
+
+
+def _swapped_near_catalog(catalog: Catalog, lat: float, lon: float) -> str | None:
+    """The swap hint (:func:`~standgrid.georeference.location.swap_hint`) when ``lat, lon``
+    read the other way round lies near a mission of the catalog."""
+    import numpy as np
+
+    from standgrid.georeference.location import geodesic_m, swap_hint
+
+    refs = [
+        (float(r.georeference["lla_ref"][0]), float(r.georeference["lla_ref"][1]))
+        for r in catalog.mission_records.values()
+        if r.georeference and r.georeference.get("lla_ref")
+    ]
+    if not refs:
+        return None
+    lats, lons = np.array(refs).T
+
+    def nearest_mission_m(la: float, lo: float) -> float:
+        return float(geodesic_m(la, lo, lats, lons).min())
+
+    return swap_hint(
+        round(lat, 6), round(lon, 6), nearest_mission_m, SWAP_HINT_NEAR_M,
+        what="the catalog's nearest mission is",
+        advice="the mission's GNSS log has latitude and longitude swapped",
+    )  # fmt: skip
 
 
 def create_catalog(

@@ -455,8 +455,7 @@ class Catalog:
         and size: every commit renames a new one in). Callers must treat it as read-only.
         """
         root = Path(path)
-        if not (root / CATALOG_FILE).is_file():
-            raise CatalogNotFoundError("not a standgrid catalog (no catalog.json)", path=root)
+        require_catalog(root)
         readers = FileLock(lock_paths(root)[1], shared=True)
         readers.acquire(lock_timeout, what="committing to")
         try:
@@ -488,15 +487,17 @@ class Catalog:
         """The catalog under its writer lock, interrupted work recovered, state read under
         the lock; its transactions use that lock. Raises :class:`CatalogBusyError` when
         another writer holds it for longer than ``lock_timeout`` seconds. ``held``: the
-        writer lock of ``path``, already taken by the caller."""
+        writer lock of ``path``, already taken by the caller. A folder that is no catalog is
+        refused (:class:`CatalogNotFoundError`) before any lock file is made beside it."""
         root = Path(path)
+        if held is None:
+            require_catalog(root)
         with (
             contextlib.nullcontext(held)
             if held
             else writer_lock(root, timeout=lock_timeout) as lock
         ):
-            if not (root / CATALOG_FILE).is_file():
-                raise CatalogNotFoundError("not a standgrid catalog (no catalog.json)", path=root)
+            require_catalog(root)  # (again: it may have gone while waiting for the lock)
             _recover(root, timeout=lock_timeout)
             catalog = cls(root, _read_state(root / CATALOG_FILE))
             catalog.lock_timeout = lock_timeout
@@ -621,6 +622,15 @@ class Catalog:
     def transaction(self) -> Transaction:
         """A new transaction over this catalog (use as a context manager)."""
         return Transaction(self)
+
+
+def require_catalog(path: str | os.PathLike[str]) -> None:
+    """:class:`CatalogNotFoundError` unless ``path`` holds a catalog (its ``catalog.json``):
+    checked before a lock file is made beside it, so a mistaken folder gets none."""
+    root = Path(path)
+    if not (root / CATALOG_FILE).is_file():
+        what = "does not exist" if not root.exists() else "is not a standgrid catalog"
+        raise CatalogNotFoundError(f"{what} (no catalog.json)", path=root)
 
 
 def open_catalog(

@@ -2,7 +2,10 @@
 
 from __future__ import annotations
 
+import contextlib
+from collections.abc import Iterator
 from pathlib import Path
+from types import FrameType
 from typing import Any
 
 import click
@@ -107,6 +110,10 @@ def enrich(
     measured stems to fit a height-diameter model) go to tables/ (CSV, Parquet) and to
     index.gpkg. Column definitions: docs/METRICS.md.
 
+    Enriching an epoch again replaces its outputs inside the catalog (no --overwrite: they
+    are the catalog's own, replaced in one transaction; comparisons made from them are
+    removed). Ctrl-C stops it; the catalog keeps its last complete state.
+
     \b
     Example:
       standgrid enrich catalog
@@ -126,12 +133,54 @@ def enrich(
         epochs=epochs,
         memory_budget=MemoryBudget.megabytes(memory_mb),
     )
-    report = enrich_catalog(
-        catalog,
-        options,
-        progress=TerminalProgress(quiet),
-        workers=workers,
-        scheduler=scheduler,
-        lock_timeout=lock_timeout,
-    )
+    with interruptible():
+        report = enrich_catalog(
+            catalog,
+            options,
+            progress=TerminalProgress(quiet),
+            workers=workers,
+            scheduler=scheduler,
+            lock_timeout=lock_timeout,
+        )
     emit(report.to_dict(), as_json, _human)
+
+
+#: What an interrupted command says: nothing it did is committed.
+INTERRUPTED = "interrupted: the catalog keeps its last complete state"
+
+
+@contextlib.contextmanager
+def interruptible() -> Iterator[None]:
+    """Ctrl-C said at once and obeyed: the first stops the work (chunks in progress are
+    waited for, those not started are cancelled, the staged files removed), a second one
+    exits at once (what was staged is removed by the next command that opens the catalog:
+    a commit not completed is discarded). Either way :data:`INTERRUPTED` is said and the
+    exit status is 130."""
+    import os
+    import signal
+    import threading
+
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    said: list[bool] = []
+
+    def on_interrupt(signum: int, frame: FrameType | None) -> None:
+        if said:
+            click.echo(f"\n{INTERRUPTED}", err=True)
+            os._exit(130)
+        said.append(True)
+        click.echo(
+            "\ninterrupting: stopping the chunks in progress (Ctrl-C again to stop at once)",
+            err=True,
+        )
+        raise KeyboardInterrupt
+
+    previous = signal.signal(signal.SIGINT, on_interrupt)
+    try:
+        yield
+    except KeyboardInterrupt:
+        click.echo(INTERRUPTED, err=True)
+        raise SystemExit(130) from None
+    finally:
+        signal.signal(signal.SIGINT, previous)

@@ -62,7 +62,7 @@ def _human(report: dict[str, Any]) -> str:
         g = m["georeference"]
         rmse = g["rmse_horizontal_m"]
         u = g.get("uncertainty") or {}
-        for warning in u.get("warnings", []):
+        for warning in [*m.get("warnings", []), *u.get("warnings", [])]:
             lines.append(f"  WARNING {name}: {warning}")
         lines.append(
             f"  {name}: #{m['number']}, {m['payloads']} payloads, {m['points']:,} points,"

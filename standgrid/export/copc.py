@@ -44,7 +44,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from standgrid._atomic import atomic_output, temporary_sibling
-from standgrid.errors import PointCloudFormatError
+from standgrid.errors import OutOfSpaceError, PointCloudFormatError, short_of_room_error
 from standgrid.export.las import SCALE, TileInfo, rewrite_tile, write_tile
 from standgrid.pointcloud import PointCloud
 
@@ -211,10 +211,10 @@ def write_copc_tile(
                 overwrite=True,
                 lattice_origin=lattice_origin,
             )
-        except PointCloudFormatError as exc:  # a bad field: named with the tile, not the scratch
+        except (PointCloudFormatError, OutOfSpaceError) as exc:  # named with the tile
             if exc.path != scratch:
                 raise
-            raise PointCloudFormatError(exc.message, path=out) from exc
+            raise type(exc)(exc.message, path=out) from exc
         with atomic_output(out, overwrite=overwrite, durable=durable) as tmp:
             _scratch_to_copc(scratch, raw, tmp, resolution=resolution, leaf_points=leaf_points)
     finally:
@@ -313,15 +313,27 @@ def _scratch_to_copc(
         finally:
             writer.Close()
     except (RuntimeError, ValueError, TypeError) as exc:
+        _refuse_when_full(exc, raw, target)
         raise PointCloudFormatError(
             f"copclib could not write the tile: {exc}", path=target
         ) from exc
+    if raw.stat().st_size == 0 or (n and raw.stat().st_size < _HEADER_SIZE):
+        _refuse_when_full(None, raw, target)
     gps = records["gps_time"] if n else np.zeros(1)
     # COPC info: the cube (the one copclib's reader derives from the header bounds, stated
     # for readers that take it from the info: laspy, PDAL), GPS time range.
     cube = (*map(float, center), half_m, 2 * half_m / resolution)
     own_vlrs = [_vlr_bytes(v) for v in _raw_vlrs(scratch)]
     _relocate(raw, target, own_vlrs, info=(*cube, float(gps.min()), float(gps.max())))
+
+
+def _refuse_when_full(exc: BaseException | None, raw: Path, target: Path) -> None:
+    """Raise :class:`OutOfSpaceError` (naming ``target``) when copclib's write of ``raw``
+    failed for want of room (its C++ streams report no errno:
+    :func:`~standgrid.errors.short_of_room_error` looks at the room left)."""
+    full = short_of_room_error(exc, raw, target)
+    if full is not None:
+        raise full from exc
 
 
 def _raw_vlrs(path: Path) -> list[tuple[bytes, int, bytes, bytes]]:

@@ -34,7 +34,7 @@ from types import TracebackType
 from typing import TYPE_CHECKING, Any, NamedTuple
 
 from standgrid._atomic import atomic_output, write_text_atomic
-from standgrid.errors import CatalogError, CRSError
+from standgrid.errors import CatalogError, CRSError, short_of_room_error
 from standgrid.export import styles
 
 if TYPE_CHECKING:
@@ -264,6 +264,7 @@ class IndexWriter:
                 data, self.working_path, layer=name, driver="GPKG", dataset_options=options
             )
         except (pyogrio.errors.DataSourceError, pyogrio.errors.DataLayerError, ValueError) as exc:
+            self._refuse_when_full(exc)
             raise CatalogError(f"cannot write layer {name!r}: {exc}", path=self.path) from exc
         if style is not None:
             self.add_style(name, style, style_name=style_name)
@@ -278,10 +279,22 @@ class IndexWriter:
         description: str = "",
     ) -> None:
         """Add a QGIS style to a layer of the index being written."""
-        styles.add_layer_style(
-            self.working_path, layer, qml, style_name=style_name, default=default,
-            description=description,
-        )  # fmt: skip
+        try:
+            styles.add_layer_style(
+                self.working_path, layer, qml, style_name=style_name, default=default,
+                description=description,
+            )  # fmt: skip
+        except CatalogError as exc:  # SQLite's error, maybe "database or disk is full"
+            self._refuse_when_full(exc)
+            raise
+
+    def _refuse_when_full(self, exc: BaseException) -> None:
+        """Raise :class:`OutOfSpaceError` (naming the index) when a GeoPackage write failed
+        for want of room: SQLITE_FULL's "database or disk is full", or GDAL's vaguer errors
+        ("failed to commit", "no such table" after a failed CREATE) with the disk full."""
+        full = short_of_room_error(exc, self.working_path, self.path)
+        if full is not None:
+            raise full from exc
 
 
 def write_index(

@@ -32,8 +32,10 @@ A private VLR (user id ``standgrid``) records the written field names and dtypes
 
 from __future__ import annotations
 
+import contextlib
 import json
 import os
+from collections.abc import Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -42,7 +44,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from standgrid._atomic import atomic_output
-from standgrid.errors import CRSError, PointCloudFormatError
+from standgrid.errors import CRSError, PointCloudFormatError, out_of_space_error
 from standgrid.las_fields import check_finite_gps_time, las_dimension_values
 from standgrid.partition.lattice import SCALE, snap_to_storage
 from standgrid.pointcloud import PointCloud
@@ -486,7 +488,7 @@ def _write_las(
     backend = laspy.LazBackend.LazrsParallel if laz else None
     # A file object: given a path, laspy picks compression from the (temporary) suffix.
     staged = atomic_output(out, overwrite=overwrite, durable=durable)
-    with staged as tmp, open(tmp, "wb") as stream:
+    with staged as tmp, open(tmp, "wb") as raw, _errors_kept(raw, out) as stream:
         if extent is None or not len(las.points) or las.evlrs:
             las.write(stream, do_compress=laz, laz_backend=backend)
         elif laz:
@@ -502,6 +504,48 @@ def _write_las(
             _grow(header, extent, las.points)
             header.write_to(stream)
             stream.write(las.points.memoryview())
+
+
+class _ErrorKeepingStream:
+    """A binary file whose last ``OSError`` is kept: lazrs turns the errors of the Python
+    writes it makes into ``LazrsError("IoError: Failed to call write")``, losing the errno
+    that tells a full disk."""
+
+    def __init__(self, stream: Any) -> None:
+        self._stream = stream
+        self.error: OSError | None = None
+
+    def write(self, data: Any) -> int:
+        return int(self._call(self._stream.write, data))
+
+    def flush(self) -> None:
+        self._call(self._stream.flush)
+
+    def _call(self, method: Any, *args: Any) -> Any:
+        try:
+            return method(*args)
+        except OSError as exc:
+            self.error = exc
+            raise
+
+    def __getattr__(self, name: str) -> Any:  # seek, tell, ...
+        return getattr(self._stream, name)
+
+
+@contextlib.contextmanager
+def _errors_kept(stream: Any, out: Path) -> Iterator[Any]:
+    """``stream`` wrapped in :class:`_ErrorKeepingStream`; an error whose writes failed for
+    want of room (ENOSPC, EFBIG, EDQUOT) becomes :class:`OutOfSpaceError` naming ``out``."""
+    kept = _ErrorKeepingStream(stream)
+    try:
+        yield kept
+    except Exception as exc:
+        full = out_of_space_error(exc, out) or (
+            out_of_space_error(kept.error, out) if kept.error is not None else None
+        )
+        if full is not None and full is not exc:
+            raise full from (kept.error or exc)
+        raise
 
 
 def _grow(header: Any, extent: _Extent, points: Any) -> None:

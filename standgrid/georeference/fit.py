@@ -406,7 +406,9 @@ def solve_rigid3d(p_map: FloatArray, q_enu: FloatArray, w: FloatArray) -> Matrix
 
 
 def weighted_median(values: FloatArray, weights: FloatArray) -> float:
-    """The weighted median (lower one at an exact half split)."""
+    """The weighted median (lower one at an exact half split); ValueError when empty."""
+    if len(values) == 0:
+        raise ValueError("weighted median of no values")
     order = np.argsort(values, kind="stable")
     cw = np.cumsum(weights[order])
     return float(values[order][np.searchsorted(cw, 0.5 * cw[-1])])
@@ -481,10 +483,24 @@ def _trim(
 
 
 def _robust_fit(
-    method: str, p: FloatArray, q: FloatArray, sh: FloatArray, sv: FloatArray
+    method: str,
+    p: FloatArray,
+    q: FloatArray,
+    sh: FloatArray,
+    sv: FloatArray,
+    source: Path | None = None,
 ) -> tuple[Matrix4, NDArray[np.bool_]]:
     wh, wv = 1.0 / sh**2, 1.0 / sv**2
     inl = _ransac_yaw2d(p, q, sh)
+    if inl.sum() < 2:  # no two fixes agree with the trajectory: nothing to fit
+        raise InsufficientGnssError(
+            f"the {len(p)} GNSS fixes matched to the trajectory are too scattered to fit a "
+            f"georeference: no two of them agree with the trajectory's shape within "
+            f"{K_HORIZONTAL:.2f} x their stated accuracy (median "
+            f"{float(np.median(sh)):.2f} m); check the log (fixes of another place or time, "
+            "wrong columns, no RTK fix)",
+            path=source,
+        )
     T = solve_yaw2d(p[inl], q[inl], wh[inl], wv[inl], robust_z=True)
     solvers = ["yaw2d"] if method == "yaw2d" else ["yaw2d", "rigid3d"]
     for solver in solvers:
@@ -606,7 +622,7 @@ def fit_georeference(
         )
     p, q = prep.p_map[usable], prep.enu[usable]
     sh, sv = prep.sigma_h[usable], prep.sigma_v[usable]
-    T, inl = _robust_fit(method, p, q, sh, sv)
+    T, inl = _robust_fit(method, p, q, sh, sv, source)
     fit = _assemble(prep, T, method, inl)
     if fit.n_used < min_fixes:
         raise InsufficientGnssError(

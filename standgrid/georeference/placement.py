@@ -144,7 +144,8 @@ def place_mission(
 ) -> Placement:
     """How the mission gets into a catalog: clouds already projected (no fit), an explicit
     ``anchor`` ``(lat, lon, alt, yaw_deg)``, or its own georeference (pose-graph anchor or
-    GNSS fit, refused when far beyond the fixes' accuracy unless ``accept_poor``)."""
+    GNSS fit, refused when far beyond the fixes' accuracy, or far from the location the
+    mission's metadata gives, unless ``accept_poor``)."""
     from standgrid.georeference import fit_from_anchor, georeference_mission
     from standgrid.georeference.fit import check_fit_quality
 
@@ -170,8 +171,24 @@ def place_mission(
                 line=exc.line,
             ) from exc
     if not accept_poor:
+        check_metadata_location(mission, fit)
         check_fit_quality(fit, source=gnss_file(mission))
     return Placement(fit)
+
+
+def check_metadata_location(mission: Mission, fit: GeoreferenceFit) -> None:
+    """Refuse (:class:`~standgrid.errors.MisplacedMissionError`) a fit that puts the mission
+    more than :data:`~standgrid.georeference.location.MAX_METADATA_DISTANCE_M` from the
+    location its metadata gives (none given: nothing to check)."""
+    from standgrid.georeference.location import check_location
+
+    meta = mission.metadata
+    if meta is None or meta.gnss is None:
+        return
+    _, positions = mission.trajectory()
+    check_location(
+        fit, positions, meta.gnss, source=gnss_file(mission), metadata=mission.layout.metadata
+    )
 
 
 #: The smallest radius of curvature of the WGS 84 ellipsoid (the meridian's at the equator,

@@ -12,6 +12,7 @@ from numpy.typing import ArrayLike, NDArray
 from standgrid.errors import PayloadTooFarError
 from standgrid.geometry import invert_pose, transform_points
 from standgrid.georeference.enu import enu_to_lla, lla_to_enu
+from standgrid.georeference.location import swap_hint
 from standgrid.georeference.mission import georeference_mission
 from standgrid.mission.model import Mission, Payload, open_mission
 from standgrid.mission.retrieval import query_distances, retrieve_payload_by_pose
@@ -90,18 +91,17 @@ def _too_far(
     enu = transform_points(fit.T_enu_map, mission.pose_of(nearest)[:3, 3].reshape(1, 3))[0]
     at_lat, at_lon, _ = enu_to_lla(enu[0], enu[1], enu[2], fit.lla_ref)
     _, _, metres = Geod(ellps="WGS84").inv(lon, lat, float(at_lon), float(at_lat))
-    hint = "latitude comes first"
-    if abs(lon) <= 90.0:  # read the other way round, is it near?
-        swapped = coord.copy()
-        swapped[:2] = lon, lat
-        there = gnss_to_map(mission, swapped)
+
+    def nearest_payload_m(la: float, lo: float) -> float:
+        there = gnss_to_map(mission, np.array([la, lo, *coord[2:]]))
         other = retrieve_payload_by_pose(mission, there, k=1)[0]
-        away = float(query_distances(there, mission.pose_of(other)[:3, 3].reshape(1, 3))[0])
-        if away <= max_distance:
-            hint = (
-                f"read as latitude {lon}, longitude {lat} (swapped) the nearest payload is "
-                f"{away:.1f} m away: give LAT LON, latitude first"
-            )
+        return float(query_distances(there, mission.pose_of(other)[:3, 3].reshape(1, 3))[0])
+
+    hint = swap_hint(
+        lat, lon, nearest_payload_m, max_distance,
+        what="the nearest payload is", advice="give LAT LON, latitude first",
+    )  # fmt: skip
+    hint = hint or "latitude comes first"
     return PayloadTooFarError(
         f"the payload nearest latitude {lat}, longitude {lon} is {metres / 1000:,.1f} km "
         f"away (at {float(at_lat):.5f}, {float(at_lon):.5f}), beyond the {max_distance:g} m "

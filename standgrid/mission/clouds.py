@@ -903,7 +903,7 @@ def _las_header(path: Path) -> CloudHeader:
 
     from standgrid.mission.las_header import check_las_header
 
-    check_las_header(path)
+    check_las_header(path, points=False)
     try:
         with laspy.open(path) as reader:
             header = reader.header

@@ -49,9 +49,11 @@ def _bad(path: Path, what: str) -> PointCloudFormatError:
     return PointCloudFormatError(f"not a readable LAS/LAZ header: {what}", path=path)
 
 
-def check_las_header(path: Path) -> LasHeaderFacts:
-    """The header of the LAS/LAZ file ``path``, every count checked against the file size;
-    raises :class:`PointCloudFormatError` (naming the field) on the first that cannot hold."""
+def check_las_header(path: Path, *, points: bool = True) -> LasHeaderFacts:
+    """The header of the LAS/LAZ file ``path``, every count checked against the file size
+    (``points=False``: all but an uncompressed file's point records, for a header reader
+    that reports a truncated file rather than refusing it); raises
+    :class:`PointCloudFormatError` (naming the field) on the first that cannot hold."""
     try:
         size = path.stat().st_size
         with path.open("rb") as fp:
@@ -121,7 +123,7 @@ def check_las_header(path: Path) -> LasHeaderFacts:
                             raise _bad(path, f"EVLR {i} ends at byte {at}, past the file's "
                                        f"{size} bytes")  # fmt: skip
             end = evlr_start if minor >= 4 and n_evlrs else size
-            if not compressed and count * record > end - offset:
+            if points and not compressed and count * record > end - offset:
                 raise PointCloudFormatError(
                     f"header says {count} points ({count * record} bytes of {record}-byte "
                     f"records), the file holds {max(end - offset, 0)} bytes of point data "

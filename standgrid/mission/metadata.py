@@ -261,13 +261,40 @@ _SENSOR_MODEL_KEYS = ("model", "name", "type", "id")
 _SENSOR_KIND_KEYS = ("kind", "type", "category")
 
 
+#: The largest metadata.yaml read (bytes): a mission's metadata is a few hundred bytes.
+MAX_METADATA_BYTES = 1 << 20
+
+
+def _no_alias_loader() -> type:
+    """A ``yaml.SafeLoader`` that refuses aliases (``*name``): metadata never needs them, and
+    nested aliases expand exponentially (a "billion laughs" file of a few hundred bytes)."""
+    import yaml
+
+    class NoAliasLoader(yaml.SafeLoader):
+        def compose_node(self, parent: Any, index: Any) -> Any:
+            if self.check_event(yaml.AliasEvent):
+                event = self.peek_event()
+                raise _AliasRefused(event.anchor, event.start_mark.line + 1)
+            return super().compose_node(parent, index)
+
+    return NoAliasLoader
+
+
+class _AliasRefused(Exception):
+    """A YAML alias met while composing (becomes a :class:`MetadataError`)."""
+
+    def __init__(self, anchor: str, line: int) -> None:
+        super().__init__(anchor, line)
+        self.anchor, self.line = anchor, line
+
+
 def _key_lines(text: str) -> dict[str, int]:
     """1-based line of each top-level key (for error messages)."""
     import yaml
 
     try:
-        node = yaml.compose(text, Loader=yaml.SafeLoader)
-    except yaml.YAMLError:
+        node = yaml.compose(text, Loader=_no_alias_loader())
+    except (yaml.YAMLError, _AliasRefused):
         return {}
     if not isinstance(node, yaml.MappingNode):
         return {}
@@ -280,7 +307,13 @@ def _load_yaml(src: Path) -> tuple[dict[Any, Any], str]:
     import yaml
 
     try:
-        text = src.read_text(encoding="utf-8")
+        with open(src, "rb") as handle:
+            data = handle.read(MAX_METADATA_BYTES + 1)
+        if len(data) > MAX_METADATA_BYTES:
+            raise MetadataError(
+                f"larger than {MAX_METADATA_BYTES // 1024} KiB: not mission metadata", path=src
+            )
+        text = data.decode("utf-8")
     except FileNotFoundError as exc:
         raise MissionNotFoundError("metadata file not found", path=src) from exc
     except UnicodeDecodeError as exc:
@@ -290,7 +323,14 @@ def _load_yaml(src: Path) -> tuple[dict[Any, Any], str]:
     if not text.strip():
         raise MetadataError("empty metadata file", path=src, line=1)
     try:
-        doc = yaml.safe_load(text)
+        doc = yaml.load(text, Loader=_no_alias_loader())  # a SafeLoader
+    except _AliasRefused as exc:
+        raise MetadataError(
+            f"YAML alias *{exc.anchor} refused: metadata needs no anchors or aliases (nested "
+            "aliases can expand without bound)",
+            path=src,
+            line=exc.line,
+        ) from None
     except yaml.YAMLError as exc:
         mark = getattr(exc, "problem_mark", None)
         line = mark.line + 1 if mark is not None else None

@@ -76,6 +76,9 @@ class Payload:
     #: Where a plain scan's payload was taken from, in its CRS (the trajectory's position),
     #: if known; else the centre of the file's box stands in.
     site: tuple[float, float, float] | None = field(default=None, hash=False, compare=False)
+    #: Seconds added to the file's GPS times (a plain scan's GPS week seconds made adjusted
+    #: standard GPS time with the week of its date).
+    time_offset: float = field(default=0.0, hash=False, compare=False)
 
 
 class CloudCache:

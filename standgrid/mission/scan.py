@@ -9,7 +9,9 @@ serves like a robot's mission:
   folder; a folder of tiles (or a VPC's files) is one mission;
 - its CRS is the files' own (one for all; ``crs`` only where the files name none);
 - its date is ``date``, else the points' GPS time when the header flags it adjusted
-  standard GPS time, else the header's creation date;
+  standard GPS time, else the header's creation date; GPS week seconds are made adjusted
+  standard GPS time (what the tiles store and flag) in the week that puts them nearest to
+  that date (a warning says so);
 - payloads are parts of the files (at most ``part_points`` points each, read with a seek,
   sized by the memory budget: :func:`part_points_for`; a big file streams through the
   partition engine part by part); every point is in exactly one part, so tiles of a folder
@@ -203,6 +205,24 @@ def adjusted_gps_to_date(seconds: float) -> dt.date:
     return dt.datetime.fromtimestamp(unix, dt.UTC).date()
 
 
+def week_start(day: dt.date, seconds_of_week: float) -> float:
+    """The adjusted standard GPS time (GPS seconds - 1e9) of the start of the GPS week that
+    puts ``seconds_of_week`` nearest to noon UTC of ``day`` (leap seconds counted): week
+    seconds + this = adjusted time, right when ``day`` is within 3.5 days of the scan."""
+    from standgrid.stamps import unix_ns_to_adjusted_gps_time
+
+    noon = int(dt.datetime(day.year, day.month, day.day, 12, tzinfo=dt.UTC).timestamp())
+    gps = float(unix_ns_to_adjusted_gps_time(noon * NS_PER_S)) + 1e9
+    return round((gps - seconds_of_week) / 604_800) * 604_800 - 1e9
+
+
+def _week_offset(facts: _FileFacts, day: dt.date) -> float:
+    if facts.gps_standard or not facts.has_time or not facts.points:
+        return 0.0
+    first = _first_gps_time(facts.path)
+    return 0.0 if first is None else week_start(day, first)
+
+
 def _date(facts: list[_FileFacts], options: ScanOptions, path: Path) -> tuple[dt.date, str]:
     if options.date is not None:
         return options.date, "--date"
@@ -271,27 +291,24 @@ def open_scan(path: str | Path, options: ScanOptions = ScanOptions()) -> Any:
             for start in range(0, f.points, options.part_points):
                 stop = min(start + options.part_points, f.points)
                 parts.append((f.path, (start, stop), None, centre))
+    offsets = {f.path: _week_offset(f, day) for f in facts}
     payloads = [
-        Payload(
-            Stamp.from_ns(base * NS_PER_S + k),
-            None,
-            file,
-            "utm",
-            {},
-            "point_cloud",
-            crs=crs,
-            span=span,
-            window=window,
-            site=site,
-        )
+        Payload(Stamp.from_ns(base * NS_PER_S + k), None, file, "utm", {}, "point_cloud",
+                crs=crs, span=span, window=window, site=site, time_offset=offsets[file])
         for k, (file, span, window, site) in enumerate(parts)
-    ]
+    ]  # fmt: skip
+    warnings = []
+    if any(offsets.values()):
+        warnings.append(
+            f"GPS times in week seconds: made adjusted standard GPS time in the GPS week that "
+            f"puts them nearest to {day.isoformat()} (the date from the {date_source})"
+        )
     metadata = MissionMetadata(name=name, date=day, place=None, robot=None,
                                sources={"date": date_source})  # fmt: skip
     mission = Mission(
         layout=MissionLayout(root=src), metadata=metadata, graph=None, payloads=payloads,
         scans=[], gnss=None, imu=None, images=[], problems=[], strict=True, source_poses={},
-        cache=CloudCache(0),
+        cache=CloudCache(0), warnings=warnings,
     )  # fmt: skip
     mission.name = name
     mission.scan_path = path_xyz

@@ -56,6 +56,8 @@ class PayloadTask:
     #: A part of a plain scan's file: points ``[start, stop)``, GPS times in ``[lo, hi)``.
     span: tuple[int, int] | None = None
     window: tuple[float, float] | None = None
+    #: Seconds added to the file's own GPS times (week seconds -> adjusted standard).
+    time_offset: float = 0.0
 
 
 @dataclass(frozen=True)
@@ -135,6 +137,8 @@ def payload_chunk(task: PayloadTask) -> PayloadChunk:
     xyz = snap_to_storage(xyz, task.lattice_origin, out=xyz if own else None)
     n = len(xyz)
     fields = dict(cloud.fields)
+    if task.time_offset and "gps_time" in fields:
+        fields["gps_time"] = np.asarray(fields["gps_time"], dtype=np.float64) + task.time_offset
     if "gps_time" not in fields:  # per-point times of the source win over the payload stamp
         fields["gps_time"] = np.full(n, task.gps_time)
     fields["point_source_id"] = np.full(n, task.point_source_id, dtype=np.uint16)

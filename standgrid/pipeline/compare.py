@@ -155,6 +155,7 @@ def _compare(
     one_catalog = target is source
     epoch_from = epoch_from or default_epoch(source, first=True, both_from_it=one_catalog)
     epoch_to = epoch_to or default_epoch(target, first=False, both_from_it=one_catalog)
+    _check_pair(source, target, epoch_from, epoch_to)
     date_from = enriched_epoch(source, epoch_from)
     date_to = enriched_epoch(target, epoch_to)
 
@@ -170,7 +171,11 @@ def _compare(
         and {"tree_uid"} <= set(trees_from.columns) & set(trees_to.columns)
     )
     matches = match_trees(
-        trees_from, trees_to, date_from=date_from, date_to=date_to, max_distance=max_distance,
+        trees_from,
+        trees_to,
+        date_from=date_from,
+        date_to=date_to,
+        max_distance=max_distance,
         by_uid=by_uid,
     )
     cells = _cell_polygons(source, target, metrics_from, metrics_to)
@@ -265,6 +270,39 @@ def _compare(
         outputs=outputs,
         headline=headline(changes, matches),
     )
+
+
+def _check_pair(source: Catalog, target: Catalog, epoch_from: str, epoch_to: str) -> None:
+    """Refuse, saying why, an epoch compared with itself, a stale epoch (enriched, then
+    re-tiled: ``standgrid enrich`` again), and a ``--to`` epoch dated before ``--from``."""
+    from standgrid.catalog.records import STALE
+    from standgrid.compare.trees import ChangeInputError
+    from standgrid.errors import EnrichError
+
+    if target is source and epoch_from == epoch_to:
+        raise ChangeInputError(
+            f"--from and --to are both epoch {epoch_from!r}: compare two different epochs "
+            f"(epochs: {', '.join(sorted(source.epochs))})",
+            path=source.root,
+        )
+    records = {}
+    for catalog, epoch in ((source, epoch_from), (target, epoch_to)):
+        record = records[epoch, id(catalog)] = catalog.epoch(epoch)  # EpochNotFoundError
+        if record.state == STALE:
+            why = (record.invalidated or {}).get("reason")
+            raise EnrichError(
+                f"epoch {epoch!r} is stale: its tiles changed after it was enriched"
+                + (f" ({why})" if why else "")
+                + f"; re-run `standgrid enrich {catalog.root}`",
+                path=catalog.root,
+            )
+    start, end = records[epoch_from, id(source)].date, records[epoch_to, id(target)].date
+    if start and end and end <= start:
+        raise ChangeInputError(
+            f"epoch {epoch_to!r} ({end}) is not later than epoch {epoch_from!r} ({start}): "
+            "--to must be a later campaign than --from (swap them?)",
+            path=source.root,
+        )
 
 
 def _write_outputs(

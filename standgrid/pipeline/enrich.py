@@ -71,9 +71,11 @@ def enrich_catalog(
     import contextlib
 
     from standgrid.catalog import Catalog
+    from standgrid.catalog.store import require_catalog
     from standgrid.engine import open_executor
 
     options = options or EnrichOptions()
+    require_catalog(catalog_path)  # before a cluster starts or a lock file is made
     with contextlib.ExitStack() as stack:
         if executor is None:
             executor = stack.enter_context(
@@ -104,6 +106,7 @@ def _enrich(
         raise EnrichError(
             "the catalog has no epochs: tile missions into it first", path=catalog.root
         )
+    check_pixel_size(catalog, options.pixel_size)
     rule = options.coverage_rule
     report = EnrichReport(catalog.root)
     metric_tables: dict[str, pd.DataFrame] = {}
@@ -140,6 +143,33 @@ def _enrich(
         write_layers(catalog, txn, metric_tables, tree_tables)
         write_catalog_project(txn)  # catalog.qgz shows what this transaction commits
     return report
+
+
+def check_pixel_size(catalog: Catalog, pixel_size: float) -> None:
+    """Refuse (before any work) a raster pixel that does not divide the lattice the
+    catalog's rasters align to: a grid catalog's cell size, or a Voronoi catalog's
+    :data:`~standgrid.partition.protocol.VORONOI_RASTER_SIZE` lattice (its cells are
+    irregular; rasters of every epoch align to that lattice so they overlay exactly)."""
+    import math
+
+    from standgrid.partition.protocol import VORONOI_RASTER_SIZE
+
+    if catalog.scheme == "voronoi":
+        size = VORONOI_RASTER_SIZE
+        what = f"the {size:g} m lattice a Voronoi catalog's rasters align to"
+    else:
+        size = float(catalog.grid_definition["cell_size"])
+        what = f"the catalog's {size:g} m cell size (rasters align to the cells)"
+    ratio = size / pixel_size if pixel_size > 0 and math.isfinite(pixel_size) else math.nan
+    if math.isfinite(ratio) and abs(ratio - round(ratio)) <= 1e-6:
+        return
+    candidates = (0.1, 0.2, 0.25, 0.5, 1.0, 2.0, 2.5, 5.0, 10.0, 20.0, 25.0, 50.0, 100.0)
+    fits = [f"{c:g}" for c in candidates if c <= size and abs(size / c - round(size / c)) < 1e-9]
+    raise EnrichError(
+        f"a raster pixel of {pixel_size:g} m does not divide {what}: give --pixel as a "
+        f"divisor of {size:g} m ({', '.join(fits)})",
+        path=catalog.root,
+    )
 
 
 @dataclass

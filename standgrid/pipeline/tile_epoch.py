@@ -233,6 +233,7 @@ def tile_epoch(
             "tiles": len(record["tiles"]),
             "georeference": ingest.placement.summary(),
             "placement": _note(ingest),
+            "warnings": list(mission.warnings),
         }
         assert ingest.to_catalog is not None
         trajectories += trajectory_rows(mission, ingest.to_catalog, epoch)

@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import json
 import os
+import re
 import sqlite3
 import subprocess
 import xml.etree.ElementTree as ET
@@ -16,6 +17,7 @@ from pathlib import Path
 import pyogrio
 import pytest
 
+from standgrid.export import styles
 from standgrid.export.qgis_project import ProjectGroup, ProjectLayer, write_qgis_project
 from tests.pipeline_fixtures import CRS, EnrichedPair, enriched_pair
 
@@ -175,14 +177,19 @@ def test_styles_are_the_catalogs_own(pair: EnrichedPair) -> None:
     expected = ET.fromstring(qml.split("\n", 1)[1]).find("renderer-v2")
     assert canonical(changes.find("renderer-v2")) == canonical(expected)
     (stands,) = [m for m in layers.values() if "=stand_changes" in m.findtext("datasource", "")]
+    # graduated styles come as their classes' rules plus a grey "no value" rule (NULL)
     renderer = stands.find("renderer-v2")
-    assert renderer is not None and renderer.get("attr") == "basal_area_m2_ha_delta"
-    bounds = [float(r.get("lower")) for r in renderer.iter("range")][1:]
-    bounds += [float(r.get("upper")) for r in renderer.iter("range")][:-1]
+    assert renderer is not None and renderer.get("type") == "RuleRenderer"
+    rules = renderer.findall("rules/rule")
+    assert rules[-1].get("filter") == "ELSE" and rules[-1].get("label") == "no value"
+    assert all('"basal_area_m2_ha_delta"' in r.get("filter", "") for r in rules[:-1])
+    bounds = [float(b) for r in rules[:-1] for b in re.findall(r"[<>]=? (-?[0-9.e+-]+)",
+                                                               r.get("filter", ""))]  # fmt: skip
     assert min(bounds) == pytest.approx(-max(bounds))  # diverging: symmetric around 0
     trees = [m for m in layers.values() if "layername=trees" in m.findtext("datasource", "")]
     for layer in trees:  # crowns by height, labelled with DBH in cm
-        assert layer.find("renderer-v2").get("attr") == "height_m"
+        tree_rules = layer.findall("renderer-v2/rules/rule")
+        assert all('"height_m"' in r.get("filter", "") for r in tree_rules[:-1])
         assert layer.get("labelsEnabled") == "1"
         assert "dbh_m" in layer.find("labeling/settings/text-style").get("fieldName")
 
@@ -277,3 +284,116 @@ def test_writer_escapes_names_and_filters(tmp_path: Path) -> None:
     assert project.find("projectlayers/maplayer").get("geometry") == "Point"
     view = project.find("ProjectViewSettings/DefaultViewExtent")
     assert [float(view.get(k)) for k in ("xmin", "ymin", "xmax", "ymax")] == [0, 0, 10, 20]
+
+
+def test_project_opens_on_the_data_with_a_small_margin(pair: EnrichedPair) -> None:
+    """Canvas, default view and the project's full extent ("zoom full") are the cells' extent
+    plus a small margin, not the union of the layers (a 1 ha stand holding one edge cell
+    reaches 80 m beyond the data: half the frame empty)."""
+    project = read_project(pair.path)
+    xmin, ymin, xmax, ymax = pyogrio.read_info(pair.path / "index.gpkg", layer="cells")[
+        "total_bounds"
+    ]
+    stands = pyogrio.read_info(pair.path / "index.gpkg", layer="stand_metrics")["total_bounds"]
+    assert stands[0] < xmin - 50  # the layers' union is much wider than the data
+    canvas = project.find("mapcanvas/extent")
+    assert canvas is not None
+    boxes = {"canvas": [float(canvas.findtext(k, "nan")) for k in ("xmin", "ymin", "xmax", "ymax")]}
+    for tag in ("DefaultViewExtent", "PresetFullExtent"):
+        view = project.find(f"ProjectViewSettings/{tag}")
+        assert view is not None, tag
+        assert view.findtext("spatialrefsys/authid") == CRS
+        boxes[tag] = [float(view.get(k, "nan")) for k in ("xmin", "ymin", "xmax", "ymax")]
+    margin = 0.1 * max(xmax - xmin, ymax - ymin)
+    for name, (x0, y0, x1, y1) in boxes.items():
+        assert xmin - margin <= x0 < xmin and ymin - margin <= y0 < ymin, name
+        assert xmax < x1 <= xmax + margin and ymax < y1 <= ymax + margin, name
+
+
+#: Run by QGIS's python on a project: which features of each 20 m cell choropleth the
+#: renderer draws (NULL and valued, with colours), its legend, and the extents QGIS takes.
+QGIS_RENDERED = r"""
+import json, sys
+from qgis.core import QgsApplication, QgsProject, QgsRenderContext, QgsExpressionContextUtils
+from qgis.gui import QgsMapCanvas
+app = QgsApplication([], True)
+app.initQgis()
+project = QgsProject.instance()
+canvas = QgsMapCanvas()
+canvas.setObjectName("theMapCanvas")
+canvas.resize(1200, 1000)
+project.readProject.connect(canvas.readProject)
+assert project.read(sys.argv[1])
+box = lambda r: [r.xMinimum(), r.yMinimum(), r.xMaximum(), r.yMaximum()]
+out = {"full": box(project.viewSettings().fullExtent()),
+       "view": box(project.viewSettings().defaultViewExtent()), "canvas": box(canvas.extent()),
+       "layers": {}}
+for node in project.layerTreeRoot().findLayers():
+    layer = node.layer()
+    if not layer.name().startswith("Basal area (m²/ha), "):
+        continue
+    field = "basal_area_m2_ha"
+    renderer = layer.renderer().clone()
+    context = QgsRenderContext()
+    context.expressionContext().appendScopes(
+        QgsExpressionContextUtils.globalProjectLayerScopes(layer))
+    renderer.startRender(context, layer.fields())
+    drawn = {"null": 0, "null_drawn": 0, "valued": 0, "valued_drawn": 0, "null_colours": []}
+    for feature in layer.getFeatures():
+        context.expressionContext().setFeature(feature)
+        kind = "null" if feature[field] is None or str(feature[field]) == "NULL" else "valued"
+        symbols = renderer.symbolsForFeature(feature, context)
+        drawn[kind] += 1
+        drawn[kind + "_drawn"] += int(bool(symbols))
+        if kind == "null" and symbols:
+            drawn["null_colours"].append(symbols[0].color().name())
+    renderer.stopRender(context)
+    drawn["legend"] = [item.label() for item in renderer.legendSymbolItems()]
+    out["layers"][node.parent().name()] = drawn
+project.clear()
+print(json.dumps(out))
+"""
+
+
+@pytest.fixture(scope="module")
+def rendered(pair: EnrichedPair) -> dict[str, object]:
+    if not _qgis_available():
+        pytest.skip("no PyQGIS (apt-get install python3-qgis)")
+    env = {**os.environ, "QT_QPA_PLATFORM": "offscreen", "PYTHONPATH": ""}
+    done = subprocess.run([QGIS_PYTHON, "-c", QGIS_RENDERED, str(pair.path / "catalog.qgz")],
+                          capture_output=True, text=True, env=env, timeout=120)  # fmt: skip
+    assert done.returncode == 0, done.stderr
+    result: dict[str, object] = json.loads(done.stdout.strip().splitlines()[-1])
+    return result
+
+
+def test_qgis_draws_cells_without_a_value_grey(pair: EnrichedPair, rendered: dict) -> None:
+    """As the web viewer: a cell whose basal area is NULL is drawn, grey, and the legend
+    says "no value"; every valued cell is drawn as before."""
+    metrics = pyogrio.read_dataframe(pair.path / "index.gpkg", layer="stand_metrics",
+                                     where='"level" = 0', read_geometry=False)  # fmt: skip
+    layers = rendered["layers"]
+    assert set(layers) == {"2024", "2028"}
+    for epoch, drawn in layers.items():
+        rows = metrics[metrics["epoch"].astype(str) == epoch]["basal_area_m2_ha"]
+        assert drawn["null"] == rows.isna().sum() > 0, epoch  # the pair has such edge cells
+        assert drawn["valued"] == rows.notna().sum()
+        assert drawn["null_drawn"] == drawn["null"] and drawn["valued_drawn"] == drawn["valued"]
+        assert set(drawn["null_colours"]) == {styles.NO_VALUE}
+        assert drawn["legend"][-1] == "no value" and len(drawn["legend"]) == 6
+
+
+def test_qgis_zooms_full_to_the_data(pair: EnrichedPair, rendered: dict) -> None:
+    """QGIS itself: the project's full extent ("zoom full"), default view and the canvas
+    opened on it hold the cells with at most a small margin; before, zoom full reached the
+    whole of the 1 ha stands (the union of the layers): half the frame empty."""
+    xmin, ymin, xmax, ymax = pyogrio.read_info(pair.path / "index.gpkg", layer="cells")[
+        "total_bounds"
+    ]
+    width, height = xmax - xmin, ymax - ymin
+    for name in ("full", "view", "canvas"):
+        x0, y0, x1, y1 = rendered[name]
+        assert x0 <= xmin and y0 <= ymin and x1 >= xmax and y1 >= ymax, name
+        # a little margin; the canvas widens one side to the window's shape
+        assert (x1 - x0) <= 1.3 * width and (y1 - y0) <= 1.3 * height, (name, rendered[name])
+    assert rendered["full"] == pytest.approx(rendered["view"])

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import re
 import sqlite3
 import xml.etree.ElementTree as ET
 from pathlib import Path
@@ -142,8 +143,70 @@ def test_categorized_and_metric_styles() -> None:
     ]
     assert root.find("layerGeometryType").text == "1"
     metric = parse(styles.stand_metric_style("canopy_height_p95", 0, 30))
-    assert metric.find("renderer-v2").get("attr") == "canopy_height_p95"
-    assert len(metric.findall("renderer-v2/ranges/range")) == 5
+    rules = metric.findall("renderer-v2/rules/rule")  # 5 classes and cells without a value
+    assert len(rules) == 6 and rules[-1].get("filter") == "ELSE"
+    assert all('"canopy_height_p95"' in r.get("filter", "") for r in rules[:-1])
+
+
+def _rule_matches(rule_filter: str, value: float | None) -> bool:
+    """A class rule of :func:`styles.with_no_value` (``"f" > a AND "f" <= b``) on a value."""
+    if value is None:  # NULL compares to nothing: no class rule holds
+        return False
+    ops = {">": float.__gt__, ">=": float.__ge__, "<=": float.__le__, "<": float.__lt__}
+    terms = re.findall(r'"\w+" (>=|<=|>|<) (-?[0-9.e+-]+)', rule_filter)
+    assert terms and len(terms) == rule_filter.count(" AND ") + 1, rule_filter
+    return all(ops[op](float(value), float(bound)) for op, bound in terms)
+
+
+@pytest.mark.parametrize("graduated", [
+    styles.graduated_style("ba", 10.0, 35.0, ramp=styles.YLGN, alpha=190, precision=1,
+                           unit="m²/ha"),
+    styles.diverging_style("ba_delta", -4.0, 2.5, alpha=170),
+])  # fmt: skip
+def test_no_value_rule_draws_null_cells_grey_like_the_viewer(graduated: str) -> None:
+    """QGIS's graduated renderer draws nothing for NULL; the same classes as rules plus an
+    ELSE rule draw such a cell grey (the viewer's #c8c8c8), labelled "no value"."""
+    qml = styles.with_no_value(graduated)
+    root = parse(qml)
+    renderer = root.find("renderer-v2")
+    assert renderer is not None and renderer.get("type") == "RuleRenderer"
+    *classes, rest = renderer.findall("rules/rule")
+    assert rest.get("filter") == "ELSE" and rest.get("label") == "no value"
+    symbols = {s.get("name"): s for s in renderer.findall("symbols/symbol")}
+
+    def colour(symbol: ET.Element) -> str:
+        return {o.get("name"): o.get("value") for o in symbol.iter("Option")}["color"]
+
+    grey = colour(symbols[rest.get("symbol")]).split(",")
+    first = colour(symbols[classes[0].get("symbol")]).split(",")
+    assert grey[:3] == ["200", "200", "200"] and grey[3] == first[3]  # alpha as the classes
+    # the graduated style's classes: same labels and colours, each value in exactly one
+    source = parse(graduated).find("renderer-v2")
+    assert source is not None and source.get("type") == "graduatedSymbol"
+    ranges = source.findall("ranges/range")
+    by_name = {s.get("name"): s for s in source.findall("symbols/symbol")}
+    assert [r.get("label") for r in classes] == [r.get("label") for r in ranges]
+    assert [colour(symbols[r.get("symbol")]) for r in classes] == [
+        colour(by_name[r.get("symbol")]) for r in ranges
+    ]
+    for value in [*np.linspace(-60.0, 60.0, 2401).tolist(), None]:
+        hits = [i for i, r in enumerate(classes) if _rule_matches(r.get("filter", ""), value)]
+        assert len(hits) == (0 if value is None else 1), (value, hits)
+        if value is not None:  # the class the graduated renderer picks (first that holds it)
+            lower = [float(r.get("lower")) for r in ranges]
+            upper = [float(r.get("upper")) for r in ranges]
+            picked = next(i for i in range(len(ranges)) if lower[i] <= value <= upper[i])
+            assert hits == [picked], value
+    # built directly; a style that is not graduated is left as it is; idempotent
+    field = source.get("attr", "")
+    if field == "ba":
+        direct = styles.graduated_style(
+            field, 10.0, 35.0, ramp=styles.YLGN, alpha=190, precision=1, unit="m²/ha",
+            no_value=styles.NO_VALUE,
+        )  # fmt: skip
+        assert direct == qml
+    assert styles.with_no_value(styles.load_qml("cells")) == styles.load_qml("cells")
+    assert styles.with_no_value(qml) == qml
 
 
 # --- raster styles (QML sidecars) ---------------------------------------------------------

@@ -232,6 +232,16 @@ def test_compare_refuses_the_stale_epoch(retiled: dict[str, Any]) -> None:
         compare_epochs(retiled["root"], CompareOptions("2024", "2028"))
 
 
+def test_export_says_the_epoch_is_stale(retiled: dict[str, Any], tmp_path: Path) -> None:
+    result = CliRunner().invoke(
+        cli, ["export", "trees", str(retiled["root"]), "-o", str(tmp_path / "t.csv"),
+              "--epoch", "2028"],
+    )  # fmt: skip
+    assert result.exit_code != 0
+    assert "is stale" in result.output and "re-run `standgrid enrich`" in result.output
+    assert "not enriched" not in result.output
+
+
 @pytest.mark.slow
 def test_enrich_refreshes_the_stale_epoch(
     retiled: dict[str, Any], tmp_path_factory: pytest.TempPathFactory

@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import io
 import os
+import re
 import shutil
 import time
 from collections.abc import Iterator
@@ -833,3 +834,123 @@ def test_viewer_basemap_from_wmts_capabilities_and_xyz(
     assert view.js("() => document.getElementById('basemap-status').classList.contains('warning')")
     _keep_shot(view, tmp_path, "basemap-error")
     assert [e for e in view.errors if "Failed to load resource" not in e] == []
+
+
+# --- a catalog without a comparison: the stand page and the cell panel ----------------------
+
+#: The cells' texts of each table row a selector picks.
+ROW_TEXTS = "s => [...document.querySelectorAll(s)].map(r => [...r.children].map(c => c.innerText))"
+#: The stand page's epoch colours (web/src/stand.js), first epoch first.
+EPOCH_COLOURS = [(0x4E, 0x79, 0xA7), (0xF2, 0x8E, 0x2B)]
+
+
+def _without_comparisons(catalog: Path) -> None:
+    """Make a copied catalog one that was never compared: no change layers in its index, no
+    compare/ folder, no comparisons in catalog.json (as after ``enrich`` alone)."""
+    import json
+    import sqlite3
+
+    with sqlite3.connect(catalog / "index.gpkg") as db:
+        for layer in ("stand_changes", "tree_changes"):
+            (geom,) = db.execute("SELECT column_name FROM gpkg_geometry_columns "
+                                 "WHERE table_name = ?", (layer,)).fetchone()  # fmt: skip
+            db.execute(f'DROP TABLE IF EXISTS "rtree_{layer}_{geom}"')
+            db.execute(f'DROP TABLE "{layer}"')
+            for table, column in (("gpkg_contents", "table_name"),
+                                  ("gpkg_geometry_columns", "table_name"),
+                                  ("gpkg_extensions", "table_name"),
+                                  ("layer_styles", "f_table_name")):  # fmt: skip
+                db.execute(f"DELETE FROM {table} WHERE {column} = ?", (layer,))
+    shutil.rmtree(catalog / "compare")
+    state = json.loads((catalog / "catalog.json").read_text())
+    state["comparisons"] = {}
+    (catalog / "catalog.json").write_text(json.dumps(state, indent=1))
+
+
+@pytest.fixture(scope="module")
+def uncompared(enriched_catalog: Path, tmp_path_factory: pytest.TempPathFactory) -> Iterator[Any]:
+    """A copy of the enriched pair without its comparison, served: (base URL, catalog)."""
+    from standgrid.serve import create_app
+    from standgrid.serve.server import running
+    from tests.pipeline_fixtures import copy_catalog
+
+    catalog = copy_catalog(enriched_catalog, tmp_path_factory.mktemp("uncompared") / "catalog")
+    _without_comparisons(catalog)
+    with running(create_app(catalog)) as server:
+        assert server.base_url is not None
+        yield server.base_url, catalog
+
+
+def _get_json(url: str) -> Any:
+    import json
+    import urllib.request
+
+    with urllib.request.urlopen(url, timeout=30) as answer:
+        return json.load(answer)
+
+
+def _has_colour(png: bytes, rgb: tuple[int, int, int], tolerance: int = 12) -> bool:
+    pixels = np.asarray(Image.open(io.BytesIO(png)).convert("RGB"), dtype=int)
+    return bool((np.abs(pixels - np.array(rgb)).max(axis=-1) <= tolerance).any())
+
+
+def test_stand_page_of_an_uncompared_catalog(browser: Any, uncompared: Any) -> None:
+    """The printable stand page on a catalog never compared: it asks only for collections the
+    catalog has (no 404 for stand_changes in the console), its plots' legend squares are in
+    the epochs' bar colours (not black), and counts read as whole numbers."""
+    base, catalog = uncompared
+    collections = {c["id"] for c in _get_json(f"{base}/ogc/collections")["collections"]}
+    assert "stand_changes" not in collections and "stand_metrics" in collections
+    metrics = pyogrio.read_dataframe(catalog / "index.gpkg", layer="stand_metrics")
+    stands = metrics[(metrics["level"] == 1) & (metrics["n_trees"] > 0)]
+    row = stands.sort_values("n_trees").iloc[-1]
+    stand = Page(browser, base)
+    stand.page.goto(f"{base}/?stand={row['cell_id']}&epoch={row['epoch']}")
+    stand.page.wait_for_selector("body[data-ready=true]", state="attached", timeout=30_000)
+    requested = stand.js("() => window.standgrid.standPage.requested")
+    assert requested == ["stand_metrics", "trees"]
+    assert stand.page.locator("#tree-list tr").count() == int(row["n_trees"]) + 1
+
+    # the legend squares of both plots: each epoch's colour, as its bars
+    legends = stand.page.locator("#stand .fig-legend")
+    assert legends.count() == 2
+    for k in range(2):
+        png = legends.nth(k).screenshot()
+        for rgb in EPOCH_COLOURS:
+            assert _has_colour(png, rgb), (k, rgb)
+    if SHOTS.is_dir():
+        stand.page.screenshot(path=str(SHOTS / "web-stand-uncompared.png"), full_page=True)
+
+    # counts as integers: the "trees" and "returns" rows hold no decimals
+    table = {r[0]: r[1:] for r in stand.js(ROW_TEXTS, "table.metrics tr")}
+    by_epoch = metrics[metrics["cell_id"] == row["cell_id"]].sort_values("epoch")
+    assert table["trees"] == [str(int(n)) for n in by_epoch["n_trees"]]
+    assert table["returns"] == [f"{int(n):,}" for n in by_epoch["n_points"]]
+    # the tree list: one decimal throughout a column (a 7 m² crown reads "7.0", not "7")
+    trees = stand.js(ROW_TEXTS, "#tree-list tr")[1:]
+    assert trees and all(re.fullmatch(r"\d+\.\d", t[4]) for t in trees), trees[:5]
+    assert stand.errors == [] and stand.failed == []  # no 404, no console error
+
+
+def test_cell_panel_shows_counts_as_integers(browser: Any, uncompared: Any) -> None:
+    """The clicked cell's attributes: trees "3", not "3.00"; returns with thousands
+    separators; other numbers with a few decimals. The map of a catalog without a
+    comparison loads with no failed request either."""
+    base, catalog = uncompared
+    metrics = pyogrio.read_dataframe(catalog / "index.gpkg", layer="stand_metrics")
+    view = Page(browser, base)
+    view.open()
+    epoch = view.js("() => window.standgrid.state.epoch")
+    level0 = metrics[(metrics["level"] == 0) & (metrics["epoch"] == epoch)]
+    cell = level0[(level0["n_trees"] > 0) & (level0["n_trees"] < 10)].iloc[0]
+    view.js("c => window.standgrid.openCell(c).then(() => true)", cell["cell_id"])
+    rows = dict(view.js(ROW_TEXTS, "#panel-attributes tr"))
+    assert rows["trees · n_trees"] == str(int(cell["n_trees"]))
+    assert rows["returns · n_points"] == f"{int(cell['n_points']):,}"
+    for label, text in rows.items():
+        column = label.rsplit(" · ", 1)[-1]
+        if column.startswith("n_") or column.endswith("count"):
+            assert text.replace(",", "").isdigit(), (label, text)
+    assert rows["max height (m) · zmax"] == f"{cell['zmax']:.1f}"
+    view.shot("cell-panel-counts")
+    assert view.errors == [] and view.failed == []

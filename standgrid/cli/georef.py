@@ -98,6 +98,13 @@ def georef(
     # the fit's covariance sees white noise; under a canopy errors are correlated and biased
     report["placement_sigma_h_m"] = None if honest is None else honest[0]
     report["placement_sigma_how"] = None if honest is None else honest[1]
+    from standgrid.errors import MisplacedMissionError
+    from standgrid.georeference.placement import check_metadata_location
+
+    try:  # a report, not a tiling: a fit far from the metadata's location is a warning here
+        check_metadata_location(opened, fit)
+    except MisplacedMissionError as exc:
+        report["warnings"].append(exc.message)
     for warning in report["warnings"]:
         status(f"warning: {warning}", quiet)
     if as_json:

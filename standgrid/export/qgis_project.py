@@ -5,7 +5,14 @@ legend first), each layer a file path relative to the project, a provider (``ogr
 GeoPackage layer, optionally filtered by a subset string; ``gdal`` for a raster), and the
 QGIS style document (QML) whose renderer, labels and opacity the layer gets. The styles are
 the ones standgrid already writes (``layer_styles`` rows, raster ``.qml`` sidecars, the
-builders of :mod:`standgrid.export.styles`): the project embeds them, it adds none of its own.
+builders of :mod:`standgrid.export.styles`): the project embeds them, it adds none of its own,
+but for one thing: a graduated style is embedded as the same classes with a grey "no value"
+rule (:func:`standgrid.export.styles.with_no_value`), so a cell whose value is NULL is drawn
+grey as in the web viewer instead of not at all.
+
+The project opens on the given extent (the data's, with its margin): the map canvas, the
+default view and the project's full extent (QGIS's "zoom full", which otherwise is the union
+of every layer's extent, e.g. the whole of a 1 ha stand that holds one edge cell).
 
 Paths are saved relative (``Paths/Absolute = false``), so the catalog folder can be moved or
 copied whole. The document is QGIS 3.22 compatible (the version Debian ships).
@@ -23,6 +30,7 @@ from pathlib import Path
 
 from standgrid._atomic import atomic_output
 from standgrid.errors import CRSError
+from standgrid.export.styles import with_no_value
 
 PROJECT_VERSION = "3.22.16-Białowieża"
 _DOCTYPE = "<!DOCTYPE qgis PUBLIC 'http://mrcc.com/qgis.dtd' 'SYSTEM'>\n"
@@ -97,8 +105,8 @@ def _style_root(qml: str) -> ET.Element:
 
 
 def _map_layer(layer: ProjectLayer, layer_id: str, crs: str) -> ET.Element:
-    style = _style_root(layer.qml)
     vector = layer.provider == "ogr"
+    style = _style_root(with_no_value(layer.qml) if vector else layer.qml)
     element = ET.Element(
         "maplayer",
         type="vector" if vector else "raster",
@@ -132,7 +140,11 @@ def project_document(
     title: str = "",
 ) -> str:
     """The ``.qgs`` XML of a project with ``groups`` (legend order), in ``crs``, opening on
-    ``extent`` (xmin, ymin, xmax, ymax in ``crs``)."""
+    ``extent`` (xmin, ymin, xmax, ymax in ``crs``): the canvas, the default view and the
+    project's full extent are all ``extent``."""
+    xmin, ymin, xmax, ymax = (float(v) for v in extent)
+    if not (xmax > xmin and ymax > ymin):
+        raise ValueError(f"the project's extent must not be empty: {tuple(extent)}")
     root = ET.Element(
         "qgis",
         projectname=title,
@@ -179,20 +191,18 @@ def project_document(
     canvas = ET.SubElement(root, "mapcanvas", name="theMapCanvas", annotationsVisible="1")
     ET.SubElement(canvas, "units").text = "meters"
     box = ET.SubElement(canvas, "extent")
-    for tag, value in zip(("xmin", "ymin", "xmax", "ymax"), extent, strict=True):
-        ET.SubElement(box, tag).text = repr(float(value))
+    for tag, value in zip(("xmin", "ymin", "xmax", "ymax"), (xmin, ymin, xmax, ymax), strict=True):
+        ET.SubElement(box, tag).text = repr(value)
     ET.SubElement(canvas, "rotation").text = "0"
     ET.SubElement(ET.SubElement(canvas, "destinationsrs"), "spatialrefsys").extend(
         list(_crs_element(crs))
     )
     view = ET.SubElement(root, "ProjectViewSettings", UseProjectScales="0", rotation="0")
     ET.SubElement(view, "Scales")
-    home = ET.SubElement(
-        view,
-        "DefaultViewExtent",
-        {k: repr(float(v)) for k, v in zip(("xmin", "ymin", "xmax", "ymax"), extent, strict=True)},
-    )
-    home.append(_crs_element(crs))
+    bounds = {k: repr(v) for k, v in zip(("xmin", "ymin", "xmax", "ymax"),
+                                         (xmin, ymin, xmax, ymax), strict=True)}  # fmt: skip
+    for tag in ("DefaultViewExtent", "PresetFullExtent"):  # QGIS >= 3.18 reads the second
+        ET.SubElement(view, tag, bounds).append(_crs_element(crs))
     root.append(layers)
     layer_order = ET.SubElement(root, "layerorder")
     for layer_id in order:

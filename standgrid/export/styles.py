@@ -9,7 +9,11 @@ every stage uses to add a style; the builders return QGIS 3 QML text:
 - :func:`categorized_style` — one colour per value (trajectories by mission);
 - :func:`graduated_style` — equal-interval classes over a sequential ramp (density,
   canopy height; see :func:`stand_metric_style`);
-- :func:`diverging_style` — classes symmetric around a centre on the RdBu ramp (change).
+- :func:`diverging_style` — classes symmetric around a centre on the RdBu ramp (change);
+- :func:`with_no_value` — a graduated style as the same classes in a rule-based renderer
+  plus an ``ELSE`` rule that draws features without a value (NULL) in grey
+  (:data:`NO_VALUE`, as the web viewer draws them); QGIS's graduated renderer draws no
+  symbol at all for NULL. ``graduated_style(..., no_value=NO_VALUE)`` builds one directly.
 
 Rasters get their style as a sidecar: QGIS loads ``<name>.qml`` beside ``<name>.tif`` as the
 layer's default style. :func:`write_raster_style` writes one for each kind of raster
@@ -21,8 +25,10 @@ the observed-area mask.
 from __future__ import annotations
 
 import contextlib
+import copy
 import math
 import os
+import re
 import sqlite3
 import xml.etree.ElementTree as ET
 from collections.abc import Sequence
@@ -54,6 +60,10 @@ CATEGORY_COLOURS = (
     "#e41a1c", "#377eb8", "#4daf4a", "#984ea3", "#ff7f00", "#a65628", "#f781bf",
     "#1b9e77", "#d95f02", "#7570b3", "#e7298a", "#66a61e", "#e6ab02",
 )  # fmt: skip
+
+#: Features without a value (NULL) in a class style: the web viewer's grey, and its legend.
+NO_VALUE = "#c8c8c8"
+NO_VALUE_LABEL = "no value"
 
 _GEOMETRY_TYPE = {"point": "0", "line": "1", "polygon": "2"}
 _SYMBOL_TYPE = {"point": "marker", "line": "line", "polygon": "fill"}
@@ -345,12 +355,15 @@ def graduated_style(
     outline_only: bool = False,
     width: float = 0.26,
     unit: str = "",
+    no_value: str | None = None,
 ) -> str:
     """Equal-interval classes of ``field`` between ``vmin`` and ``vmax`` on ``ramp``.
 
-    The lowest class starts at -inf and the highest ends at +inf, so no feature goes unstyled.
+    The lowest class starts at -inf and the highest ends at +inf, so every value is styled.
     ``outline_only`` draws polygons as unfilled outlines in the class colour (``width`` mm);
-    ``unit`` ends each legend label (``12.0 - 16.0 m``).
+    ``unit`` ends each legend label (``12.0 - 16.0 m``). With ``no_value`` (a colour, e.g.
+    :data:`NO_VALUE`) features whose value is NULL are drawn in it too (legend "no value"):
+    the classes then come as a rule-based renderer (:func:`with_no_value`).
     """
     if not vmax > vmin:
         vmax = vmin + 1.0
@@ -374,7 +387,8 @@ def graduated_style(
     source.append(_symbol(geometry, ramp[0], name="0", alpha=alpha))
     renderer.append(_colour_ramp(ramp))
     ET.SubElement(renderer, "classificationMethod", id="EqualInterval")
-    return _document(renderer, geometry)
+    qml = _document(renderer, geometry)
+    return qml if no_value is None else with_no_value(qml, no_value)
 
 
 def diverging_style(
@@ -389,23 +403,105 @@ def diverging_style(
     alpha: int = 255,
     precision: int = 2,
     unit: str = "",
+    no_value: str | None = None,
 ) -> str:
     """Classes symmetric around ``centre`` on the RdBu ramp (loss red, gain blue).
 
     The half-width is ``max(|vmin - centre|, |vmax - centre|)`` so equal changes get equal
     colour strength on either side; ``classes`` is made odd so one class holds ``centre``.
+    ``no_value`` as in :func:`graduated_style`.
     """
     half = max(abs(vmin - centre), abs(vmax - centre)) or 1.0
     classes = classes if classes % 2 else classes + 1
     return graduated_style(
         field, centre - half, centre + half, classes=classes, geometry=geometry, ramp=ramp,
-        alpha=alpha, precision=precision, unit=unit,
+        alpha=alpha, precision=precision, unit=unit, no_value=no_value,
     )  # fmt: skip
 
 
 def stand_metric_style(field: str, vmin: float, vmax: float, *, classes: int = 5) -> str:
-    """Stand metric polygons (e.g. canopy height) on viridis."""
-    return graduated_style(field, vmin, vmax, classes=classes, geometry="polygon", ramp=VIRIDIS)
+    """Stand metric polygons (e.g. canopy height) on viridis; cells without a value grey."""
+    return graduated_style(field, vmin, vmax, classes=classes, geometry="polygon", ramp=VIRIDIS,
+                           no_value=NO_VALUE)  # fmt: skip
+
+
+def _field_expression(attr: str) -> str:
+    """A graduated renderer's ``attr`` (a field name or an expression) as an expression."""
+    if re.fullmatch(r"[A-Za-z_][A-Za-z0-9_]*", attr):
+        return f'"{attr}"'
+    if attr.startswith('"') and attr.endswith('"') and attr.count('"') == 2:
+        return attr
+    return f"({attr})"
+
+
+def _grey_symbol(symbol: ET.Element, colour: str, name: str) -> ET.Element:
+    """A copy of a class symbol in ``colour`` (its alpha, outline and width kept; an
+    outline-only fill gets the colour on its outline)."""
+    grey = copy.deepcopy(symbol)
+    grey.set("name", name)
+    for layer in grey.iter("layer"):
+        options = {o.get("name"): o for o in layer.iter("Option") if o.get("name")}
+        outline_only = options.get("style") is not None and options["style"].get("value") == "no"
+        keys = ("outline_color",) if outline_only else ("color", "line_color")
+        for key in keys:
+            option = options.get(key)
+            if option is None:
+                continue
+            alpha = (option.get("value") or "").split(",")[3:4] or ["255"]
+            option.set("value", _rgba(colour, int(alpha[0])))
+    return grey
+
+
+def with_no_value(qml: str, colour: str = NO_VALUE, label: str = NO_VALUE_LABEL) -> str:
+    """A graduated style whose features without a value (NULL) are drawn too, in ``colour``.
+
+    QGIS's graduated renderer skips a feature whose value is NULL, so such cells vanish from
+    the map (the web viewer draws them grey). The classes are kept as they are (same
+    symbols, legend labels and order) in a rule-based renderer, one rule per class (lower
+    bound excluded but the first's, upper bound included: as the graduated renderer picks
+    a class), plus an ``ELSE`` rule with ``colour`` for everything else, i.e. NULL. Any
+    other style (not graduated) is returned unchanged.
+    """
+    head, body = qml.split("\n", 1) if qml.startswith("<!DOCTYPE") else ("", qml)
+    root = ET.fromstring(body)
+    renderer = root.find("renderer-v2")
+    if renderer is None or renderer.get("type") != "graduatedSymbol":
+        return qml
+    value = _field_expression(renderer.get("attr", ""))
+    symbols = {s.get("name"): s for s in renderer.findall("symbols/symbol")}
+    ranges = renderer.findall("ranges/range")
+    rules_renderer = _renderer("RuleRenderer")
+    for key in ("symbollevels", "enableorderby", "forceraster", "referencescale"):
+        if key in renderer.attrib:
+            rules_renderer.set(key, renderer.attrib[key])
+    rules = ET.SubElement(rules_renderer, "rules", key="root")
+    out_symbols = ET.SubElement(rules_renderer, "symbols")
+    for i, element in enumerate(ranges):
+        lower, upper = float(element.get("lower", "-inf")), float(element.get("upper", "inf"))
+        terms = []
+        if lower > -1e299:  # the open ends of the outer classes (+-1e300) need no bound
+            terms.append(f"{value} {'>' if i else '>='} {lower:.15g}")
+        if upper < 1e299:
+            terms.append(f"{value} <= {upper:.15g}")
+        condition = " AND ".join(terms) or f"{value} IS NOT NULL"
+        ET.SubElement(
+            rules, "rule", key=f"class-{i}", filter=condition, symbol=str(i),
+            label=element.get("label", ""),
+        )  # fmt: skip
+        symbol = copy.deepcopy(symbols[element.get("symbol", "")])
+        symbol.set("name", str(i))
+        out_symbols.append(symbol)
+    first = symbols.get(ranges[0].get("symbol", "")) if ranges else None
+    if first is not None:
+        n = str(len(ranges))
+        ET.SubElement(rules, "rule", key="no-value", filter="ELSE", symbol=n, label=label)
+        out_symbols.append(_grey_symbol(first, colour, n))
+    index = list(root).index(renderer)
+    root.remove(renderer)
+    root.insert(index, rules_renderer)
+    ET.indent(root)
+    text = ET.tostring(root, encoding="unicode")
+    return f"{head}\n{text}\n" if head else text + "\n"
 
 
 def density_style(vmin: float, vmax: float, *, field: str = "density") -> str:

@@ -48,9 +48,23 @@ def catalog_epochs(catalog: Catalog, epochs: Sequence[str] | None) -> list[str]:
             raise EpochNotFoundError(
                 f"no epoch {epoch!r} (have {sorted(known)})", path=catalog.path(paths.CATALOG_FILE)
             )
+        if not known[epoch].enriched:
+            raise NotEnrichedError(_not_enriched(epoch, known[epoch]), path=catalog.root)
     if not wanted:
+        stale = [e for e, rec in known.items() if rec.invalidated]
+        if stale:
+            raise NotEnrichedError(_not_enriched(stale[0], known[stale[0]]), path=catalog.root)
         raise NotEnrichedError("no enriched epoch: run `standgrid enrich` first", path=catalog.root)
     return wanted
+
+
+def _not_enriched(epoch: str, record: Any) -> str:
+    """Why an epoch has no tree list: stale (enriched, then re-tiled: why) or never enriched."""
+    if record.invalidated:
+        why = record.invalidated.get("reason")
+        return (f"epoch {epoch!r} is stale: its tiles changed after it was enriched"
+                + (f" ({why})" if why else "") + "; re-run `standgrid enrich`")  # fmt: skip
+    return f"epoch {epoch!r} is not enriched: run `standgrid enrich` first"
 
 
 def read_trees(catalog: Catalog, epoch: str) -> pd.DataFrame:
@@ -136,9 +150,9 @@ def generic_tree_list(
                 "tree_uid": trees.get("tree_uid", pd.Series(pd.NA, index=trees.index)).astype(
                     "Int64"
                 ),
-                "detected_by": trees.get(
-                    "detected_by", pd.Series(pd.NA, index=trees.index)
-                ).astype("string"),
+                "detected_by": trees.get("detected_by", pd.Series(pd.NA, index=trees.index)).astype(
+                    "string"
+                ),
                 "x": trees["x"].astype(float),
                 "y": trees["y"].astype(float),
                 "stem_x": trees.get("stem_x", np.nan),

@@ -272,7 +272,7 @@ function attributeRows(attributes, tile, tree) {
     for (const [key, label, scale] of TREE_ROWS) {
       const value = tree[key];
       if (value === null || value === undefined || value === '') continue;
-      rows.push([`${label} · ${key}`, typeof value === 'number' && scale ? formatValue(value * scale) : value]);
+      rows.push([`${label} · ${key}`, typeof value === 'number' && scale ? formatValue(value * scale, key) : value]);
     }
   }
   if (tile) rows.push(['points in the cell (cells layer) · point_count', tile.point_count]);

@@ -215,7 +215,7 @@ async function main() {
     const attributesOnly = (name, params) => collection(name, null, params);
     attributesOnly.catalog = config.catalog;
     await renderStandPage({ standId: query.get('stand'), epoch: query.get('epoch'),
-      collection: attributesOnly, epochs: config.epochs });
+      collection: attributesOnly, epochs: config.epochs, layers: config.layers });
     return;
   }
   const format = new GeoJSON({ dataProjection, featureProjection: dataProjection });

@@ -87,9 +87,31 @@ export function rampColours(n) {
   return Array.from({ length: n }, (_, k) => VIRIDIS[Math.round((k * (VIRIDIS.length - 1)) / (n - 1))]);
 }
 
-export function formatValue(value, column) {
-  if (value === null || value === undefined || Number.isNaN(value)) return '–';
-  if (Number.isInteger(value) && Math.abs(value) >= 10) return value.toLocaleString('en');
-  const digits = Math.abs(value) >= 100 ? 0 : Math.abs(value) >= 10 ? 1 : 2;
-  return value.toFixed(column && metricUnit(column) === '%' ? Math.min(digits, 1) : digits);
+// Counts: columns named n_* or *count (n_trees, n_points, dbh_n_points, point_count) and
+// their changes (n_trees_delta), not their rates (n_trees_per_year).
+export function isCount(column) {
+  return typeof column === 'string' && (/(^|_)n_/.test(column) || /(^|_)count(_delta)?$/.test(column))
+    && !/_per_/.test(column);
+}
+
+// A value for people: '–' for none; counts and other whole numbers as integers with
+// thousands separators ("9", "12,345", never "9.00"); other numbers with `digits` decimals
+// when given, else by their size (two significant digits below 0.1, at most one decimal
+// for a percentage).
+export function formatValue(value, column, digits) {
+  if (value === null || value === undefined || (typeof value === 'number' && Number.isNaN(value))) return '–';
+  if (typeof value !== 'number' || !Number.isFinite(value)) return String(value);
+  if (isCount(column)) return Math.round(value).toLocaleString('en');
+  let text;
+  if (digits !== undefined) text = value.toFixed(digits);
+  else if (Number.isInteger(value)) return value.toLocaleString('en');
+  else {
+    const size = Math.abs(value);
+    const percent = column && metricUnit(column) === '%';
+    if (size >= 100) text = value.toLocaleString('en', { maximumFractionDigits: 0 });
+    else if (size >= 10) text = value.toFixed(1);
+    else if (size >= 0.1 || percent) text = value.toFixed(percent ? 1 : 2);
+    else text = value.toPrecision(2);
+  }
+  return /^-[0.,]*$/.test(text) ? text.slice(1) : text; // no "-0.0"
 }

@@ -33,7 +33,9 @@ function histogram(title, unit, series, step) {
   for (let i = 0; i <= bins; i += every) {
     ticks += `<text x="${left + i * bw}" y="${h - bottom + 12}" font-size="9" text-anchor="middle">${formatValue(lo + i * step)}</text>`;
   }
-  const legend = series.map((s, k) => `<tspan fill="${EPOCH_COLOURS[k]}">■</tspan> ${s.label} (${s.values.length}) `).join('');
+  // HTML beside the SVG: each epoch's square in its bars' colour (an SVG <tspan fill>
+  // outside an <svg> is an unknown element, its ■ drawn in the text's black)
+  const legend = series.map((s, k) => `<span class="swatch" style="background:${EPOCH_COLOURS[k]}"></span> ${escapeHtml(s.label)} (${s.values.length}) `).join('');
   return `<figure><figcaption>${title}</figcaption><svg width="${w}" height="${h}" role="img">`
     + `<line x1="${left}" y1="${h - bottom}" x2="${w - 6}" y2="${h - bottom}" stroke="#333"/>`
     + `<text x="${left - 4}" y="14" font-size="9" text-anchor="end">${top}</text>`
@@ -42,15 +44,20 @@ function histogram(title, unit, series, step) {
     + `<div class="fig-legend">${legend}</div></figure>`;
 }
 
-export async function renderStandPage({ standId, epoch, collection, epochs }) {
+// `layers`: the catalog's collections (the viewer's config lists them): only those are
+// asked for, so a catalog without a comparison (no stand_changes) or without trees gives
+// no 404 and the page leaves that part out.
+export async function renderStandPage({ standId, epoch, collection, epochs, layers }) {
   document.body.classList.add('stand-page');
   document.body.innerHTML = `<article id="stand"><p>loading ${escapeHtml(standId)}…</p></article>`;
   const level1 = standId.startsWith('100m_') || !standId.startsWith('20m_');
   const byStand = level1 ? { stand_id: standId } : { cell_id: standId };
+  const none = { features: [] };
+  const load = (name, params) => (layers.includes(name) ? collection(name, params) : Promise.resolve(none));
   const [metrics, changes, trees] = await Promise.all([
-    collection('stand_metrics', { cell_id: standId }),
-    collection('stand_changes', { cell_id: standId }).catch(() => ({ features: [] })),
-    collection('trees', byStand),
+    load('stand_metrics', { cell_id: standId }),
+    load('stand_changes', { cell_id: standId }),
+    load('trees', byStand),
   ]);
   const rows = metrics.features.map((f) => f.properties)
     .sort((a, b) => String(a.epoch).localeCompare(String(b.epoch)));
@@ -64,16 +71,17 @@ export async function renderStandPage({ standId, epoch, collection, epochs }) {
   const body = ROWS.filter((k) => rows.some((r) => k in r)).map((k) => {
     const unit = metricUnit(k);
     const cells = rows.map((r) => `<td>${formatValue(r[k], k)}</td>`).join('');
-    const delta = change ? `<td>${formatValue(change[`${k}_delta`], k)}</td><td>${formatValue(change[`${k}_per_year`], k)}</td>` : '';
+    const delta = change ? `<td>${formatValue(change[`${k}_delta`], `${k}_delta`)}</td><td>${formatValue(change[`${k}_per_year`], `${k}_per_year`)}</td>` : '';
     return `<tr><td>${metricName(k)}${unit ? ` (${unit})` : ''}</td>${cells}${delta}</tr>`;
   }).join('');
   const reasons = rows.filter((r) => r.null_reason).map((r) => `<p class="note">${r.epoch}: ${escapeHtml(r.null_reason)}</p>`).join('');
 
   const treeRows = trees.features.map((f) => f.properties).filter((t) => !chosen || t.epoch === chosen.epoch)
     .sort((a, b) => b.height_m - a.height_m);
-  const treeTable = treeRows.map((t, i) => `<tr><td>${i + 1}</td><td>${formatValue(t.height_m)}</td>`
-    + `<td>${t.dbh_m ? formatValue(t.dbh_m * 100) : '–'}</td><td>${escapeHtml(t.dbh_source || '')}</td>`
-    + `<td>${formatValue(t.crown_area_m2)}</td><td>${escapeHtml(t.cell_id)}</td></tr>`).join('');
+  // one decimal throughout each column (a crown of 7 m² reads "7.0" beside "6.5")
+  const treeTable = treeRows.map((t, i) => `<tr><td>${i + 1}</td><td>${formatValue(t.height_m, 'height_m', 1)}</td>`
+    + `<td>${t.dbh_m ? formatValue(t.dbh_m * 100, 'dbh_cm', 1) : '–'}</td><td>${escapeHtml(t.dbh_source || '')}</td>`
+    + `<td>${formatValue(t.crown_area_m2, 'crown_area_m2', 1)}</td><td>${escapeHtml(t.cell_id)}</td></tr>`).join('');
   const perEpoch = labels.map((label) => ({
     label, trees: trees.features.map((f) => f.properties).filter((t) => t.epoch === label),
   }));
@@ -92,5 +100,6 @@ export async function renderStandPage({ standId, epoch, collection, epochs }) {
       <table class="trees" id="tree-list"><tr><th>#</th><th>height (m)</th><th>DBH (cm)</th><th>DBH source</th>
       <th>crown (m²)</th><th>cell</th></tr>${treeTable}</table></section>`;
   document.body.dataset.ready = 'true';
-  window.standgrid = { standPage: { standId, epoch: chosen ? chosen.epoch : epoch, trees: treeRows.length } };
+  window.standgrid = { standPage: { standId, epoch: chosen ? chosen.epoch : epoch, trees: treeRows.length,
+    requested: ['stand_metrics', 'stand_changes', 'trees'].filter((name) => layers.includes(name)) } };
 }

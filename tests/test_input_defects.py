@@ -369,3 +369,16 @@ def test_ctrl_c_is_said_at_once_and_exits_130(capfd: pytest.CaptureFixture[str])
     err = capfd.readouterr().err
     assert "interrupting: stopping the chunks in progress" in err and INTERRUPTED in err
     assert signal.getsignal(signal.SIGINT) is before
+
+
+def test_a_foreign_output_is_refused_before_any_mission_is_read(tmp_path: Path) -> None:
+    """The output is checked first: a mission that does not even exist is not reached."""
+    from standgrid.errors import OutputExistsError
+    from standgrid.pipeline.tile import tile_missions
+
+    out = tmp_path / "notes"
+    out.mkdir()
+    (out / "notes.txt").write_text("mine")
+    with pytest.raises(OutputExistsError, match="not a catalog"):
+        tile_missions([tmp_path / "no-such-mission"], out)
+    assert (out / "notes.txt").read_text() == "mine"

@@ -188,6 +188,7 @@ def tile_missions(
     """
     from standgrid.catalog import Catalog, build_folder, publish, remove_stale_builds, writer_lock
     from standgrid.engine import open_executor
+    from standgrid.mission.model import Mission
 
     if not mission_paths:
         raise CatalogError("no missions given")
@@ -198,6 +199,9 @@ def tile_missions(
         raise CatalogError("an anchor places one mission: tile one mission per --anchor")
     auto = options.crs in ("auto", "", None)
     path = absolute_output(catalog_path, options.overwrite)
+    # the output before any work (again later: missions opened, under the lock)
+    refuse_overlap(path, [g.path if isinstance(g, Mission) else g for g in mission_paths])
+    refuse_foreign_folder(path)
     # --crs auto adding to a catalog: the catalog's CRS (also that of clouds naming none)
     held_crs = existing_crs(path, options.overwrite, options.lock_timeout) if auto else None
     clouds_crs = held_crs or options.crs

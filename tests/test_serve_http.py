@@ -159,7 +159,7 @@ def test_payload_retrieval_matches_the_library(base: str) -> None:
         want = retrieve_payload_by_type(mission, kind)
         assert [p["stamp_ns"] for p in got] == [p.stamp.ns for p in want], kind
         assert all("path" not in p for p in got)  # no server paths leak
-    assert httpx.get(url, params={"type": "radar"}).status_code == 404
+    assert httpx.get(url, params={"type": "radar"}).status_code == 400  # not a data type
     x, y, z = mission.pose_of(mission.payloads[5])[:3, 3]
     got = httpx.get(f"{url}/by-pose", params={"x": x, "y": y, "k": 3}).json()["payloads"]
     want = retrieve_payload_by_pose(mission, (x, y), k=3)

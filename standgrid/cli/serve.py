@@ -13,27 +13,72 @@ from standgrid.cli.options import json_option
 
 @click.command(name="serve")
 @click.argument("catalog", type=click.Path(exists=True, file_okay=False, path_type=Path))
-@click.option("--host", default="127.0.0.1", show_default=True,
-              help="Address to listen on (0.0.0.0: every interface).")
-@click.option("--port", type=click.IntRange(0, 65535), default=8000, show_default=True,
-              help="Port to listen on (0: any free port).")
-@click.option("--token-file", type=click.Path(exists=True, dir_okay=False, path_type=Path),
-              help="File holding the bearer token writes need (else $STANDGRID_TOKEN; "
-                   "without either the service is read-only).")
-@click.option("--missions", "missions_folder", type=click.Path(file_okay=False, path_type=Path),
-              help="Folder for missions robots send (default: CATALOG-missions beside it).")
-@click.option("--max-body", type=click.IntRange(1), default=64 * 1024 * 1024,
-              show_default=True, help="Largest request body accepted, in bytes.")
+@click.option(
+    "--host",
+    default="127.0.0.1",
+    show_default=True,
+    help="Address to listen on (0.0.0.0: every interface).",
+)
+@click.option(
+    "--port",
+    type=click.IntRange(0, 65535),
+    default=8000,
+    show_default=True,
+    help="Port to listen on (0: any free port).",
+)
+@click.option(
+    "--token-file",
+    type=click.Path(exists=True, dir_okay=False, path_type=Path),
+    help="File holding the bearer token writes need (else $STANDGRID_TOKEN; "
+    "without either the service is read-only).",
+)
+@click.option(
+    "--missions",
+    "missions_folder",
+    type=click.Path(file_okay=False, path_type=Path),
+    help="Folder for missions robots send (default: CATALOG-missions beside it).",
+)
+@click.option(
+    "--max-body",
+    type=click.IntRange(1),
+    default=64 * 1024 * 1024,
+    show_default=True,
+    help="Largest request body accepted, in bytes.",
+)
 # default: standgrid.serve.app.DEFAULT_PLACEMENT_TOLERANCE_M (not imported: --help stays instant)
-@click.option("--placement-tolerance", type=click.FloatRange(0), default=0.05,
-              show_default=True, metavar="METRES",
-              help="A streamed mission tiled again keeps its placement while a GNSS refit "
-                   "moves none of its points this far (in-place re-tiles; the offset is "
-                   "reported); 0: always the fresh fit. 'tile?exact=true' settles exactly.")
+@click.option(
+    "--placement-tolerance",
+    type=click.FloatRange(0),
+    default=0.05,
+    show_default=True,
+    metavar="METRES",
+    help="A streamed mission tiled again keeps its placement while a GNSS refit "
+    "moves none of its points this far (in-place re-tiles; the offset is "
+    "reported); 0: always the fresh fit. 'tile?exact=true' settles exactly.",
+)
+# default: standgrid.serve.workers.DEFAULT_WRITE_TIME_LIMIT_S
+@click.option(
+    "--write-time-limit",
+    type=click.FloatRange(0, min_open=True),
+    default=60.0,
+    show_default=True,
+    metavar="SECONDS",
+    help="A mission write (payload, graph, GNSS) still running after this long is "
+    "stopped (its worker process killed) and refused with 400.",
+)
+@click.option(
+    "--tile-time-limit",
+    type=click.FloatRange(0),
+    default=0.0,
+    show_default=True,
+    metavar="SECONDS",
+    help="A 'tile' still running after this long is stopped and answered 503 "
+    "(the catalog keeps its last commit); 0: no limit.",
+)
 @json_option
 def serve(catalog: Path, host: str, port: int, token_file: Path | None,
           missions_folder: Path | None, max_body: int, placement_tolerance: float,
-          as_json: bool) -> None:  # fmt: skip
+          write_time_limit: float, tile_time_limit: float, as_json: bool) -> None:  # fmt: skip
     """Serve CATALOG over HTTP until Ctrl-C.
 
     \b
@@ -53,11 +98,14 @@ def serve(catalog: Path, host: str, port: int, token_file: Path | None,
     """
     from standgrid.serve.app import create_app
     from standgrid.serve.auth import load_token
-    from standgrid.serve.server import Server, config, service_urls
+    from standgrid.serve.server import Server, check_port_free, config, service_urls
 
+    check_port_free(host, port)  # one clear line, not uvicorn's, and before the app loads
     token = load_token(token_file)
     app = create_app(catalog, token=token, max_body=max_body, missions=missions_folder,
-                     placement_tolerance=placement_tolerance or None)  # fmt: skip
+                     placement_tolerance=placement_tolerance or None,
+                     write_time_limit=write_time_limit,
+                     tile_time_limit=tile_time_limit or None)  # fmt: skip
 
     def started(base: str) -> None:
         urls = service_urls(base)

@@ -76,7 +76,7 @@ class LiveMission:
         with self.locked():
             meta_file = self.path / METADATA_FILE
             if meta_file.is_file():
-                if read_metadata(meta_file) == metadata:
+                if read_metadata(meta_file) == self._as_read(metadata):
                     return "unchanged"
                 raise LiveMissionConflictError(
                     "the mission exists with other metadata", path=meta_file
@@ -84,6 +84,14 @@ class LiveMission:
             (self.path / PAYLOAD_DIR).mkdir(parents=True, exist_ok=True)
             write_metadata(metadata, meta_file)
             return "created"
+
+    def _as_read(self, metadata: MissionMetadata) -> MissionMetadata:
+        """``metadata`` as :func:`read_metadata` gives it back once written here: values it
+        lacks derived from the folder name (a unit), times and numbers as YAML keeps them."""
+        with tempfile.TemporaryDirectory(prefix="standgrid-live-") as folder:
+            probe = Path(folder) / METADATA_FILE
+            write_metadata(metadata, probe)
+            return read_metadata(probe, folder_name=self.path.name)
 
     def _require(self) -> None:
         if not (self.path / METADATA_FILE).is_file():

@@ -11,6 +11,7 @@ from typing import Any
 
 from standgrid.catalog import Catalog
 from standgrid.serve.limits import DEFAULT_MAX_BODY
+from standgrid.serve.workers import DEFAULT_WRITE_MEMORY_LIMIT, DEFAULT_WRITE_TIME_LIMIT_S
 
 #: Metres a refit may move a streamed mission before its epoch re-tiles whole (the default
 #: of ``standgrid serve --placement-tolerance``): a GNSS fit's own residuals and 1-sigma are
@@ -21,6 +22,9 @@ DEFAULT_PLACEMENT_TOLERANCE_M = 0.05
 #: CPU priority of the tiling worker below the server's: tiling is background work that
 #: takes seconds of CPU, and on a busy machine the readers' requests come first.
 TILER_NICENESS = 10
+#: Mission-folder writer processes at most: a write that hangs one (until its time limit)
+#: leaves the others to the other robots.
+WRITER_PROCESSES = 4
 
 
 def create_app(
@@ -30,6 +34,9 @@ def create_app(
     max_body: int = DEFAULT_MAX_BODY,
     missions: str | os.PathLike[str] | None = None,
     placement_tolerance: float | None = DEFAULT_PLACEMENT_TOLERANCE_M,
+    write_time_limit: float | None = DEFAULT_WRITE_TIME_LIMIT_S,
+    tile_time_limit: float | None = None,
+    write_memory_limit: int | None = DEFAULT_WRITE_MEMORY_LIMIT,
 ) -> Any:
     """The FastAPI app serving ``catalog``: ``/ogc`` (OGC API - Features), ``/files``
     (catalog files with range requests), ``/missions`` (retrieval API and online ingest).
@@ -38,7 +45,10 @@ def create_app(
     ``<catalog>-missions`` beside the catalog). Writes (mission folders, tiling) run in worker
     processes, stopped with the app (its lifespan). A mission tiled again keeps its placement
     while a refit moves it less than ``placement_tolerance`` metres (None: always the fresh
-    fit; ``POST /missions/{name}/tile?exact=true`` settles on it).
+    fit; ``POST /missions/{name}/tile?exact=true`` settles on it). A mission-folder write
+    taking longer than ``write_time_limit`` seconds, or more address space than
+    ``write_memory_limit`` bytes, is stopped (its worker killed) and refused with 400; a
+    tiling longer than ``tile_time_limit`` seconds with 503 (None: no limit).
     Raises :class:`~standgrid.errors.CatalogNotFoundError` when ``catalog`` is not one."""
     import math
 
@@ -46,6 +56,10 @@ def create_app(
 
     from standgrid.errors import TilingError
 
+    for what, limit in (("write", write_time_limit), ("tile", tile_time_limit)):
+        if limit is not None and not (math.isfinite(limit) and limit > 0):
+            raise ValueError(f"{what} time limit must be a positive number of seconds, "
+                             f"got {limit!r}")  # fmt: skip
     if placement_tolerance is not None and not (
         math.isfinite(placement_tolerance) and placement_tolerance >= 0
     ):
@@ -63,9 +77,16 @@ def create_app(
     _preload(opened.crs, writes=token is not None)
     # writes run in worker processes, each started at its first call
     workers = {
-        "mission_writer": WorkerProcess("mission writer"),
-        "tiler": WorkerProcess("tiling", niceness=TILER_NICENESS),
-    }
+        "mission_writer": WorkerProcess(
+            "mission writer", processes=WRITER_PROCESSES, time_limit=write_time_limit,
+            memory_limit=write_memory_limit, limit_status=400,
+            limit_hint=": its data could not be read in bounded time",
+        ),
+        "tiler": WorkerProcess(
+            "tiling", niceness=TILER_NICENESS, time_limit=tile_time_limit, limit_status=503,
+            limit_hint="; the catalog keeps its last commit (a longer limit: --tile-time-limit)",
+        ),
+    }  # fmt: skip
 
     @contextlib.asynccontextmanager
     async def lifespan(_: Any) -> AsyncIterator[None]:

@@ -55,6 +55,15 @@ def check(uri: str | None, catalog_crs: str, parameter: str) -> str:
     return uri
 
 
+def geographic_axes(uri: str) -> tuple[str, str] | None:
+    """``("lon", "lat")`` or ``("lat", "lon")``: the axis order of a geographic CRS; None
+    for any other."""
+    crs = _crs(uri)
+    if not crs.is_geographic:
+        return None
+    return ("lat", "lon") if _northing_first(crs) else ("lon", "lat")
+
+
 def _northing_first(crs: Any) -> bool:
     axes = crs.axis_info
     return bool(axes) and axes[0].direction.lower() in ("north", "south")
@@ -110,7 +119,12 @@ def bbox_polygon(bbox: list[float], bbox_crs_uri: str, target: str) -> Any:
         return box
     if (a1 - a0) > 0 and (b1 - b0) > 0:
         box = shapely.segmentize(box, max(a1 - a0, b1 - b0) / 64.0)
-    return _reproject(np.array([box]), bbox_crs_uri, target, swap=False)[0]
+    import pyproj
+
+    try:
+        return _reproject(np.array([box]), bbox_crs_uri, target, swap=False)[0]
+    except pyproj.exceptions.ProjError as exc:
+        raise Problem(400, f"bbox: {bbox} does not transform to the catalog's CRS ({exc})") from exc
 
 
 @functools.lru_cache(maxsize=64)

@@ -186,13 +186,20 @@ def decode_geometries(blobs: Sequence[bytes | None]) -> np.ndarray:
 
 def _coerce(layer: Layer, name: str, text: str) -> Any:
     kind = layer.column_types[name]
+    shown = text if len(text) <= 40 else text[:40] + "..."
     try:
         if kind == "integer":
-            return int(text)
+            value = int(text) if len(text) <= 40 else None
+            if value is None or not -(2**63) <= value < 2**63:
+                raise Problem(400, f"{name}: {shown!r} is not a 64-bit integer")
+            return value
         if kind == "number":
-            return float(text)
+            number = float(text)
+            if not np.isfinite(number):
+                raise Problem(400, f"{name}: {shown!r} is not a finite number")
+            return number
     except ValueError as exc:
-        raise Problem(400, f"{name}: {text!r} is not a {kind}") from exc
+        raise Problem(400, f"{name}: {shown!r} is not a {kind}") from exc
     if kind == "boolean":
         lowered = text.strip().lower()
         if lowered in ("true", "1"):
@@ -204,7 +211,12 @@ def _coerce(layer: Layer, name: str, text: str) -> Any:
 
 
 def _day(value: dt.datetime | None) -> str | None:
-    return None if value is None else value.astimezone(dt.UTC).date().isoformat()
+    if value is None:
+        return None
+    try:
+        return value.astimezone(dt.UTC).date().isoformat()
+    except OverflowError:  # years 1 or 9999 shifted out of range by their offset
+        return value.date().isoformat()
 
 
 def _time_clause(
@@ -261,15 +273,18 @@ def _in(column: str, values: list[str]) -> tuple[str, list[Any]]:
 
 
 def _ns(value: dt.datetime) -> int:
-    value = value.astimezone(dt.UTC)
+    """Nanoseconds since 1970 UTC, clamped to SQLite's 64-bit integers (years 1678-2262:
+    a bound beyond them keeps every stamp on its side)."""
     epoch = dt.datetime(1970, 1, 1, tzinfo=dt.UTC)
-    delta = value - epoch
-    return (delta.days * 86400 + delta.seconds) * 1_000_000_000 + delta.microseconds * 1000
+    try:
+        delta = value.astimezone(dt.UTC) - epoch
+    except OverflowError:  # years 1 or 9999 shifted out of range by their offset
+        return -(2**63) if value.year < 1970 else 2**63 - 1
+    ns = (delta.days * 86400 + delta.seconds) * 1_000_000_000 + delta.microseconds * 1000
+    return max(-(2**63), min(2**63 - 1, ns))
 
 
-def where_sql(
-    layer: Layer, query: Query, epoch_dates: Mapping[str, str]
-) -> tuple[str, list[Any]]:
+def where_sql(layer: Layer, query: Query, epoch_dates: Mapping[str, str]) -> tuple[str, list[Any]]:
     """The WHERE clause (without the bbox) and its parameters."""
     clauses: list[str] = []
     params: list[Any] = []
@@ -435,7 +450,9 @@ def parse_datetime(text: str) -> tuple[dt.datetime | None, dt.datetime | None]:
         try:
             if len(part) == 10:
                 day = dt.datetime.fromisoformat(part).replace(tzinfo=dt.UTC)
-                return day + dt.timedelta(days=1, microseconds=-1) if end else day
+                return (
+                    day.replace(hour=23, minute=59, second=59, microsecond=999999) if end else day
+                )
             value = dt.datetime.fromisoformat(part)
         except ValueError as exc:
             raise Problem(400, f"datetime: {part!r} is not an RFC 3339 date-time") from exc

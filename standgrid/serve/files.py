@@ -96,13 +96,21 @@ def listing(request: Request) -> JSONResponse:
     ]})  # fmt: skip
 
 
-@router.api_route(
+_FILE_RESPONSES: dict[int | str, dict[str, Any]] = {
+    206: {"description": "the requested byte ranges"},
+    416: {"description": "no requested range is inside the file"},
+}
+
+
+# one operation per method: OpenAPI operation ids are unique
+@router.get(
     "/files/{relative:path}",
-    methods=["GET", "HEAD"],
+    operation_id="get_file",
+    responses=_FILE_RESPONSES,
     summary="One file of the catalog (HTTP range requests supported)",
-    responses={206: {"description": "the requested byte ranges"},
-               416: {"description": "no requested range is inside the file"}},
-)  # fmt: skip
+)
+@router.head("/files/{relative:path}", operation_id="head_file", responses=_FILE_RESPONSES,
+             summary="One file's headers (size, type, Accept-Ranges)")  # fmt: skip
 def file(request: Request, relative: str) -> Any:
     root = request.app.state.catalog_root
     with snapshot(root, with_index=False) as snap:

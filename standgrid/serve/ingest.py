@@ -33,6 +33,11 @@ _NAME = re.compile(r"^[A-Za-z0-9][A-Za-z0-9._-]{0,127}$")
 _STAMP = re.compile(r"^(\d{1,12})_(\d{9})$")
 _BINARY = {"application/octet-stream": {"schema": {"type": "string", "format": "binary"}}}
 _TEXT = {"text/plain": {"schema": {"type": "string"}}}
+#: Bounds of a mission's announcement: list items, characters of a name or tag, of notes.
+MAX_ITEMS = 64
+MAX_LABEL = 128
+MAX_NOTES = 16_384
+Label = Annotated[str, Field(max_length=MAX_LABEL)]
 
 
 def _body(content: dict[str, Any], description: str) -> dict[str, Any]:
@@ -43,21 +48,24 @@ def _body(content: dict[str, Any], description: str) -> dict[str, Any]:
 class GnssOrigin(BaseModel):
     latitude: float = Field(ge=-90, le=90)
     longitude: float = Field(ge=-180, le=180)
-    altitude: float = 0.0
+    altitude: float = Field(0.0, ge=-12_000, le=100_000)
 
 
 class NewMission(BaseModel):
-    """A mission as a robot announces it (the fields of ``metadata.yaml``)."""
+    """A mission as a robot announces it (the fields of ``metadata.yaml``); lists of at most
+    ``MAX_ITEMS`` texts of at most ``MAX_LABEL`` characters."""
 
-    name: str = Field(description="folder name, e.g. 2024-05-14-wytham-anymal-coyote")
+    name: str = Field(
+        max_length=MAX_LABEL, description="folder name, e.g. 2024-05-14-wytham-anymal-coyote"
+    )
     date: dt.date
     time: dt.time | None = None
-    place: str | None = None
-    robot: str | None = None
-    unit: str | None = None
-    sensors: list[str] = Field(default_factory=list)
-    tags: list[str] = Field(default_factory=list)
-    notes: str = ""
+    place: Label | None = None
+    robot: Label | None = None
+    unit: Label | None = None
+    sensors: list[Label] = Field(default_factory=list, max_length=MAX_ITEMS)
+    tags: list[Label] = Field(default_factory=list, max_length=MAX_ITEMS)
+    notes: str = Field("", max_length=MAX_NOTES)
     gnss: GnssOrigin | None = None
 
 
@@ -118,6 +126,7 @@ async def create(request: Request, mission: NewMission) -> JSONResponse:
     from standgrid.mission.metadata import MissionMetadata
 
     live = _live(request, mission.name)
+    _check_catalog_folder(request, live)
     metadata = MissionMetadata(
         name=mission.name, date=mission.date, place=mission.place, robot=mission.robot,
         unit=mission.unit, time=mission.time, sensors=list(mission.sensors),
@@ -220,13 +229,47 @@ async def tile(
     if not (live.path / "metadata.yaml").is_file():
         raise Problem(404, f"no mission {name!r} was created on this server")
     root: Path = request.app.state.catalog_root
-    with snapshot(root, with_index=False) as snap:
-        record = snap.catalog.mission_records.get(name)
-    if record is not None and record.path and Path(record.path) != live.path.absolute():
-        raise Problem(409, f"the catalog holds a mission {name!r} tiled from another folder")
+    _check_catalog_folder(request, live)
     tiler: WorkerProcess = request.app.state.tiler
     tolerance = None if exact else request.app.state.placement_tolerance
     folder = str(live.path.absolute())
     async with _turn(request, live):
         report = await tiler.call(tile_mission, folder, str(root), tolerance)
-    return JSONResponse(report)
+    return JSONResponse(_public(request, report))
+
+
+def _check_catalog_folder(request: Request, live: Any) -> None:
+    """A 409 problem when the catalog holds a mission of this name tiled from another folder
+    than this server's mission folder (its tile would be refused)."""
+    name = live.path.name
+    with snapshot(request.app.state.catalog_root, with_index=False) as snap:
+        record = snap.catalog.mission_records.get(name)
+    if record is not None and record.path and Path(record.path) != live.path.absolute():
+        raise Problem(409, f"the catalog holds a mission {name!r} tiled from another folder "
+                      "than this server's: choose another name")  # fmt: skip
+
+
+def _public(request: Request, report: Any) -> Any:
+    """The tile report for the outside: the catalog as its name, a path in it as its URL
+    under ``/files`` (catalog-relative), a mission folder as the mission's URL; no server
+    path."""
+    base = str(request.base_url).rstrip("/")
+    roots = (
+        (str(request.app.state.catalog_root), f"{base}/files"),
+        (str(request.app.state.missions_root), f"{base}/missions"),
+    )
+
+    def clean(value: Any) -> Any:
+        if isinstance(value, dict):
+            return {k: clean(v) for k, v in value.items()}
+        if isinstance(value, list):
+            return [clean(v) for v in value]
+        if isinstance(value, str):
+            for root, url in roots:
+                if value == root:
+                    return Path(root).name
+                if value.startswith(root + "/"):
+                    return f"{url}/{value[len(root) + 1 :]}"
+        return value
+
+    return clean(report)

@@ -32,6 +32,8 @@ _STAMP = re.compile(r"^(\d{1,12})_(\d{9})$")
 _OPEN_MISSIONS = 4
 _missions: OrderedDict[tuple[str, int], Any] = OrderedDict()
 _missions_lock = threading.Lock()
+#: A finite number (inf and nan are a 400).
+Finite = Annotated[float, Query(allow_inf_nan=False)]
 
 
 def _record(request: Request, name: str) -> MissionRecord:
@@ -94,9 +96,7 @@ def _summary(request: Request, record: MissionRecord) -> dict[str, Any]:
     }
 
 
-def _payloads(
-    request: Request, record: MissionRecord, rows: list[dict[str, Any]]
-) -> JSONResponse:
+def _payloads(request: Request, record: MissionRecord, rows: list[dict[str, Any]]) -> JSONResponse:
     """Payload records for the outside: server paths replaced by URLs."""
     base = f"{_base(request)}/missions/{record.name}/payloads"
     out = []
@@ -154,8 +154,11 @@ def by_type(
     name: str,
     type: Annotated[str, Query(description="point_cloud, scan, gnss, imu, image")] = "point_cloud",
 ) -> JSONResponse:
-    from standgrid.mission.retrieval import payload_records, retrieve_payload_by_type
+    from standgrid.mission.retrieval import DATA_TYPES, payload_records, retrieve_payload_by_type
 
+    if type.lower().replace("-", "_") not in DATA_TYPES:
+        raise Problem(400, f"type: unknown data type {type[:64]!r}; known: "
+                      f"{', '.join(sorted(DATA_TYPES))}")  # fmt: skip
     record = _record(request, name)
     found = retrieve_payload_by_type(_opened(record), type)
     return _payloads(request, record, payload_records(found))
@@ -165,11 +168,11 @@ def by_type(
 def by_pose(
     request: Request,
     name: str,
-    x: float,
-    y: float,
-    z: float | None = None,
+    x: Finite,
+    y: Finite,
+    z: Annotated[float | None, Query(allow_inf_nan=False)] = None,
     k: Annotated[int, Query(ge=1, le=10_000)] = 1,
-    radius: Annotated[float | None, Query(gt=0)] = None,
+    radius: Annotated[float | None, Query(gt=0, allow_inf_nan=False)] = None,
     covering: bool = False,
 ) -> JSONResponse:
     from standgrid.mission.retrieval import payload_records, retrieve_payload_by_pose
@@ -185,12 +188,17 @@ def by_pose(
 def by_gnss(
     request: Request,
     name: str,
-    lat: Annotated[float, Query(ge=-90, le=90)],
-    lon: Annotated[float, Query(ge=-180, le=180)],
-    alt: float | None = None,
+    lat: Annotated[float, Query(ge=-90, le=90, allow_inf_nan=False)],
+    lon: Annotated[float, Query(ge=-180, le=180, allow_inf_nan=False)],
+    alt: Annotated[float | None, Query(ge=-12_000, le=100_000, allow_inf_nan=False)] = None,
     k: Annotated[int, Query(ge=1, le=10_000)] = 1,
     max_distance: Annotated[
-        float, Query(gt=0, description="metres: a 404 when the nearest payload is farther")
+        float,
+        Query(
+            gt=0,
+            allow_inf_nan=False,
+            description="metres: a 404 when the nearest payload is farther",
+        ),
     ] = 1000.0,
 ) -> JSONResponse:
     from standgrid.georeference.retrieval import locate_by_gnss

@@ -31,6 +31,9 @@ CONFORMANCE = [
 ]
 DEFAULT_LIMIT = 100
 MAX_LIMIT = 10_000
+#: Largest offset and feature id (SQLite integers are 64-bit; no index holds 2**53 rows).
+MAX_OFFSET = 2**53
+MAX_FID = 2**63 - 1
 #: Query parameters of an items request that are not property filters.
 ITEMS_PARAMETERS = frozenset({"bbox", "bbox-crs", "crs", "datetime", "limit", "offset", "f"})
 TITLES = {
@@ -193,17 +196,27 @@ def queryables(request: Request, collection_id: str) -> JSONResponse:
     }, "application/schema+json")  # fmt: skip
 
 
-def _int(request: Request, name: str, default: int, low: int, high: int | None) -> int:
+def _int(request: Request, name: str, default: int, low: int, high: int, *,
+         clamp: bool = False) -> int:  # fmt: skip
+    """The integer parameter ``name``: at least ``low``; a larger value than ``high`` is
+    ``high`` (``clamp``) or a 400 problem."""
     text = request.query_params.get(name)
     if text is None or text == "":
         return default
+    shown = text if len(text) <= 40 else text[:40] + "..."
+    if len(text) > 40:
+        raise Problem(400, f"{name}: {shown!r} is not an integer of at most 40 digits")
     try:
         value = int(text)
     except ValueError as exc:
-        raise Problem(400, f"{name}: {text!r} is not an integer") from exc
+        raise Problem(400, f"{name}: {shown!r} is not an integer") from exc
     if value < low:
         raise Problem(400, f"{name}: must be at least {low}, got {value}")
-    return min(value, high) if high is not None else value
+    if value > high:
+        if not clamp:
+            raise Problem(400, f"{name}: must be at most {high}, got {value}")
+        return high
+    return value
 
 
 def _bbox(text: str) -> list[float]:
@@ -214,6 +227,21 @@ def _bbox(text: str) -> list[float]:
     if len(values) not in (4, 6) or not all(abs(v) < float("inf") for v in values):
         raise Problem(400, f"bbox: {text!r} is not four or six finite numbers")
     return values
+
+
+def _check_degrees(bbox: list[float], bbox_crs: str) -> None:
+    """A 400 problem for a bbox in a geographic CRS with a latitude beyond +-90 degrees or
+    a longitude beyond +-180 (in the CRS's axis order)."""
+    axes = crs_mod.geographic_axes(bbox_crs)
+    if axes is None:
+        return
+    corners = [bbox[:2], bbox[3:5]] if len(bbox) == 6 else [bbox[:2], bbox[2:]]
+    for corner in corners:
+        for value, axis in zip(corner, axes, strict=True):
+            bound = 90.0 if axis == "lat" else 180.0
+            if abs(value) > bound:
+                word = "latitude" if axis == "lat" else "longitude"
+                raise Problem(400, f"bbox: {word} {value} outside -{bound:g}..{bound:g}")
 
 
 def _query(request: Request, snap: Snapshot, layer: Layer) -> Query:
@@ -227,8 +255,8 @@ def _query(request: Request, snap: Snapshot, layer: Layer) -> Query:
     if params.get("f") not in (None, "json", "geojson"):
         raise Problem(400, f"f: only json is offered, not {params.get('f')!r}")
     query = Query(
-        limit=_int(request, "limit", DEFAULT_LIMIT, 1, MAX_LIMIT),
-        offset=_int(request, "offset", 0, 0, None),
+        limit=_int(request, "limit", DEFAULT_LIMIT, 1, MAX_LIMIT, clamp=True),
+        offset=_int(request, "offset", 0, 0, MAX_OFFSET),
         # a property named like a parameter (missions.crs) cannot be filtered by name
         equals={
             k: v for k, v in params.items() if k in layer.column_types and k not in ITEMS_PARAMETERS
@@ -236,7 +264,9 @@ def _query(request: Request, snap: Snapshot, layer: Layer) -> Query:
     )
     if params.get("bbox"):
         bbox_crs = crs_mod.check(params.get("bbox-crs"), snap.catalog.crs, "bbox-crs")
-        query.area = crs_mod.bbox_polygon(_bbox(params["bbox"]), bbox_crs, snap.catalog.crs)
+        bbox = _bbox(params["bbox"])
+        _check_degrees(bbox, bbox_crs)
+        query.area = crs_mod.bbox_polygon(bbox, bbox_crs, snap.catalog.crs)
     elif params.get("bbox-crs"):
         raise Problem(400, "bbox-crs without bbox")
     if params.get("datetime"):
@@ -321,10 +351,13 @@ def items(request: Request, collection_id: str) -> Response:
 
 @router.get("/collections/{collection_id}/items/{feature_id}", summary="One feature")
 def item(request: Request, collection_id: str, feature_id: str) -> Response:
+    shown = feature_id if len(feature_id) <= 40 else feature_id[:40] + "..."
     try:
-        fid = int(feature_id)
-    except ValueError as exc:
-        raise Problem(404, f"no feature {feature_id!r}: feature ids are integers") from exc
+        fid = int(feature_id) if len(feature_id) <= 40 and feature_id.isascii() else None
+    except ValueError:
+        fid = None
+    if fid is None or not 0 <= fid <= MAX_FID:
+        raise Problem(404, f"no feature {shown!r}: feature ids are integers 0..{MAX_FID}")
     unknown = [k for k in request.query_params if k not in ("crs", "f")]
     if unknown:
         raise Problem(400, f"unknown parameters {unknown}; a feature takes crs and f")

@@ -79,7 +79,8 @@ def openapi_document(base: str, layers: Mapping[str, Layer], crs: list[str]) -> 
         prefix = f"/collections/{name}"
         paths[prefix] = _get(f"Collection {name}", _JSON, operation_id=f"describe_{name}")
         paths[f"{prefix}/queryables"] = _get(
-            f"Queryables of {name}", {"application/schema+json": {"schema": {"type": "object"}}},
+            f"Queryables of {name}",
+            {"application/schema+json": {"schema": {"type": "object"}}},
             operation_id=f"queryables_{name}",
         )
         paths[f"{prefix}/items"] = _get(

@@ -4,6 +4,8 @@ benchmarks)."""
 from __future__ import annotations
 
 import contextlib
+import errno
+import socket
 import threading
 import time
 from collections.abc import Callable, Iterator
@@ -12,6 +14,38 @@ from typing import Any
 import uvicorn
 
 from standgrid.errors import StandgridError
+
+#: Seconds Ctrl-C waits for requests in flight before it cancels them (their worker
+#: processes are then killed: a write is atomic, a commit cut short is recovered).
+GRACEFUL_SHUTDOWN_S = 10
+
+
+class AddressInUseError(StandgridError, OSError):
+    """The address the service should listen on is taken (or cannot be bound)."""
+
+
+def check_port_free(host: str, port: int) -> None:
+    """Raise :class:`AddressInUseError` (one line naming ``host:port``) when nothing could
+    listen there now; port 0 (any free port) always passes."""
+    if port == 0:
+        return
+    shown = f"[{host}]:{port}" if ":" in host else f"{host}:{port}"
+    try:
+        infos = socket.getaddrinfo(host, port, type=socket.SOCK_STREAM, flags=socket.AI_PASSIVE)
+    except socket.gaierror as exc:
+        raise AddressInUseError(f"cannot listen on {shown}: unknown host ({exc.strerror})") from exc
+    family, kind, proto, _, address = infos[0]
+    with socket.socket(family, kind, proto) as probe:
+        probe.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)  # as uvicorn binds
+        try:
+            probe.bind(address)
+        except OSError as exc:
+            if exc.errno == errno.EADDRINUSE:
+                raise AddressInUseError(
+                    f"{shown} is already in use (another server?): choose "
+                    "another port with --port (0: any free port)"
+                ) from exc
+            raise AddressInUseError(f"cannot listen on {shown}: {exc.strerror}") from exc
 
 
 def service_urls(base: str) -> dict[str, str]:
@@ -46,9 +80,11 @@ class Server(uvicorn.Server):
 
 
 def config(app: Any, host: str, port: int, **options: Any) -> uvicorn.Config:
-    """uvicorn settings of the service (no access log by default: stderr is for progress)."""
+    """uvicorn settings of the service (no access log by default: stderr is for progress;
+    Ctrl-C waits at most :data:`GRACEFUL_SHUTDOWN_S` for requests in flight)."""
     options.setdefault("log_level", "warning")
     options.setdefault("access_log", False)
+    options.setdefault("timeout_graceful_shutdown", GRACEFUL_SHUTDOWN_S)
     return uvicorn.Config(app, host=host, port=port, **options)
 
 

@@ -180,6 +180,8 @@ def encode_points(
     )
 
 
+#: A feature id (``fid``) or payload id: SQLite's 64-bit integers, not negative.
+FeatureId = Annotated[int, Query(ge=0, le=2**63 - 1)]
 #: How many points one answer may hold (a request may ask for fewer).
 Limit = Annotated[int, Query(ge=1, le=MAX_VIEW_POINTS, description="at most this many points "
                              "are sent (every k-th beyond it)")]  # fmt: skip
@@ -217,7 +219,7 @@ def cell_points(
     request: Request,
     epoch: str,
     cell_id: str,
-    tree: int | None = None,
+    tree: Annotated[int | None, Query(ge=0, le=2**63 - 1)] = None,
     limit: Limit = MAX_VIEW_POINTS,
 ) -> Response:
     """``tree``: the fid of a tree (``trees`` layer) whose points the answer marks
@@ -253,7 +255,9 @@ def cell_points(
     summary="A payload's points for the 3-D view, read from the catalog's tiles",
     responses={200: {"content": {POINTS_MEDIA_TYPE: {}}}},
 )  # fmt: skip
-def payload_points(request: Request, payload: int, limit: Limit = MAX_VIEW_POINTS) -> Response:
+def payload_points(
+    request: Request, payload: FeatureId, limit: Limit = MAX_VIEW_POINTS
+) -> Response:
     """The core points whose ``payload_id`` is ``payload``, gathered from the tiles of the
     payload's epoch that hold its mission: those under its footprint first, then the
     others by distance, until the ``point_count`` of its ``payloads`` row is found (each

@@ -329,3 +329,13 @@ def test_a_folder_of_copc_tiles_is_one_scan(tmp_path: Path) -> None:
     )
     source = np.asarray(laspy.read(scan).point_source_id)
     assert np.array_equal(np.bincount(lines), np.bincount(source))
+
+
+def test_info_describes_a_scan_and_what_tiling_it_needs() -> None:
+    scan = _real("las_chablais3.laz")
+    result = CliRunner().invoke(cli, ["info", str(scan), "--json"])
+    assert result.exit_code == 0, result.output
+    info = json.loads(result.output)
+    assert info["points"] == 92_097 and info["crs"] == "EPSG:2154"
+    assert info["date"] is None and "--date" in info["needs"][0]
+    assert info["gps_time"] == "week seconds"

@@ -44,8 +44,22 @@ def _human(s: dict[str, Any]) -> str:
     return "\n".join(lines)
 
 
+def _scan_human(s: dict[str, Any]) -> str:
+    lines = [f"scan      {s['name']}  ({s['path']}): {len(s['files'])} file(s)"]
+    lines.append(f"points    {s['points']:,}")
+    lines.append(f"crs       {s['crs'] or '-'}")
+    date = s["date"]
+    lines.append(f"date      {date['date']} (from the {date['from']})" if date else "date      -")
+    lines.append(f"gps time  {s['gps_time']}")
+    lo = ", ".join(f"{v:.2f}" for v in s["extent_crs"]["min"])
+    hi = ", ".join(f"{v:.2f}" for v in s["extent_crs"]["max"])
+    lines.append(f"extent    min ({lo}) max ({hi})")
+    lines += [f"to tile   {need}" for need in s["needs"]]
+    return "\n".join(lines)
+
+
 @click.command(name="info")
-@click.argument("mission", type=click.Path(exists=True, file_okay=False, path_type=Path))
+@click.argument("mission", type=click.Path(exists=True, path_type=Path))
 @click.option(
     "--strict/--lenient",
     default=False,
@@ -53,7 +67,8 @@ def _human(s: dict[str, Any]) -> str:
 )
 @json_option
 def info(mission: Path, strict: bool, as_json: bool) -> None:
-    """Summarise a mission folder: graph, payloads, points, sensors, time span, extent.
+    """Summarise a mission folder: graph, payloads, points, sensors, time span, extent (or a
+    plain scan: LAS/LAZ/COPC file, folder of tiles, VPC: points, CRS, date, extent).
 
     Point counts come from the cloud headers; no point is read. Each file's size is checked
     against its header (binary PCD and PLY, uncompressed LAS, LAZ chunk tables): a truncated
@@ -64,8 +79,13 @@ def info(mission: Path, strict: bool, as_json: bool) -> None:
     Example:
       standgrid info data/missions/2024-05-14-wytham-anymal-coyote
       standgrid info MISSION --json | jq .payloads
+      standgrid info SCAN.laz
     """
     from standgrid.mission.model import open_mission
+    from standgrid.mission.scan import is_scan, scan_summary
 
+    if is_scan(mission):
+        emit(scan_summary(mission), as_json, _scan_human)
+        return
     summary = open_mission(mission, strict=strict).summary()
     emit(summary, as_json, _human)

@@ -261,6 +261,39 @@ def _crs(facts: list[_FileFacts], options: ScanOptions, path: Path) -> str:
     return crs_to_text(resolve_crs(options.crs))
 
 
+def scan_summary(path: str | Path) -> dict[str, Any]:
+    """What ``standgrid info`` says of a plain scan, from its headers (one read of the first
+    points for a GPS-time date): files, points, CRS, date and where it would come from,
+    extent; what tiling it would still need (``needs``)."""
+    src = Path(path).absolute()
+    facts = [_facts(f) for f in scan_files(src)]
+    needs = []
+    try:
+        crs: str | None = _crs(facts, ScanOptions(), src)
+    except CRSError as exc:
+        crs, _ = None, needs.append(exc.message)
+    try:
+        day, source = _date(facts, ScanOptions(), src)
+        date: dict[str, str] | None = {"date": day.isoformat(), "from": source}
+    except MetadataError as exc:
+        date, _ = None, needs.append(exc.message)
+    lo = np.min([f.box[0] for f in facts], axis=0)
+    hi = np.max([f.box[1] for f in facts], axis=0)
+    return {
+        "name": scan_name(src),
+        "path": str(src),
+        "kind": "plain scan",
+        "files": [{"file": f.path.name, "points": f.points, "crs": f.crs} for f in facts],
+        "points": sum(f.points for f in facts),
+        "crs": crs,
+        "date": date,
+        "gps_time": "none" if not any(f.has_time for f in facts) else (
+            "adjusted standard" if all(f.gps_standard for f in facts) else "week seconds"),
+        "extent_crs": {"min": lo.tolist(), "max": hi.tolist()},
+        "needs": needs,
+    }  # fmt: skip
+
+
 def open_scan(path: str | Path, options: ScanOptions = ScanOptions()) -> Any:
     """A plain scan (file, folder of tiles, VPC) as a mission of projected payloads (module
     doc). Raises a typed error naming the file for anything it cannot use."""

@@ -268,15 +268,17 @@ def scan_summary(path: str | Path) -> dict[str, Any]:
     src = Path(path).absolute()
     facts = [_facts(f) for f in scan_files(src)]
     needs = []
+    crs: str | None = None
+    date: dict[str, str] | None = None
     try:
-        crs: str | None = _crs(facts, ScanOptions(), src)
+        crs = _crs(facts, ScanOptions(), src)
     except CRSError as exc:
-        crs, _ = None, needs.append(exc.message)
+        needs.append(exc.message)
     try:
         day, source = _date(facts, ScanOptions(), src)
-        date: dict[str, str] | None = {"date": day.isoformat(), "from": source}
+        date = {"date": day.isoformat(), "from": source}
     except MetadataError as exc:
-        date, _ = None, needs.append(exc.message)
+        needs.append(exc.message)
     lo = np.min([f.box[0] for f in facts], axis=0)
     hi = np.max([f.box[1] for f in facts], axis=0)
     return {

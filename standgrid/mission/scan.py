@@ -242,14 +242,14 @@ def _date(facts: list[_FileFacts], options: ScanOptions, path: Path) -> tuple[dt
     )
 
 
-def _crs(facts: list[_FileFacts], options: ScanOptions, path: Path) -> str:
-    from standgrid.georeference import crs_to_text, resolve_crs
-
+def _crs(facts: list[_FileFacts], options: ScanOptions, path: Path) -> str | None:
+    """The files' one CRS; None when they name none and ``options.crs`` is given (the
+    placement resolves and checks it); an error when neither says."""
     own = {f.crs for f in facts if f.crs is not None}
     if len(own) > 1:
         raise CRSError(f"the scan's files are in several CRSs: {sorted(own)}", path=path)
     if own:
-        if len(own) == 1 and any(f.crs is None for f in facts):
+        if any(f.crs is None for f in facts):
             missing = next(f.path for f in facts if f.crs is None)
             raise CRSError(f"names no CRS while the others are in {own.pop()}", path=missing)
         return own.pop()
@@ -258,7 +258,7 @@ def _crs(facts: list[_FileFacts], options: ScanOptions, path: Path) -> str:
             "the scan names no CRS (no WKT or GeoTIFF VLR): give it (--crs EPSG:XXXX)",
             path=path,
         )
-    return crs_to_text(resolve_crs(options.crs))
+    return None
 
 
 def scan_summary(path: str | Path) -> dict[str, Any]:

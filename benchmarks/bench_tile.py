@@ -37,6 +37,15 @@ apart); the peak memory printed is the client's (workers are limited by the budg
 ``--no-copy`` skips the tile-vs-copy part. ``--warm`` times tiling in a process that has
 tiled the bundled demo mission first (libraries imported, as laspy is for the copy); without
 it the clock includes importing what tiling needs (about 1 s).
+
+``--fixed-cost`` measures what a small job pays before its first point, on its own: a tiny
+simulated mission (``--tiny-points``, a few thousand points) tiled by the real command
+(``standgrid tile``, a fresh process each run) against interpreter start (``python -c
+pass``) and ``python -c "import standgrid.cli"`` in the same run. Prints CPU seconds
+(user + sys of the whole process, from ``wait4``) and wall seconds, the best of
+``--repeat`` runs, the ratios to the interpreter start, and which heavy libraries the tile
+command imported. Children write bytecode to a private cache (warmed first), so the figures
+do not include compiling sources when the environment sets ``PYTHONDONTWRITEBYTECODE``.
 """
 
 from __future__ import annotations
@@ -57,6 +66,10 @@ from typing import Any
 SEED = 11
 TARGET_RATIO = 0.8
 TARGET_SPEEDUP = 1.7
+
+
+#: Libraries a small ``standgrid tile`` should not need (reported by ``--fixed-cost``).
+HEAVY_MODULES = ("pandas", "geopandas", "pyarrow", "scipy.spatial", "standgrid.align")
 
 
 def _peak_mb() -> dict[str, float]:
@@ -316,10 +329,18 @@ def main() -> None:
         "--warm", action="store_true",
         help="time tile in a process that has tiled the bundled demo mission first",
     )  # fmt: skip
+    parser.add_argument(
+        "--fixed-cost", action="store_true",
+        help="only the fixed cost of a small job: tile a tiny mission vs interpreter start",
+    )  # fmt: skip
+    parser.add_argument("--tiny-points", type=int, default=5000)
     parser.add_argument("--child", nargs=argparse.REMAINDER, help=argparse.SUPPRESS)
     args = parser.parse_args()
     if args.child:
         _child(args.child)
+        return
+    if args.fixed_cost:
+        fixed_cost(args)
         return
 
     if args.blas_threads is not None:
@@ -403,6 +424,95 @@ def tile_versus_copy(args: Any, sim: dict[str, Any], work: Path) -> None:
         f"floor (least any tiler does, LAS) / copy: {copy['seconds'] / floor['seconds']:.2f}; "
         f"tile / floor: {floor['seconds'] / results['tile las']['seconds']:.2f}"
     )
+
+
+# --- the fixed cost of a small job ------------------------------------------------------------
+
+_TILE_CODE = """
+import sys
+from standgrid.cli import cli
+try:
+    cli(sys.argv[1:], prog_name="standgrid")
+except SystemExit as exc:
+    if exc.code:
+        raise
+heavy = [m for m in {heavy!r} if m in sys.modules]
+print("loaded: " + ",".join(heavy), file=sys.stderr)
+"""
+
+
+def cpu_of(argv: list[str], env: dict[str, str]) -> dict[str, Any]:
+    """CPU seconds (user + sys, the process and its children) and wall seconds of one run."""
+    t0 = time.perf_counter()
+    proc = subprocess.Popen(argv, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
+    assert proc.stderr is not None
+    err = proc.stderr.read().decode(errors="replace")
+    _pid, status, usage = os.wait4(proc.pid, 0)
+    wall = time.perf_counter() - t0
+    proc.returncode = os.waitstatus_to_exitcode(status)
+    if proc.returncode:
+        raise SystemExit(f"{' '.join(argv)} failed ({proc.returncode}):\n{err}")
+    loaded = [line for line in err.splitlines() if line.startswith("loaded: ")]
+    return {
+        "cpu": usage.ru_utime + usage.ru_stime,
+        "wall": wall,
+        "loaded": loaded[-1].removeprefix("loaded: ") if loaded else "",
+    }
+
+
+def fixed_cost(args: Any) -> None:
+    work = Path(args.workdir or tempfile.mkdtemp(prefix="bench_fixed_"))
+    work.mkdir(parents=True, exist_ok=True)
+    env = {k: v for k, v in os.environ.items() if k != "PYTHONDONTWRITEBYTECODE"}
+    env["PYTHONPYCACHEPREFIX"] = str(work / "pycache")
+    try:
+        missions = sorted((work / "sim" / "missions").glob("*"))
+        if not missions:
+            from standgrid.simulate import simulate_mission
+
+            simulate_mission(work / "sim", seed=SEED, area=40.0,
+                             points_per_payload=max(50, args.tiny_points // 8))  # fmt: skip
+            missions = sorted((work / "sim" / "missions").glob("*"))
+        mission = missions[0]
+        code = _TILE_CODE.format(heavy=HEAVY_MODULES)
+
+        def tile_argv(n: int) -> list[str]:
+            out = work / f"catalog_{n}"
+            shutil.rmtree(out, ignore_errors=True)
+            return [sys.executable, "-c", code, "tile", str(mission), "-o", str(out)]
+
+        runs = {
+            "python -c pass": lambda n: [sys.executable, "-c", "pass"],
+            "import standgrid.cli": lambda n: [sys.executable, "-c", "import standgrid.cli"],
+            "standgrid tile (tiny)": tile_argv,
+        }
+        for make in runs.values():  # warm the bytecode cache and the page cache
+            cpu_of(make(0), env)
+        best: dict[str, dict[str, Any]] = {}
+        for n in range(max(3, args.repeat)):
+            for name, make in runs.items():
+                os.sync()
+                r = cpu_of(make(n), env)
+                if name not in best or r["cpu"] < best[name]["cpu"]:
+                    best[name] = r
+        import laspy
+
+        points = sum(laspy.read(p).header.point_count
+                     for p in (work / "catalog_0").glob("tiles/*/*.la[sz]"))  # fmt: skip
+        print(f"tiny mission: {mission.name}, {points:,} points tiled")
+        base = best["python -c pass"]["cpu"]
+        print(f"{'run (best of ' + str(max(3, args.repeat)) + ')':<24} {'CPU s':>7} {'wall s':>7} "
+              f"{'x start':>8}")  # fmt: skip
+        for name, r in best.items():
+            print(f"{name:<24} {r['cpu']:>7.3f} {r['wall']:>7.3f} {r['cpu'] / base:>8.1f}")
+        tile = best["standgrid tile (tiny)"]
+        print(
+            f"fixed cost of a tiny tile (CPU s above interpreter start): {tile['cpu'] - base:.3f}"
+        )
+        print(f"heavy modules the tile command loaded: {tile['loaded'] or 'none'}")
+    finally:
+        if not args.keep:
+            shutil.rmtree(work, ignore_errors=True)
 
 
 if __name__ == "__main__":

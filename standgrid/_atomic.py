@@ -12,8 +12,9 @@ import ctypes
 import errno
 import os
 import shutil
+import stat
 import uuid
-from collections.abc import Callable, Iterator
+from collections.abc import Callable, Collection, Iterator
 from pathlib import Path
 
 from standgrid.errors import (
@@ -54,14 +55,35 @@ def start_writeback(path: Path) -> None:
         os.close(fd)
 
 
-def fsync_tree(root: Path) -> None:
-    """``fsync`` every file and folder under ``root`` (a freshly written output)."""
+#: What identifies a file's content on disk: device, inode, size, mtime and ctime (ns).
+FileIdentity = tuple[int, int, int, int, int]
+
+
+def file_identity(path: str | os.PathLike[str]) -> FileIdentity | None:
+    """The :data:`FileIdentity` of a regular file (None: absent, or not a regular file).
+    Any write, rename or metadata change of the file changes its ctime."""
+    try:
+        st = os.stat(path, follow_symlinks=False)
+    except OSError:
+        return None
+    if not stat.S_ISREG(st.st_mode):
+        return None
+    return (st.st_dev, st.st_ino, st.st_size, st.st_mtime_ns, st.st_ctime_ns)
+
+
+def fsync_tree(root: Path, *, durable: Collection[FileIdentity] = ()) -> None:
+    """``fsync`` every file and folder under ``root`` (a freshly written output).
+
+    ``durable``: identities (:func:`file_identity`) of files whose data is known to be on
+    the disk already (fsynced, unchanged since); they are not fsynced again, their folders
+    still are."""
     if root.is_dir() and not root.is_symlink():
         for folder, _dirs, files in os.walk(root):
             for name in files:
                 full = Path(folder) / name
-                if not full.is_symlink():
-                    fsync_path(full)
+                if full.is_symlink() or (durable and file_identity(full) in durable):
+                    continue
+                fsync_path(full)
             fsync_path(folder)
     elif root.exists():
         fsync_path(root)
@@ -239,7 +261,9 @@ def atomic_output(
         raise
 
 
-def write_text_atomic(path: str | os.PathLike[str], text: str) -> None:
-    """Write a text file atomically and durably (UTF-8, ``\\n`` line ends)."""
-    with atomic_output(path) as tmp:
+def write_text_atomic(path: str | os.PathLike[str], text: str, *, durable: bool = True) -> None:
+    """Write a text file atomically and durably (UTF-8, ``\\n`` line ends); ``durable=False``
+    for a file staged in a catalog transaction (its commit fsyncs it, see
+    :func:`atomic_output`)."""
+    with atomic_output(path, durable=durable) as tmp:
         tmp.write_text(text, encoding="utf-8", newline="\n")

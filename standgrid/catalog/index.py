@@ -117,7 +117,8 @@ class CatalogIndex:
         assert self.txn is not None
         base = self.txn.current(paths.INDEX)
         staged = self.txn.stage(paths.INDEX)
-        with IndexWriter(staged, self.catalog.crs, base=base) as writer:
+        # staged: the commit fsyncs it (with every staged file, once)
+        with IndexWriter(staged, self.catalog.crs, base=base, durable=False) as writer:
             for layer, (frame, style) in self._pending.items():
                 if layer in LAYER_COLUMNS and style is None:
                     write_standard_layer(writer, layer, frame)

@@ -49,8 +49,10 @@ from types import TracebackType
 from typing import Any
 
 from standgrid._atomic import (
+    FileIdentity,
     check_replaceable,
     exchange,
+    file_identity,
     fsync_path,
     fsync_tree,
     temporary_sibling,
@@ -911,14 +913,21 @@ class Transaction:
             "deletes": sorted(self._deletes),
         }
         path = self.folder / JOURNAL_FILE
+        # durable: the journal's data, then its folder (the one fsync that makes it count)
         write_text_atomic(path, json.dumps({"journal": body, "sha256": _digest(body)}) + "\n")
-        fsync_path(self.folder)
         crash_point("journal")
         return path
 
     def apply(self) -> None:
         """Step 2 of commit: carry out the journal (also what recovery does)."""
-        apply_journal(self.catalog.root, self.folder / JOURNAL_FILE)
+        root = self.catalog.root
+        apply_journal(root, self.folder / JOURNAL_FILE)
+        # every file this commit put in place is durable (data fsynced before the journal,
+        # folders after the renames): publishing a catalog built here need not fsync them
+        placed = (file_identity(root / rel) for rel in [*self._staged, CATALOG_FILE])
+        _COMMITTED[os.path.realpath(root)] = {ident for ident in placed if ident is not None}
+        while len(_COMMITTED) > _COMMITTED_ROOTS:  # a long-lived process: the latest only
+            del _COMMITTED[next(iter(_COMMITTED))]
         self.catalog.reload()
         self._done = True
 
@@ -1074,6 +1083,7 @@ def apply_journal(root: Path, journal_path: Path) -> None:
     if (files / CATALOG_FILE).exists():
         _read_state(files / CATALOG_FILE)  # a journal never installs a broken catalog.json
     folders: set[Path] = set()
+    synced: set[Path] = set()  # folders fsynced since their last rename
     for number, rel in enumerate(renames):
         src, dst = files / rel, root / rel
         if src.is_symlink():
@@ -1083,20 +1093,22 @@ def apply_journal(root: Path, journal_path: Path) -> None:
             if rel == CATALOG_FILE:
                 for folder in sorted(folders):
                     fsync_path(folder)
+                synced |= folders
                 crash_point("before-catalog-json")
             os.replace(src, dst)
             folders.add(dst.parent)
+            synced.discard(dst.parent)
             crash_point(f"rename-{number}")
         elif not dst.exists():
             raise CatalogError(
                 f"staged file {src.relative_to(root)} and its target {rel} are both missing",
                 path=journal_path,
             )
-    for folder in sorted(folders):
+    for folder in sorted(folders - synced):  # each folder once: the renames are durable
         fsync_path(folder)
     for rel in deletes:
         (root / rel).unlink(missing_ok=True)
-    for folder in sorted({(root / rel).parent for rel in deletes} | {root}):
+    for folder in sorted({(root / rel).parent for rel in deletes}):
         if folder.is_dir():  # each unlink is durable, not only the catalog root's
             fsync_path(folder)
     crash_point("applied")
@@ -1199,6 +1211,12 @@ def _recover(
 # --- building a catalog beside its final place ---------------------------------------------
 
 
+#: Catalog folder (real path) -> identities of the files the last commit in this process
+#: made durable there (:meth:`Transaction.apply`); :func:`publish` fsyncs only the others.
+_COMMITTED: dict[str, set[FileIdentity]] = {}
+_COMMITTED_ROOTS = 8
+
+
 def build_folder(final: Path) -> Path:
     """A fresh hidden sibling to build a catalog in (``.<name>.build-<pid>-<id>.tmp``)."""
     return temporary_sibling(_absolute(final).parent / Path(final).name, "build")
@@ -1210,8 +1228,12 @@ def publish(build: Path, final: Path, *, timeout: float | None = DEFAULT_LOCK_TI
     is a catalog at ``final`` at every moment; where the system cannot exchange, the old one
     is moved aside as ``.<name>.old-<pid>-<id>.tmp`` first, and put back by
     :func:`remove_stale_builds` if the process dies before the new one is in place. Waits up
-    to ``timeout`` s for the catalog's readers, then :class:`CatalogBusyError`."""
-    fsync_tree(build)
+    to ``timeout`` s for the catalog's readers, then :class:`CatalogBusyError`.
+
+    Every file of ``build`` is fsynced first, but those its last commit in this process put
+    in place, unchanged since (their data and folders were fsynced by that commit: each
+    file's data reaches the disk once); every folder is fsynced."""
+    fsync_tree(build, durable=_COMMITTED.pop(os.path.realpath(build), ()))
     with _readers_excluded(final, timeout):
         crash_point("publish")
         if not final.exists():

@@ -32,4 +32,4 @@ def stage_epoch_vpc(
         (VpcTile(path, info.file_bounds, crs, info.point_count, stamp) for path, info in tiles),
         key=lambda tile: str(tile.path),
     )
-    write_vpc(txn.stage(rel), entries)
+    write_vpc(txn.stage(rel), entries, durable=False)  # the commit fsyncs it

@@ -10,6 +10,7 @@ its memory stays bounded.
 from __future__ import annotations
 
 import contextlib
+import os
 from collections.abc import Callable, Iterator, Sequence
 from typing import Any, Protocol, TypeVar
 
@@ -69,8 +70,6 @@ def _limit_this_process() -> None:
     started with ``RAYON_NUM_THREADS`` set: a worker started by hand (``dask worker``) runs
     its tasks on one core each, as a LocalCluster's do."""
     if not _LIMITED:
-        import os
-
         from threadpoolctl import threadpool_limits
 
         os.environ.setdefault("RAYON_NUM_THREADS", "1")
@@ -185,9 +184,15 @@ def open_executor(
     # Not dask's MALLOC_TRIM_THRESHOLD_: it pins glibc's mmap threshold, so every array
     # over 128 kB is a fresh mmap paid in page faults (tasks ran 1.5-3x slower). One rayon
     # thread (lazrs' LAZ compression) per worker too: a worker is one core.
+    # Threads that wait sleep (standgrid.WAIT_POLICY, as this process has it: a user's own
+    # setting included), set before the worker's interpreter loads numpy's OpenBLAS.
+    from standgrid import WAIT_POLICY, wait_passively
+
+    wait_passively()
     environ = "distributed.nanny.pre-spawn-environ"
+    waiting = {f"{environ}.{name}": os.environ[name] for name in WAIT_POLICY if name in os.environ}
     with dask.config.set({f"{environ}.MALLOC_TRIM_THRESHOLD_": None,
-                          f"{environ}.RAYON_NUM_THREADS": 1}):  # fmt: skip
+                          f"{environ}.RAYON_NUM_THREADS": 1, **waiting}):  # fmt: skip
         cluster = LocalCluster(
             n_workers=workers,
             threads_per_worker=1,

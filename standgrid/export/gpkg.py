@@ -176,7 +176,8 @@ class IndexWriter:
 
     ``base`` is the index to start from (default: ``gpkg_path`` itself when it exists); its
     layers are kept unless rewritten. On a clean exit the new file replaces ``gpkg_path`` in
-    one rename; on an exception nothing changes.
+    one rename; on an exception nothing changes. ``durable=False``: a file staged in a
+    catalog transaction, whose commit fsyncs it (:func:`~standgrid._atomic.atomic_output`).
     """
 
     def __init__(
@@ -185,8 +186,10 @@ class IndexWriter:
         crs: str,
         *,
         base: str | os.PathLike[str] | None = None,
+        durable: bool = True,
     ) -> None:
         self.path = Path(gpkg_path)
+        self.durable = durable
         self.crs = crs
         self._crs = _parse_crs(crs)
         self.base = Path(base) if base is not None else (self.path if self.path.exists() else None)
@@ -196,7 +199,7 @@ class IndexWriter:
 
     def __enter__(self) -> IndexWriter:
         stack = contextlib.ExitStack()
-        self._final_tmp = stack.enter_context(atomic_output(self.path))
+        self._final_tmp = stack.enter_context(atomic_output(self.path, durable=self.durable))
         # GDAL warns about a GeoPackage without the .gpkg suffix: work under such a name and
         # hand the result to atomic_output's temporary at the end.
         self._tmp = self._final_tmp.with_name(self._final_tmp.name + ".gpkg")
@@ -372,13 +375,19 @@ def _ring(xmin: float, ymin: float, xmax: float, ymax: float) -> list[list[float
     return [[xmin, ymin], [xmax, ymin], [xmax, ymax], [xmin, ymax], [xmin, ymin]]
 
 
-def write_vpc(vpc_path: str | os.PathLike[str], tiles: Iterable[VpcTile | Sequence[Any]]) -> Path:
+def write_vpc(
+    vpc_path: str | os.PathLike[str],
+    tiles: Iterable[VpcTile | Sequence[Any]],
+    *,
+    durable: bool = True,
+) -> Path:
     """Write a virtual point cloud: a STAC ItemCollection as QGIS 3.32+ and PDAL wrench read.
 
     Each tile is an Item with the ``pc`` and ``proj`` extensions; ``geometry``/``bbox`` in
     EPSG:4326 (the native bounds transformed, edges densified), ``proj:bbox``/
     ``proj:geometry`` native, ``assets.data.href`` relative to the VPC's folder (a relative
     tile path is taken as already relative to it, so a staged VPC can name final tiles).
+    ``durable=False``: a VPC staged in a catalog transaction (its commit fsyncs it).
     """
     import pyproj
 
@@ -450,5 +459,5 @@ def write_vpc(vpc_path: str | os.PathLike[str], tiles: Iterable[VpcTile | Sequen
         }
         features.append(feature)
     document = {"type": "FeatureCollection", "features": features}
-    write_text_atomic(out, json.dumps(document, indent=2) + "\n")
+    write_text_atomic(out, json.dumps(document, indent=2) + "\n", durable=durable)
     return out

@@ -334,14 +334,12 @@ def _ingest(
         by_hand = options.anchor is not None or options.method != TileOptions.method
         tolerance = None if by_hand else options.placement_tolerance
         settings = EpochSettings(tiling, options.memory_budget, tolerance)
-        if options.align and not by_hand:
+        if options.align and not by_hand and _alignable(catalog, ingests):
             from standgrid.pipeline.align import align_ingests
 
             report.alignment = align_ingests(catalog, txn, ingests, progress)
-        from standgrid.align.stage import is_provisional
-
         for ingest in ingests:  # a mission without GNSS that nothing registered with
-            if is_provisional(ingest.placement):
+            if ingest.placement.alignment and _is_provisional(ingest.placement):
                 raise NotGeoreferencedError(
                     "no GNSS fixes and no pose-graph anchor, and no other mission (given, or "
                     "in the catalog) registers with it: give --anchor LAT LON ALT YAW",
@@ -389,6 +387,19 @@ def _ingest(
                 report.also_invalidated[epoch] = removed
     progress.status(f"tiled {report.points_out} points into {cells} cells")
     return report
+
+
+def _alignable(catalog: Catalog, ingests: list[Ingest]) -> bool:
+    """Two missions at least (given, or in the catalog besides them): else alignment has
+    nothing to do, and :mod:`standgrid.align` (stems: pandas, scipy) is not even imported."""
+    given = {i.mission.name for i in ingests}
+    return len(ingests) > 1 or any(name not in given for name in catalog.mission_records)
+
+
+def _is_provisional(placement: Any) -> bool:
+    from standgrid.align.stage import is_provisional  # only placements with an alignment
+
+    return is_provisional(placement)
 
 
 def realign_catalog(

@@ -17,7 +17,10 @@ Usage::
 
 Every measurement runs in its own subprocess (its peak RSS is its own; with a cluster the
 workers' peaks are reported too). Prints points/s, the ratio enrich / baseline (target
->= 0.3 in one process) and, with several worker counts, the speed-up over 1 worker.
+>= 0.3 in one process) and, with several worker counts, the speed-up over 1 worker; and
+each process's peak RSS against ``--memory``: peak / budget and whether ``peak - interpreter
+<= 1.1 x budget`` (issue 22), the interpreter being a child that imports what enrichment
+imports and does nothing. ``--no-copy`` skips the laspy baseline.
 """
 
 from __future__ import annotations
@@ -93,6 +96,8 @@ def measure_enrich(catalog: Path, workers: int, memory_mb: int) -> dict[str, Any
         report = enrich_catalog(catalog, options, executor=executor)
         seconds = time.perf_counter() - t1
         cpu = _cpu_seconds() + _workers_cpu_seconds(executor) - cpu0
+        client = getattr(executor, "client", None)
+        worker_peaks = sorted(client.run(_peak_mb).values()) if client is not None else []
     epoch = next(iter(report.epochs.values()))
     return {
         "seconds": seconds,
@@ -102,7 +107,27 @@ def measure_enrich(catalog: Path, workers: int, memory_mb: int) -> dict[str, Any
         "chunks": epoch["chunks"],
         "trees": epoch["trees"],
         "cpu_seconds": cpu,
+        "worker_peaks_mb": worker_peaks,
     }
+
+
+def measure_imports() -> dict[str, Any]:
+    """Nothing but the imports enrichment makes (its lazy ones too): the interpreter's own
+    peak."""
+    import laspy  # noqa: F401
+    import numpy  # noqa: F401
+    import pyogrio  # noqa: F401
+    import rasterio.features  # noqa: F401
+    import scipy.ndimage
+    import scipy.spatial  # noqa: F401
+    import shapely  # noqa: F401
+    import skimage.measure
+    import skimage.segmentation  # noqa: F401
+
+    import standgrid.enrich.block
+    import standgrid.pipeline.enrich  # noqa: F401
+
+    return {}
 
 
 def _cpu_seconds() -> float:
@@ -130,6 +155,8 @@ def _child(args: list[str]) -> None:
         result = {"points": int(made.n_points), "seconds": 0.0}
     elif kind == "tile":
         result = measure_tile(Path(rest[0]), Path(rest[1]))
+    elif kind == "imports":
+        result = measure_imports()
     elif kind == "copy":
         result = measure_copy(Path(rest[0]), Path(rest[1]))
     else:
@@ -157,6 +184,7 @@ def main() -> None:
     parser.add_argument("--workers", default="0", help="comma-separated, 0 = this process")
     parser.add_argument("--memory", type=int, default=2048, help="budget per process, MB")
     parser.add_argument("--scan", nargs="+", default=None, help="real LAS/LAZ scans")
+    parser.add_argument("--no-copy", action="store_true", help="skip the laspy baseline")
     opts = parser.parse_args()
     work = opts.workdir or Path(tempfile.mkdtemp(prefix="standgrid-bench-enrich-"))
     work.mkdir(parents=True, exist_ok=True)
@@ -172,19 +200,23 @@ def main() -> None:
         mission = next((missions / "missions").iterdir())
         tiled = run_child("tile", str(mission), str(catalog))
         print(f"tiled {tiled['points']:,} points in {tiled['seconds']:.1f} s")
-    copy = run_child("copy", str(catalog), str(work / "copy"))
-    shutil.rmtree(work / "copy")
-    base_pps = copy["points"] / copy["seconds"]
-    print(
-        f"baseline laspy read+write of {copy['tiles']} LAZ tiles: {copy['seconds']:.1f} s, "
-        f"{base_pps / 1e6:.2f} M points/s, peak {copy['peak_mb']:.0f} MB"
-    )
-    per_million = copy["cpu_seconds"] / (copy["points"] / 1e6)
-    print(
-        f"  its CPU: {per_million:.2f} s per M points (reading and writing the tiles alone): "
-        f"1 M points per CPU-second leaves {1 - per_million:.2f} s per M points for "
-        "ground, terrain, trees and metrics"
-    )
+    base_pps = float("nan")
+    if not opts.no_copy:
+        copy = run_child("copy", str(catalog), str(work / "copy"))
+        shutil.rmtree(work / "copy")
+        base_pps = copy["points"] / copy["seconds"]
+        print(
+            f"baseline laspy read+write of {copy['tiles']} LAZ tiles: {copy['seconds']:.1f} s, "
+            f"{base_pps / 1e6:.2f} M points/s, peak {copy['peak_mb']:.0f} MB"
+        )
+        per_million = copy["cpu_seconds"] / (copy["points"] / 1e6)
+        print(
+            f"  its CPU: {per_million:.2f} s per M points (reading and writing the tiles "
+            f"alone): 1 M points per CPU-second leaves {1 - per_million:.2f} s per M points "
+            "for ground, terrain, trees and metrics"
+        )
+    interpreter = run_child("imports")["peak_mb"]
+    print(f"interpreter (imports only): peak {interpreter:.0f} MB")
     by_workers = {}
     for workers in (int(w) for w in opts.workers.split(",")):
         run = work / f"enrich-{workers}"
@@ -204,6 +236,14 @@ def main() -> None:
             f"(target >= 1 per core), client peak {result['peak_mb']:.0f} MB"
             + (f"; cluster started in {result['cluster_start_seconds']:.1f} s" if workers else "")
         )
+        names = ["client", *(f"worker {k}" for k in range(len(result["worker_peaks_mb"])))]
+        for name, peak in zip(names, [result["peak_mb"], *result["worker_peaks_mb"]], strict=True):
+            ok = peak - interpreter <= 1.1 * opts.memory
+            print(
+                f"  {name:9s} peak RSS {peak:6.0f} MB, peak / budget {peak / opts.memory:.2f}, "
+                f"peak - interpreter {peak - interpreter:6.0f} MB <= 1.1 x budget "
+                f"({1.1 * opts.memory:.0f} MB)? {'yes' if ok else 'NO'}"
+            )
     if 1 in by_workers and 2 in by_workers:
         print(f"2 workers vs 1 worker: {by_workers[1] / by_workers[2]:.2f}x (target >= 1.7)")
 

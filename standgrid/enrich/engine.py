@@ -18,6 +18,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 from numpy.typing import NDArray
 
+from standgrid.engine.budget import bounded_map, release_memory
 from standgrid.engine.executor import SerialExecutor, run_limited
 from standgrid.enrich.block import RASTERS, BlockContext, BlockResult, enrich_block, paste
 
@@ -38,6 +39,18 @@ class BlockJob:
     lattice_origin: tuple[float, float]
     #: bytes of this process's budget that keep tiles' coordinates for later chunks
     cache_bytes: int = 0
+
+    @property
+    def budget_bytes(self) -> int:
+        """This process's budget: the cache is an eighth of it (``pipeline.enrich``)."""
+        return self.cache_bytes * 8
+
+    @property
+    def working_bytes(self) -> int:
+        """The peak bytes this job's computation is estimated to hold."""
+        from standgrid.catalog.chunks import BYTES_PER_POINT
+
+        return self.chunk.block_points * BYTES_PER_POINT
 
 
 def run_block(job: BlockJob) -> BlockResult:
@@ -62,6 +75,8 @@ def run_block(job: BlockJob) -> BlockResult:
         job.targets,
     )
     result.fields = {}  # written; not shipped back
+    del points
+    release_memory()  # the block's arrays, freed on this thread's arena, back to the system
     return result
 
 
@@ -93,12 +108,21 @@ def apply_blocks(
 ) -> Generator[tuple[BlockJob, BlockResult], None, None]:
     """Run every job; yield ``(job, result)`` in the jobs' order (results that finish early
     wait, so merging is deterministic whatever the executor; close it when done, see
-    :func:`~standgrid.engine.ordered.ordered_map`). In this process, jobs run
-    :data:`~standgrid.engine.ordered.AHEAD` at once on threads (see :func:`chunks_at_once`)."""
-    from standgrid.engine.ordered import ordered_map
+    :func:`~standgrid.engine.ordered.ordered_map`). In this process, up to
+    :data:`~standgrid.engine.ordered.AHEAD` jobs run at once on threads (see
+    :func:`chunks_at_once`), as many as their estimated working sets fit in the 7/8 of the
+    budget the chunks get (a chunk cannot be smaller than one cell: a dense one runs alone)."""
+    from standgrid.engine.ordered import AHEAD
 
     if isinstance(executor, SerialExecutor):
-        in_order = ordered_map(executor, functools.partial(run_limited, run_block), jobs)
+        limit = jobs[0].budget_bytes * 7 // 8 if jobs else 0
+        in_order = bounded_map(
+            functools.partial(run_limited, run_block),
+            jobs,
+            lambda job: job.working_bytes,
+            limit,
+            threads=AHEAD,
+        )
         with contextlib.closing(in_order):
             yield from zip(jobs, progress.track(in_order, len(jobs), desc), strict=True)
         return

@@ -27,16 +27,17 @@ from typing import Any, Protocol
 import numpy as np
 from numpy.typing import NDArray
 
-from standgrid.engine.budget import DEFAULT_MEMORY_BUDGET
+from standgrid.engine.budget import DEFAULT_MEMORY_BUDGET, release_memory
 from standgrid.errors import ConservationError, GridError, StandgridError
 from standgrid.partition.grid import StandGrid, key_to_index
 from standgrid.pointcloud import PointCloud
 
-#: Held points are spilled beyond this fraction of the budget: the rest of the budget is
-#: for the temporaries of a spill (keys, their sort order: ~0.6 x the held bytes).
-_SPILL_AT = 0.6
+#: Held points are spilled beyond this fraction of the budget: the rest is for the
+#: temporaries of a spill (one slice: see :data:`_SPILL_SLICE`) and of an added chunk (its
+#: keys and their order; the chunk's own arrays are counted by whoever loaded it).
+_SPILL_AT = 0.8
 #: Bytes gathered per write when a run is spilled, as a fraction of the budget.
-_SPILL_SLICE = 1 / 32
+_SPILL_SLICE = 1 / 64
 _XYZ = "xyz"
 WITHHELD = "withheld"
 
@@ -187,35 +188,58 @@ class _Store:
             self.bytes += held_bytes
 
     def spill(self) -> int:
-        """Write every held block as one key-sorted run; returns the bytes written."""
+        """Write every held block as one key-sorted run; returns the bytes written.
+
+        No order over all the held points is built: the run is the blocks' key runs sorted
+        by (key, block), so each slice of it is gathered from the extents it spans, and the
+        spill needs memory for one slice beyond the blocks themselves.
+        """
         if not self.blocks:
             return 0
-        keys = np.concatenate([b.sorted_keys() for b in self.blocks])
-        order = np.argsort(keys, kind="stable")
-        keys = keys[order]
         starts = np.cumsum([0] + [b.count for b in self.blocks])
+        # every block's key runs: (key, block, position in the blocks' key orders, count)
+        ukeys = np.concatenate([b.runs[0] for b in self.blocks])
+        which = np.concatenate([np.full(len(b.runs[0]), j) for j, b in enumerate(self.blocks)])
+        at = np.concatenate([b.runs[1] + starts[j] for j, b in enumerate(self.blocks)])
+        counts = np.concatenate([b.runs[2] for b in self.blocks])
+        order = np.lexsort((which, ukeys))  # by key, then arrival order
+        ukeys, at, counts = ukeys[order], at[order], counts[order]
+        ends = np.cumsum(counts)  # where each extent ends in the run ...
+        begins = ends - counts  # ... and begins
+        shift = at - begins  # a run position + shift: the position in the blocks' key orders
+        total = int(ends[-1])
         start_offset = self.file_bytes
         with open(self.path, "ab") as f:
-            for a in range(0, len(order), self.slice_records):
-                take = order[a : a + self.slice_records]
-                which = np.searchsorted(starts, take, side="right") - 1
-                by_block = np.argsort(which, kind="stable")
-                blocks, first, counts = _runs_of(which[by_block])
-                piece = np.empty(len(take), dtype=self.dtype)
-                for j, b, m in zip(blocks.tolist(), first.tolist(), counts.tolist(), strict=True):
-                    at = by_block[b : b + m]
-                    block = self.blocks[j]
-                    rows = block.rows(take[at] - starts[j])
-                    for name, values in block.columns.items():
-                        piece[name][at] = np.take(values, rows, axis=0)
-                piece.tofile(f)
-        written = len(order) * self.dtype.itemsize
+            for a in range(0, total, self.slice_records):
+                b = min(a + self.slice_records, total)
+                e0 = int(np.searchsorted(ends, a, side="right"))  # the extents in a..b
+                e1 = int(np.searchsorted(begins, b, side="left"))
+                lengths = np.minimum(ends[e0:e1], b) - np.maximum(begins[e0:e1], a)
+                take = np.arange(a, b, dtype=np.int64)
+                take += np.repeat(shift[e0:e1], lengths)
+                self._write_slice(f, take, starts)
+        written = total * self.dtype.itemsize
         self.file_bytes += written
-        ukeys, first, counts = _runs_of(keys)
-        self.runs.append((ukeys, start_offset + first * self.dtype.itemsize, counts))
+        first = np.flatnonzero(np.r_[True, ukeys[1:] != ukeys[:-1]])
+        offsets = begins[first] * self.dtype.itemsize + start_offset
+        self.runs.append((ukeys[first], offsets, np.add.reduceat(counts, first)))
         self.blocks.clear()
         self.bytes = 0
         return written
+
+    def _write_slice(self, f: Any, take: NDArray[np.int64], starts: NDArray[np.int64]) -> None:
+        """Gather the records at ``take`` (positions in the blocks' key orders) and write them."""
+        which = np.searchsorted(starts, take, side="right") - 1
+        by_block = np.argsort(which, kind="stable")
+        blocks, first, counts = _runs_of(which[by_block])
+        piece = np.empty(len(take), dtype=self.dtype)
+        for j, b, m in zip(blocks.tolist(), first.tolist(), counts.tolist(), strict=True):
+            at = by_block[b : b + m]
+            block = self.blocks[j]
+            rows = block.rows(take[at] - starts[j])
+            for name, values in block.columns.items():
+                piece[name][at] = np.take(values, rows, axis=0)
+        piece.tofile(f)
 
     def extents(self) -> Iterator[tuple[int, list[tuple[int, int, int]]]]:
         """Per key (sorted): its extents ``(source, start, count)`` in arrival order.
@@ -443,6 +467,7 @@ class PartitionEngine:
         for store in self._stores():
             self.stats.bytes_spilled += store.spill()
         self.stats.spill_flushes += 1
+        release_memory()
 
     # -- output ---------------------------------------------------------------------------
 

@@ -1,8 +1,10 @@
 """An epoch's points into cells and tiles, in this process or on a cluster.
 
-In this process, the items (old tiles, then payloads) are loaded two ahead on threads and
+In this process, the items (old tiles, then payloads) are loaded ahead on threads and
 streamed into one :class:`~standgrid.partition.engine.PartitionEngine` (bounded memory,
-spill files beyond the budget); cells are encoded two ahead on threads. On a cluster the
+spill files beyond the budget); cells are encoded ahead on threads. Everything in flight
+counts against the one budget (:func:`budget_shares`): the engine holds what the loads and
+encodes ahead leave, and those go ahead by their estimated bytes, not by count. On a cluster the
 points never travel through this process: each item is loaded and partitioned into a run
 file where it runs (:mod:`standgrid.partition.spill`), then each cell is read from the runs
 and encoded where it runs. Both give the same cells with the same points in the same order.
@@ -10,6 +12,8 @@ and encoded where it runs. Both give the same cells with the same points in the 
 
 from __future__ import annotations
 
+import math
+import os
 import shutil
 from collections.abc import Callable, Sequence
 from contextlib import closing
@@ -18,7 +22,15 @@ from typing import TYPE_CHECKING, Any
 
 from standgrid.catalog import paths
 from standgrid.engine import MemoryBudget, Progress, SerialExecutor
-from standgrid.engine.ordered import ordered_map
+from standgrid.engine.budget import bounded_map, release_memory
+
+#: Peak bytes of loading an item (a payload, an old tile) over the bytes of the points it
+#: gives: raw fields, converted ones and the projected coordinates coexist for a while
+#: (measured: 2-4x on simulated payloads).
+LOAD_FACTOR = 3.0
+#: Peak bytes of encoding a cell's tile over the bytes of its points (the LAS records, the
+#: compressed chunks, snapped coordinates).
+ENCODE_FACTOR = 3.0
 
 if TYPE_CHECKING:
     from standgrid.catalog import Transaction
@@ -69,6 +81,15 @@ def write_cells(work: EpochWork, txn: Transaction, executor: Executor, progress:
     return _on_cluster(work, txn, executor, progress)
 
 
+def budget_shares(budget: int) -> tuple[int, int]:
+    """``(engine, ahead)`` bytes of a process's budget: ``ahead`` for the items loaded (or
+    the cells encoded) ahead on threads, by their estimated peak bytes; an eighth for the
+    item being partitioned (its arrays until the engine holds them, its keys and order) and
+    the allocator's slack; the engine's buffers get the rest."""
+    ahead = budget // 8
+    return budget - 2 * ahead, ahead
+
+
 def _in_this_process(
     work: EpochWork, txn: Transaction, executor: Executor, progress: Progress
 ) -> Cells:
@@ -79,22 +100,30 @@ def _in_this_process(
 
     done = Cells()
     epoch, origin = work.epoch, work.partition.lattice_origin
+    engine_bytes, ahead_bytes = budget_shares(work.memory_budget.bytes)
     with PartitionEngine(
         work.partition.assign,
         txn.folder / "spill",
-        memory_budget_bytes=work.memory_budget.bytes,
+        memory_budget_bytes=engine_bytes,
         buffer=work.buffer,
     ) as engine:
-        with closing(ordered_map(executor, kept_points, work.kept)) as kept:
+        loads = _LoadCost()
+        kept = bounded_map(kept_points, work.kept, loads.cost, ahead_bytes, loads.learn)
+        with closing(kept):
             for cloud in progress.track(kept, len(work.kept), f"{epoch}: existing tiles"):
                 if len(cloud):
                     engine.add(cloud)
                     done.kept_in += len(cloud)
+                del cloud
         total = len(work.payloads)
-        with closing(ordered_map(executor, payload_chunk, work.payloads)) as chunks:
+        loads = _LoadCost()
+        chunks = bounded_map(payload_chunk, work.payloads, loads.cost, ahead_bytes, loads.learn)
+        with closing(chunks):
             for k, chunk in enumerate(progress.track(chunks, total, f"{epoch}: payloads")):
                 work.on_payload(k, len(chunk.cloud), chunk.footprint, chunk.withheld)
                 engine.add(chunk.cloud)
+                del chunk
+        release_memory()
         partition = work.final_partition()
         names: list[tuple[str, str]] = []
 
@@ -106,13 +135,52 @@ def _in_this_process(
                 polygon = partition.polygon(cell.key)
                 yield CellTile(txn.stage(rel), cell.core, cell.buffer, work.crs, polygon, origin)
 
-        with closing(ordered_map(executor, write_cell, cells())) as infos:
+        def encode_cost(tile: CellTile) -> float:
+            return ENCODE_FACTOR * (_cloud_bytes(tile.core) + _cloud_bytes(tile.buffer))
+
+        infos = bounded_map(write_cell, cells(), encode_cost, ahead_bytes)
+        with closing(infos):
             for k, info in enumerate(progress.track(infos, 0, f"{epoch}: tiles")):
                 done.tiles.append((*names[k], info))
         stats = engine.stats
+    release_memory()
     done.points_in, done.points_out = stats.points_in, stats.points_out
     done.buffer_points, done.bytes_spilled = stats.buffer_points, stats.bytes_spilled
     return done
+
+
+class _LoadCost:
+    """Estimated peak bytes of loading an item: its source's size (points of a scan's part,
+    else the file's bytes) times the most bytes per unit of source seen so far, times
+    :data:`LOAD_FACTOR`; unknown (infinite: loaded alone) until an item was loaded."""
+
+    def __init__(self) -> None:
+        self.per_unit = math.inf
+
+    def cost(self, item: Any) -> float:
+        item_size = _source_size(item)
+        return math.inf if math.isinf(self.per_unit) else LOAD_FACTOR * self.per_unit * item_size
+
+    def learn(self, item: Any, result: Any) -> None:
+        cloud = getattr(result, "cloud", result)
+        per_unit = _cloud_bytes(cloud) / max(1, _source_size(item)) if item is not None else 0
+        self.per_unit = per_unit if math.isinf(self.per_unit) else max(self.per_unit, per_unit)
+
+
+def _source_size(item: Any) -> int:
+    span = getattr(item, "span", None)
+    if span is not None:
+        return max(1, int(span[1]) - int(span[0]))
+    try:
+        return max(1, os.stat(item.path).st_size)
+    except (AttributeError, OSError):
+        return 1
+
+
+def _cloud_bytes(cloud: Any) -> int:
+    if cloud is None:
+        return 0
+    return int(cloud.xyz.nbytes) + sum(int(v.nbytes) for v in cloud.fields.values())
 
 
 def _on_cluster(work: EpochWork, txn: Transaction, executor: Executor, progress: Progress) -> Cells:

@@ -13,6 +13,7 @@ import functools
 import json
 import os
 import shutil
+import signal
 import socket
 import subprocess
 import sys
@@ -68,7 +69,8 @@ def scheduler() -> Iterator[str]:
     address = f"tcp://127.0.0.1:{port}"
     path = os.pathsep.join(filter(None, [str(REPO_ROOT), os.environ.get("PYTHONPATH")]))
     env = dict(os.environ, PYTHONPATH=path)
-    quiet = {"env": env, "stdout": subprocess.DEVNULL, "stderr": subprocess.DEVNULL}
+    quiet = {"env": env, "stdout": subprocess.DEVNULL, "stderr": subprocess.DEVNULL,
+             "start_new_session": True}  # fmt: skip
     scheduler_cmd = [sys.executable, "-m", "distributed.cli.dask_scheduler"]
     worker_cmd = [sys.executable, "-m", "distributed.cli.dask_worker", address]
     procs = [
@@ -96,13 +98,12 @@ def scheduler() -> Iterator[str]:
     try:
         yield address
     finally:
+        # each whole process group (a worker's nanny and processes) at once: a graceful
+        # dask shutdown takes ~8 s, nothing of it is under test
         for proc in reversed(procs):
-            proc.terminate()
-        for proc in procs:
-            try:
-                proc.wait(timeout=20)
-            except subprocess.TimeoutExpired:
-                proc.kill()
+            with contextlib.suppress(ProcessLookupError):
+                os.killpg(proc.pid, signal.SIGKILL)
+            proc.wait()
 
 
 def _points(path: Path) -> pd.DataFrame:

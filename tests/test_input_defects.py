@@ -175,6 +175,7 @@ main()
 """
 
 
+@pytest.mark.slow  # a child enrich under a file-size limit: ~5 s
 def test_file_size_limit_while_enriching_is_one_line_and_keeps_the_catalog(
     tmp_path: Path,
 ) -> None:

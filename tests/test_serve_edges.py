@@ -198,6 +198,7 @@ def _ascii_pcd(points: int) -> bytes:
     return header.encode() + b"1.250 -2.500 0.750\n" * points
 
 
+@pytest.mark.slow  # a whole server started and stopped: ~3.5 s
 @pytest.mark.skipif(not sys.platform.startswith("linux"), reason="reads /proc")
 def test_ctrl_c_ends_the_workers_of_standgrid_serve(tmp_path: Path) -> None:
     """SIGINT while a writer parses a large payload: the server stops and leaves no worker."""

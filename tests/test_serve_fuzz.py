@@ -34,10 +34,10 @@ HOSTILE = [
     "1_000000001", "99999999999999_000000000", "1_1", "0,0,0,0,0,0,2",
     "http://www.opengis.net/def/crs/EPSG/0/999999", "EPSG:4326", "<>",
 ]  # fmt: skip
-#: The values of :data:`HOSTILE` that broke routes most: every parameter of every route gets
-#: each of them in the default run.
-SHARPEST = ["", "-1", "1e309", "nan", "99999999999999999999999", "-99999999999999999999999",
-            "-181,-91,181,91", "\U0001f332" * 40 + "x" * 300]  # fmt: skip
+#: The default run's sweep: the kinds of value that answered 500 (a huge integer, an
+#: infinity, a latitude out of range) and a negative; every parameter of every route gets
+#: each of them (the random cases draw from all of :data:`HOSTILE`, the slow run sweeps it).
+SHARPEST = ["-1", "1e309", "99999999999999999999999", "-181,-91,181,91"]
 
 
 @dataclass(frozen=True)
@@ -226,7 +226,7 @@ def _run(
 def test_hostile_parameters_never_answer_5xx(
     served: tuple[str, list[Route], dict[str, list[str]]],
 ) -> None:
-    _run(served, examples=4)
+    _run(served, examples=2)
 
 
 @pytest.mark.slow

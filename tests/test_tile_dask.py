@@ -5,9 +5,11 @@ laspy, every index layer row by row with pyogrio, every VPC as JSON."""
 
 from __future__ import annotations
 
+import contextlib
 import json
 import os
 import shutil
+import signal
 import socket
 import subprocess
 import sys
@@ -108,6 +110,7 @@ def scheduler() -> Iterator[str]:
             env=env,
             stdout=subprocess.DEVNULL,
             stderr=subprocess.DEVNULL,
+            start_new_session=True,
         ),
     ]
     try:
@@ -138,6 +141,7 @@ def scheduler() -> Iterator[str]:
                 env=env,
                 stdout=subprocess.DEVNULL,
                 stderr=subprocess.DEVNULL,
+                start_new_session=True,
             )
         )
         from distributed import Client
@@ -146,14 +150,12 @@ def scheduler() -> Iterator[str]:
             client.wait_for_workers(2, timeout=60)
         yield address
     finally:
+        # the worker first (its nanny and processes: the whole group), then the scheduler;
+        # a graceful dask shutdown takes ~8 s, nothing of it is under test
         for process in reversed(started):
-            process.terminate()
-        for process in reversed(started):
-            try:
-                process.wait(timeout=20)
-            except subprocess.TimeoutExpired:
-                process.kill()
-                process.wait()
+            with contextlib.suppress(ProcessLookupError):
+                os.killpg(process.pid, signal.SIGKILL)
+            process.wait()
 
 
 def test_existing_scheduler_matches_one_process(

@@ -255,3 +255,114 @@ def test_chm_fill_closes_single_pits_not_canopy_gaps_or_the_data_edge() -> None:
     assert np.isnan(loose[2:5, 2:5]).sum() == 1 and np.isnan(loose[3, 3])
     with pytest.raises(EnrichError):
         chm(xyz, heights, grid, fill_min_neighbours=9)
+
+
+def reference_dtm(
+    ground: np.ndarray, grid: RasterGrid, max_edge: float | None = None
+) -> tuple[np.ndarray, np.ndarray]:
+    """The DTM as standgrid computed it before issue 22 (scipy's ``LinearNDInterpolator`` at
+    every pixel centre, ``find_simplex`` for the long triangles), and which pixels took the
+    nearest ground point."""
+    import contextlib
+
+    from scipy.interpolate import LinearNDInterpolator
+    from scipy.spatial import Delaunay, QhullError, cKDTree
+
+    xyz = np.asarray(ground, dtype=np.float64)
+    local = xyz[:, :2] - (grid.x0, grid.y0)
+    cx, cy = grid.centers()
+    query = np.column_stack([cx.ravel() - grid.x0, cy.ravel() - grid.y0])
+    values = np.full(len(query), np.nan)
+    if len(xyz) >= 3:
+        with contextlib.suppress(QhullError):
+            tin = Delaunay(local)
+            values = LinearNDInterpolator(tin, xyz[:, 2])(query)
+            if max_edge is not None:
+                corners = tin.points[tin.simplices]
+                edges = corners - np.roll(corners, 1, axis=1)
+                long = ((edges**2).sum(axis=2) > max_edge**2).any(axis=1)
+                simplex = tin.find_simplex(query)
+                values[(simplex >= 0) & long[np.maximum(simplex, 0)]] = np.nan
+    missing = ~np.isfinite(values)
+    if missing.any():
+        _, nearest = cKDTree(local).query(query[missing])
+        values[missing] = xyz[nearest, 2]
+    return values.reshape(grid.shape).astype(np.float32), missing.reshape(grid.shape)
+
+
+def ground_cases() -> list[tuple[str, np.ndarray, RasterGrid]]:
+    """Ground point sets with their grid: uniform, clustered with holes, on a lattice through
+    the pixel centres (points on centres, edges through centres, co-circular squares),
+    collinear, tiny."""
+    rng = np.random.default_rng(22)
+    x0, y0 = ORIGIN
+    grid = RasterGrid(x0=x0, y0=y0, pixel_size=0.5, ncols=80, nrows=60)
+    cases = []
+
+    def terrain(x: np.ndarray, y: np.ndarray) -> np.ndarray:
+        return 400 + 0.2 * (x - x0) + np.sin((y - y0) / 3) + rng.normal(0, 0.05, len(x))
+
+    x, y = x0 + rng.uniform(-2, 42, 4000), y0 + rng.uniform(-2, 32, 4000)
+    cases.append(("uniform", np.column_stack([x, y, terrain(x, y)]), grid))
+    centres = rng.uniform((x0 + 3, y0 + 3), (x0 + 37, y0 + 27), (12, 2))
+    spread = centres[rng.integers(0, 12, 3000)] + rng.normal(0, 1.5, (3000, 2))
+    hole = np.hypot(spread[:, 0] - x0 - 20, spread[:, 1] - y0 - 15) < 6
+    x, y = spread[~hole, 0], spread[~hole, 1]
+    cases.append(("clustered with holes", np.column_stack([x, y, terrain(x, y)]), grid))
+    # a lattice of 0.5 m through the pixel centres, thinned with holes, quantised to 1 cm
+    gx, gy = np.meshgrid(np.arange(2, 78) * 0.5 + 0.25, np.arange(2, 58) * 0.5 + 0.25)
+    keep = rng.random(gx.size) < 0.7
+    keep &= np.hypot(gx.ravel() - 25, gy.ravel() - 12) > 4
+    x, y = x0 + gx.ravel()[keep], y0 + gy.ravel()[keep]
+    z = np.round(terrain(x, y), 2)
+    cases.append(("lattice on pixel centres", np.column_stack([x, y, z]), grid))
+    # points on a 0.25 m lattice, 1 cm jitter: edges through centres, exact ties
+    q = rng.integers(0, 160, (2500, 2)) * 0.25 + rng.integers(-1, 2, (2500, 2)) * 0.01
+    x, y = x0 + q[:, 0], y0 + q[:, 1] * 0.75
+    cases.append(("quantised lattice", np.column_stack([x, y, np.round(terrain(x, y), 2)]), grid))
+    t = rng.uniform(0, 1, 50)
+    line = np.column_stack([x0 + 5 + 30 * t, y0 + 5 + 20 * t, 400 + t])
+    cases.append(("collinear", line, grid))
+    nearly = line.copy()
+    nearly[::7, 1] += 1e-9
+    cases.append(("nearly collinear", nearly, grid))
+    small = RasterGrid(x0=x0, y0=y0, pixel_size=1.0, ncols=6, nrows=5)
+    triangle = np.array(
+        [[x0 + 0.5, y0 + 0.5, 400.0], [x0 + 5.5, y0 + 0.5, 401], [x0 + 0.5, y0 + 4.5, 402]]
+    )
+    for k in (1, 2, 3):
+        cases.append((f"{k} points", triangle[:k], small))
+    raised = triangle + np.array([0.0, 0.0, 1.0])  # the same places, other heights
+    duplicates = np.concatenate([triangle, raised, [[x0 + 5.5, y0 + 4.5, 399.0]]])
+    cases.append(("duplicates and a square on centres", duplicates, small))
+    return cases
+
+
+@pytest.mark.parametrize("max_edge", [None, 1.0, 3.0])
+def test_dtm_matches_the_reference_tin_interpolation(max_edge: float | None) -> None:
+    for name, ground, grid in ground_cases():
+        expected, filled = reference_dtm(ground, grid, max_edge)
+        dtm = dtm_from_ground(ground, grid, max_edge=max_edge)
+        assert dtm.dtype == np.float32 and dtm.shape == grid.shape, name
+        assert np.isfinite(dtm).all(), name
+        assert np.abs(dtm.astype(np.float64) - expected).max() <= 1e-3, name
+        # the pixels the reference filled with the nearest ground point hold it here too
+        assert np.array_equal(dtm[filled], expected[filled]), name
+        assert np.array_equal(dtm, expected), name  # in fact bit for bit
+
+
+def test_barycentric_transforms_are_scipys() -> None:
+    from scipy.spatial import Delaunay
+
+    from standgrid.enrich.rasters import _barycentric_transforms
+
+    for name, ground, _ in ground_cases()[:4]:
+        tin = Delaunay(ground[:, :2] - ORIGIN)
+        # the cache dtm_from_ground fills: a scipy without it would silently be slow again
+        assert tin._transform is None, "scipy no longer caches Delaunay.transform there"
+        ours = _barycentric_transforms(tin.points, tin.simplices)
+        assert np.allclose(ours, tin.transform, rtol=1e-9, atol=1e-12, equal_nan=True), name
+    # a sliver scipy would give a NaN transform (so find_simplex avoids it), and a triangle
+    corners = np.array([[0.0, 0.0], [1.0, 0.0], [2.0, 1e-14], [1.0, 1.0]])
+    ours = _barycentric_transforms(corners, np.array([[0, 1, 2], [0, 1, 3]], dtype=np.intc))
+    assert np.isnan(ours[0]).all() and np.isfinite(ours[1]).all()

@@ -16,7 +16,7 @@ import pytest
 from click.testing import CliRunner
 
 from standgrid.cli import cli
-from standgrid.errors import CRSError, SensorLogFormatError
+from standgrid.errors import CRSError, MetadataError, SensorLogFormatError
 from standgrid.mission.scan import (
     ScanOptions,
     adjusted_gps_to_date,
@@ -117,9 +117,13 @@ def test_a_folder_of_tiles_is_one_mission_its_edge_points_once(tmp_path: Path) -
 def test_a_vpc_names_the_tiles(tmp_path: Path) -> None:
     folder = _real("lasR_bcts")
     files = sorted(folder.glob("*.laz"))[:2]
+    overview = tmp_path / "overview.copc.laz"  # thinned copies: never read
     features = [
-        {"type": "Feature", "assets": {"data": {"href": str(f)}}, "properties": {}} for f in files
-    ]
+        {"type": "Feature", "properties": {}, "assets": {
+            "data": {"href": str(f), "roles": ["data"]},
+            "overview": {"href": str(overview), "roles": ["overview"]}}}
+        for f in files
+    ]  # fmt: skip
     vpc = tmp_path / "two.vpc"
     vpc.write_text(json.dumps({"type": "FeatureCollection", "features": features}))
     report = tile_missions(
@@ -205,6 +209,9 @@ def test_trajectory_errors_name_the_file_and_line(tmp_path: Path) -> None:
     bad.write_text("time,x,y,z\n1,0,0,0\n2,1,0,nope\n")
     with pytest.raises(SensorLogFormatError, match=r"t\.csv:3: "):
         read_trajectory(bad)
+    noted = tmp_path / "noted.txt"  # an exporter's comment before the header, a bare "#"
+    noted.write_text("# exported by a scanner\n#\n%time x y z\n1 0 0 0\n2 1 0 0\n")
+    assert read_trajectory(noted)[1].tolist() == [[0, 0, 0], [1, 0, 0]]
     bad.write_text("time,x,y,z\n2,0,0,0\n1,1,0,0\n")
     with pytest.raises(SensorLogFormatError, match="does not increase"):
         read_trajectory(bad)
@@ -213,8 +220,11 @@ def test_trajectory_errors_name_the_file_and_line(tmp_path: Path) -> None:
     far.write_text("0 0 0 0\n10 20 0 0\n")
     with pytest.raises(SensorLogFormatError, match="do not meet"):
         open_scan(scan, ScanOptions(trajectory=far, date=dt.date(2023, 6, 14)))
-    # week-second GPS times: the date is the header's creation date
-    assert open_scan(scan).metadata.sources["date"] == "header creation date"
+    # adjusted standard times under a header flag saying week seconds: read as what they are
+    flagged = open_scan(scan)
+    assert flagged.metadata.sources["date"] == "GPS time"
+    assert flagged.metadata.date == dt.date(2023, 6, 14)
+    assert "values are standard time" in flagged.warnings[0]
 
 
 def test_segments_cut_the_travel_evenly() -> None:
@@ -339,3 +349,33 @@ def test_info_describes_a_scan_and_what_tiling_it_needs() -> None:
     assert info["points"] == 92_097 and info["crs"] == "EPSG:2154"
     assert info["date"] is None and "--date" in info["needs"][0]
     assert info["gps_time"] == "week seconds"
+
+
+def test_week_seconds_need_the_date_and_cross_the_rollover(tmp_path: Path) -> None:
+    """GPS week seconds from Saturday 23:55 to Sunday 00:05 GPS (the rollover, 604,800 ->
+    0): a date is required, and every time becomes adjusted standard time, in order."""
+    import pyproj
+
+    header = laspy.LasHeader(point_format=6, version="1.4")
+    header.scales = [0.001] * 3
+    header.offsets = [500_000.0, 5_200_000.0, 0.0]
+    header.add_crs(pyproj.CRS.from_epsg(32632))
+    header.global_encoding.gps_time_type = laspy.header.GpsTimeType.WEEK_TIME
+    true = np.linspace(604_500.0, 605_100.0, 3000)  # seconds since the week's start
+    las = laspy.LasData(header)
+    las.x = 500_000.0 + np.linspace(0, 50, 3000)
+    las.y = np.full(3000, 5_200_010.0)
+    las.z = np.zeros(3000)
+    las.gps_time = np.mod(true, 604_800.0)
+    scan = tmp_path / "rollover.laz"
+    las.write(scan)
+    with pytest.raises(MetadataError, match="week seconds: give its date"):
+        open_scan(scan)
+    day = dt.date(2023, 6, 17)  # the Saturday
+    report = tile_missions([scan], tmp_path / "cat", TileOptions(scan_date=day))
+    assert report.points_out == 3000
+    tiles = sorted((tmp_path / "cat" / "tiles").rglob("*.laz"))
+    got = np.concatenate([laspy.read(t).gps_time for t in tiles])
+    start = week_start(day, float(true[0]))
+    assert np.allclose(np.sort(got), true + start, atol=1e-6)
+    assert adjusted_gps_to_date(float(got.min())) == day

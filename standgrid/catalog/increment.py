@@ -105,6 +105,7 @@ def source_digest(source: dict[str, Any], placement: str, schema: Any) -> str:
         described["part"] = [source["span"], source.get("window")]
     if source.get("time_offset"):  # a plain scan's week seconds made adjusted standard
         described["time_offset"] = float(source["time_offset"]).hex()
+        described["time_wrap"] = source.get("time_wrap")
     if _has_rule_fields(path):
         described["source_field_rules"] = SOURCE_FIELD_RULES
     digest.update(json.dumps(described, sort_keys=True, default=str).encode())

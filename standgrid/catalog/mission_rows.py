@@ -236,6 +236,7 @@ def payload_rows(
                     "span": payload.span,
                     "window": payload.window,
                     "time_offset": payload.time_offset,
+                    "time_wrap": payload.time_wrap,
                     "frame": payload.frame,
                     "file_to_base": mission.file_to_base(payload),
                     "pose": mission.pose_of(payload) if fitted else None,

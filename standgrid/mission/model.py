@@ -79,6 +79,8 @@ class Payload:
     #: Seconds added to the file's GPS times (a plain scan's GPS week seconds made adjusted
     #: standard GPS time with the week of its date).
     time_offset: float = field(default=0.0, hash=False, compare=False)
+    #: ... and a week (604,800 s) more for a file time below this (after the rollover).
+    time_wrap: float | None = field(default=None, hash=False, compare=False)
 
 
 class CloudCache:

@@ -9,13 +9,13 @@ serves like a robot's mission:
   folder; a folder of tiles (or a VPC's files) is one mission;
 - its CRS is the files' own (one for all; ``crs`` only where the files name none);
 - its date is ``date``, else the points' GPS time when the header flags it adjusted
-  standard GPS time, else the header's creation date; GPS week seconds are made adjusted
-  standard GPS time (what the tiles store and flag) in the week that puts them nearest to
-  that date (a warning says so);
-- payloads are parts of the files (at most ``part_points`` points each, read with a seek,
-  sized by the memory budget: :func:`part_points_for`; a big file streams through the
-  partition engine part by part); every point is in exactly one part, so tiles of a folder
-  conserve their edge points exactly once;
+  standard GPS time (told from the values: LAS 1.0/1.1 cannot flag it), else the header's
+  creation date; GPS week seconds need ``date`` and are made adjusted standard GPS time
+  (what the tiles store and flag) in the week that puts them nearest to it, a time after the
+  week's rollover a week later (a warning says so);
+- payloads are parts of the files (at most ``part_points`` points each, read with a seek: a
+  big file streams through the partition engine part by part); every point is in exactly
+  one part, so tiles of a folder conserve their edge points exactly once;
 - with a ``trajectory`` (a time-stamped CSV/TXT of positions, as SLAM scanners export),
   each payload is instead the points of one trajectory segment (about ``segment_m`` of
   travel) by GPS time, placed at the trajectory, so footprints and Voronoi cells follow
@@ -48,22 +48,16 @@ from standgrid.stamps import NS_PER_S, Stamp
 #: Suffixes of a plain scan file (``.copc.laz`` ends in ``.laz``) and of a virtual point cloud.
 SCAN_SUFFIXES = (".las", ".laz")
 VPC_SUFFIX = ".vpc"
-#: Most points in one payload of a plain scan (about 100 MB of points and fields in memory).
-PART_POINTS = 2_000_000
+#: Most points in one payload of a plain scan (~40 MB of points and fields as they are
+#: converted): fixed, so a scan's payloads (ids, source digests) do not depend on the memory
+#: of the machine; the tiler reads ahead by bytes within its budget.
+PART_POINTS = 250_000
 #: Metres of travel per trajectory segment (a robot mission's payload spacing).
 SEGMENT_M = 20.0
 #: Points read at a time when a trajectory's segments are found in the files' GPS times.
 TIME_CHUNK = 1_000_000
 #: Seconds between the GPS epoch (1980-01-06) and the UNIX epoch.
 _GPS_EPOCH_UNIX = 315_964_800
-
-
-def part_points_for(budget_bytes: int) -> int:
-    """Points per part of a plain scan under a memory budget: three parts are in flight at
-    once (one partitioned, two read ahead) at ~150 bytes a point as they are converted,
-    beside the partition engine's own budget; a thirtieth of the budget for each keeps them
-    out of the way (50,000 to :data:`PART_POINTS`)."""
-    return int(min(PART_POINTS, max(50_000, budget_bytes // 5000)))
 
 
 @dataclass(frozen=True)
@@ -132,13 +126,24 @@ def _vpc_files(path: Path) -> list[Path]:
         if path.stat().st_size > 64 * 1024 * 1024:
             raise MetadataError("a VPC of more than 64 MB", path=path)
         doc = json.loads(path.read_text(encoding="utf-8"))
-        features = doc["features"]
-        hrefs = [
-            asset["href"]
-            for feature in features
-            for asset in feature["assets"].values()
-            if str(asset.get("href", "")).lower().endswith(SCAN_SUFFIXES)
-        ]
+        hrefs = []
+        for number, feature in enumerate(doc["features"]):
+            # the data asset of each feature; overviews (roles ["overview"], as PDAL wrench
+            # and QGIS write them) thin the same points again and are never read
+            data = [
+                asset["href"]
+                for key, asset in feature["assets"].items()
+                if "overview" not in (asset.get("roles") or [])
+                and ("data" in (asset.get("roles") or []) or key == "data"
+                     or not asset.get("roles"))
+                and str(asset.get("href", "")).lower().endswith(SCAN_SUFFIXES)
+            ]  # fmt: skip
+            if len(data) != 1:
+                raise MetadataError(
+                    f"feature {number} has {len(data)} point-cloud data assets (one expected)",
+                    path=path,
+                )
+            hrefs.append(data[0])
     except (OSError, UnicodeDecodeError, ValueError, KeyError, TypeError, AttributeError) as exc:
         raise MetadataError(f"not a virtual point cloud (STAC ItemCollection): {exc}",
                             path=path) from exc  # fmt: skip
@@ -216,30 +221,58 @@ def week_start(day: dt.date, seconds_of_week: float) -> float:
     return round((gps - seconds_of_week) / 604_800) * 604_800 - 1e9
 
 
-def _week_offset(facts: _FileFacts, day: dt.date) -> float:
-    if facts.gps_standard or not facts.has_time or not facts.points:
-        return 0.0
+#: Seconds in a GPS week: GPS week seconds lie in [0, WEEK_S).
+WEEK_S = 604_800.0
+
+
+def _time_kind(facts: _FileFacts) -> tuple[str | None, float | None]:
+    """What a file's GPS times are, from their values (the header's flag is not trusted:
+    LAS 1.0/1.1 cannot say, writers forget it): ``"week"`` seconds when the first times lie
+    within one week, else ``"standard"`` (adjusted standard GPS time); None without times.
+    Also the first times' median."""
+    if not facts.has_time or not facts.points:
+        return None, None
     first = _first_gps_time(facts.path)
-    return 0.0 if first is None else week_start(day, first)
+    if first is None:
+        return None, None
+    return ("week" if 0.0 <= first < WEEK_S else "standard"), first
 
 
-def _date(facts: list[_FileFacts], options: ScanOptions, path: Path) -> tuple[dt.date, str]:
+def _week_offset(kind: str | None, first: float | None, day: dt.date) -> tuple[float, float | None]:
+    """``(offset, wrap_below)`` making a file's week seconds adjusted standard GPS time: the
+    week that puts its first times nearest to ``day``; a time below ``wrap_below`` came after
+    the week's rollover (Sunday 0h GPS) and takes a week more."""
+    if kind != "week" or first is None:
+        return 0.0, None
+    return week_start(day, first), first - WEEK_S / 2
+
+
+def _date(
+    facts: list[_FileFacts],
+    kinds: list[tuple[str | None, float | None]],
+    options: ScanOptions,
+    path: Path,
+) -> tuple[dt.date, str]:
     if options.date is not None:
         return options.date, "--date"
-    first = facts[0]
-    if first.gps_standard and first.has_time and first.points:
-        t = _first_gps_time(first.path)
-        if t is not None:
-            day = adjusted_gps_to_date(t)
+    for kind, first in kinds:
+        if kind == "standard" and first is not None:
+            day = adjusted_gps_to_date(first)
             if 1990 <= day.year <= 2100:
                 return day, "GPS time"
-    if first.created is not None:
-        return first.created, "header creation date"
+    if any(kind == "week" for kind, _ in kinds):
+        raise MetadataError(
+            "the scan's GPS times are week seconds: give its date (--date YYYY-MM-DD) to place "
+            "them in their week (a header's creation date is often days later)",
+            path=path,
+        )
+    if facts[0].created is not None:
+        return facts[0].created, "header creation date"
     raise MetadataError(
         "the scan's header gives no date (no adjusted standard GPS time, no creation date): "
         "give it (--date YYYY-MM-DD)",
         path=path,
-    )
+    )  # fmt: skip
 
 
 def _crs(facts: list[_FileFacts], options: ScanOptions, path: Path) -> str | None:
@@ -274,8 +307,9 @@ def scan_summary(path: str | Path) -> dict[str, Any]:
         crs = _crs(facts, ScanOptions(), src)
     except CRSError as exc:
         needs.append(exc.message)
+    kinds = [_time_kind(f) for f in facts]
     try:
-        day, source = _date(facts, ScanOptions(), src)
+        day, source = _date(facts, kinds, ScanOptions(), src)
         date = {"date": day.isoformat(), "from": source}
     except MetadataError as exc:
         needs.append(exc.message)
@@ -289,8 +323,8 @@ def scan_summary(path: str | Path) -> dict[str, Any]:
         "points": sum(f.points for f in facts),
         "crs": crs,
         "date": date,
-        "gps_time": "none" if not any(f.has_time for f in facts) else (
-            "adjusted standard" if all(f.gps_standard for f in facts) else "week seconds"),
+        "gps_time": "none" if not any(k for k, _ in kinds) else (
+            "week seconds" if any(k == "week" for k, _ in kinds) else "adjusted standard"),
         "extent_crs": {"min": lo.tolist(), "max": hi.tolist()},
         "needs": needs,
     }  # fmt: skip
@@ -310,7 +344,8 @@ def open_scan(path: str | Path, options: ScanOptions = ScanOptions()) -> Any:
         raise ValueError("part_points must be >= 1")
     facts = [_facts(f) for f in scan_files(src)]
     crs = _crs(facts, options, src)
-    day, date_source = _date(facts, options, src)
+    kinds = [_time_kind(f) for f in facts]
+    day, date_source = _date(facts, kinds, options, src)
     name = scan_name(src)
     base = int(dt.datetime(day.year, day.month, day.day, tzinfo=dt.UTC).timestamp())
     parts: list[tuple[Path, tuple[int, int] | None, Any, Any]] = []
@@ -326,14 +361,20 @@ def open_scan(path: str | Path, options: ScanOptions = ScanOptions()) -> Any:
             for start in range(0, f.points, options.part_points):
                 stop = min(start + options.part_points, f.points)
                 parts.append((f.path, (start, stop), None, centre))
-    offsets = {f.path: _week_offset(f, day) for f in facts}
+    offsets = {f.path: _week_offset(*kind, day) for f, kind in zip(facts, kinds, strict=True)}
     payloads = [
         Payload(Stamp.from_ns(base * NS_PER_S + k), None, file, "utm", {}, "point_cloud",
-                crs=crs, span=span, window=window, site=site, time_offset=offsets[file])
+                crs=crs, span=span, window=window, site=site, time_offset=offsets[file][0],
+                time_wrap=offsets[file][1])
         for k, (file, span, window, site) in enumerate(parts)
     ]  # fmt: skip
     warnings = []
-    if any(offsets.values()):
+    for f, (kind, _) in zip(facts, kinds, strict=True):
+        if kind is not None and (kind == "standard") != f.gps_standard:
+            flagged = "adjusted standard" if f.gps_standard else "week seconds"
+            warnings.append(f"{f.path.name}: the header flags its GPS times {flagged}, their "
+                            f"values are {kind} time: read as {kind} time")  # fmt: skip
+    if any(offset for offset, _ in offsets.values()):
         warnings.append(
             f"GPS times in week seconds: made adjusted standard GPS time in the GPS week that "
             f"puts them nearest to {day.isoformat()} (the date from the {date_source})"
@@ -376,10 +417,15 @@ def read_trajectory(path: Path) -> tuple[NDArray[np.float64], NDArray[np.float64
         if not text:
             continue
         tokens = [t for t in re.split(r"[,;\s]+", text.lstrip("#%/ ")) if t]
-        if not rows and header is None and not _numeric(tokens[0]):
-            header = [t.strip().lower() for t in tokens]
+        comment = text.startswith(("#", "//", "%"))
+        if not tokens:
             continue
-        if text.startswith(("#", "//")):
+        if not rows and header is None and not _numeric(tokens[0]):
+            names = [t.strip().lower() for t in tokens]
+            if not comment or any(n in _TIME_NAMES for n in names):
+                header = names  # a comment line before it (an exporter's note) is skipped
+            continue
+        if comment:
             continue
         rows.append((number, tokens))
     if header is None:
@@ -474,6 +520,18 @@ def _trajectory_parts(
                     span_t = [min(span_t[0], chunks[-1][2]), max(span_t[1], chunks[-1][3])]
                 start += len(t)
         per_file.append((f, chunks))
+    for f, chunks in per_file:
+        covered = sum(hi - lo for _, _, lo, hi in chunks)
+        whole = max(hi for *_, hi in chunks) - min(lo for _, _, lo, _ in chunks) if chunks else 0
+        if len(chunks) > 2 and covered > 2.0 * whole:
+            raise PointCloudFormatError(
+                f"the points are not in GPS-time order (each of its {len(chunks)} chunks of "
+                f"{TIME_CHUNK:,} points spans {covered / len(chunks):.0f} s of {whole:.0f} s): "
+                "every trajectory segment would read the whole file; sort it by GPS time "
+                "(e.g. PDAL filters.sort, LAStools lassort -gps_time) or tile it without "
+                "--trajectory",
+                path=f.path,
+            )
     if span_t[0] > times[-1] or span_t[1] < times[0]:
         raise SensorLogFormatError(
             f"the trajectory's times {times[0]:.3f}..{times[-1]:.3f} s do not meet the points' "

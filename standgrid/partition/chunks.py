@@ -58,6 +58,8 @@ class PayloadTask:
     window: tuple[float, float] | None = None
     #: Seconds added to the file's own GPS times (week seconds -> adjusted standard).
     time_offset: float = 0.0
+    #: File times below this take a week (604,800 s) more: after the week's rollover.
+    time_wrap: float | None = None
 
 
 @dataclass(frozen=True)
@@ -138,7 +140,11 @@ def payload_chunk(task: PayloadTask) -> PayloadChunk:
     n = len(xyz)
     fields = dict(cloud.fields)
     if task.time_offset and "gps_time" in fields:
-        fields["gps_time"] = np.asarray(fields["gps_time"], dtype=np.float64) + task.time_offset
+        t = np.asarray(fields["gps_time"], dtype=np.float64)
+        shifted = t + task.time_offset
+        if task.time_wrap is not None:
+            shifted += np.where(t < task.time_wrap, 604_800.0, 0.0)
+        fields["gps_time"] = shifted
     if "gps_time" not in fields:  # per-point times of the source win over the payload stamp
         fields["gps_time"] = np.full(n, task.gps_time)
     fields["point_source_id"] = np.full(n, task.point_source_id, dtype=np.uint16)

@@ -265,15 +265,12 @@ def _prepare(
     (``crs``: of clouds already projected that name none)."""
     from standgrid.georeference.placement import place_mission
     from standgrid.mission.model import Mission, open_mission
-    from standgrid.mission.scan import ScanOptions, is_scan, open_scan, part_points_for
+    from standgrid.mission.scan import ScanOptions, is_scan, open_scan
 
     if isinstance(given, Mission):
         mission = given
     elif is_scan(given):
-        scan = ScanOptions(
-            crs=crs, date=options.scan_date, trajectory=options.trajectory,
-            part_points=part_points_for(options.memory_budget.bytes),
-        )  # fmt: skip
+        scan = ScanOptions(crs=crs, date=options.scan_date, trajectory=options.trajectory)
         mission = open_scan(given, scan)
     else:
         if options.trajectory is not None:

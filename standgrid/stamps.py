@@ -83,6 +83,13 @@ def gps_leap_seconds(unix_sec: NDArray[np.int64] | int) -> NDArray[np.int64]:
     return np.searchsorted(_LEAP_UNIX, np.asarray(unix_sec, dtype=np.int64), side="right")
 
 
+def adjusted_gps_time_to_unix(seconds: float) -> float:
+    """LAS *adjusted standard GPS time* -> UNIX seconds (the inverse of
+    :func:`unix_ns_to_adjusted_gps_time`; the leap seconds in force about then)."""
+    unix = seconds + 1_000_000_000 + GPS_EPOCH_UNIX
+    return unix - float(gps_leap_seconds(int(unix)))
+
+
 def unix_ns_to_adjusted_gps_time(ns: NDArray[np.int64] | int) -> NDArray[np.float64]:
     """UNIX nanoseconds -> LAS *adjusted standard GPS time* (GPS seconds - 1e9), with the
     leap seconds in force at each stamp."""

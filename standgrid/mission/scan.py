@@ -56,8 +56,6 @@ PART_POINTS = 250_000
 SEGMENT_M = 20.0
 #: Points read at a time when a trajectory's segments are found in the files' GPS times.
 TIME_CHUNK = 1_000_000
-#: Seconds between the GPS epoch (1980-01-06) and the UNIX epoch.
-_GPS_EPOCH_UNIX = 315_964_800
 
 
 @dataclass(frozen=True)
@@ -164,6 +162,8 @@ class _FileFacts:
     has_time: bool
     created: dt.date | None
     box: tuple[NDArray[np.float64], NDArray[np.float64]]
+    #: The median GPS time of the first thousand points (None without times).
+    first_time: float | None
 
 
 def _facts(path: Path) -> _FileFacts:
@@ -181,33 +181,25 @@ def _facts(path: Path) -> _FileFacts:
             standard = header.global_encoding.gps_time_type == laspy.header.GpsTimeType.STANDARD
             has_time = "gps_time" in header.point_format.dimension_names
             box = (np.asarray(header.mins, np.float64), np.asarray(header.maxs, np.float64))
+            first = None
+            if has_time and count:
+                t = np.asarray(reader.read_points(min(1000, count))["gps_time"], np.float64)
+                t = t[np.isfinite(t) & (t != 0)]
+                first = float(np.median(t)) if len(t) else None
     except Exception as exc:  # laspy, pyproj and OS errors alike
         raise PointCloudFormatError(f"unreadable LAS/LAZ header ({exc})", path=path) from exc
     if created is not None and created.year < 1990:
         created = None
     return _FileFacts(path, count, None if crs is None else _crs_text(crs), bool(standard),
-                      has_time, created, box)  # fmt: skip
-
-
-def _first_gps_time(path: Path) -> float | None:
-    """The median GPS time of the file's first thousand points (None without times)."""
-    import laspy
-
-    with laspy.open(path) as reader:
-        points = reader.read_points(min(1000, reader.header.point_count))
-    t = np.asarray(points["gps_time"], dtype=np.float64)
-    t = t[np.isfinite(t) & (t != 0)]
-    return float(np.median(t)) if len(t) else None
+                      has_time, created, box, first)  # fmt: skip
 
 
 def adjusted_gps_to_date(seconds: float) -> dt.date:
     """The UTC date of an adjusted standard GPS time (GPS seconds - 1e9), leap seconds
     counted."""
-    from standgrid.stamps import gps_leap_seconds
+    from standgrid.stamps import adjusted_gps_time_to_unix
 
-    unix = seconds + 1e9 + _GPS_EPOCH_UNIX
-    unix -= float(gps_leap_seconds(int(unix)))
-    return dt.datetime.fromtimestamp(unix, dt.UTC).date()
+    return dt.datetime.fromtimestamp(adjusted_gps_time_to_unix(seconds), dt.UTC).date()
 
 
 def week_start(day: dt.date, seconds_of_week: float) -> float:
@@ -230,9 +222,7 @@ def _time_kind(facts: _FileFacts) -> tuple[str | None, float | None]:
     LAS 1.0/1.1 cannot say, writers forget it): ``"week"`` seconds when the first times lie
     within one week, else ``"standard"`` (adjusted standard GPS time); None without times.
     Also the first times' median."""
-    if not facts.has_time or not facts.points:
-        return None, None
-    first = _first_gps_time(facts.path)
+    first = facts.first_time
     if first is None:
         return None, None
     return ("week" if 0.0 <= first < WEEK_S else "standard"), first

@@ -31,7 +31,7 @@ from tests.pipeline_fixtures import CRS, MISSIONS
 TOKEN = "edges-token-0123456789abcdef"
 AUTH = {"Authorization": f"Bearer {TOKEN}"}
 COYOTE = MISSIONS["2024"]
-#: The body of the README's `POST /missions` example (Robot integration).
+#: The body of the `POST /missions` example of docs/SERVICE.md (Robot integration).
 README_BODY = {
     "name": "2024-05-14-wytham-anymal-coyote", "date": "2024-05-14", "place": "wytham",
     "robot": "anymal", "sensors": ["velodyne-vlp16", "gnss"],

@@ -1,8 +1,8 @@
 """Find what a mission folder holds: which file or folder plays which role.
 
 Discovery only looks at names (no file is parsed here). Every layout of
-docs/MISSION_FORMAT.md section 1 (VILENS ROS 1 and ROS 2 output) and our own section 6
-files are recognised; anything else in a cloud folder is listed in ``unrecognised``.
+../shared/docs/MISSION_FORMAT.md section 1 (VILENS ROS 1 and ROS 2 output) and our own
+section 6 files are recognised; anything else in a cloud folder is listed in ``unrecognised``.
 """
 
 from __future__ import annotations

@@ -28,6 +28,15 @@ if TYPE_CHECKING:
     from standgrid.enrich.rasters import RasterGrid
 
 
+#: Shares of a process's memory budget (issue 22: its peak RSS stays within 1.1 x the budget
+#: plus the interpreter): the chunks in flight get half, the tiles' coordinates kept for
+#: later chunks a sixteenth; the rest is what a process holds besides the chunks (freed
+#: arenas not yet returned, the modules the passes load, the merged results: 150-250 MB
+#: at 20 M points, more than a quarter of a 512 MB budget).
+CHUNK_SHARE = 1 / 2
+CACHE_SHARE = 1 / 16
+
+
 @dataclass(frozen=True)
 class BlockJob:
     """One chunk's work: read its tiles under ``root``, enrich, write ``targets``."""
@@ -37,13 +46,13 @@ class BlockJob:
     targets: tuple[str, ...]
     context: BlockContext
     lattice_origin: tuple[float, float]
-    #: bytes of this process's budget that keep tiles' coordinates for later chunks
-    cache_bytes: int = 0
+    #: this process's memory budget (bytes)
+    budget_bytes: int = 0
 
     @property
-    def budget_bytes(self) -> int:
-        """This process's budget: the cache is an eighth of it (``pipeline.enrich``)."""
-        return self.cache_bytes * 8
+    def cache_bytes(self) -> int:
+        """Bytes of the budget that keep tiles' coordinates for later chunks."""
+        return int(self.budget_bytes * CACHE_SHARE)
 
     @property
     def working_bytes(self) -> int:
@@ -110,12 +119,12 @@ def apply_blocks(
     wait, so merging is deterministic whatever the executor; close it when done, see
     :func:`~standgrid.engine.ordered.ordered_map`). In this process, up to
     :data:`~standgrid.engine.ordered.AHEAD` jobs run at once on threads (see
-    :func:`chunks_at_once`), as many as their estimated working sets fit in the 7/8 of the
-    budget the chunks get (a chunk cannot be smaller than one cell: a dense one runs alone)."""
+    :func:`chunks_at_once`), as many as their estimated working sets fit in the share of the
+    budget the chunks get (:data:`CHUNK_SHARE`) (a chunk cannot be smaller than one cell: a dense one runs alone)."""
     from standgrid.engine.ordered import AHEAD
 
     if isinstance(executor, SerialExecutor):
-        limit = jobs[0].budget_bytes * 7 // 8 if jobs else 0
+        limit = jobs[0].budget_bytes * CHUNK_SHARE if jobs else 0
         in_order = bounded_map(
             functools.partial(run_limited, run_block),
             jobs,

@@ -197,7 +197,13 @@ def _enrich_epoch(
     from standgrid.catalog.partition import catalog_partition
     from standgrid.enrich.block import BlockContext
     from standgrid.enrich.coverage import Coverage, cells_mask
-    from standgrid.enrich.engine import BlockJob, EpochRasters, apply_blocks, chunks_at_once
+    from standgrid.enrich.engine import (
+        CHUNK_SHARE,
+        BlockJob,
+        EpochRasters,
+        apply_blocks,
+        chunks_at_once,
+    )
     from standgrid.enrich.outputs import tree_table, write_coverage, write_raster
     from standgrid.enrich.rasters import RasterGrid
     from standgrid.enrich.terrain import GROUND_HALO_M, ground_reach
@@ -225,10 +231,9 @@ def _enrich_epoch(
         2 * options.coverage_closing_m + 2 * grid.pixel_size,
         GROUND_HALO_M,
     )
-    # 7/8 of the budget for the chunks a process holds at once, 1/8 for the tiles kept for
-    # later chunks
+    # a share of the budget for the chunks a process holds at once (enrich.engine.CHUNK_SHARE)
     budget = options.memory_budget
-    block_points = budget.bytes * 7 // 8 // chunks_at_once(executor) // BYTES_PER_POINT
+    block_points = int(budget.bytes * CHUNK_SHARE) // chunks_at_once(executor) // BYTES_PER_POINT
     side = chunk_side(cells, cell_size, halo, block_points)
     reach = functools.partial(ground_reach, lattice=(grid.x0, grid.y0))
     chunks = plan_chunks(cells, side=side, origin=origin, buffer=halo, reach=reach)
@@ -241,7 +246,7 @@ def _enrich_epoch(
             tuple(str(txn.stage(c.tile)) for c in chunk.cells),
             context,
             origin,
-            cache_bytes=budget.bytes // 8,
+            budget_bytes=budget.bytes,
         )
         for chunk in chunks
     ]

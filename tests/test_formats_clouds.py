@@ -10,8 +10,8 @@ import pytest
 from plyfile import PlyData
 from pypcd4 import PointCloud as PcdCloud
 
+from standgrid.clouds import iter_cloud_chunks, read_cloud, read_cloud_header, write_cloud
 from standgrid.geometry import pose_matrix
-from standgrid.mission.clouds import iter_cloud_chunks, read_cloud, read_cloud_header, write_cloud
 from standgrid.mission.posegraph import read_pose_graph
 from standgrid.pointcloud import PointCloud
 from standgrid.stamps import stamp_from_filename

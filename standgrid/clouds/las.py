@@ -100,6 +100,8 @@ class LasReader(CloudReader):
 
 
 def las_points_to_cloud(points: Any) -> PointCloud:
+    """A laspy point record as a cloud: scaled float64 ``x y z``, every other dimension a
+    field under its laspy name."""
     xyz = np.column_stack(
         [
             np.asarray(points.x, np.float64),

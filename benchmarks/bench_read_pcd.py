@@ -17,7 +17,7 @@ from pathlib import Path
 import numpy as np
 from pypcd4 import PointCloud as PcdCloud
 
-from standgrid.mission.clouds import read_cloud, write_cloud
+from standgrid.clouds import read_cloud, write_cloud
 from standgrid.pointcloud import PointCloud
 
 

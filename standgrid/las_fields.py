@@ -54,6 +54,9 @@ LAS_INTEGER_DIMENSIONS: dict[str, tuple[np.dtype[Any], int, int]] = {
 }
 #: Every field stored in a LAS dimension of its own name by these rules.
 LAS_CHECKED_FIELDS = frozenset({*LAS_INTEGER_DIMENSIONS, "gps_time"})
+#: The LAS intensity, where a writer stores it by the same rule (a payload written as LAS;
+#: tiles keep other intensities exactly beside a scaled one, ``standgrid.export.las``).
+LAS_INTENSITY: tuple[np.dtype[Any], int, int] = (np.dtype(np.uint16), 0, 65535)
 #: Degrees per unit of the LAS 1.4 ``scan_angle`` (point formats 6-10).
 SCAN_ANGLE_UNIT_DEG = 0.006
 #: Integers up to this magnitude convert to float64 exactly.
@@ -67,7 +70,7 @@ def las_dimension_values(
     when it is of an integer or bool dtype (every value fits: assigning it casts exactly),
     floats converted to the stored dtype; else a :class:`PointCloudFormatError` naming the
     field, ``path`` and the first offending value (point indices start at ``first_point``).
-    ``name`` must be in :data:`LAS_CHECKED_FIELDS`."""
+    ``name`` must be in :data:`LAS_CHECKED_FIELDS` or be ``intensity``."""
     if values.ndim != 1:
         raise PointCloudFormatError(
             f"field {name!r} has shape {values.shape[1:]} per point; its LAS dimension holds "
@@ -83,7 +86,7 @@ def las_dimension_values(
         )
     if name == "gps_time":
         return _gps_times(values, path, first_point)
-    stored, lo, hi = LAS_INTEGER_DIMENSIONS[name]
+    stored, lo, hi = LAS_INTENSITY if name == "intensity" else LAS_INTEGER_DIMENSIONS[name]
     if kind == "b" or not values.size:
         return values if kind != "f" else values.astype(stored)
     if kind in "ui":

@@ -7,8 +7,8 @@ from pathlib import Path
 
 import numpy as np
 
+from standgrid.clouds import write_cloud
 from standgrid.geometry import Matrix4, pose_matrix, relative_pose
-from standgrid.mission.clouds import write_cloud
 from standgrid.mission.posegraph import Edge, PoseGraph, Vertex, write_pose_graph
 from standgrid.mission.poses_csv import PoseTable, write_poses_csv
 from standgrid.mission.sensors import GnssFixes, ImuSamples, write_gnss, write_imu

@@ -21,6 +21,7 @@ import pyogrio
 import pytest
 
 from standgrid.catalog import Catalog
+from standgrid.clouds import read_cloud, write_cloud
 from standgrid.errors import (
     CatalogError,
     InsufficientGnssError,
@@ -28,7 +29,6 @@ from standgrid.errors import (
     PointCloudFormatError,
     PoorGeoreferenceError,
 )
-from standgrid.mission.clouds import read_cloud, write_cloud
 from standgrid.pipeline.enrich import enrich_catalog
 from standgrid.pipeline.tile import TileOptions, tile_missions
 from standgrid.pointcloud import PointCloud

@@ -83,8 +83,8 @@ def test_cloud_headers_know_the_size_their_data_needs(
 ) -> None:
     import numpy as np
 
+    from standgrid.clouds import read_cloud, read_cloud_header, write_cloud
     from standgrid.errors import PointCloudFormatError
-    from standgrid.mission.clouds import read_cloud, read_cloud_header, write_cloud
     from standgrid.pointcloud import PointCloud
 
     rng = np.random.default_rng(4)
@@ -149,7 +149,7 @@ def test_info_lists_a_truncated_laz_and_an_empty_pcd_as_problems(tmp_path: Path,
 
     import laspy
 
-    from standgrid.mission.clouds import read_cloud, read_cloud_header, write_cloud
+    from standgrid.clouds import read_cloud, read_cloud_header, write_cloud
     from standgrid.pointcloud import PointCloud
     from tests.conftest import BUNDLED_MISSIONS
 

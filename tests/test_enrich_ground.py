@@ -108,7 +108,7 @@ def test_bad_input_and_parameters() -> None:
 @pytest.mark.realdata
 def test_a_las_file_read_as_a_point_cloud_gives_the_same_ground() -> None:
     """LAS files go in as PointClouds (standgrid's reader) with the same result as arrays."""
-    from standgrid.mission.clouds import read_cloud
+    from standgrid.clouds import read_cloud
 
     path = real_file("als/las_chablais3.laz")
     cloud = read_cloud(path)

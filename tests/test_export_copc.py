@@ -224,6 +224,27 @@ def test_copc_reader_bounds_query_returns_exactly_the_points_inside(
     np.testing.assert_array_equal(_record_rows(got), want)
 
 
+def test_a_copc_tile_opens_as_a_cloud_by_suffix_or_by_its_bytes(
+    tile: tuple[Path, PointCloud, PointCloud], tmp_path: Path
+) -> None:
+    """The cloud registry reads a COPC file (LAZ 1.4, copc VLR first) as format ``copc``,
+    named so or not; it does not write one (the tile writer does)."""
+    from standgrid.clouds import open_cloud, write_cloud
+
+    path, core, buffer = tile
+    unnamed = tmp_path / "cell.bin"
+    shutil.copyfile(path, unnamed)
+    for source in (path, unnamed):
+        with open_cloud(source) as reader:
+            assert reader.header.format == "copc"
+            assert reader.header.points == len(core) + len(buffer)
+            assert reader.header.crs.to_epsg() == pyproj.CRS.from_user_input(CRS).to_epsg()
+            cloud = reader.read(["withheld"])
+            assert int(cloud.fields["withheld"].sum()) == len(buffer)
+    with pytest.raises(PointCloudFormatError, match="copc files are not written"):
+        write_cloud(core, tmp_path / "payload.copc.laz")
+
+
 @pytest.mark.parametrize("colour", [False, True])
 def test_read_tile_round_trip(tmp_path: Path, colour: bool) -> None:
     core = forest_cloud(8_000, seed=7, colour=colour)

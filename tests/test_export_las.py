@@ -510,7 +510,7 @@ def _mission_with_fields(root: Path, fields_of: Any) -> tuple[Path, list[Path]]:
     payload ``k`` (of ``n`` points)."""
     import shutil
 
-    from standgrid.mission.clouds import read_cloud, write_cloud
+    from standgrid.clouds import read_cloud, write_cloud
     from tests.conftest import BUNDLED_MISSIONS
 
     mission = shutil.copytree(
@@ -527,7 +527,7 @@ def _mission_with_fields(root: Path, fields_of: Any) -> tuple[Path, list[Path]]:
 
 
 def test_tiling_payloads_with_float_return_numbers(tmp_path: Path) -> None:
-    from standgrid.mission.clouds import read_cloud
+    from standgrid.clouds import read_cloud
     from standgrid.pipeline.tile import tile_missions
 
     def returns(k: int, n: int) -> dict[str, np.ndarray]:
@@ -688,7 +688,7 @@ def test_a_later_payloads_value_the_epochs_float_dtype_would_round_is_refused(
     """The epoch's dtypes come from the mission's first payload (float32 here): a later
     float64 value float32 cannot hold is refused, naming the payload, not rounded; float64
     values float32 holds exactly pass."""
-    from standgrid.mission.clouds import read_cloud
+    from standgrid.clouds import read_cloud
     from standgrid.pipeline.tile import tile_missions
 
     def ranges(exact: bool) -> Any:

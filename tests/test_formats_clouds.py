@@ -10,8 +10,9 @@ import pytest
 from plyfile import PlyData
 from pypcd4 import PointCloud as PcdCloud
 
+from standgrid.clouds import iter_cloud_chunks, read_cloud, read_cloud_header, write_cloud
+from standgrid.errors import PointCloudFormatError
 from standgrid.geometry import pose_matrix
-from standgrid.mission.clouds import iter_cloud_chunks, read_cloud, read_cloud_header, write_cloud
 from standgrid.mission.posegraph import read_pose_graph
 from standgrid.pointcloud import PointCloud
 from standgrid.stamps import stamp_from_filename
@@ -294,3 +295,55 @@ def test_las_gps_time_is_flagged_adjusted_standard(tmp_path: Path) -> None:
     assert (
         laspy.read(plain).header.global_encoding.gps_time_type == laspy.header.GpsTimeType.WEEK_TIME
     )
+
+
+def test_open_cloud_reads_header_points_and_chunks_of_every_format(tmp_path: Path) -> None:
+    """One reader per format from the registry: header first (no points read), the CRS of
+    a LAS header, chunks that add up to the points; a file named unlike any format is told
+    by its first bytes, one that is no cloud is refused naming it."""
+    from standgrid.clouds import open_cloud
+
+    cloud = _cloud(250)
+    for ext in ("pcd", "ply", "las", "laz"):
+        named = tmp_path / f"cloud.{ext}"
+        write_cloud(cloud, named, **({"crs": "EPSG:25832"} if ext in ("las", "laz") else {}))
+        unnamed = tmp_path / f"{ext}.bin"
+        unnamed.write_bytes(named.read_bytes())
+        for path in (named, unnamed):
+            with open_cloud(path) as reader:
+                header = reader.header
+                assert (header.format, header.points) == (ext, 250)
+                assert "curvature" in header.fields
+                crs = header.crs
+                assert (crs.to_epsg() if crs is not None else None) == (
+                    25832 if ext in ("las", "laz") else None
+                )
+                chunks = list(reader.chunks(100))
+                assert [len(c) for c in chunks] == [100, 100, 50]
+                np.testing.assert_allclose(
+                    np.concatenate([c.xyz for c in chunks]), reader.read().xyz
+                )
+    junk = tmp_path / "junk.bin"
+    junk.write_bytes(b"\x00\x01 not a point cloud" * 10)
+    with pytest.raises(PointCloudFormatError, match="unknown point-cloud extension") as info:
+        open_cloud(junk)
+    assert info.value.path == junk
+
+
+def test_payload_las_refusals_are_typed_and_name_the_file(tmp_path: Path) -> None:
+    """The payload LAS writer is the tile writer's encoder: a fraction in a standard field,
+    a NaN GPS time or an unusable CRS is refused naming the file, and nothing is written."""
+    from standgrid.errors import CRSError
+
+    xyz = np.zeros((3, 3))
+    out = tmp_path / "bad.laz"
+    cases = [
+        (PointCloud(xyz, {"classification": np.array([1.0, 2.5, 3.0])}), {}, "value 2.5"),
+        (PointCloud(xyz, {"gps_time": np.array([1.0, np.nan, 3.0])}), {}, "finite time"),
+        (PointCloud(xyz), {"crs": "EPSG:0"}, "unusable CRS"),
+    ]
+    for cloud, options, text in cases:
+        with pytest.raises((PointCloudFormatError, CRSError), match=text) as info:
+            write_cloud(cloud, out, **options)
+        assert info.value.path == out
+        assert not out.exists()

@@ -10,6 +10,7 @@ from typing import Any
 import numpy as np
 import pytest
 
+from standgrid.clouds import read_cloud, read_cloud_header, write_cloud
 from standgrid.errors import (
     FormatError,
     MetadataError,
@@ -19,7 +20,6 @@ from standgrid.errors import (
     SensorLogFormatError,
     StandgridError,
 )
-from standgrid.mission.clouds import read_cloud, read_cloud_header, write_cloud
 from standgrid.mission.metadata import read_metadata
 from standgrid.mission.posegraph import read_pose_graph
 from standgrid.mission.poses_csv import read_poses_csv

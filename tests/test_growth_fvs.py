@@ -290,8 +290,8 @@ def _projected_copy(source: Path, target: Path, geoid: Any) -> Path:
 
     import pyproj
 
+    from standgrid.clouds import write_cloud
     from standgrid.georeference import MapProjector, georeference_mission
-    from standgrid.mission.clouds import write_cloud
     from standgrid.mission.model import open_mission
     from standgrid.pointcloud import PointCloud
 

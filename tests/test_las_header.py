@@ -12,9 +12,9 @@ import laspy
 import numpy as np
 import pytest
 
+from standgrid.clouds import iter_cloud_chunks, read_cloud, read_cloud_header
+from standgrid.clouds.las_header import MAX_VLRS, check_las_header
 from standgrid.errors import PointCloudFormatError
-from standgrid.mission.clouds import iter_cloud_chunks, read_cloud, read_cloud_header
-from standgrid.mission.las_header import MAX_VLRS, check_las_header
 
 REAL = Path(__file__).resolve().parents[1] / ".." / "shared" / "data" / "real"
 
@@ -88,7 +88,7 @@ def test_random_bytes_after_lasf_end_in_a_typed_error_in_bounded_time(tmp_path: 
         import numpy as np, sys
         from pathlib import Path
         from standgrid.errors import PointCloudFormatError
-        from standgrid.mission.clouds import read_cloud
+        from standgrid.clouds import read_cloud
         path = Path({str(tmp_path / "r.las")!r})
         typed = 0
         for seed in range(200):

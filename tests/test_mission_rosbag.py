@@ -11,10 +11,10 @@ import pytest
 from scipy.spatial import cKDTree
 from scipy.spatial.transform import Rotation
 
+from standgrid.clouds import write_cloud
 from standgrid.errors import BagFormatError
 from standgrid.geometry import invert_pose, pose_matrix
 from standgrid.mission.build import build_payloads
-from standgrid.mission.clouds import write_cloud
 from standgrid.mission.model import open_mission
 from standgrid.mission.posegraph import write_pose_graph
 from standgrid.mission.rosbag import bag_to_mission

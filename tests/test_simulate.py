@@ -12,9 +12,9 @@ from click.testing import CliRunner
 from pyproj import Transformer
 from scipy.spatial import cKDTree
 
+from standgrid.clouds import read_cloud, read_cloud_header
 from standgrid.errors import OutputExistsError
 from standgrid.geometry import invert_pose, relative_pose, transform_points
-from standgrid.mission.clouds import read_cloud, read_cloud_header
 from standgrid.mission.metadata import parse_mission_name, read_metadata
 from standgrid.mission.model import open_mission
 from standgrid.mission.posegraph import EdgeKind, read_pose_graph

@@ -10,8 +10,8 @@ import numpy as np
 import pytest
 from pyproj import CRS, Transformer
 
+from standgrid.clouds import read_cloud
 from standgrid.geometry import invert_pose, transform_points
-from standgrid.mission.clouds import read_cloud
 from standgrid.mission.model import open_mission
 from standgrid.mission.posegraph import read_pose_graph
 from standgrid.mission.sensors import read_gnss

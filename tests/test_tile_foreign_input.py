@@ -20,10 +20,10 @@ import pytest
 from click.testing import CliRunner
 
 from standgrid.cli import cli
+from standgrid.clouds import write_cloud
 from standgrid.errors import CRSError, GeoreferenceError
 from standgrid.geometry import yaw_of
 from standgrid.georeference import MapProjector, georeference_mission
-from standgrid.mission.clouds import write_cloud
 from standgrid.mission.model import open_mission
 from standgrid.pipeline.tile import TileOptions, tile_missions
 from standgrid.pointcloud import PointCloud

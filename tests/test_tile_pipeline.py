@@ -25,6 +25,7 @@ import pytest
 import shapely
 from scipy.spatial import cKDTree
 
+from standgrid.clouds import write_cloud
 from standgrid.engine import CallbackProgress
 from standgrid.errors import (
     CRSError,
@@ -38,7 +39,6 @@ from standgrid.errors import (
 from standgrid.geometry import invert_pose, transform_points
 from standgrid.georeference import MapProjector
 from standgrid.georeference.fit import fit_from_pose_graph
-from standgrid.mission.clouds import write_cloud
 from standgrid.mission.posegraph import write_pose_graph
 from standgrid.partition import CellId, StandGrid
 from standgrid.pipeline.tile import TileOptions, tile_missions

@@ -68,8 +68,8 @@ def source_digest(source: dict[str, Any], placement: str, schema: Any) -> str:
     placement (:func:`placement_digest`), the epoch's field schema and, for a cloud with
     fields those rules apply to, the version of the rules bringing a source's fields to the
     tiles (:data:`SOURCE_FIELD_RULES`)."""
+    from standgrid.clouds import check_cloud_file
     from standgrid.errors import PointCloudFormatError
-    from standgrid.mission.clouds import check_cloud_file
 
     path = Path(source["path"])
     check_cloud_file(path)
@@ -115,8 +115,8 @@ def source_digest(source: dict[str, Any], placement: str, schema: Any) -> str:
 def _has_rule_fields(path: Path) -> bool:
     """Whether the cloud's header names a field :data:`SOURCE_FIELD_RULES` applies to (an
     unreadable header counts as yes: reading the payload will say what is wrong)."""
+    from standgrid.clouds import read_cloud_header
     from standgrid.errors import StandgridError
-    from standgrid.mission.clouds import read_cloud_header
 
     try:
         return bool(SOURCE_RULE_FIELDS & set(read_cloud_header(path).fields))

@@ -79,7 +79,7 @@ def _projected_centre(
     mission: Mission, to_catalog: ToCatalog, payload: Payload
 ) -> tuple[float, float, float]:
     """Centre of a projected cloud's bounding box, in the catalog CRS (LAS: from the header)."""
-    from standgrid.mission.clouds import read_cloud_header
+    from standgrid.clouds import read_cloud_header
 
     if payload.site is not None:
         site = np.asarray(payload.site, dtype=np.float64)[None, :]

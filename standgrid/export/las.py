@@ -27,15 +27,14 @@ Field mapping (``PointCloud.fields`` -> LAS):
   always are.
 
 A private VLR (user id ``standgrid``) records the written field names and dtypes, so
-:func:`read_tile` returns exactly the fields that were written.
+:func:`read_tile` returns exactly the fields that were written. The bytes are those of the
+one LAS encoder, :mod:`standgrid.clouds.las_write`, with its ``TILE`` convention.
 """
 
 from __future__ import annotations
 
-import contextlib
 import json
 import os
-from collections.abc import Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -43,40 +42,23 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from standgrid._atomic import atomic_output
-from standgrid.errors import CRSError, PointCloudFormatError, out_of_space_error
+from standgrid.clouds.las_write import (
+    COLOUR_FIELDS,
+    LAS_DIMENSION_NAMES,
+    STANDARD_FIELDS,
+    TILE,
+    VLR_RECORD_ID,
+    VLR_USER_ID,
+    encode_las,
+    extra_type,
+    write_las,
+)
+from standgrid.errors import PointCloudFormatError
 from standgrid.las_fields import check_finite_gps_time, las_dimension_values
 from standgrid.partition.lattice import SCALE, snap_to_storage
 from standgrid.pointcloud import PointCloud
 
 __all__ = ["SCALE", "TileInfo", "read_tile", "snap_to_storage", "write_tile"]
-
-#: Private VLR holding the field manifest.
-VLR_USER_ID = "standgrid"
-VLR_RECORD_ID = 1
-GENERATING_SOFTWARE = "standgrid"
-INT32_MAX = 2**31 - 1
-
-#: Fields copied into the LAS dimension of the same name.
-_STANDARD_FIELDS = (
-    "gps_time",
-    "point_source_id",
-    "classification",
-    "return_number",
-    "number_of_returns",
-    "user_data",
-    "scan_angle",
-    "scan_direction_flag",
-    "edge_of_flight_line",
-    "synthetic",
-    "key_point",
-    "overlap",
-    "scanner_channel",
-)
-_COLOUR_FIELDS = ("red", "green", "blue")
-_LAS_DIMENSION_NAMES = frozenset(
-    {"x", "y", "z", "intensity", "withheld", *_STANDARD_FIELDS, *_COLOUR_FIELDS}
-)
 
 
 @dataclass(frozen=True)
@@ -113,92 +95,6 @@ class TileInfo:
         return (self.path, self.file_bounds, self.crs, self.point_count, datetime)
 
 
-def _crs_wkt(crs: str) -> tuple[Any, str]:
-    import pyproj
-
-    try:
-        parsed = pyproj.CRS.from_user_input(crs)
-    except pyproj.exceptions.CRSError as exc:
-        raise CRSError(f"unusable CRS {crs!r}: {exc}") from exc
-    # LAS 1.4 asks for OGC WKT; WKT1 (GDAL flavour) is what most LAS readers parse, WKT2
-    # is the fall-back for CRSs that WKT1 cannot express.
-    wkt = parsed.to_wkt(pyproj.enums.WktVersion.WKT1_GDAL) or parsed.to_wkt()
-    return parsed, wkt
-
-
-def _column_bounds(
-    columns: NDArray[np.float64],
-) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
-    """Per-axis (min, max) of (3, N) contiguous columns (NaN when N is 0)."""
-    if not columns.shape[1]:
-        return np.full(3, np.nan), np.full(3, np.nan)
-    return columns.min(axis=1), columns.max(axis=1)
-
-
-def _probe(core: NDArray[Any], buffer: NDArray[Any] | None) -> NDArray[Any]:
-    """A zero-length array of the dtype and per-point shape a field is written with (the
-    core's, promoted with the buffer's as concatenating them would)."""
-    dtype = core.dtype if buffer is None else np.result_type(core, buffer)
-    return np.empty((0, *core.shape[1:]), dtype=dtype)
-
-
-def _blank_record(point_format: Any, n_core: int, n_buffer: int) -> NDArray[np.void]:
-    """A point record of zeros but return number and number of returns 1, and the withheld
-    flag on the ``n_buffer`` points after the core ones (bytes set by laspy's own packing)."""
-    import laspy
-
-    template = laspy.PackedPointRecord.zeros(2, point_format)
-    template["return_number"] = np.ones(2, np.uint8)
-    template["number_of_returns"] = np.ones(2, np.uint8)
-    template["withheld"] = np.array([0, 1], np.uint8)
-    pattern = template.array.view(np.uint8).reshape(2, -1)
-    record = np.zeros(n_core + n_buffer, dtype=point_format.dtype())
-    as_bytes = record.view(np.uint8).reshape(len(record), record.dtype.itemsize)
-    for row, rows in ((0, slice(0, n_core)), (1, slice(n_core, None))):
-        for column in np.flatnonzero(pattern[row]):
-            as_bytes[rows, column] = pattern[row, column]
-    return record
-
-
-def _storage_ints(values: NDArray[np.float64], offset: float) -> NDArray[np.float64]:
-    """``round((values - offset) / SCALE)``: the stored integer coordinates (as floats)."""
-    scaled = np.subtract(values, offset)
-    scaled /= SCALE
-    return np.round(scaled, out=scaled)
-
-
-def _scaled_intensity(values: NDArray[Any], intensity_scale: float) -> NDArray[np.uint16]:
-    """Non-native intensities as LAS intensities: rounded, scaled, clipped to 16 bits."""
-    scaled = values.astype(np.float64)  # a copy, worked on in place
-    scaled *= intensity_scale
-    np.round(scaled, out=scaled)
-    np.nan_to_num(scaled, copy=False)
-    np.clip(scaled, 0, 65535, out=scaled)
-    return scaled.astype(np.uint16)
-
-
-def _intensity_is_native(values: NDArray[Any]) -> bool:
-    return values.dtype.kind in "ub" and values.dtype.itemsize <= 2
-
-
-def _extra_type(name: str, values: NDArray[Any], path: Path) -> str:
-    """The laspy extra-bytes type string for a field (``"u4"``, ``"3f8"``)."""
-    dtype = np.dtype(bool) if values.dtype == np.bool_ else values.dtype
-    base = "u1" if dtype == np.bool_ else dtype.str.lstrip("<>|=")
-    if dtype.kind not in "biuf" or dtype.itemsize > 8:
-        raise PointCloudFormatError(
-            f"field {name!r} of dtype {values.dtype} cannot be stored as LAS extra bytes", path=path
-        )
-    if values.ndim == 1:
-        return base
-    if values.ndim == 2 and 1 <= values.shape[1] <= 3:
-        return f"{values.shape[1]}{base}"
-    raise PointCloudFormatError(
-        f"field {name!r} has shape {values.shape[1:]} per point; LAS extra bytes hold at most 3",
-        path=path,
-    )
-
-
 def write_tile(
     path: str | os.PathLike[str],
     core: PointCloud,
@@ -229,8 +125,6 @@ def write_tile(
     :class:`~standgrid.errors.PointCloudFormatError` naming the tile, the field and the first
     offending value, before any file is created.
     """
-    import laspy
-
     out = Path(path)
     if laz is None:
         laz = out.suffix.lower() == ".laz"
@@ -247,178 +141,29 @@ def write_tile(
     buffer_fields = {k: v for k, v in buffer.fields.items() if k != "withheld"}
     if "withheld" in core.fields and np.any(core.fields["withheld"]):
         raise PointCloudFormatError("core points must not be withheld", path=out)
-    if len(buffer) and set(core_fields) != set(buffer_fields):
-        raise PointCloudFormatError(
-            f"core fields {sorted(core_fields)} differ from buffer fields {sorted(buffer_fields)}",
-            path=out,
-        )
-    for name, values in core_fields.items():
-        if len(buffer) and buffer_fields[name].shape[1:] != values.shape[1:]:
-            raise PointCloudFormatError(
-                f"field {name!r} has shape {values.shape[1:]} per core point and "
-                f"{buffer_fields[name].shape[1:]} per buffer point",
-                path=out,
-            )
-    n_core, n_buffer = len(core), len(buffer)
-    n = n_core + n_buffer
-    # The core and buffer parts go straight into the record: no concatenated copies.
-    # (x, y, z) as contiguous columns: reduced for the bounds, scaled into the record
-    core_columns = np.ascontiguousarray(core.xyz.T)
-    parts = [(0, core_columns, core_fields)]
-    if n_buffer:
-        buffer_columns = np.ascontiguousarray(buffer.xyz.T)
-        parts.append((n_core, buffer_columns, buffer_fields))
-    #: Each field as a zero-length array of the dtype (and per-point shape) it is written as.
-    fields: dict[str, NDArray[Any]] = {
-        name: _probe(values, buffer_fields[name] if n_buffer else None)
-        for name, values in core_fields.items()
-    }
-    has_colour = all(c in fields for c in _COLOUR_FIELDS)
-    point_format = 7 if has_colour else 6
-    # The standard dimensions' values, checked (and floats made integers) before any work.
-    standard: dict[str, list[tuple[int, NDArray[Any]]]] = {
-        name: [
-            (start, las_dimension_values(name, f[name], out, first_point=start))
-            for start, _, f in parts
-        ]
-        for name in (*_STANDARD_FIELDS, *(_COLOUR_FIELDS if has_colour else ()))
-        if name in fields
-    }
-    if "intensity" in fields and fields["intensity"].ndim != 1:
-        raise PointCloudFormatError(
-            f"field 'intensity' has shape {fields['intensity'].shape[1:]} per point; "
-            "LAS intensity holds one value per point",
-            path=out,
-        )
-
-    parsed_crs, wkt = _crs_wkt(crs)
-    header = laspy.LasHeader(point_format=point_format, version="1.4")
-    header.generating_software = GENERATING_SOFTWARE
-    header.system_identifier = "standgrid tile"
-    header.global_encoding.gps_time_type = laspy.header.GpsTimeType.STANDARD
-    header.add_crs(parsed_crs)
-    for vlr in header.vlrs:
-        if isinstance(vlr, laspy.vlrs.known.WktCoordinateSystemVlr):
-            vlr.string = wkt
-
-    core_lo, core_hi = _column_bounds(core_columns)
-    all_lo, all_hi = core_lo, core_hi
-    if n_buffer:
-        buffer_lo, buffer_hi = _column_bounds(buffer_columns)
-        all_lo, all_hi = buffer_lo, buffer_hi
-        if n_core:
-            all_lo, all_hi = np.minimum(core_lo, buffer_lo), np.maximum(core_hi, buffer_hi)
-    # min and max propagate NaN and reach +-inf: finite extremes mean finite coordinates
-    if n and not (np.all(np.isfinite(all_lo)) and np.all(np.isfinite(all_hi))):
-        raise PointCloudFormatError("non-finite coordinates", path=out)
-    # Offsets are whole metres from the grid's origin: the stored 1 mm lattice is then the
-    # one snap_to_storage(origin) snaps to, whatever the origin.
-    lattice = np.array([float(lattice_origin[0]), float(lattice_origin[1]), 0.0])
-    offsets = lattice + np.floor(all_lo - lattice) if n else np.zeros(3)
-    if n:
-        span = np.round((all_hi - offsets) / SCALE)
-        if np.any(span > INT32_MAX):
-            raise PointCloudFormatError(
-                f"tile spans {(all_hi - offsets).max():.0f} m: too large for 1 mm "
-                "coordinates in LAS int32",
-                path=out,
-            )
-    header.offsets = offsets
-    header.scales = np.full(3, SCALE)
-
-    # Decide where every field goes before allocating the record.
-    manifest: dict[str, str] = {}
-    extra: dict[str, NDArray[Any]] = {}
-    source_of: dict[str, str] = {}  # the field each extra dimension is filled from
-    for name, values in fields.items():
-        manifest[name] = (
-            values.dtype.str if values.ndim == 1 else f"{values.shape[1]}{values.dtype.str}"
-        )
-        if name == "intensity":
-            if not _intensity_is_native(values):
-                extra["intensity_raw"], source_of["intensity_raw"] = values, name
-        elif name in _COLOUR_FIELDS:
-            if not has_colour:
-                extra[name], source_of[name] = values, name
-        elif name not in _LAS_DIMENSION_NAMES:
-            extra[name], source_of[name] = values, name
-    for name, values in extra.items():
-        if len(name.encode()) > 32:
-            raise PointCloudFormatError(
-                f"field name {name!r} is longer than the 32 bytes LAS extra bytes allow", path=out
-            )
-        header.add_extra_dim(
-            laspy.ExtraBytesParams(
-                name=name,
-                type=_extra_type(name, values, out),
-                description="bool" if values.dtype == np.bool_ else "",
-            )
-        )
-    header.vlrs.append(
-        laspy.VLR(
-            VLR_USER_ID,
-            VLR_RECORD_ID,
-            "standgrid field manifest",
-            json.dumps({"fields": manifest, "intensity_scale": intensity_scale}).encode(),
-        )
+    encoded = encode_las(
+        PointCloud(core.xyz, core_fields),
+        path=out,
+        convention=TILE,
+        scale=SCALE,
+        crs=crs,
+        buffer=PointCloud(buffer.xyz, buffer_fields) if len(buffer) else None,
+        lattice_origin=lattice_origin,
+        intensity_scale=intensity_scale,
     )
-
-    record = _blank_record(header.point_format, n_core, n_buffer)
-    points = laspy.PackedPointRecord(record, header.point_format)
-
-    def put(target: str, name: str, convert: Any = None) -> None:
-        """Field ``name`` of every part into dimension ``target`` (cast to the field's dtype)."""
-        dtype = fields[name].dtype
-        for start, _, part_fields in parts:
-            values = part_fields[name].astype(dtype, copy=False)
-            record[target][start : start + len(values)] = (
-                values if convert is None else convert(values)
-            )
-
-    for axis, upper in enumerate("XYZ"):
-        for start, part_columns, _ in parts:
-            part = part_columns[axis]
-            record[upper][start : start + len(part)] = _storage_ints(part, offsets[axis])
-    packed: dict[str, NDArray[Any]] = {}  # the bit fields' values, as given to laspy
-    for name, checked in standard.items():
-        if name in (record.dtype.names or ()):
-            for start, values in checked:
-                record[name][start : start + len(values)] = values
-        else:  # a bit field: laspy packs it
-            packed[name] = np.concatenate([values for _, values in checked])
-            points[name] = packed[name]
-    if "intensity" in fields:
-        if _intensity_is_native(fields["intensity"]):
-            put("intensity", "intensity")
-        else:
-            put("intensity", "intensity", lambda v: _scaled_intensity(v, intensity_scale))
-    for name, values in extra.items():
-        to_bytes = (lambda v: v.astype(np.uint8)) if values.dtype == np.bool_ else None
-        put(name, source_of[name], to_bytes)
-    las = laspy.LasData(header, points)
-    extent = None
-    if n:  # what laspy would compute from the packed points, from the values at hand
-        returns = packed.get("return_number")
-        if returns is not None:
-            by_return = np.bincount(returns.astype(np.int64), minlength=16)
-        else:  # every point is return 1 of 1 (the blank record)
-            by_return = np.zeros(16, np.int64)
-            by_return[1] = n
-        gps = (0.0, 0.0)
-        if "gps_time" in standard:
-            stored = [v for _, v in standard["gps_time"] if len(v)]
-            # np.min/np.max, not min/max: a NaN extreme of any part propagates
-            gps = (
-                float(np.min([v.min() for v in stored])),
-                float(np.max([v.max() for v in stored])),
-            )
-            check_finite_gps_time(*gps, stored, out)  # NaN or inf extremes: not written
-        # rounding is monotonic: the stored extremes are the rounded true extremes
-        file_lo = offsets + np.round((all_lo - offsets) / SCALE) * SCALE
-        file_hi = offsets + np.round((all_hi - offsets) / SCALE) * SCALE
-        extent = _Extent(file_lo, file_hi, gps, by_return)
-
-    _write_las(las, out, laz=bool(laz), overwrite=overwrite, durable=durable, extent=extent)
+    write_las(
+        encoded.las,
+        out,
+        laz=bool(laz),
+        overwrite=overwrite,
+        durable=durable,
+        extent=encoded.extent,
+    )
+    n_core, n_buffer = len(core), len(buffer)
+    core_lo, core_hi = encoded.core_bounds
+    core_columns = encoded.core_columns
+    extent = encoded.extent
+    point_format = encoded.point_format
 
     z = core.xyz[:, 2]
     if n_core:
@@ -459,113 +204,12 @@ def write_tile(
     )
 
 
-@dataclass(frozen=True)
-class _Extent:
-    """What laspy's writer computes from the packed points for the header (``header.grow``:
-    passes over the points, a sort of the return numbers), known beforehand; the extra
-    bytes' extremes are still laspy's."""
-
-    #: Scaled storage extremes (offset + stored integer * scale).
-    mins: NDArray[np.float64]
-    maxs: NDArray[np.float64]
-    #: (min, max) of the stored GPS times.
-    gps: tuple[float, float]
-    #: Point count of each return number 0..15.
-    by_return: NDArray[np.int64]
-
-
-def _write_las(
-    las: Any, out: Path, *, laz: bool, overwrite: bool, durable: bool, extent: _Extent | None = None
-) -> None:
-    """Write ``las`` to ``out`` atomically (LAZ with the parallel lazrs backend).
-
-    With ``extent`` (points present), the header's point count, extremes and counts by
-    return are set from it rather than recomputed by laspy from the packed points, and a
-    LAS header is written once: the same bytes as ``las.write``, without passes over the
-    record (``las``'s header is updated as laspy's writer would update its copy)."""
-    import laspy
-
-    backend = laspy.LazBackend.LazrsParallel if laz else None
-    # A file object: given a path, laspy picks compression from the (temporary) suffix.
-    staged = atomic_output(out, overwrite=overwrite, durable=durable)
-    with staged as tmp, open(tmp, "wb") as raw, _errors_kept(raw, out) as stream:
-        if extent is None or not len(las.points) or las.evlrs:
-            las.write(stream, do_compress=laz, laz_backend=backend)
-        elif laz:
-            with laspy.LasWriter(
-                stream, las.header, do_compress=True, laz_backend=backend, closefd=False
-            ) as writer:
-                _grow(writer.header, extent, las.points)
-                writer.point_writer.write_points(las.points)
-        else:  # what laspy's LasWriter writes, the header written once, complete
-            header = las.header
-            header.partial_reset()
-            header.are_points_compressed = False
-            _grow(header, extent, las.points)
-            header.write_to(stream)
-            stream.write(las.points.memoryview())
-
-
-class _ErrorKeepingStream:
-    """A binary file whose last ``OSError`` is kept: lazrs turns the errors of the Python
-    writes it makes into ``LazrsError("IoError: Failed to call write")``, losing the errno
-    that tells a full disk."""
-
-    def __init__(self, stream: Any) -> None:
-        self._stream = stream
-        self.error: OSError | None = None
-
-    def write(self, data: Any) -> int:
-        return int(self._call(self._stream.write, data))
-
-    def flush(self) -> None:
-        self._call(self._stream.flush)
-
-    def _call(self, method: Any, *args: Any) -> Any:
-        try:
-            return method(*args)
-        except OSError as exc:
-            self.error = exc
-            raise
-
-    def __getattr__(self, name: str) -> Any:  # seek, tell, ...
-        return getattr(self._stream, name)
-
-
-@contextlib.contextmanager
-def _errors_kept(stream: Any, out: Path) -> Iterator[Any]:
-    """``stream`` wrapped in :class:`_ErrorKeepingStream`; an error whose writes failed for
-    want of room (ENOSPC, EFBIG, EDQUOT) becomes :class:`OutOfSpaceError` naming ``out``."""
-    kept = _ErrorKeepingStream(stream)
-    try:
-        yield kept
-    except Exception as exc:
-        full = out_of_space_error(exc, out) or (
-            out_of_space_error(kept.error, out) if kept.error is not None else None
-        )
-        if full is not None and full is not exc:
-            raise full from (kept.error or exc)
-        raise
-
-
-def _grow(header: Any, extent: _Extent, points: Any) -> None:
-    """Set what laspy's ``header.grow(points)`` sets, from ``extent`` (the extra bytes'
-    extremes by laspy itself)."""
-    header.mins, header.maxs = extent.mins.copy(), extent.maxs.copy()
-    header.min_gps_time, header.max_gps_time = extent.gps
-    header.number_of_points_by_return[:] += extent.by_return[1:16].astype(np.uint64)
-    header.point_count += len(points)
-    extra_bytes = header.vlrs.get("ExtraBytesVlr")
-    if extra_bytes:
-        extra_bytes[0].grow(points)
-
-
 def read_tile_record(path: str | os.PathLike[str], **options: Any) -> Any:
     """A tile's ``laspy.LasData`` as stored (its size checked first); ``options`` go to
     ``laspy.read`` (e.g. ``decompression_selection``)."""
     import laspy
 
-    from standgrid.mission.clouds import check_las_size
+    from standgrid.clouds.las import check_las_size
 
     src = Path(path)
     check_las_size(src)
@@ -606,15 +250,15 @@ def rewrite_tile(
                 f"field {name!r} has {values.shape} values for {len(record.points)} points",
                 path=src,
             )
-        if name in _STANDARD_FIELDS:
+        if name in STANDARD_FIELDS:
             stored_values[name] = las_dimension_values(name, values, src)
             if name == "gps_time" and len(values):
                 times = stored_values[name]
                 check_finite_gps_time(times.min(), times.max(), [times], src)
-        elif name in _LAS_DIMENSION_NAMES or name == "intensity_raw":
+        elif name in LAS_DIMENSION_NAMES or name == "intensity_raw":
             raise PointCloudFormatError(f"field {name!r} cannot be rewritten", path=src)
         else:
-            extra_types[name] = _extra_type(name, values, src)
+            extra_types[name] = extra_type(name, values, src)
             stored_values[name] = values.astype(np.uint8) if values.dtype == np.bool_ else values
     added = []
     for name, values in fields.items():
@@ -651,7 +295,7 @@ def rewrite_tile(
             vlr.record_data = json.dumps(data).encode()
     if laz is None:
         laz = out.suffix.lower() == ".laz"
-    _write_las(record, out, laz=laz, overwrite=True, durable=durable)
+    write_las(record, out, laz=laz, overwrite=True, durable=durable)
 
 
 def _manifest(las: Any, path: Path) -> dict[str, str] | None:
@@ -693,7 +337,7 @@ def read_tile(path: str | os.PathLike[str], *, include_withheld: bool = False) -
                 "classification",
                 "return_number",
                 "number_of_returns",
-                *_COLOUR_FIELDS,
+                *COLOUR_FIELDS,
             )
             if n in dims
         ] + extra_names

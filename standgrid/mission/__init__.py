@@ -1,6 +1,6 @@
 """Reading, building and writing robot missions."""
 
-from standgrid.mission.clouds import (
+from standgrid.clouds import (
     CloudHeader,
     iter_cloud_chunks,
     read_cloud,

@@ -11,9 +11,9 @@ import numpy as np
 from numpy.typing import NDArray
 
 from standgrid._atomic import atomic_output
+from standgrid.clouds import read_cloud_header
 from standgrid.errors import MissionConsistencyError, MissionNotFoundError, StandgridError
 from standgrid.geometry import Matrix4, invert_pose
-from standgrid.mission.clouds import read_cloud_header
 from standgrid.mission.layout import GRAPH_NAMES, POSES_CSV_NAMES, is_mission_folder
 from standgrid.mission.model import Mission, Payload, open_mission
 from standgrid.mission.posegraph import PoseGraph

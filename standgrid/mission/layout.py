@@ -11,6 +11,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Literal
 
+from standgrid.clouds import CLOUD_EXTENSIONS as CLOUD_SUFFIXES
 from standgrid.errors import MissionNotFoundError
 from standgrid.stamps import Stamp, stamp_from_filename
 
@@ -28,7 +29,8 @@ PAYLOAD_FOLDERS = ("payload_clouds", "payload_clouds_in_map", "payload_clouds_in
 SCAN_FOLDERS = ("individual_clouds", "slam_clouds", "undist-clouds", "raw_data/raw_clouds")
 #: Folders of clouds attached as named layers to the payload (or scan) of the same stamp.
 LAYER_FOLDERS = {"ground_clouds": "ground"}
-CLOUD_EXTENSIONS = frozenset({"pcd", "ply", "las", "laz"})
+#: Cloud file suffixes without the dot (the formats of :mod:`standgrid.clouds`).
+CLOUD_EXTENSIONS = frozenset(s.lstrip(".") for s in CLOUD_SUFFIXES)
 IMAGE_EXTENSIONS = frozenset({"jpg", "jpeg", "png"})
 
 

@@ -24,6 +24,7 @@ from typing import Literal
 import numpy as np
 
 from standgrid._atomic import atomic_output
+from standgrid.clouds import CLOUD_EXTENSIONS, read_cloud
 from standgrid.errors import (
     MissionConsistencyError,
     MissionNotFoundError,
@@ -31,7 +32,6 @@ from standgrid.errors import (
     StandgridError,
 )
 from standgrid.geometry import Matrix4
-from standgrid.mission.clouds import CLOUD_EXTENSIONS, read_cloud
 from standgrid.mission.metadata import MissionMetadata, read_metadata, write_metadata
 from standgrid.mission.posegraph import PoseGraph, Vertex, read_pose_graph, write_pose_graph
 from standgrid.mission.sensors import GnssFixes, concat_gnss, read_gnss, write_gnss

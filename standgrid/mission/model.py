@@ -16,6 +16,7 @@ from typing import Any, Literal
 import numpy as np
 from numpy.typing import NDArray
 
+from standgrid.clouds import read_cloud, read_cloud_header
 from standgrid.errors import (
     DuplicateStampError,
     MetadataError,
@@ -26,7 +27,6 @@ from standgrid.errors import (
     StandgridError,
 )
 from standgrid.geometry import Matrix4, invert_pose
-from standgrid.mission.clouds import read_cloud, read_cloud_header
 from standgrid.mission.layout import CloudFolder, Frame, MissionLayout, discover_layout, layer_name
 from standgrid.mission.metadata import MissionMetadata, metadata_from_folder_name, read_metadata
 from standgrid.mission.posegraph import PoseGraph, Vertex
@@ -251,7 +251,7 @@ class Mission:
                 f"a {payload.frame}-frame cloud is not in a projected CRS", path=payload.path
             )
         if payload.span is not None:
-            from standgrid.mission.clouds import read_las_part
+            from standgrid.clouds.las import read_las_part
 
             return read_las_part(payload.path, payload.span, payload.window)
         return self.read_cloud(payload.path)
@@ -507,7 +507,7 @@ def _las_crs(path: Path) -> Any:
     """The CRS a LAS/LAZ header carries (pyproj.CRS), or None."""
     import laspy
 
-    from standgrid.mission.las_header import check_las_header
+    from standgrid.clouds.las_header import check_las_header
 
     check_las_header(path)
     try:

@@ -246,8 +246,8 @@ def bag_to_mission(
     from rosbags.highlevel import AnyReader
     from rosbags.typesys import Stores, get_typestore
 
+    from standgrid.clouds import write_cloud
     from standgrid.mission.build import build_payloads
-    from standgrid.mission.clouds import write_cloud
     from standgrid.mission.metadata import metadata_from_folder_name, write_metadata
     from standgrid.mission.posegraph import Edge, PoseGraph, Vertex, write_pose_graph
     from standgrid.mission.sensors import write_gnss

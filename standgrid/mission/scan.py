@@ -169,7 +169,7 @@ class _FileFacts:
 def _facts(path: Path) -> _FileFacts:
     import laspy
 
-    from standgrid.mission.clouds import check_las_size
+    from standgrid.clouds.las import check_las_size
     from standgrid.mission.model import _crs_text
 
     count = check_las_size(path)

@@ -25,9 +25,9 @@ import numpy as np
 from numpy.typing import NDArray
 
 from standgrid._atomic import atomic_output
+from standgrid.clouds import write_cloud
 from standgrid.errors import OrphanPayloadError
 from standgrid.geometry import Matrix4
-from standgrid.mission.clouds import write_cloud
 from standgrid.mission.layout import is_mission_folder
 from standgrid.mission.metadata import MissionMetadata, write_metadata
 from standgrid.mission.model import Mission

@@ -111,7 +111,8 @@ def source_fields(cloud: PointCloud, source: Path) -> tuple[PointCloud, int]:
 
 def payload_chunk(task: PayloadTask) -> PayloadChunk:
     """Read one payload and bring it into the catalog CRS, snapped to the 1 mm lattice."""
-    from standgrid.mission.clouds import read_cloud, read_las_part
+    from standgrid.clouds import read_cloud
+    from standgrid.clouds.las import read_las_part
 
     if task.span is not None:
         raw = read_las_part(task.path, task.span, task.window)

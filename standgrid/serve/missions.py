@@ -269,7 +269,7 @@ def _write_georeferenced(request: Request, record: MissionRecord, points: Any, p
 def _write_local(points: Any, path: Path) -> None:
     import numpy as np
 
-    from standgrid.mission.clouds import write_cloud
+    from standgrid.clouds import write_cloud
 
     fields = dict(points.fields)
     intensity = fields.get("intensity")

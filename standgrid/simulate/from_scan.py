@@ -23,9 +23,9 @@ from numpy.typing import NDArray
 from scipy.spatial import cKDTree
 
 from standgrid._atomic import atomic_output, check_replaceable
+from standgrid.clouds.las_header import check_las_header
 from standgrid.errors import CRSError, FormatError, MissionNotFoundError
 from standgrid.geometry import Matrix4, invert_pose, transform_points
-from standgrid.mission.las_header import check_las_header
 from standgrid.mission.layout import is_mission_folder
 from standgrid.mission.posegraph import PoseGraph
 from standgrid.pointcloud import PointCloud

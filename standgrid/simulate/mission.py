@@ -408,7 +408,7 @@ def write_canonical_parts(
     The IMU is simulated once over the whole mission; the GNSS and IMU logs are cut into
     contiguous per-payload windows by the canonical writer
     (:func:`standgrid.mission.writer.write_payload_logs`)."""
-    from standgrid.mission.clouds import write_cloud
+    from standgrid.clouds import write_cloud
     from standgrid.mission.metadata import write_metadata
     from standgrid.mission.posegraph import write_pose_graph
     from standgrid.mission.poses_csv import PoseTable, write_poses_csv

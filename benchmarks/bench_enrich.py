@@ -130,6 +130,27 @@ def measure_imports() -> dict[str, Any]:
     return {}
 
 
+def measure_warm() -> dict[str, Any]:
+    """The interpreter once enrichment has run (every lazy import, library caches): tile
+    and enrich the bundled demo mission, free what can be freed, and report the RSS left."""
+    import gc
+
+    from standgrid.engine.budget import release_memory
+    from standgrid.pipeline.enrich import enrich_catalog
+    from standgrid.pipeline.tile import tile_missions
+
+    with tempfile.TemporaryDirectory() as tmp:
+        mission = next((REPO / "data" / "missions").iterdir())
+        tile_missions([mission], Path(tmp) / "demo")
+        enrich_catalog(Path(tmp) / "demo")
+    gc.collect()
+    release_memory()
+    for line in Path("/proc/self/status").read_text().splitlines():
+        if line.startswith("VmRSS:"):
+            return {"rss_mb": int(line.split()[1]) / 1024}
+    return {"rss_mb": float("nan")}
+
+
 def _cpu_seconds() -> float:
     """User + system CPU time of this process, every thread."""
     usage = resource.getrusage(resource.RUSAGE_SELF)
@@ -157,6 +178,8 @@ def _child(args: list[str]) -> None:
         result = measure_tile(Path(rest[0]), Path(rest[1]))
     elif kind == "imports":
         result = measure_imports()
+    elif kind == "warm":
+        result = measure_warm()
     elif kind == "copy":
         result = measure_copy(Path(rest[0]), Path(rest[1]))
     else:
@@ -216,7 +239,11 @@ def main() -> None:
             "for ground, terrain, trees and metrics"
         )
     interpreter = run_child("imports")["peak_mb"]
-    print(f"interpreter (imports only): peak {interpreter:.0f} MB")
+    warm = run_child("warm")["rss_mb"]
+    print(
+        f"interpreter (imports only): peak {interpreter:.0f} MB; warm (after enriching the "
+        f"demo: every lazy import and library cache): {warm:.0f} MB"
+    )
     by_workers = {}
     for workers in (int(w) for w in opts.workers.split(",")):
         run = work / f"enrich-{workers}"
@@ -239,10 +266,12 @@ def main() -> None:
         names = ["client", *(f"worker {k}" for k in range(len(result["worker_peaks_mb"])))]
         for name, peak in zip(names, [result["peak_mb"], *result["worker_peaks_mb"]], strict=True):
             ok = peak - interpreter <= 1.1 * opts.memory
+            ok_warm = peak - warm <= 1.1 * opts.memory
             print(
                 f"  {name:9s} peak RSS {peak:6.0f} MB, peak / budget {peak / opts.memory:.2f}, "
                 f"peak - interpreter {peak - interpreter:6.0f} MB <= 1.1 x budget "
-                f"({1.1 * opts.memory:.0f} MB)? {'yes' if ok else 'NO'}"
+                f"({1.1 * opts.memory:.0f} MB)? {'yes' if ok else 'NO'}; peak - warm "
+                f"interpreter {peak - warm:6.0f} MB? {'yes' if ok_warm else 'NO'}"
             )
     if 1 in by_workers and 2 in by_workers:
         print(f"2 workers vs 1 worker: {by_workers[1] / by_workers[2]:.2f}x (target >= 1.7)")

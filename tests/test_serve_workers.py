@@ -25,11 +25,13 @@ def test_index_connections_are_reused_until_the_index_is_replaced(
         assert first.provider is not None
         conn = first.provider.connection
         robots = {r[0] for r in conn.execute("SELECT robot FROM missions")}
+        layer = first.layers["missions"]  # what is kept per index file (its GeoJSON texts)
     with snapshot(root) as again:  # given back, taken again: no new connection
         assert again.provider is not None and again.provider.connection is conn
         with snapshot(root) as concurrent:  # a second request meanwhile gets its own
             assert concurrent.provider is not None
             assert concurrent.provider.connection is not conn
+            assert concurrent.layers["missions"] is layer  # one file: its layers shared
     # a commit renames a new index into place: the next snapshot reads the new file
     staged = root / "index.gpkg.staged"
     shutil.copy(index, staged)
@@ -38,6 +40,7 @@ def test_index_connections_are_reused_until_the_index_is_replaced(
     os.replace(staged, index)
     with snapshot(root) as after:
         assert after.provider is not None and after.provider.connection is not conn
+        assert after.layers["missions"] is not layer  # nothing kept from the old file
         assert {r[0] for r in after.provider.connection.execute("SELECT robot FROM missions")} \
             == {"renamed-robot"} != robots  # fmt: skip
     with pytest.raises(sqlite3.ProgrammingError):  # the old file's connections are closed

@@ -8,7 +8,6 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
-import numpy as np
 import orjson
 from fastapi import APIRouter, Request
 from fastapi.responses import JSONResponse, Response
@@ -17,7 +16,7 @@ from standgrid.catalog.invalidate import CHANGE_LAYERS, other_catalog_change
 from standgrid.serve import crs as crs_mod
 from standgrid.serve.ogc_openapi import openapi_document
 from standgrid.serve.problems import Problem
-from standgrid.serve.provider import Layer, Page, Query
+from standgrid.serve.provider import GeoPackageProvider, Layer, Page, Query
 from standgrid.serve.snapshot import Snapshot, snapshot
 
 GEOJSON = "application/geo+json"
@@ -306,26 +305,21 @@ def parse_datetime(text: str) -> tuple[dt.datetime | None, dt.datetime | None]:
 
 
 def _features(
+    provider: GeoPackageProvider,
+    layer: Layer,
     page: Page,
     source_crs: str,
     out_crs: str,
     links: Callable[[int], list[dict[str, str]]],
 ) -> list[dict[str, Any]]:
-    """The page's features as GeoJSON objects; their geometries are GeoJSON text written by
-    GEOS (exact doubles) in one vectorised call, kept as :class:`orjson.Fragment`."""
-    import shapely
-
-    geoms = page.geometries
-    texts: list[Any] = [None] * len(geoms)
-    present = np.flatnonzero(shapely.is_geometry(geoms))
-    if len(present):
-        moved = crs_mod.geometries_to(geoms[present], source_crs, out_crs)
-        for i, text in zip(present.tolist(), shapely.to_geojson(moved).tolist(), strict=True):
-            texts[i] = orjson.Fragment(text)
+    """The page's features as GeoJSON objects; their geometries (GeoJSON text from the
+    provider) kept as :class:`orjson.Fragment`."""
+    texts = provider.geojson(layer, page, source_crs, out_crs)
     return [
-        {"type": "Feature", "id": fid, "geometry": geometry, "properties": props,
+        {"type": "Feature", "id": fid,
+         "geometry": None if text is None else orjson.Fragment(text), "properties": props,
          "links": links(fid)}
-        for fid, props, geometry in zip(page.fids, page.properties, texts, strict=True)
+        for fid, props, text in zip(page.fids, page.properties, texts, strict=True)
     ]  # fmt: skip
 
 
@@ -354,7 +348,7 @@ def items(request: Request, collection_id: str) -> Response:
         page = snap.provider.items(layer, query, snap.epoch_dates)
         items_url = f"{_base(request)}/collections/{layer.name}/items"
         body_features = _features(
-            page, snap.catalog.crs, out_crs,
+            snap.provider, layer, page, snap.catalog.crs, out_crs,
             lambda fid: [{"rel": "self", "type": GEOJSON, "href": f"{items_url}/{fid}"}],
         )  # fmt: skip
     links = [
@@ -404,5 +398,6 @@ def item(request: Request, collection_id: str, feature_id: str) -> Response:
             {"rel": "collection", "type": "application/json",
              "href": f"{_base(request)}/collections/{layer.name}"},
         ]  # fmt: skip
-        body = _features(page, snap.catalog.crs, out_crs, lambda fid: links)[0]
+        body = _features(snap.provider, layer, page, snap.catalog.crs, out_crs,
+                         lambda fid: links)[0]  # fmt: skip
     return _geojson(body, out_crs)

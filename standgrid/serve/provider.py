@@ -41,6 +41,11 @@ _TYPES = {
 _ENVELOPE_BYTES = {0: 0, 1: 32, 2: 48, 3: 48, 4: 64}
 #: Tables of the index that are not feature layers.
 _NOT_LAYERS = frozenset({"layer_styles"})
+#: GeoJSON geometry texts kept per layer and CRS (beyond it, texts are written per request).
+MAX_CACHED_TEXTS = 200_000
+
+
+_MISSING: Any = object()
 
 
 class QueryError(ValueError):
@@ -65,6 +70,13 @@ class Layer:
     bounds: tuple[float, float, float, float] | None = None
     rtree: str | None = None
     description: str = ""
+
+    @functools.cached_property
+    def geojson_texts(self) -> dict[str, dict[int, str | None]]:
+        """CRS URI -> fid -> the feature's geometry as GeoJSON text in that CRS (None: no
+        geometry), filled by :meth:`GeoPackageProvider.geojson`. A layer is read once per
+        index file (:func:`read_layers`), so these are the texts of that file's features."""
+        return {}
 
     @functools.cached_property
     def column_types(self) -> dict[str, str]:
@@ -108,12 +120,17 @@ class Query:
 @dataclass
 class Page:
     """Features in fid order: booleans as bool, other values as SQLite gives them (a
-    non-finite number is written as JSON null)."""
+    non-finite number is written as JSON null); ``blobs`` their GeoPackage geometries."""
 
     number_matched: int
     fids: list[int]
     properties: list[dict[str, Any]]
-    geometries: np.ndarray  # shapely geometries (None for attribute rows)
+    blobs: list[bytes | None]
+
+    @functools.cached_property
+    def geometries(self) -> np.ndarray:
+        """Shapely geometries (None for attribute rows and empty geometries)."""
+        return decode_geometries(self.blobs)
 
 
 def connect(path: str | Path) -> sqlite3.Connection:
@@ -321,6 +338,8 @@ def _inner_box(area: Any) -> tuple[float, float, float, float] | None:
     xmin, ymin, xmax, ymax = (float(v) for v in area.bounds)
     if not (xmax > xmin and ymax > ymin):
         return None
+    if shapely.contains(area, shapely.box(xmin, ymin, xmax, ymax)):  # a box: its bounds
+        return xmin, ymin, xmax, ymax
     cx, cy, hw, hh = (xmin + xmax) / 2, (ymin + ymax) / 2, (xmax - xmin) / 2, (ymax - ymin) / 2
     scales = np.linspace(1.0, 0.5, 26)
     boxes = shapely.box(cx - hw * scales, cy - hh * scales, cx + hw * scales, cy + hh * scales)
@@ -416,7 +435,7 @@ def _rows(conn: sqlite3.Connection, layer: Layer, sql: str, params: list[Any]) -
             if value is not None:
                 record[name] = bool(value)
     blobs = [row[1] for row in rows] if layer.geometry_column else [None] * len(rows)
-    return Page(0, [int(row[0]) for row in rows], properties, decode_geometries(blobs))
+    return Page(0, [int(row[0]) for row in rows], properties, blobs)
 
 
 def _columns_sql(layer: Layer) -> str:
@@ -466,6 +485,34 @@ class GeoPackageProvider:
         )  # fmt: skip
         result.number_matched = int(matched[0])
         return result
+
+    def geojson(self, layer: Layer, page: Page, source_crs: str, crs: str) -> list[str | None]:
+        """The page's geometries as GeoJSON text in the CRS URI ``crs`` (in its axis order;
+        ``source_crs`` the index's), written by GEOS (exact doubles) in one vectorised call;
+        kept per layer and CRS (:attr:`Layer.geojson_texts`), so a feature's geometry is
+        decoded, transformed and written once per index file."""
+        import shapely
+
+        from standgrid.serve import crs as crs_mod
+
+        texts = layer.geojson_texts.setdefault(crs, {})
+        found = [texts.get(fid, _MISSING) for fid in page.fids]
+        todo = [k for k, text in enumerate(found) if text is _MISSING]
+        if todo:
+            geoms = decode_geometries([page.blobs[k] for k in todo])
+            present = np.flatnonzero(shapely.is_geometry(geoms))
+            written: list[str | None] = [None] * len(todo)
+            if len(present):
+                moved = crs_mod.geometries_to(geoms[present], source_crs, crs)
+                for k, text in zip(present.tolist(), shapely.to_geojson(moved).tolist(),
+                                   strict=True):  # fmt: skip
+                    written[k] = text
+            keep = len(texts) < MAX_CACHED_TEXTS
+            for k, text in zip(todo, written, strict=True):
+                found[k] = text
+                if keep:
+                    texts[page.fids[k]] = text
+        return found  # type: ignore[return-value]
 
     def get(self, layer: Layer, fid: int) -> Page:
         """The feature ``fid`` (an empty page when there is none)."""

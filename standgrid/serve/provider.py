@@ -41,8 +41,9 @@ _TYPES = {
 _ENVELOPE_BYTES = {0: 0, 1: 32, 2: 48, 3: 48, 4: 64}
 #: Tables of the index that are not feature layers.
 _NOT_LAYERS = frozenset({"layer_styles"})
-#: GeoJSON geometry texts kept per layer and CRS (beyond it, texts are written per request).
-MAX_CACHED_TEXTS = 200_000
+#: GeoJSON geometry texts kept per layer and CRS (beyond it, texts are written per request;
+#: a tree crown's is ~0.6 kB).
+MAX_CACHED_TEXTS = 50_000
 
 
 _MISSING: Any = object()

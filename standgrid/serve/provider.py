@@ -13,7 +13,8 @@ lies inside a box inscribed in the query area meets the area without a test; onl
 candidates whose box crosses that inner box's edge are read and tested exactly (shapely),
 so a page reads its own rows and the few edge candidates, never every candidate. Property
 filters and the time filter are SQL; features come in ``fid`` order, so pages of one
-snapshot of the index never overlap or skip.
+snapshot of the index never overlap or skip. A feature's geometry is decoded, transformed
+and written as GeoJSON once per index file and CRS (:meth:`GeoPackageProvider.geojson`).
 """
 
 from __future__ import annotations
@@ -410,7 +411,7 @@ def _bbox_page(
     import shapely
 
     if layer.geometry_column is None:  # attribute rows have no place: none meets a bbox
-        return Page(0, [], [], np.zeros(0, dtype=object))
+        return Page(0, [], [], [])
     if layer.rtree is None:
         raise CatalogError(f"layer {layer.name!r} of the index has no R-tree spatial index")
     statements = bbox_sql(layer, query, epoch_dates)
@@ -513,7 +514,7 @@ class GeoPackageProvider:
                 found[k] = text
                 if keep:
                     texts[page.fids[k]] = text
-        return found  # type: ignore[return-value]
+        return found
 
     def get(self, layer: Layer, fid: int) -> Page:
         """The feature ``fid`` (an empty page when there is none)."""

@@ -16,7 +16,7 @@ request (all its threads; with ``--stream`` it includes the robot's requests, an
 tiling, which runs in the server's worker process). On a shared machine latencies swing with
 the load of others; the server's CPU per request is the steadier figure. Baselines measured
 in the same run: the same items page read in this process straight from the GeoPackage
-(``features.page``), and ``ping`` for the HTTP floor; ratios are printed against both.
+(``GeoPackageProvider.items``), and ``ping`` for the HTTP floor; ratios are printed against both.
 
 ``--stream``: while the readers run, one robot streams the bundled 2024 mission (under a new
 name) over HTTP: create, pose graph, every payload, GNSS fixes in chunks, then ``tile``
@@ -194,7 +194,7 @@ def main() -> None:
     args = parser.parse_args()
 
     from standgrid.catalog import Catalog
-    from standgrid.serve import features
+    from standgrid.serve.provider import GeoPackageProvider, Query
 
     with tempfile.TemporaryDirectory(prefix="bench-serve-") as tmp:
         catalog = args.catalog or build_catalog(Path(tmp))
@@ -204,9 +204,9 @@ def main() -> None:
         token_file.write_text(TOKEN)
         opened = Catalog.open(catalog)
         tiles = [(t, opened.path(t).stat().st_size) for e in opened.epochs for t in opened.tiles(e)]
-        conn = features.connect(opened.path("index.gpkg"))
-        layers = features.read_layers(conn)
-        counts = {n: conn.execute(f'SELECT COUNT(*) FROM "{n}"').fetchone()[0] for n in LAYERS}
+        index = GeoPackageProvider.open(opened.path("index.gpkg"))
+        layers = index.layers
+        counts = {n: index.items(layers[n], Query(limit=1)).number_matched for n in LAYERS}
         xmin, ymin, xmax, ymax = layers["cells"].bounds or (0, 0, 0, 0)
         crs_uri = "http://www.opengis.net/def/crs/EPSG/0/" + str(
             __import__("pyproj").CRS(opened.crs).to_epsg())
@@ -257,9 +257,9 @@ def main() -> None:
         for _ in range(200):
             layer, offset = page_params(rng)
             t0 = time.perf_counter()
-            features.page(conn, layers[layer], features.Query(limit=100, offset=offset), {})
+            index.items(layers[layer], Query(limit=100, offset=offset))
             local.append(time.perf_counter() - t0)
-        conn.close()
+        index.close()
         local_p50 = float(np.percentile(local, 50) * 1000)
         print(f"catalog {catalog}: {len(tiles)} tiles, {counts} features; "
               f"{args.readers} readers x {args.seconds:.0f} s per workload"

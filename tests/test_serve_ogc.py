@@ -111,13 +111,13 @@ def test_paging_returns_every_feature_exactly_once(base: str, catalog: Path) -> 
 
 
 def test_bbox_is_answered_from_the_rtree_and_exactly(base: str, catalog: Path) -> None:
-    from standgrid.serve import features
+    from standgrid.serve import provider
 
     conn = sqlite3.connect(catalog / "index.gpkg")
-    layers = features.read_layers(conn)
+    layers = provider.read_layers(conn)
     box = shapely.box(614720.0, 5737130.0, 614745.0, 5737160.0)
     for name in ("payloads", "trees", "cells", "gnss_fixes"):
-        statements = features.bbox_sql(layers[name], features.Query(area=box), {})
+        statements = provider.bbox_sql(layers[name], provider.Query(area=box), {})
         for sql, params in (statements.edges, statements.inside_count, statements.page([1, 2])):
             plan = " | ".join(r[3] for r in conn.execute(f"EXPLAIN QUERY PLAN {sql}", params))
             assert f"SCAN rtree_{name}_geom VIRTUAL TABLE INDEX" in plan, plan
@@ -148,10 +148,10 @@ def test_bbox_pages_are_exact_for_random_boxes(base: str, catalog: Path) -> None
     exactly once, in fid order, numberMatched the truth (shapely on every feature, no
     R-tree); a box holding a whole layer tests no feature exactly."""
     from standgrid.serve import crs as crs_mod
-    from standgrid.serve import features
+    from standgrid.serve.provider import GeoPackageProvider, Query, bbox_sql
 
-    conn = features.connect(catalog / "index.gpkg")
-    layers = features.read_layers(conn)
+    index = GeoPackageProvider.open(catalog / "index.gpkg")
+    conn, layers = index.connection, index.layers
     rng = np.random.default_rng(11)
     for name in ("trees", "cells", "payloads", "gnss_fixes"):
         frame = _frame(catalog, name)
@@ -167,15 +167,14 @@ def test_bbox_pages_are_exact_for_random_boxes(base: str, catalog: Path) -> None
             truth = sorted(frame.index[frame.geometry.intersects(area)].tolist())
             got: list[int] = []
             for offset in range(0, len(truth) + 7, 7):
-                query = features.Query(area=area, limit=7, offset=offset)
-                page = features.page(conn, layers[name], query, {})
+                page = index.items(layers[name], Query(area=area, limit=7, offset=offset))
                 assert page.number_matched == len(truth), (name, k)
                 got += page.fids
             assert got == truth, (name, k)
         whole = shapely.box(xmin - 1, ymin - 1, xmax + 1, ymax + 1)
-        statements = features.bbox_sql(layers[name], features.Query(area=whole), {})
+        statements = bbox_sql(layers[name], Query(area=whole), {})
         assert conn.execute(*statements.edges).fetchall() == []
-        page = features.page(conn, layers[name], features.Query(area=whole, limit=5), {})
+        page = index.items(layers[name], Query(area=whole, limit=5))
         assert page.number_matched == len(frame) and page.fids == sorted(frame.index)[:5]
     # the same over HTTP, in CRS84: numberMatched and the pages agree with the truth
     to84 = pyproj.Transformer.from_crs(CRS, "OGC:CRS84", always_xy=True)

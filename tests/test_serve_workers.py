@@ -22,13 +22,16 @@ def test_index_connections_are_reused_until_the_index_is_replaced(
     root = Path(shutil.copytree(enriched_catalog, tmp_path / "catalog"))
     index = root / "index.gpkg"
     with snapshot(root) as first:
-        conn = first.index
-        assert conn is not None
+        assert first.provider is not None
+        conn = first.provider.connection
         robots = {r[0] for r in conn.execute("SELECT robot FROM missions")}
-    with snapshot(root) as again:
-        assert again.index is conn  # given back, taken again: no new connection
+        layer = first.layers["missions"]  # what is kept per index file (its GeoJSON texts)
+    with snapshot(root) as again:  # given back, taken again: no new connection
+        assert again.provider is not None and again.provider.connection is conn
         with snapshot(root) as concurrent:  # a second request meanwhile gets its own
-            assert concurrent.index is not None and concurrent.index is not conn
+            assert concurrent.provider is not None
+            assert concurrent.provider.connection is not conn
+            assert concurrent.layers["missions"] is layer  # one file: its layers shared
     # a commit renames a new index into place: the next snapshot reads the new file
     staged = root / "index.gpkg.staged"
     shutil.copy(index, staged)
@@ -36,8 +39,9 @@ def test_index_connections_are_reused_until_the_index_is_replaced(
         edit.execute("UPDATE missions SET robot = 'renamed-robot'")
     os.replace(staged, index)
     with snapshot(root) as after:
-        assert after.index is not conn and after.index is not None
-        assert {r[0] for r in after.index.execute("SELECT robot FROM missions")} \
+        assert after.provider is not None and after.provider.connection is not conn
+        assert after.layers["missions"] is not layer  # nothing kept from the old file
+        assert {r[0] for r in after.provider.connection.execute("SELECT robot FROM missions")} \
             == {"renamed-robot"} != robots  # fmt: skip
     with pytest.raises(sqlite3.ProgrammingError):  # the old file's connections are closed
         conn.execute("SELECT 1")
@@ -56,13 +60,15 @@ def test_a_snapshot_keeps_its_index_while_a_commit_replaces_it(
     with sqlite3.connect(staged) as edit:
         edit.execute("DELETE FROM missions")
     with snapshot(root) as reading:
-        assert reading.index is not None
-        before = reading.index.execute("SELECT COUNT(*) FROM missions").fetchone()[0]
+        assert reading.provider is not None
+        conn = reading.provider.connection
+        before = conn.execute("SELECT COUNT(*) FROM missions").fetchone()[0]
         os.replace(staged, index)  # (a real commit waits for the readers lock instead)
-        assert reading.index.execute("SELECT COUNT(*) FROM missions").fetchone()[0] == before > 0
+        assert conn.execute("SELECT COUNT(*) FROM missions").fetchone()[0] == before > 0
     with snapshot(root) as after:
-        assert after.index is not None
-        assert after.index.execute("SELECT COUNT(*) FROM missions").fetchone()[0] == 0
+        assert after.provider is not None
+        count = after.provider.connection.execute("SELECT COUNT(*) FROM missions").fetchone()
+        assert count[0] == 0
 
 
 def _current_niceness() -> int:

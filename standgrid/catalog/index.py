@@ -107,6 +107,14 @@ class CatalogIndex:
         self._pending[layer] = (merged, style)
         self._read[layer] = merged
 
+    def replace_all(self, layer: str, frame: Any, *, style: str | None = None) -> None:
+        """Replace every row of the layer by ``frame`` (``style``: its default QGIS style,
+        QML). Written by :meth:`save`."""
+        if self.txn is None:
+            raise CatalogError("replacing index rows needs a transaction", path=self.path)
+        self._pending[layer] = (frame, style)
+        self._read[layer] = frame
+
     def save(self) -> Path | None:
         """Write every replaced layer into the transaction's staged index (one atomic file
         write; other layers kept). Returns the staged path (None: nothing to write)."""

@@ -9,14 +9,17 @@ Outputs of :func:`write_change_outputs`:
   :func:`standgrid.compare.trees.match_trees`, plus ``epoch_from, epoch_to``.
 - GeoPackage layers ``stand_changes`` (cell polygons + change columns; default QGIS style:
   diverging RdBu ramp centred on 0 over ``style_field``) and ``tree_changes`` (points at the
-  tree positions; default style: one colour per ``status``). The GeoPackage is rewritten
-  atomically through :class:`standgrid.export.gpkg.IndexWriter` (other layers are kept).
+  tree positions; default style: one colour per ``status``): :func:`change_layers`, written
+  by the catalog's compare through :class:`standgrid.catalog.index.CatalogIndex`, or into
+  a GeoPackage file atomically through :class:`standgrid.export.gpkg.IndexWriter` (other
+  layers are kept).
 
 Null values stay null in every output (empty CSV field, Parquet/GeoPackage NULL).
 """
 
 from __future__ import annotations
 
+import dataclasses
 import os
 from dataclasses import dataclass
 from pathlib import Path
@@ -49,9 +52,18 @@ class ChangeOutputs:
     stand_parquet: Path
     tree_csv: Path | None
     tree_parquet: Path | None
-    gpkg: Path
+    gpkg: Path | None  # None: the layers are the caller's to write (change_layers)
     style_field: str | None
     style_range: tuple[float, float] | None
+
+
+@dataclass(frozen=True)
+class ChangeLayer:
+    """A GeoPackage layer of the change (in the index CRS) and its default QGIS style."""
+
+    name: str
+    frame: Any
+    style: str | None
 
 
 def _with_keys(frame: pd.DataFrame, epoch_from: str, epoch_to: str) -> pd.DataFrame:
@@ -145,6 +157,32 @@ def write_change_outputs(
     Existing layers of the same names are replaced; other layers are kept.
     """
     from standgrid.export.gpkg import IndexWriter
+
+    outputs, layers = change_layers(
+        out_dir, stand_changes, tree_changes, epoch_from=epoch_from, epoch_to=epoch_to,
+        cells=cells, crs=crs, style_field=style_field, overwrite=overwrite,
+    )  # fmt: skip
+    layer_crs = crs or layers[0].frame.crs.to_wkt()
+    with IndexWriter(gpkg_path, layer_crs) as index:
+        for layer in layers:
+            index.write_layer(layer.name, layer.frame, style=layer.style)
+    return dataclasses.replace(outputs, gpkg=Path(gpkg_path))
+
+
+def change_layers(
+    out_dir: str | os.PathLike[str],
+    stand_changes: pd.DataFrame,
+    tree_changes: TreeMatches | pd.DataFrame | None = None,
+    *,
+    epoch_from: str,
+    epoch_to: str,
+    cells: Any | None = None,
+    crs: str | None = None,
+    style_field: str | None = None,
+    overwrite: bool = True,
+) -> tuple[ChangeOutputs, list[ChangeLayer]]:
+    """Write the flat change tables to ``out_dir``; return them and the styled layers, for the
+    caller to write (arguments: :func:`write_change_outputs`)."""
     from standgrid.export.styles import categorized_style, diverging_style
 
     folder = Path(out_dir)
@@ -167,27 +205,25 @@ def write_change_outputs(
     if trees is not None:
         tree_csv, tree_parquet = _write_table(trees, folder, TREE_LAYER, overwrite)
 
-    with IndexWriter(gpkg_path, layer_crs) as index:
-        stand_style = (
-            diverging_style(field, *value_range, geometry="polygon")
-            if field and value_range
-            else None
+    stand_style = (
+        diverging_style(field, *value_range, geometry="polygon") if field and value_range else None
+    )
+    layers = [ChangeLayer(STAND_LAYER, stands, stand_style)]
+    if trees is not None:
+        tree_style = categorized_style(
+            "status",
+            list(STATUS_COLOURS),
+            geometry="point",
+            colours=list(STATUS_COLOURS.values()),
         )
-        index.write_layer(STAND_LAYER, stands, style=stand_style)
-        if trees is not None:
-            tree_style = categorized_style(
-                "status",
-                list(STATUS_COLOURS),
-                geometry="point",
-                colours=list(STATUS_COLOURS.values()),
-            )
-            index.write_layer(TREE_LAYER, _tree_points(trees, stands.crs), style=tree_style)
-    return ChangeOutputs(
+        layers.append(ChangeLayer(TREE_LAYER, _tree_points(trees, stands.crs), tree_style))
+    outputs = ChangeOutputs(
         stand_csv=stand_csv,
         stand_parquet=stand_parquet,
         tree_csv=tree_csv,
         tree_parquet=tree_parquet,
-        gpkg=Path(gpkg_path),
+        gpkg=None,
         style_field=field,
         style_range=value_range,
     )
+    return outputs, layers

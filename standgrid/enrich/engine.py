@@ -120,8 +120,9 @@ def apply_blocks(
     :func:`~standgrid.engine.ordered.ordered_map`). In this process, up to
     :data:`~standgrid.engine.ordered.AHEAD` jobs run at once on threads (see
     :func:`chunks_at_once`), as many as their estimated working sets fit in the share of the
-    budget the chunks get (:data:`CHUNK_SHARE`) (a chunk cannot be smaller than one cell: a dense one runs alone)."""
-    from standgrid.engine.ordered import AHEAD
+    budget the chunks get (:data:`CHUNK_SHARE`; a chunk cannot be smaller than one cell: a
+    dense one runs alone)."""
+    from standgrid.engine.ordered import AHEAD, ordered_map
 
     if isinstance(executor, SerialExecutor):
         limit = jobs[0].budget_bytes * CHUNK_SHARE if jobs else 0
@@ -135,14 +136,9 @@ def apply_blocks(
         with contextlib.closing(in_order):
             yield from zip(jobs, progress.track(in_order, len(jobs), desc), strict=True)
         return
-    done: dict[int, BlockResult] = {}
-    next_index = 0
-    results = progress.track(executor.map(run_block, jobs), len(jobs), desc)
-    for index, result in results:
-        done[index] = result
-        while next_index in done:
-            yield jobs[next_index], done.pop(next_index)
-            next_index += 1
+    ordered = ordered_map(executor, run_block, jobs)
+    with contextlib.closing(ordered):
+        yield from zip(jobs, progress.track(ordered, len(jobs), desc), strict=True)
 
 
 def chunks_at_once(executor: Executor) -> int:

@@ -226,8 +226,6 @@ def _compare(
     folder = pair_folder(epoch_from, epoch_to)
     outputs: dict[str, str] = {}
     with source.transaction() as txn:
-        index = txn.stage(paths.INDEX)
-        shutil.copyfile(source.path(paths.INDEX), index)
         chm_rel = paths.comparison(epoch_from, epoch_to, "chm_diff.tif")
         style_rel = raster_style_path(chm_rel).as_posix()
         chm_difference(
@@ -237,9 +235,7 @@ def _compare(
             extent="union",
             style=txn.stage(style_rel),
         )
-        written = _write_outputs(
-            txn, folder, index, changes, matches, epoch_from, epoch_to, cells, source.crs
-        )
+        written = _write_outputs(txn, source, folder, changes, matches, epoch_from, epoch_to, cells)
         outputs = {
             "chm_difference": chm_rel, "chm_difference_style": style_rel, **written,
             "gpkg": paths.INDEX,
@@ -307,29 +303,33 @@ def _check_pair(source: Catalog, target: Catalog, epoch_from: str, epoch_to: str
 
 def _write_outputs(
     txn: Any,
+    source: Catalog,
     folder: str,
-    index: Path,
     changes: pd.DataFrame,
     matches: Any,
     epoch_from: str,
     epoch_to: str,
     cells: gpd.GeoDataFrame,
-    crs: str,
 ) -> dict[str, str]:
-    """Write the change tables into the staging folder and register every file."""
-    from standgrid.compare import write_change_outputs
+    """Write the change tables into the staging folder and register every file; the change
+    layers replace those of the index (:class:`CatalogIndex`, staged in ``txn``)."""
+    from standgrid.catalog.index import CatalogIndex
+    from standgrid.compare.report import change_layers
 
     out_dir = txn.stage(paths.comparison(epoch_from, epoch_to, "stand_changes.csv")).parent
-    result = write_change_outputs(
+    result, layers = change_layers(
         out_dir,
-        index,
         changes,
         matches,
         epoch_from=epoch_from,
         epoch_to=epoch_to,
         cells=cells,
-        crs=crs,
+        crs=source.crs,
     )
+    index = CatalogIndex(source, txn)
+    for layer in layers:
+        index.replace_all(layer.name, layer.frame, style=layer.style)
+    index.save()
     written = {}
     for key in ("stand_csv", "stand_parquet", "tree_csv", "tree_parquet"):
         path = getattr(result, key)

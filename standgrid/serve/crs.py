@@ -32,6 +32,7 @@ def _crs(uri_or_spec: str) -> Any:
         raise CRSError(f"unusable CRS {uri_or_spec!r}: {exc}") from exc
 
 
+@functools.lru_cache(maxsize=16)
 def catalog_crs_uri(catalog_crs: str) -> str | None:
     """The URI of the catalog's CRS (``.../EPSG/0/<code>``), or None without an EPSG code."""
     code = _crs(catalog_crs).to_epsg()

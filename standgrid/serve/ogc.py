@@ -8,17 +8,15 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
-import numpy as np
 import orjson
 from fastapi import APIRouter, Request
 from fastapi.responses import JSONResponse, Response
 
 from standgrid.catalog.invalidate import CHANGE_LAYERS, other_catalog_change
 from standgrid.serve import crs as crs_mod
-from standgrid.serve import features
-from standgrid.serve.features import Layer, Page, Query
 from standgrid.serve.ogc_openapi import openapi_document
 from standgrid.serve.problems import Problem
+from standgrid.serve.provider import GeoPackageProvider, Layer, Page, Query
 from standgrid.serve.snapshot import Snapshot, snapshot
 
 GEOJSON = "application/geo+json"
@@ -186,13 +184,15 @@ def collection(request: Request, collection_id: str) -> JSONResponse:
 def queryables(request: Request, collection_id: str) -> JSONResponse:
     with snapshot(_root(request)) as snap:
         layer = snap.layer(collection_id)
+        assert snap.provider is not None
+        types = snap.provider.queryables(layer)
     base = f"{_base(request)}/collections/{layer.name}/queryables"
     return _json({
         "$schema": "https://json-schema.org/draft/2020-12/schema",
         "$id": base,
         "type": "object",
         "title": layer.name,
-        "properties": {c.name: {"type": c.type} for c in layer.columns},
+        "properties": {name: {"type": kind} for name, kind in types.items()},
     }, "application/schema+json")  # fmt: skip
 
 
@@ -270,31 +270,56 @@ def _query(request: Request, snap: Snapshot, layer: Layer) -> Query:
     elif params.get("bbox-crs"):
         raise Problem(400, "bbox-crs without bbox")
     if params.get("datetime"):
-        query.time = features.parse_datetime(params["datetime"])
+        query.time = parse_datetime(params["datetime"])
     return query
 
 
+def parse_datetime(text: str) -> tuple[dt.datetime | None, dt.datetime | None]:
+    """An RFC 3339 instant or interval (``a/b``, ``../b``, ``a/..``) as a closed UTC
+    interval; a bare date is its whole day."""
+
+    def instant(part: str, *, end: bool) -> dt.datetime | None:
+        part = part.strip()
+        if part in ("", ".."):
+            return None
+        try:
+            if len(part) == 10:
+                day = dt.datetime.fromisoformat(part).replace(tzinfo=dt.UTC)
+                return (
+                    day.replace(hour=23, minute=59, second=59, microsecond=999999) if end else day
+                )
+            value = dt.datetime.fromisoformat(part)
+        except ValueError as exc:
+            raise Problem(400, f"datetime: {part!r} is not an RFC 3339 date-time") from exc
+        return value if value.tzinfo else value.replace(tzinfo=dt.UTC)
+
+    if "/" in text:
+        a, _, b = text.partition("/")
+        start, end = instant(a, end=False), instant(b, end=True)
+        if start is not None and end is not None and start > end:
+            raise Problem(400, f"datetime: interval {text!r} ends before it starts")
+        return start, end
+    if text.strip() == "..":
+        raise Problem(400, "datetime: '..' alone is not an instant")
+    return instant(text, end=False), instant(text, end=True)
+
+
 def _features(
+    provider: GeoPackageProvider,
+    layer: Layer,
     page: Page,
     source_crs: str,
     out_crs: str,
     links: Callable[[int], list[dict[str, str]]],
 ) -> list[dict[str, Any]]:
-    """The page's features as GeoJSON objects; their geometries are GeoJSON text written by
-    GEOS (exact doubles) in one vectorised call, kept as :class:`orjson.Fragment`."""
-    import shapely
-
-    geoms = page.geometries
-    texts: list[Any] = [None] * len(geoms)
-    present = np.flatnonzero(shapely.is_geometry(geoms))
-    if len(present):
-        moved = crs_mod.geometries_to(geoms[present], source_crs, out_crs)
-        for i, text in zip(present.tolist(), shapely.to_geojson(moved).tolist(), strict=True):
-            texts[i] = orjson.Fragment(text)
+    """The page's features as GeoJSON objects; their geometries (GeoJSON text from the
+    provider) kept as :class:`orjson.Fragment`."""
+    texts = provider.geojson(layer, page, source_crs, out_crs)
     return [
-        {"type": "Feature", "id": fid, "geometry": geometry, "properties": props,
+        {"type": "Feature", "id": fid,
+         "geometry": None if text is None else orjson.Fragment(text), "properties": props,
          "links": links(fid)}
-        for fid, props, geometry in zip(page.fids, page.properties, texts, strict=True)
+        for fid, props, text in zip(page.fids, page.properties, texts, strict=True)
     ]  # fmt: skip
 
 
@@ -319,11 +344,11 @@ def items(request: Request, collection_id: str) -> Response:
         layer = snap.layer(collection_id)
         query = _query(request, snap, layer)
         out_crs = crs_mod.check(request.query_params.get("crs"), snap.catalog.crs, "crs")
-        assert snap.index is not None
-        page = features.page(snap.index, layer, query, snap.epoch_dates)
+        assert snap.provider is not None
+        page = snap.provider.items(layer, query, snap.epoch_dates)
         items_url = f"{_base(request)}/collections/{layer.name}/items"
         body_features = _features(
-            page, snap.catalog.crs, out_crs,
+            snap.provider, layer, page, snap.catalog.crs, out_crs,
             lambda fid: [{"rel": "self", "type": GEOJSON, "href": f"{items_url}/{fid}"}],
         )  # fmt: skip
     links = [
@@ -364,8 +389,8 @@ def item(request: Request, collection_id: str, feature_id: str) -> Response:
     with snapshot(_root(request)) as snap:
         layer = snap.layer(collection_id)
         out_crs = crs_mod.check(request.query_params.get("crs"), snap.catalog.crs, "crs")
-        assert snap.index is not None
-        page = features.feature(snap.index, layer, fid)
+        assert snap.provider is not None
+        page = snap.provider.get(layer, fid)
         if not page.fids:
             raise Problem(404, f"collection {layer.name!r} has no feature {fid}")
         links = [
@@ -373,5 +398,6 @@ def item(request: Request, collection_id: str, feature_id: str) -> Response:
             {"rel": "collection", "type": "application/json",
              "href": f"{_base(request)}/collections/{layer.name}"},
         ]  # fmt: skip
-        body = _features(page, snap.catalog.crs, out_crs, lambda fid: links)[0]
+        body = _features(snap.provider, layer, page, snap.catalog.crs, out_crs,
+                         lambda fid: links)[0]  # fmt: skip
     return _geojson(body, out_crs)

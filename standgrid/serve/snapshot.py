@@ -1,18 +1,18 @@
-"""A consistent view of the catalog for one request: its state and an open index connection.
+"""A consistent view of the catalog for one request: its state and a provider of its index.
 
 Taken under the catalog's readers lock (:meth:`Catalog.reading`), so no commit is half
 visible. The parsed catalog.json is reused while the file is unchanged (``reading(reuse=)``):
-the service only reads it. Index connections are pooled per index file (path, inode, mtime,
-size, as seen under the lock): a request takes an idle connection to the file now at the
-path, or opens one, and gives it back when it ends; a connection keeps reading its file
-even when a later commit renames a new one into place, and connections to a replaced file
-are closed. Opening one costs ~2 ms (SQLite parses the GeoPackage schema); reusing it, none.
+the service only reads it. Index providers (:class:`GeoPackageProvider`, one connection
+each) are pooled per index file (path, inode, mtime, size, as seen under the lock): a
+request takes an idle one for the file now at the path, or opens one, and gives it back when
+it ends; a provider keeps reading its file even when a later commit renames a new one into
+place, and those of a replaced file are closed. Opening one costs ~2 ms (SQLite parses the
+GeoPackage schema); reusing it, none. A :class:`QueryError` of the provider is a 400 problem.
 """
 
 from __future__ import annotations
 
 import contextlib
-import sqlite3
 import threading
 import weakref
 from collections.abc import Iterator, Mapping
@@ -20,29 +20,28 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from standgrid.catalog import Catalog, paths
-from standgrid.serve import features
-from standgrid.serve.features import Layer
 from standgrid.serve.problems import Problem
+from standgrid.serve.provider import GeoPackageProvider, Layer, QueryError
 
 _IndexKey = tuple[str, int, int, int]  # path, inode, mtime (ns), size
 _layers_cache: dict[_IndexKey, dict[str, Layer]] = {}
 #: The last catalog read per root: reused while its catalog.json is unchanged.
 _catalogs: dict[Path, Catalog] = {}
-#: Idle connections by index file, and the newest file seen per index path.
-_idle: dict[_IndexKey, list[sqlite3.Connection]] = {}
+#: Idle providers by index file, and the newest file seen per index path.
+_idle: dict[_IndexKey, list[GeoPackageProvider]] = {}
 _newest: dict[str, _IndexKey] = {}
-#: Idle connections kept per index file (more are closed when given back).
+#: Idle providers kept per index file (more are closed when given back).
 MAX_IDLE = 16
 #: Epoch label -> date per catalog read (the service never changes a Catalog it read).
 _epoch_dates: weakref.WeakKeyDictionary[Catalog, dict[str, str]] = weakref.WeakKeyDictionary()
 _cache_lock = threading.Lock()
 
 
-def _take(index: Path) -> tuple[_IndexKey, sqlite3.Connection]:
-    """A connection to the file now at ``index`` (call under the readers lock)."""
+def _take(index: Path) -> tuple[_IndexKey, GeoPackageProvider]:
+    """A provider of the file now at ``index`` (call under the readers lock)."""
     stat = index.stat()
     key = (str(index), stat.st_ino, stat.st_mtime_ns, stat.st_size)
-    stale: list[sqlite3.Connection] = []
+    stale: list[GeoPackageProvider] = []
     with _cache_lock:
         if _newest.get(key[0]) != key:
             old = _newest.get(key[0])
@@ -50,26 +49,37 @@ def _take(index: Path) -> tuple[_IndexKey, sqlite3.Connection]:
                 stale = _idle.pop(old, [])
             _newest[key[0]] = key
         pool = _idle.get(key)
-        conn = pool.pop() if pool else None
+        provider = pool.pop() if pool else None
+        layers = _layers_cache.get(key)
     for dead in stale:
         dead.close()
-    return key, conn if conn is not None else features.connect(index)
+    if provider is None:
+        provider = GeoPackageProvider.open(index, layers)
+        if layers is None:
+            with _cache_lock:
+                _layers_cache.clear()
+                _layers_cache[key] = provider.layers
+    return key, provider
 
 
-def _give_back(key: _IndexKey, conn: sqlite3.Connection) -> None:
+def _give_back(key: _IndexKey, provider: GeoPackageProvider) -> None:
     with _cache_lock:
         pool = _idle.setdefault(key, []) if _newest.get(key[0]) == key else None
         if pool is not None and len(pool) < MAX_IDLE:
-            pool.append(conn)
+            pool.append(provider)
             return
-    conn.close()
+    provider.close()
 
 
 @dataclass
 class Snapshot:
     catalog: Catalog
-    index: sqlite3.Connection | None
-    layers: dict[str, Layer]
+    #: the index's provider (None: the catalog has no index yet, or it was not asked for)
+    provider: GeoPackageProvider | None
+
+    @property
+    def layers(self) -> dict[str, Layer]:
+        return self.provider.layers if self.provider is not None else {}
 
     @property
     def epoch_dates(self) -> Mapping[str, str]:
@@ -94,9 +104,8 @@ class Snapshot:
 def snapshot(root: Path, *, with_index: bool = True) -> Iterator[Snapshot]:
     """The catalog at ``root`` as of its last commit (and its index, when it has one), with
     the catalog's readers lock held until the block ends."""
-    conn: sqlite3.Connection | None = None
+    provider: GeoPackageProvider | None = None
     key: _IndexKey | None = None
-    layers: dict[str, Layer] = {}
     with _cache_lock:
         previous = _catalogs.get(root)
     with Catalog.reading(root, reuse=previous) as catalog:
@@ -106,23 +115,17 @@ def snapshot(root: Path, *, with_index: bool = True) -> Iterator[Snapshot]:
         index = catalog.path(paths.INDEX)
         try:
             if with_index and index.is_file():
-                key, conn = _take(index)
-                with _cache_lock:
-                    cached = _layers_cache.get(key)
-                if cached is None:
-                    cached = features.read_layers(conn)
-                    with _cache_lock:
-                        _layers_cache.clear()
-                        _layers_cache[key] = cached
-                layers = cached
+                key, provider = _take(index)
             # yielded under the readers lock: no commit renames a file in while the request
             # reads (files opened here stay the snapshot's even after it)
-            yield Snapshot(catalog, conn, layers)
-        except BaseException:
-            if conn is not None:  # a request that failed mid-read may leave a statement open
-                conn.close()
-                conn = None
+            yield Snapshot(catalog, provider)
+        except BaseException as exc:
+            if provider is not None:  # a request that failed mid-read may leave a statement
+                provider.close()  # open
+                provider = None
+            if isinstance(exc, QueryError):
+                raise Problem(400, str(exc)) from exc
             raise
         finally:
-            if conn is not None and key is not None:
-                _give_back(key, conn)
+            if provider is not None and key is not None:
+                _give_back(key, provider)

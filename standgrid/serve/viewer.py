@@ -265,14 +265,14 @@ def payload_points(
     whether the count was met (``complete``); the answer never silently falls short."""
     import shapely
 
-    from standgrid.serve import features
+    from standgrid.serve.provider import Query
 
     with snapshot(request.app.state.catalog_root) as snap:
-        if snap.index is None:
+        if snap.provider is None:
             raise Problem(404, "the catalog has no index yet")
-        found = features.page(snap.index, snap.layer("payloads"),
-                              features.Query(equals={"payload_id": str(payload)}, limit=2),
-                              snap.epoch_dates)  # fmt: skip
+        found = snap.provider.items(
+            snap.layer("payloads"), Query(equals={"payload_id": str(payload)}, limit=2)
+        )
         if not found.fids:
             raise Problem(404, f"no payload {payload} in the payloads collection")
         row, footprint = found.properties[0], found.geometries[0]
@@ -280,9 +280,8 @@ def payload_points(
             footprint = shapely.Point(row["x"], row["y"])
         epoch, mission, expected = str(row["epoch"]), str(row["mission"]), int(row["point_count"])
         tiles = set(snap.catalog.tiles(epoch)) if epoch in snap.catalog.epochs else set()
-        cells = features.page(snap.index, snap.layer("cells"),
-                              features.Query(equals={"epoch": epoch}, limit=1 << 30),
-                              snap.epoch_dates)  # fmt: skip
+        cells = snap.provider.items(snap.layer("cells"),
+                                    Query(equals={"epoch": epoch}, limit=1 << 30))  # fmt: skip
         held = [k for k, p in enumerate(cells.properties) if p["tile_path"] in tiles
                 and mission in str(p.get("missions") or "").split(",")]  # fmt: skip
         distance = shapely.distance(cells.geometries[held], footprint) if held else []
@@ -319,9 +318,7 @@ def payload_points(
 
 def _tree(snap: Any, fid: int) -> int:
     """The tree id of the ``trees`` feature ``fid`` (a 404 problem when there is none)."""
-    from standgrid.serve import features
-
-    page = features.feature(snap.index, snap.layer("trees"), fid) if snap.index else None
+    page = snap.provider.get(snap.layer("trees"), fid) if snap.provider else None
     if page is None or not page.fids:
         raise Problem(404, f"no tree {fid} in the trees collection")
     return int(page.properties[0]["tree_id"])

@@ -1,4 +1,10 @@
-"""Features of the catalog's GeoPackage index, read with SQLite.
+"""The provider of the OGC API's data: every read of the catalog's GeoPackage index.
+
+As in pygeoapi, the routes (:mod:`standgrid.serve.ogc`, :mod:`standgrid.serve.viewer`) keep
+HTTP (parameters, status codes, links, content negotiation) and ask a
+:class:`GeoPackageProvider` for layers (collections: schema, extent), pages of items and
+items by id, getting plain values back; all SQL is here. A query the index cannot answer as
+asked raises :class:`QueryError` (HTTP 400).
 
 A ``bbox`` is answered from the layer's R-tree (``rtree_<table>_<geom>``, the GeoPackage
 spatial index extension; ``EXPLAIN QUERY PLAN`` shows a ``VIRTUAL TABLE INDEX`` search,
@@ -7,7 +13,8 @@ lies inside a box inscribed in the query area meets the area without a test; onl
 candidates whose box crosses that inner box's edge are read and tested exactly (shapely),
 so a page reads its own rows and the few edge candidates, never every candidate. Property
 filters and the time filter are SQL; features come in ``fid`` order, so pages of one
-snapshot of the index never overlap or skip.
+snapshot of the index never overlap or skip. A feature's geometry is decoded, transformed
+and written as GeoJSON once per index file and CRS (:meth:`GeoPackageProvider.geojson`).
 """
 
 from __future__ import annotations
@@ -24,7 +31,6 @@ from typing import Any
 import numpy as np
 
 from standgrid.errors import CatalogError
-from standgrid.serve.problems import Problem
 
 #: GeoPackage column type -> JSON schema type of a queryable.
 _TYPES = {
@@ -36,6 +42,17 @@ _TYPES = {
 _ENVELOPE_BYTES = {0: 0, 1: 32, 2: 48, 3: 48, 4: 64}
 #: Tables of the index that are not feature layers.
 _NOT_LAYERS = frozenset({"layer_styles"})
+#: GeoJSON geometry texts kept per layer and CRS (beyond it, texts are written per request;
+#: a tree crown's is ~0.6 kB).
+MAX_CACHED_TEXTS = 50_000
+
+
+_MISSING: Any = object()
+
+
+class QueryError(ValueError):
+    """A query the index cannot answer as asked: a value not of its property's type, an
+    unknown property, a time filter on a layer without time (the client's mistake)."""
 
 
 @dataclass(frozen=True)
@@ -55,6 +72,13 @@ class Layer:
     bounds: tuple[float, float, float, float] | None = None
     rtree: str | None = None
     description: str = ""
+
+    @functools.cached_property
+    def geojson_texts(self) -> dict[str, dict[int, str | None]]:
+        """CRS URI -> fid -> the feature's geometry as GeoJSON text in that CRS (None: no
+        geometry), filled by :meth:`GeoPackageProvider.geojson`. A layer is read once per
+        index file (:func:`read_layers`), so these are the texts of that file's features."""
+        return {}
 
     @functools.cached_property
     def column_types(self) -> dict[str, str]:
@@ -98,12 +122,17 @@ class Query:
 @dataclass
 class Page:
     """Features in fid order: booleans as bool, other values as SQLite gives them (a
-    non-finite number is written as JSON null)."""
+    non-finite number is written as JSON null); ``blobs`` their GeoPackage geometries."""
 
     number_matched: int
     fids: list[int]
     properties: list[dict[str, Any]]
-    geometries: np.ndarray  # shapely geometries (None for attribute rows)
+    blobs: list[bytes | None]
+
+    @functools.cached_property
+    def geometries(self) -> np.ndarray:
+        """Shapely geometries (None for attribute rows and empty geometries)."""
+        return decode_geometries(self.blobs)
 
 
 def connect(path: str | Path) -> sqlite3.Connection:
@@ -191,22 +220,24 @@ def _coerce(layer: Layer, name: str, text: str) -> Any:
         if kind == "integer":
             value = int(text) if len(text) <= 40 else None
             if value is None or not -(2**63) <= value < 2**63:
-                raise Problem(400, f"{name}: {shown!r} is not a 64-bit integer")
+                raise QueryError(f"{name}: {shown!r} is not a 64-bit integer")
             return value
         if kind == "number":
             number = float(text)
             if not np.isfinite(number):
-                raise Problem(400, f"{name}: {shown!r} is not a finite number")
+                raise QueryError(f"{name}: {shown!r} is not a finite number")
             return number
+    except QueryError:
+        raise
     except ValueError as exc:
-        raise Problem(400, f"{name}: {shown!r} is not a {kind}") from exc
+        raise QueryError(f"{name}: {shown!r} is not a {kind}") from exc
     if kind == "boolean":
         lowered = text.strip().lower()
         if lowered in ("true", "1"):
             return 1
         if lowered in ("false", "0"):
             return 0
-        raise Problem(400, f"{name}: {text!r} is not true or false")
+        raise QueryError(f"{name}: {text!r} is not true or false")
     return text
 
 
@@ -229,7 +260,7 @@ def _time_clause(
     start, end = time
     kind = layer.temporal
     if kind is None:
-        raise Problem(400, f"collection {layer.name!r} has no time: datetime cannot filter it")
+        raise QueryError(f"collection {layer.name!r} has no time: datetime cannot filter it")
     if kind == "stamp":
         clauses, stamps = [], []
         if start is not None:
@@ -290,7 +321,7 @@ def where_sql(layer: Layer, query: Query, epoch_dates: Mapping[str, str]) -> tup
     params: list[Any] = []
     for name, text in query.equals.items():
         if name not in layer.column_types:
-            raise Problem(400, f"collection {layer.name!r} has no property {name!r}")
+            raise QueryError(f"collection {layer.name!r} has no property {name!r}")
         clauses.append(f"{_quote(name)} = ?")
         params.append(_coerce(layer, name, text))
     if query.time is not None:
@@ -309,6 +340,8 @@ def _inner_box(area: Any) -> tuple[float, float, float, float] | None:
     xmin, ymin, xmax, ymax = (float(v) for v in area.bounds)
     if not (xmax > xmin and ymax > ymin):
         return None
+    if shapely.contains(area, shapely.box(xmin, ymin, xmax, ymax)):  # a box: its bounds
+        return xmin, ymin, xmax, ymax
     cx, cy, hw, hh = (xmin + xmax) / 2, (ymin + ymax) / 2, (xmax - xmin) / 2, (ymax - ymin) / 2
     scales = np.linspace(1.0, 0.5, 26)
     boxes = shapely.box(cx - hw * scales, cy - hh * scales, cx + hw * scales, cy + hh * scales)
@@ -378,7 +411,7 @@ def _bbox_page(
     import shapely
 
     if layer.geometry_column is None:  # attribute rows have no place: none meets a bbox
-        return Page(0, [], [], np.zeros(0, dtype=object))
+        return Page(0, [], [], [])
     if layer.rtree is None:
         raise CatalogError(f"layer {layer.name!r} of the index has no R-tree spatial index")
     statements = bbox_sql(layer, query, epoch_dates)
@@ -404,7 +437,7 @@ def _rows(conn: sqlite3.Connection, layer: Layer, sql: str, params: list[Any]) -
             if value is not None:
                 record[name] = bool(value)
     blobs = [row[1] for row in rows] if layer.geometry_column else [None] * len(rows)
-    return Page(0, [int(row[0]) for row in rows], properties, decode_geometries(blobs))
+    return Page(0, [int(row[0]) for row in rows], properties, blobs)
 
 
 def _columns_sql(layer: Layer) -> str:
@@ -413,57 +446,79 @@ def _columns_sql(layer: Layer) -> str:
     return ", ".join(_quote(n) for n in names)
 
 
-def page(
-    conn: sqlite3.Connection, layer: Layer, query: Query, epoch_dates: Mapping[str, str]
-) -> Page:
-    """One page of a layer's features matching ``query`` and how many match in all."""
-    if query.area is not None:
-        return _bbox_page(conn, layer, query, epoch_dates)
-    columns, table = _columns_sql(layer), _quote(layer.name)
-    where, params = where_sql(layer, query, epoch_dates)
-    matched = int(conn.execute(f"SELECT COUNT(*) FROM {table} WHERE {where}", params).fetchone()[0])
-    result = _rows(
-        conn, layer,
-        f"SELECT {columns} FROM {table} WHERE {where} ORDER BY fid LIMIT ? OFFSET ?",
-        [*params, query.limit, query.offset],
-    )  # fmt: skip
-    result.number_matched = matched
-    return result
+class GeoPackageProvider:
+    """Every read of one GeoPackage index file through one connection (one request at a
+    time): its layers, pages of items, items by id, queryables. ``layers`` (read once per
+    index file, :func:`read_layers`) may be shared by the providers of one file."""
 
+    def __init__(
+        self, connection: sqlite3.Connection, layers: dict[str, Layer] | None = None
+    ) -> None:
+        self.connection = connection
+        self.layers = read_layers(connection) if layers is None else layers
 
-def feature(conn: sqlite3.Connection, layer: Layer, fid: int) -> Page:
-    """The feature ``fid`` (an empty page when there is none)."""
-    return _rows(
-        conn, layer,
-        f"SELECT {_columns_sql(layer)} FROM {_quote(layer.name)} WHERE fid = ?", [fid],
-    )  # fmt: skip
+    @classmethod
+    def open(cls, path: str | Path, layers: dict[str, Layer] | None = None) -> GeoPackageProvider:
+        """A provider reading the file now at ``path`` (:func:`connect`)."""
+        return cls(connect(path), layers)
 
+    def close(self) -> None:
+        self.connection.close()
 
-def parse_datetime(text: str) -> tuple[dt.datetime | None, dt.datetime | None]:
-    """An RFC 3339 instant or interval (``a/b``, ``../b``, ``a/..``) as a closed UTC
-    interval; a bare date is its whole day."""
+    def queryables(self, layer: Layer) -> dict[str, str]:
+        """The layer's properties and their JSON schema types."""
+        return {c.name: c.type for c in layer.columns}
 
-    def instant(part: str, *, end: bool) -> dt.datetime | None:
-        part = part.strip()
-        if part in ("", ".."):
-            return None
-        try:
-            if len(part) == 10:
-                day = dt.datetime.fromisoformat(part).replace(tzinfo=dt.UTC)
-                return (
-                    day.replace(hour=23, minute=59, second=59, microsecond=999999) if end else day
-                )
-            value = dt.datetime.fromisoformat(part)
-        except ValueError as exc:
-            raise Problem(400, f"datetime: {part!r} is not an RFC 3339 date-time") from exc
-        return value if value.tzinfo else value.replace(tzinfo=dt.UTC)
+    def items(
+        self, layer: Layer, query: Query, epoch_dates: Mapping[str, str] | None = None
+    ) -> Page:
+        """One page of a layer's features matching ``query`` and how many match in all
+        (``epoch_dates``: epoch label -> date, for a time filter on epochs)."""
+        conn, dates = self.connection, epoch_dates or {}
+        if query.area is not None:
+            return _bbox_page(conn, layer, query, dates)
+        columns, table = _columns_sql(layer), _quote(layer.name)
+        where, params = where_sql(layer, query, dates)
+        matched = conn.execute(f"SELECT COUNT(*) FROM {table} WHERE {where}", params).fetchone()
+        result = _rows(
+            conn, layer,
+            f"SELECT {columns} FROM {table} WHERE {where} ORDER BY fid LIMIT ? OFFSET ?",
+            [*params, query.limit, query.offset],
+        )  # fmt: skip
+        result.number_matched = int(matched[0])
+        return result
 
-    if "/" in text:
-        a, _, b = text.partition("/")
-        start, end = instant(a, end=False), instant(b, end=True)
-        if start is not None and end is not None and start > end:
-            raise Problem(400, f"datetime: interval {text!r} ends before it starts")
-        return start, end
-    if text.strip() == "..":
-        raise Problem(400, "datetime: '..' alone is not an instant")
-    return instant(text, end=False), instant(text, end=True)
+    def geojson(self, layer: Layer, page: Page, source_crs: str, crs: str) -> list[str | None]:
+        """The page's geometries as GeoJSON text in the CRS URI ``crs`` (in its axis order;
+        ``source_crs`` the index's), written by GEOS (exact doubles) in one vectorised call;
+        kept per layer and CRS (:attr:`Layer.geojson_texts`), so a feature's geometry is
+        decoded, transformed and written once per index file."""
+        import shapely
+
+        from standgrid.serve import crs as crs_mod
+
+        texts = layer.geojson_texts.setdefault(crs, {})
+        found = [texts.get(fid, _MISSING) for fid in page.fids]
+        todo = [k for k, text in enumerate(found) if text is _MISSING]
+        if todo:
+            geoms = decode_geometries([page.blobs[k] for k in todo])
+            present = np.flatnonzero(shapely.is_geometry(geoms))
+            written: list[str | None] = [None] * len(todo)
+            if len(present):
+                moved = crs_mod.geometries_to(geoms[present], source_crs, crs)
+                for k, text in zip(present.tolist(), shapely.to_geojson(moved).tolist(),
+                                   strict=True):  # fmt: skip
+                    written[k] = text
+            keep = len(texts) < MAX_CACHED_TEXTS
+            for k, text in zip(todo, written, strict=True):
+                found[k] = text
+                if keep:
+                    texts[page.fids[k]] = text
+        return found
+
+    def get(self, layer: Layer, fid: int) -> Page:
+        """The feature ``fid`` (an empty page when there is none)."""
+        return _rows(
+            self.connection, layer,
+            f"SELECT {_columns_sql(layer)} FROM {_quote(layer.name)} WHERE fid = ?", [fid],
+        )  # fmt: skip

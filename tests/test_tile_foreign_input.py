@@ -25,10 +25,11 @@ from standgrid.geometry import yaw_of
 from standgrid.georeference import MapProjector, georeference_mission
 from standgrid.mission.clouds import write_cloud
 from standgrid.mission.model import open_mission
-from standgrid.pipeline.tile import TileOptions, tile_missions
+from standgrid.pipeline.tile import tile_missions
 from standgrid.pointcloud import PointCloud
 from standgrid.simulate import simulate_mission
 from standgrid.stamps import Stamp
+from standgrid.tiling.options import TileOptions
 from tests.conftest import BUNDLED_MISSIONS
 
 CRS = "EPSG:32630"

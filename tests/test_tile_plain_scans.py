@@ -25,8 +25,9 @@ from standgrid.mission.scan import (
     segment_times,
     week_start,
 )
-from standgrid.pipeline.tile import TileOptions, tile_missions
+from standgrid.pipeline.tile import tile_missions
 from standgrid.stamps import unix_ns_to_adjusted_gps_time
+from standgrid.tiling.options import TileOptions
 
 REAL = Path(__file__).resolve().parents[1] / ".." / "shared" / "data" / "real" / "als"
 

@@ -262,7 +262,7 @@ def _ingest(
             if ingest.placement.alignment and _is_provisional(ingest.placement):
                 raise NotGeoreferencedError(
                     "no GNSS fixes and no pose-graph anchor, and no other mission (given, or "
-                    "in the catalog) registers with it: give option anchor (lat, lon, alt, yaw)",
+                    "in the catalog) registers with it: give option anchor",
                     path=ingest.mission.path,
                     option="anchor",
                 )

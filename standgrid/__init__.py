@@ -70,10 +70,10 @@ def wait_passively(environ: MutableMapping[str, str] = os.environ) -> dict[str, 
 
 wait_passively()
 
-from standgrid.api import align, compare, enrich, run, status, tile  # noqa: E402
 from standgrid.errors import OptionError, StandgridError  # noqa: E402
 
 if TYPE_CHECKING:
+    from standgrid.api import align, compare, enrich, run, status, tile
     from standgrid.catalog.store import Catalog, open_catalog
     from standgrid.compare.options import CompareOptions
     from standgrid.engine.execution import Execution
@@ -130,6 +130,10 @@ _LAZY: dict[str, tuple[str, str]] = {
     "retrieve_payload_by_type": ("standgrid.mission.retrieval", "retrieve_payload_by_type"),
     "retrieve_payload_by_pose": ("standgrid.mission.retrieval", "retrieve_payload_by_pose"),
     "retrieve_payload_by_gnss": ("standgrid.georeference.retrieval", "retrieve_payload_by_gnss"),
+    # the verbs (typed in standgrid.api); a stage package not yet renamed to a noun rebinds its
+    # name when imported (standgrid._stage), calling the same verb
+    **{verb: ("standgrid.api", verb) for verb in ("tile", "align", "enrich", "compare", "run")},
+    "status": ("standgrid.api", "status"),
 }
 
 

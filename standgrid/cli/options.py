@@ -14,9 +14,8 @@ import json
 import re
 import sys
 from collections.abc import Callable, Iterable, Iterator, Mapping
-from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, TypeVar
+from typing import Any, NamedTuple, TypeVar
 
 import click
 
@@ -29,8 +28,7 @@ json_option = click.option(
 quiet_option = click.option("-q", "--quiet", is_flag=True, help="No progress output on stderr.")
 
 
-@dataclass(frozen=True)
-class Option:
+class Option(NamedTuple):
     """One option: its flag (``decls``, click's), its click settings (``attrs``: one help
     text), and the fields it sets, ``"Class.field"`` (``convert(value, params)``: the field's
     value from the flag's, and the command's other parameters)."""
@@ -38,7 +36,7 @@ class Option:
     name: str
     decls: tuple[str, ...]
     fields: tuple[str, ...]
-    attrs: Mapping[str, Any] = field(default_factory=dict)
+    attrs: Mapping[str, Any] = {}
     convert: Callable[[Any, Mapping[str, Any]], Any] | None = None
 
     def __call__(self, command: F) -> F:

@@ -76,11 +76,8 @@ class Execution:
             isinstance(timeout, int | float) and math.isfinite(timeout) and timeout >= 0
         ):
             raise OptionError("lock_timeout", f"{timeout!r}: give seconds >= 0, or None")
-        if not (callable(getattr(self.progress, "track", None))
-                and callable(getattr(self.progress, "status", None))):  # fmt: skip
-            raise OptionError(
-                "progress", f"{self.progress!r} is no Progress (track(), status())"
-            )
+        if not all(callable(getattr(self.progress, m, None)) for m in ("track", "status")):
+            raise OptionError("progress", f"{self.progress!r} is no Progress (track(), status())")
 
     @property
     def memory_budget(self) -> MemoryBudget:

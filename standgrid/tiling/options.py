@@ -20,8 +20,11 @@ EPOCH_LABEL = re.compile(r"[A-Za-z0-9][A-Za-z0-9._-]*")
 def _metres(name: str, value: float | None, *, positive: bool) -> None:
     if value is None:
         return
-    if not isinstance(value, int | float) or not math.isfinite(value) or value < 0 or (
-        positive and value == 0
+    if (
+        not isinstance(value, int | float)
+        or not math.isfinite(value)
+        or value < 0
+        or (positive and value == 0)
     ):
         raise OptionError(name, f"{value!r}: give metres {'> 0' if positive else '>= 0'}")
 

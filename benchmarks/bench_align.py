@@ -28,7 +28,8 @@ from pathlib import Path
 CHILD = """
 import json, resource, sys, time
 from pathlib import Path
-from standgrid.pipeline.tile import TileOptions, tile_missions
+from standgrid.pipeline.tile import tile_missions
+from standgrid.tiling.options import TileOptions
 missions, out, align = json.loads(sys.argv[1])
 t0, c0 = time.perf_counter(), time.process_time()
 report = tile_missions([Path(m) for m in missions], out, TileOptions(overwrite=True, align=align))

@@ -50,7 +50,8 @@ def _peak_mb() -> float:
 
 
 def measure_tile(mission: Path, catalog: Path) -> dict[str, Any]:
-    from standgrid.pipeline.tile import TileOptions, tile_missions
+    from standgrid.pipeline.tile import tile_missions
+    from standgrid.tiling.options import TileOptions
 
     t0 = time.perf_counter()
     report = tile_missions([mission], catalog, TileOptions(overwrite=True))
@@ -81,19 +82,21 @@ def measure_copy(catalog: Path, out: Path) -> dict[str, Any]:
 def measure_enrich(catalog: Path, workers: int, memory_mb: int) -> dict[str, Any]:
     import pyogrio
 
-    from standgrid.engine import MemoryBudget, open_executor
-    from standgrid.pipeline.enrich import EnrichOptions, enrich_catalog
+    from standgrid.engine import Execution, open_executor
+    from standgrid.enrich.options import EnrichOptions
+    from standgrid.pipeline.enrich import enrich_catalog
 
     cells = pyogrio.read_dataframe(catalog / "index.gpkg", layer="cells", read_geometry=False)
     points = int(cells["point_count"].sum())
-    options = EnrichOptions(memory_budget=MemoryBudget.megabytes(memory_mb))
+    options = EnrichOptions()
+    execution = Execution(memory_mb=memory_mb)
     t0 = time.perf_counter()
     # a cluster is started before the clock (as bench_tile does; its start-up is printed apart)
-    with open_executor(workers or None, memory_budget=options.memory_budget.bytes) as executor:
+    with open_executor(workers or None, memory_budget=execution.memory_budget.bytes) as executor:
         started = time.perf_counter() - t0
         cpu0 = _cpu_seconds() + _workers_cpu_seconds(executor)
         t1 = time.perf_counter()
-        report = enrich_catalog(catalog, options, executor=executor)
+        report = enrich_catalog(catalog, options, execution=execution.on(executor))
         seconds = time.perf_counter() - t1
         cpu = _cpu_seconds() + _workers_cpu_seconds(executor) - cpu0
         client = getattr(executor, "client", None)

@@ -58,7 +58,7 @@ STREAMED = "2024-05-15-wytham-anymal-bench"
 
 def build_catalog(folder: Path) -> Path:
     from standgrid.pipeline.run import run_pipeline
-    from standgrid.pipeline.tile import TileOptions
+    from standgrid.tiling.options import TileOptions
 
     catalog = folder / "catalog"
     print(f"building a demo catalog from data/missions in {catalog} ...", file=sys.stderr)

@@ -95,6 +95,7 @@ def main() -> None:
         plan_chunks,
         read_chunk,
     )
+    from standgrid.engine import Execution
     from standgrid.enrich.block import _window
     from standgrid.enrich.options import EnrichOptions
     from standgrid.enrich.trees import CHM_SUBCIRCLE_M
@@ -104,7 +105,7 @@ def main() -> None:
     state = json.loads((args.catalog / "catalog.json").read_text())
     origin = tuple(state["grid"]["origin"])
     options = EnrichOptions()
-    budget = options.memory_budget.bytes * 7 // 8 // BYTES_PER_POINT
+    budget = Execution().memory_budget.bytes * 7 // 8 // BYTES_PER_POINT
     side = chunk_side(cells, 20.0, options.halo, budget)
     chunks = plan_chunks(cells, side=side, origin=origin, buffer=options.halo)
     chunks = chunks[: args.chunks] if args.chunks else chunks

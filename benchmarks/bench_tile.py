@@ -105,7 +105,8 @@ def measure_simulate(root: Path, points: int, area: float) -> dict[str, Any]:
 
 
 def measure_tile(mission: Path, catalog: Path, laz: bool, warm: bool = False) -> dict[str, Any]:
-    from standgrid.pipeline.tile import TileOptions, tile_missions
+    from standgrid.pipeline.tile import tile_missions
+    from standgrid.tiling.options import TileOptions
 
     if warm:  # a process that has tiled before: libraries imported, caches built (the copy's
         # clock, too, starts after laspy is imported)
@@ -127,15 +128,16 @@ def measure_tile(mission: Path, catalog: Path, laz: bool, warm: bool = False) ->
 
 def measure_tile_workers(mission: Path, catalog: Path, workers: int) -> dict[str, Any]:
     """Tile (LAZ) on a LocalCluster of ``workers`` processes, started before the clock."""
-    from standgrid.engine import open_executor
-    from standgrid.pipeline.tile import TileOptions, tile_missions
+    from standgrid.engine import Execution, open_executor
+    from standgrid.pipeline.tile import tile_missions
+    from standgrid.tiling.options import TileOptions
 
     t0 = time.perf_counter()
     with open_executor(workers=workers) as executor:
         started = time.perf_counter() - t0
         t1 = time.perf_counter()
         options = TileOptions(laz=True, overwrite=True)
-        report = tile_missions([mission], catalog, options, executor=executor)
+        report = tile_missions([mission], catalog, options, execution=Execution(executor=executor))
         seconds = time.perf_counter() - t1
     assert report.points_in == report.points_out and report.workers == workers
     return {"seconds": seconds, "startup_seconds": started, "points": report.points_out}

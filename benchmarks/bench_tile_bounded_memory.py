@@ -62,17 +62,18 @@ def _measure(code: str) -> dict[str, Any]:
 def _tile_code(mission: Path, catalog: Path, budget_mb: int, workers: int) -> str:
     return _IMPORTS + textwrap.dedent(
         f"""
-        from standgrid.engine import MemoryBudget, open_executor
-        from standgrid.pipeline.tile import TileOptions, tile_missions
-        budget = MemoryBudget.megabytes({budget_mb})
-        options = TileOptions(memory_budget=budget, overwrite=True)
+        from standgrid.engine import Execution, open_executor
+        from standgrid.pipeline.tile import tile_missions
+        from standgrid.tiling.options import TileOptions
+        execution = Execution(memory_mb={budget_mb})
+        options = TileOptions(overwrite=True)
         workers = {workers} or None
         def _peak():
             import resource
             return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
-        with open_executor(workers, memory_budget=budget.bytes) as executor:
+        with open_executor(workers, memory_budget=execution.memory_budget.bytes) as executor:
             report = tile_missions([{str(mission)!r}], {str(catalog)!r}, options,
-                                   executor=executor)
+                                   execution=execution.on(executor))
             client = getattr(executor, "client", None)
             if client is not None:
                 out["worker_peaks_mb"] = sorted(client.run(_peak).values())

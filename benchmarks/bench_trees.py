@@ -53,7 +53,8 @@ open(sys.argv[2], "wb").write(pickle.dumps(out))
 def capture(catalog: Path, workdir: Path) -> list[Path]:
     """The saved inputs of every ``segment_trees`` call of an enrichment of ``catalog``."""
     import standgrid.enrich.trees as trees
-    from standgrid.pipeline.enrich import EnrichOptions, enrich_catalog
+    from standgrid.enrich.options import EnrichOptions
+    from standgrid.pipeline.enrich import enrich_catalog
 
     saved = sorted(workdir.glob("chunk_*.pkl"))
     if saved:

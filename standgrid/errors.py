@@ -15,16 +15,25 @@ from pathlib import Path
 class StandgridError(Exception):
     """Root of every error standgrid raises."""
 
+    #: The library name of the option that would change the outcome (a field of an options
+    #: class or of :class:`~standgrid.engine.execution.Execution`, e.g.
+    #: ``"accept_poor_georeference"``); the message names it as ``option <name>``, which the
+    #: CLI alone turns into its flag (``--accept-poor-georeference``).
+    option: str | None = None
+
     def __init__(
         self,
         message: str,
         *,
         path: str | PathLike[str] | None = None,
         line: int | None = None,
+        option: str | None = None,
     ) -> None:
         self.message = message
         self.path = Path(path) if path is not None else None
         self.line = line
+        if option is not None:
+            self.option = option
         if self.path is not None and line is not None:
             text = f"{self.path}:{line}: {message}"
         elif self.path is not None:
@@ -35,6 +44,19 @@ class StandgridError(Exception):
 
     def __str__(self) -> str:  # OSError subclasses would otherwise format their own way
         return str(self.args[0]) if self.args else self.message
+
+
+class OptionError(StandgridError, ValueError):
+    """An option (of an options class, or of an execution) out of its range, or options that
+    cannot go together; :attr:`option` names the first at fault by its library name."""
+
+    def __init__(self, option: str, message: str) -> None:
+        super().__init__(f"option {option}: {message}", option=option)
+
+
+def option_hint(name: str) -> str:
+    """``option <name>``: how an error message names the option ``name``."""
+    return f"option {name}"
 
 
 # --- reading missions -------------------------------------------------------------------
@@ -74,8 +96,9 @@ class MetadataError(FormatError):
         path: str | PathLike[str] | None = None,
         line: int | None = None,
         key: str | None = None,
+        option: str | None = None,
     ) -> None:
-        super().__init__(message, path=path, line=line)
+        super().__init__(message, path=path, line=line, option=option)
         self.key = key
 
 
@@ -167,12 +190,14 @@ class NotEnrichedError(CatalogError, FileNotFoundError):
 
 
 #: How a refusal to replace an output says what would: the CLI renders it as its flag.
-OVERWRITE_HINT = "overwrite replaces it"
+OVERWRITE_HINT = f"{option_hint('overwrite')} replaces it"
 
 
 class OutputExistsError(StandgridError, FileExistsError):
     """An output exists and ``overwrite`` was not asked for (the message says
     :data:`OVERWRITE_HINT` when asking for it would replace it)."""
+
+    option = "overwrite"
 
 
 class OutputNotWritableError(StandgridError, PermissionError):

@@ -123,7 +123,8 @@ def _rigid(a: np.ndarray, b: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 
 
 def main(out: Path, seed: int) -> None:
-    from standgrid.pipeline.tile import TileOptions, tile_missions
+    from standgrid.pipeline.tile import tile_missions
+    from standgrid.tiling.options import TileOptions
 
     simulate(out, seed)
     missions = sorted((out / "missions").iterdir())

@@ -46,11 +46,13 @@ def run_scenario(
     harvest: bool,
     enrich_options: Any = None,
 ) -> Scenario:
+    from standgrid.enrich.options import EnrichOptions
     from standgrid.partition import StandGrid
     from standgrid.pipeline.compare import compare_epochs
-    from standgrid.pipeline.enrich import EnrichOptions, enrich_catalog
-    from standgrid.pipeline.tile import TileOptions, tile_missions
+    from standgrid.pipeline.enrich import enrich_catalog
+    from standgrid.pipeline.tile import tile_missions
     from standgrid.simulate.mission import simulate_mission, stand_bounds
+    from standgrid.tiling.options import TileOptions
 
     bounds = stand_bounds(area)
     grid = StandGrid("EPSG:32630")

@@ -47,7 +47,7 @@ def enriched_pair(factory: pytest.TempPathFactory) -> EnrichedPair:
     """Both bundled missions tiled (20 m grid, 2 m buffer), enriched and compared, once."""
     if "pair" not in _cache:
         from standgrid.pipeline.run import run_pipeline
-        from standgrid.pipeline.tile import TileOptions
+        from standgrid.tiling.options import TileOptions
 
         folder = factory.mktemp("shared") / "catalog"
         report = run_pipeline([BUNDLED_MISSIONS], folder, TileOptions(buffer=BUFFER_M))
@@ -61,7 +61,7 @@ def copc_pair(factory: pytest.TempPathFactory) -> Path:
     once (the same options as :func:`enriched_pair` but ``copc=True``)."""
     if "copc" not in _cache:
         from standgrid.pipeline.run import run_pipeline
-        from standgrid.pipeline.tile import TileOptions
+        from standgrid.tiling.options import TileOptions
 
         folder = factory.mktemp("copc") / "catalog"
         run_pipeline([BUNDLED_MISSIONS], folder, TileOptions(buffer=BUFFER_M, copc=True))
@@ -73,7 +73,8 @@ def copc_pair(factory: pytest.TempPathFactory) -> Path:
 def tiled_grid25(factory: pytest.TempPathFactory) -> Path:
     """Both bundled missions tiled on a 25 m grid, not enriched (a few seconds), once."""
     if "grid25" not in _cache:
-        from standgrid.pipeline.tile import TileOptions, tile_missions
+        from standgrid.pipeline.tile import tile_missions
+        from standgrid.tiling.options import TileOptions
 
         folder = factory.mktemp("grid25") / "catalog"
         tile_missions(

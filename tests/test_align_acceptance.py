@@ -32,7 +32,8 @@ def test_overlapping_missions_agree_within_5_cm_and_state_a_true_sigma(
 ) -> None:
     import pyogrio
 
-    from standgrid.pipeline.tile import TileOptions, tile_missions
+    from standgrid.pipeline.tile import tile_missions
+    from standgrid.tiling.options import TileOptions
 
     gnss = tile_missions(_missions(campaigns), tmp_path / "gnss", TileOptions(align=False))
     assert gnss.alignment is None
@@ -72,8 +73,8 @@ def test_two_robots_on_one_day_count_each_tree_once(campaigns: Path, tmp_path: P
     path finds trees the first missed (more than one robot's count: the issue's "within
     5 % of one robot" does not hold for that reason, reported)."""
     from standgrid.pipeline.run import run_pipeline
-    from standgrid.pipeline.tile import TileOptions
     from standgrid.simulate import load_truth
+    from standgrid.tiling.options import TileOptions
     from tests.tree_truth import inset_of, scores, truth_table
     from tests.under_canopy_scenarios import _cell_bounds, stand_truth
 
@@ -113,7 +114,7 @@ def test_a_resurvey_is_as_repeatable_as_with_exact_placement(tmp_path: Path) -> 
     new than with exact placement (the true georeference), and the trees it pairs stand
     at most 10 cm apart (median)."""
     from standgrid.pipeline.run import run_pipeline
-    from standgrid.pipeline.tile import TileOptions
+    from standgrid.tiling.options import TileOptions
 
     counts, distance = {}, {}
     for how in ("exact", "aligned", "gnss"):
@@ -138,7 +139,8 @@ def test_a_mission_without_gnss_is_placed_by_the_catalog(campaigns: Path, tmp_pa
     both (co-located nodes), with the catalog's own absolute uncertainty."""
     import shutil
 
-    from standgrid.pipeline.tile import TileOptions, tile_missions
+    from standgrid.pipeline.tile import tile_missions
+    from standgrid.tiling.options import TileOptions
 
     root = tmp_path / "nognss"
     (root / "missions").mkdir(parents=True)

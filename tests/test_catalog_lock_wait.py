@@ -17,7 +17,8 @@ from click.testing import CliRunner
 from standgrid.catalog import Catalog
 from standgrid.cli import cli
 from standgrid.errors import CatalogBusyError
-from standgrid.pipeline.tile import TileOptions, tile_missions
+from standgrid.pipeline.tile import tile_missions
+from standgrid.tiling.options import TileOptions
 from tests.conftest import BUNDLED_MISSIONS, REPO_ROOT
 from tests.pipeline_fixtures import MISSIONS
 

@@ -30,8 +30,9 @@ from standgrid.errors import (
     PoorGeoreferenceError,
 )
 from standgrid.pipeline.enrich import enrich_catalog
-from standgrid.pipeline.tile import TileOptions, tile_missions
+from standgrid.pipeline.tile import tile_missions
 from standgrid.pointcloud import PointCloud
+from standgrid.tiling.options import TileOptions
 from tests.conftest import BUNDLED_MISSIONS, REPO_ROOT
 
 BIG1 = BUNDLED_MISSIONS / "2024-05-14-wytham-anymal-coyote"

@@ -259,7 +259,7 @@ def test_an_existing_output_names_the_cli_flag_and_the_library_stays_neutral(
         table = generic_tree_list(catalog, None, level=1)
     with pytest.raises(OutputExistsError) as refused:
         write_tree_list(table, out, crs=catalog.crs, fmt=None, overwrite=False)
-    assert str(refused.value).endswith("exists (overwrite replaces it)")
+    assert str(refused.value).endswith("exists (option overwrite replaces it)")
 
 
 def test_run_replaces_a_mission_from_another_folder_only_with_replace(tmp_path: Path) -> None:

@@ -270,7 +270,8 @@ def test_imputation_fills_only_missing_dbh_and_says_so() -> None:
 def voronoi_enriched(tmp_path_factory: pytest.TempPathFactory) -> tuple[Any, Any]:
     """The bundled missions tiled into Voronoi cells and enriched: (catalog root, result)."""
     from standgrid.pipeline.enrich import enrich_catalog
-    from standgrid.pipeline.tile import TileOptions, tile_missions
+    from standgrid.pipeline.tile import tile_missions
+    from standgrid.tiling.options import TileOptions
     from tests.conftest import BUNDLED_MISSIONS
 
     root = tmp_path_factory.mktemp("voronoi") / "catalog"

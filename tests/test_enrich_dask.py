@@ -29,15 +29,18 @@ import pytest
 import rasterio
 
 from standgrid.catalog.chunks import ChunkCell, chunk_side, plan_chunks
-from standgrid.engine import MemoryBudget
+from standgrid.engine import Execution
+from standgrid.enrich.options import EnrichOptions
 from standgrid.enrich.terrain import ground_reach
-from standgrid.pipeline.enrich import EnrichOptions, enrich_catalog
-from standgrid.pipeline.tile import TileOptions, tile_missions
+from standgrid.pipeline.enrich import enrich_catalog
+from standgrid.pipeline.tile import tile_missions
+from standgrid.tiling.options import TileOptions
 from tests.conftest import BUNDLED_MISSIONS, REPO_ROOT
 
 #: A small budget, so the 80 m stand is cut into several chunks (the merge is exercised);
 #: one epoch keeps the test short.
-OPTIONS = EnrichOptions(memory_budget=MemoryBudget(64 << 20), epochs=("2024",))
+OPTIONS = EnrichOptions(epochs=("2024",))
+SMALL = Execution(memory_mb=64)
 
 
 @pytest.fixture(scope="module")
@@ -51,7 +54,7 @@ def tiled(tmp_path_factory: pytest.TempPathFactory) -> Path:
 def single(tiled: Path) -> Path:
     out = tiled.parent / "single"
     shutil.copytree(tiled, out)
-    report = enrich_catalog(out, OPTIONS)
+    report = enrich_catalog(out, OPTIONS, execution=SMALL)
     assert all(e["chunks"] > 1 for e in report.epochs.values())
     return out
 
@@ -149,7 +152,7 @@ def test_the_epoch_is_cut_into_chunks_that_own_every_cell_once(single: Path) -> 
     cells = cells[cells["epoch"].astype(str) == "2024"]
     records = cells_of(cells)
     grid = json.loads((single / "catalog.json").read_text())["grid"]
-    side = chunk_side(records, 20.0, 10.0, OPTIONS.memory_budget.bytes // 700)
+    side = chunk_side(records, 20.0, 10.0, SMALL.memory_budget.bytes // 700)
     origin = tuple(grid["origin"])
     reach = functools.partial(ground_reach, lattice=origin)
     chunks = plan_chunks(records, side=side, origin=origin, buffer=10.0, reach=reach)
@@ -184,7 +187,7 @@ def test_the_epoch_is_cut_into_chunks_that_own_every_cell_once(single: Path) -> 
 def test_local_cluster_of_two_workers_gives_the_same_catalog(tiled: Path, single: Path) -> None:
     out = tiled.parent / "local-cluster"
     shutil.copytree(tiled, out)
-    enrich_catalog(out, OPTIONS, workers=2)
+    enrich_catalog(out, OPTIONS, execution=replace(SMALL, workers=2))
     _assert_same(single, out)
 
 
@@ -193,7 +196,7 @@ def test_dask_scheduler_and_worker_give_the_same_catalog(
 ) -> None:
     out = tiled.parent / "scheduler"
     shutil.copytree(tiled, out)
-    enrich_catalog(out, OPTIONS, scheduler=scheduler)
+    enrich_catalog(out, OPTIONS, execution=replace(SMALL, scheduler=scheduler))
     _assert_same(single, out)
 
 
@@ -214,7 +217,7 @@ def test_another_chunk_layout_gives_the_same_catalog(tiled: Path, single: Path) 
     ground's hull.)"""
     out = tiled.parent / "other-layout"
     shutil.copytree(tiled, out)
-    report = enrich_catalog(out, replace(OPTIONS, memory_budget=MemoryBudget(512 << 20)))
+    report = enrich_catalog(out, OPTIONS, execution=Execution(memory_mb=512))
     state = json.loads((single / "catalog.json").read_text())
     assert report.epochs["2024"]["chunks"] != state["epochs"]["2024"]["enrichment"]["chunks"]
     _assert_same(single, out)
@@ -244,7 +247,8 @@ def test_an_interrupted_enrichment_leaves_no_chunk_running_and_the_catalog_as_it
     shutil.copytree(tiled, out)
     before = {p.relative_to(out): p.read_bytes() for p in out.glob("tiles/2024/*.la[sz]")}
     with pytest.raises(Stop):
-        enrich_catalog(out, OPTIONS, progress=CallbackProgress(wrap=first_chunk_only))
+        progress = CallbackProgress(wrap=first_chunk_only)
+        enrich_catalog(out, OPTIONS, execution=replace(SMALL, progress=progress))
     assert not [t for t in threading.enumerate() if t.name.startswith("ThreadPoolExecutor")]
     assert not list(out.glob(".staging/*/files"))  # the discarded transaction stays gone
     after = {p.relative_to(out): p.read_bytes() for p in out.glob("tiles/2024/*.la[sz]")}
@@ -263,7 +267,7 @@ def test_a_voronoi_catalog_is_the_same_for_any_chunk_layout(
     shutil.copytree(tiled, small)
     shutil.copytree(tiled, large)
     reports = [
-        enrich_catalog(out, replace(OPTIONS, memory_budget=MemoryBudget(mb << 20)))
+        enrich_catalog(out, OPTIONS, execution=Execution(memory_mb=mb))
         for out, mb in ((small, 64), (large, 512))
     ]
     chunks = [report.epochs["2024"]["chunks"] for report in reports]

@@ -28,24 +28,56 @@ def test_import_standgrid_imports_no_heavy_library() -> None:
 
 
 def test_every_front_door_name_resolves() -> None:
+    import inspect
+    import types
+
     import standgrid
-    from standgrid.pipeline.compare import compare_epochs
-    from standgrid.pipeline.enrich import enrich_catalog
-    from standgrid.pipeline.run import run_pipeline
-    from standgrid.pipeline.tile import tile_missions
+    from standgrid import api
+    from standgrid.engine.execution import Execution
 
     for name in standgrid.__all__:
         assert getattr(standgrid, name) is not None, name
-    assert standgrid.tile is tile_missions and standgrid.run is run_pipeline
-    # enrich and compare are also the stage packages: importing one keeps the alias callable
     import standgrid.compare.trees
     import standgrid.enrich.ground
 
-    assert callable(standgrid.enrich) and callable(standgrid.compare)
-    assert standgrid.enrich.__entry__.endswith(enrich_catalog.__name__)  # type: ignore[attr-defined]
-    assert standgrid.compare.__entry__.endswith(compare_epochs.__name__)  # type: ignore[attr-defined]
+    for verb in api.__all__:  # the typed verbs, every one verb(input, options, *, execution)
+        found = getattr(standgrid, verb)
+        if isinstance(found, types.ModuleType):  # a stage package not yet renamed to a noun
+            assert callable(found) and found.__entry__ == f"standgrid.api:{verb}", verb
+        else:
+            assert found is getattr(api, verb), verb
+        parameters = inspect.signature(getattr(api, verb)).parameters
+        assert parameters["execution"].kind is inspect.Parameter.KEYWORD_ONLY, verb
+    assert standgrid.Execution is Execution
     with pytest.raises(AttributeError, match="no attribute 'tile_missions'"):
         _ = standgrid.tile_missions  # type: ignore[attr-defined]
+
+
+def test_options_and_execution_validate_themselves() -> None:
+    """A value out of range is refused when the options are made, naming the field (the
+    library's name: the CLI alone says its flag)."""
+    import standgrid
+
+    for make, option in (
+        (lambda: standgrid.Execution(workers=0), "workers"),
+        (lambda: standgrid.Execution(workers=2, scheduler="tcp://h:8786"), "scheduler"),
+        (lambda: standgrid.Execution(scheduler="not an address"), "scheduler"),
+        (lambda: standgrid.Execution(memory_mb=8), "memory_mb"),
+        (lambda: standgrid.Execution(lock_timeout=-1.0), "lock_timeout"),
+        (lambda: standgrid.TileOptions(buffer=-1.0), "buffer"),
+        (lambda: standgrid.TileOptions(anchor=(91.0, 0.0, 0.0, 0.0)), "anchor"),
+        (lambda: standgrid.TileOptions(epoch="a/b"), "epoch"),
+        (lambda: standgrid.EnrichOptions(pixel_size=0.0), "pixel_size"),
+        (lambda: standgrid.EnrichOptions(min_observed_fraction=1.5), "min_observed_fraction"),
+        (lambda: standgrid.CompareOptions(max_distance=-2.0), "max_distance"),
+    ):
+        with pytest.raises(standgrid.OptionError) as refused:
+            make()
+        assert refused.value.option == option
+        assert str(refused.value).startswith(f"option {option}: ") and "--" not in str(
+            refused.value
+        )
+    assert standgrid.Execution(scheduler="tcp://127.0.0.1:8786").scheduler is not None
 
 
 def test_mission_does_not_import_georeference() -> None:
@@ -77,7 +109,7 @@ def test_a_script_through_the_front_door(tmp_path: Path, pair: EnrichedPair) -> 
     missions = [standgrid.open_mission(BUNDLED_MISSIONS / name) for name in MISSIONS.values()]
     out = tmp_path / "catalog"
     tiled = standgrid.tile(missions, out, standgrid.TileOptions(buffer=BUFFER_M))
-    enriched = standgrid.enrich(out, standgrid.EnrichOptions())
+    enriched = standgrid.enrich(out, standgrid.EnrichOptions(), execution=standgrid.Execution())
     compared = standgrid.compare(out)
 
     # the reports: conserved points, the same numbers as the pipeline modules' run

@@ -9,7 +9,8 @@ from pathlib import Path
 
 import pytest
 
-from standgrid.pipeline.tile import TileOptions, tile_missions
+from standgrid.pipeline.tile import tile_missions
+from standgrid.tiling.options import TileOptions
 from tests.conftest import BUNDLED_MISSIONS
 
 VALIDATOR = Path("/usr/share/doc/python3-gdal/examples/validate_gpkg.py")

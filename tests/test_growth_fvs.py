@@ -322,7 +322,7 @@ def projected_catalogs(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Pa
 
     from standgrid.georeference.geoid import find_geoid
     from standgrid.pipeline.run import run_pipeline
-    from standgrid.pipeline.tile import TileOptions
+    from standgrid.tiling.options import TileOptions
     from tests.pipeline_fixtures import BUFFER_M, MISSIONS
     from tests.test_georef_geoid import _debian_grid
 

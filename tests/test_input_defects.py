@@ -324,7 +324,8 @@ def test_compare_says_stale_same_and_reversed_epochs(small_enriched: Path, tmp_p
     from standgrid.compare.trees import ChangeInputError
     from standgrid.pipeline.compare import compare_epochs
 
-    with pytest.raises(ChangeInputError, match="--from and --to are both epoch '2024'"):
+    both = "option epoch_from and option epoch_to are both epoch '2024'"
+    with pytest.raises(ChangeInputError, match=both):
         compare_epochs(small_enriched, CompareOptions("2024", "2024"))
     with pytest.raises(ChangeInputError, match=r"'2024' .* is not later than epoch '2028'"):
         compare_epochs(small_enriched, CompareOptions("2028", "2024"))

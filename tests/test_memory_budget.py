@@ -116,7 +116,8 @@ def test_tile_stays_within_the_budget_at_scale(tmp_path: Path) -> None:
 
 @pytest.mark.slow  # child processes measured whole: ~6 s each
 def test_enrich_stays_within_a_small_budget(tmp_path: Path) -> None:
-    from standgrid.pipeline.tile import TileOptions, tile_missions
+    from standgrid.pipeline.tile import tile_missions
+    from standgrid.tiling.options import TileOptions
 
     catalog = tmp_path / "catalog"
     mission = sorted(BUNDLED_MISSIONS.iterdir())[0]

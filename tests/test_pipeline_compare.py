@@ -159,7 +159,8 @@ def test_voronoi_catalog_finds_the_harvest_too(tmp_path: Path) -> None:
     from click.testing import CliRunner
 
     from standgrid.cli import cli
-    from standgrid.pipeline.tile import TileOptions, tile_missions
+    from standgrid.pipeline.tile import tile_missions
+    from standgrid.tiling.options import TileOptions
 
     catalog = tmp_path / "voronoi"
     tile_missions(

@@ -22,10 +22,11 @@ from standgrid.catalog.invalidate import enrichment_note, without_enrichment
 from standgrid.catalog.records import EpochRecord
 from standgrid.cli import cli
 from standgrid.compare.options import CompareOptions
-from standgrid.engine import CallbackProgress
+from standgrid.engine import CallbackProgress, Execution
+from standgrid.enrich.options import EnrichOptions
 from standgrid.errors import EnrichError
 from standgrid.pipeline.compare import compare_epochs
-from standgrid.pipeline.enrich import EnrichOptions, enrich_catalog
+from standgrid.pipeline.enrich import enrich_catalog
 from standgrid.pipeline.status import catalog_status
 from standgrid.pipeline.tile import tile_missions
 from standgrid.serve import create_app
@@ -92,7 +93,7 @@ def retiled(pair: EnrichedPair, tmp_path_factory: pytest.TempPathFactory) -> dic
     report = tile_missions(
         [BUNDLED_MISSIONS / MISSIONS["2028"]],
         root,
-        progress=CallbackProgress(on_status=messages.append),
+        execution=Execution(progress=CallbackProgress(on_status=messages.append)),
     )
     return {"root": root, "before": before, "counts": counts, "report": report.to_dict(),
             "messages": messages}  # fmt: skip
@@ -249,7 +250,9 @@ def test_enrich_refreshes_the_stale_epoch(
     root = copy_catalog(retiled["root"], tmp_path_factory.mktemp("refresh") / "catalog")
     messages: list[str] = []
     enrich_catalog(
-        root, EnrichOptions(epochs=("2028",)), progress=CallbackProgress(on_status=messages.append)
+        root,
+        EnrichOptions(epochs=("2028",)),
+        execution=Execution(progress=CallbackProgress(on_status=messages.append)),
     )
     assert any("2028" in m and "refreshing stale epoch" in m and PAIR in m for m in messages)
     entry = json.loads((root / "catalog.json").read_text())["epochs"]["2028"]
@@ -295,7 +298,7 @@ def test_re_enriching_an_epoch_removes_its_comparisons(pair: EnrichedPair, tmp_p
     enrich_catalog(
         root,
         EnrichOptions(epochs=("2028",), min_observed_fraction=0.5),
-        progress=CallbackProgress(on_status=messages.append),
+        execution=Execution(progress=CallbackProgress(on_status=messages.append)),
     )
     assert not _files(root, f"compare/{PAIR}")
     assert _sql_count(root / "index.gpkg", "stand_changes") == 0

@@ -16,8 +16,9 @@ from standgrid.export.las import read_tile
 from standgrid.mission.live import LiveMission
 from standgrid.mission.metadata import read_metadata
 from standgrid.mission.model import open_mission
-from standgrid.pipeline.tile import TileOptions, tile_missions
+from standgrid.pipeline.tile import tile_missions
 from standgrid.simulate.stream import fixes_until, graph_until
+from standgrid.tiling.options import TileOptions
 from tests.conftest import BUNDLED_MISSIONS
 from tests.pipeline_fixtures import (
     CRS,

@@ -59,7 +59,8 @@ def test_streamed_mission_tiles_like_the_folder(
     served: tuple[str, Path, Path], tmp_path: Path
 ) -> None:
     from standgrid.mission.model import open_mission
-    from standgrid.pipeline.tile import TileOptions, tile_missions
+    from standgrid.pipeline.tile import tile_missions
+    from standgrid.tiling.options import TileOptions
 
     base, catalog, missions = served
     url = f"{base}/missions"

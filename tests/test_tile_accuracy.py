@@ -13,9 +13,10 @@ import pyogrio
 import pytest
 from scipy.spatial import cKDTree
 
-from standgrid.pipeline.tile import TileOptions, tile_missions
+from standgrid.pipeline.tile import tile_missions
 from standgrid.simulate import load_truth, mission_from_scan
 from standgrid.stamps import Stamp
+from standgrid.tiling.options import TileOptions
 from tests.conftest import real_file
 
 pytestmark = pytest.mark.realdata

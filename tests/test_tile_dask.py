@@ -26,9 +26,10 @@ import pytest
 from click.testing import CliRunner
 
 from standgrid.cli import cli
-from standgrid.engine import open_executor
+from standgrid.engine import Execution, open_executor
 from standgrid.errors import PointCloudFormatError
-from standgrid.pipeline.tile import TileOptions, tile_missions
+from standgrid.pipeline.tile import tile_missions
+from standgrid.tiling.options import TileOptions
 from tests.conftest import BUNDLED_MISSIONS, REPO_ROOT
 
 pytest.importorskip("distributed")
@@ -166,7 +167,8 @@ def test_existing_scheduler_matches_one_process(
     catalog = tmp_path / "catalog"
     with open_executor(scheduler=scheduler) as executor:
         with get_task_stream(executor.client) as stream:  # type: ignore[attr-defined]
-            report = tile_missions(MISSIONS, catalog, OPTIONS, executor=executor)
+            on_cluster = Execution(executor=executor)
+            report = tile_missions(MISSIONS, catalog, OPTIONS, execution=on_cluster)
         workers = set(executor.client.scheduler_info()["workers"])  # type: ignore[attr-defined]
     assert report.workers == 2
     payloads = sum(m["payloads"] for m in report.missions.values())
@@ -191,12 +193,13 @@ def test_voronoi_reingest_on_cluster_matches_one_process(tmp_path: Path) -> None
     victim = sorted((broken / "payload_clouds").glob("*.pcd"))[3]
     victim.write_bytes(victim.read_bytes()[:-5000])  # header intact, points cut short
     with open_executor(workers=2) as executor:
-        tile_missions(MISSIONS, clustered, options, executor=executor)
-        report = tile_missions(MISSIONS[:1], clustered, options, executor=executor)
+        on_cluster = Execution(executor=executor)
+        tile_missions(MISSIONS, clustered, options, execution=on_cluster)
+        report = tile_missions(MISSIONS[:1], clustered, options, execution=on_cluster)
         before = {p: p.stat().st_mtime_ns for p in clustered.rglob("*")}
         with pytest.raises(PointCloudFormatError) as error:  # raised on a worker
             tile_missions(  # the same mission from another folder: replacing it
-                [broken], clustered, replace(options, replace_missions=True), executor=executor
+                [broken], clustered, replace(options, replace_missions=True), execution=on_cluster
             )
         assert victim.name in str(error.value)
         assert {p: p.stat().st_mtime_ns for p in clustered.rglob("*")} == before

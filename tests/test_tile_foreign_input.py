@@ -25,10 +25,11 @@ from standgrid.errors import CRSError, GeoreferenceError
 from standgrid.geometry import yaw_of
 from standgrid.georeference import MapProjector, georeference_mission
 from standgrid.mission.model import open_mission
-from standgrid.pipeline.tile import TileOptions, tile_missions
+from standgrid.pipeline.tile import tile_missions
 from standgrid.pointcloud import PointCloud
 from standgrid.simulate import simulate_mission
 from standgrid.stamps import Stamp
+from standgrid.tiling.options import TileOptions
 from tests.conftest import BUNDLED_MISSIONS
 
 CRS = "EPSG:32630"
@@ -182,7 +183,7 @@ def test_projected_clouds_tile_where_the_gnss_fit_puts_them(
     mission = open_mission(folder)
     assert mission.is_projected and mission.gnss is None
     if fmt == "pcd":
-        with pytest.raises(CRSError, match="--crs"):
+        with pytest.raises(CRSError, match="option crs"):
             tile_missions([folder], tmp_path / "no-crs", TileOptions())
         options = TileOptions(crs=CRS, laz=False)
     else:
@@ -216,7 +217,7 @@ def test_projected_clouds_naming_no_crs_take_the_catalog_crs_they_are_added_to(
     other = BUNDLED_MISSIONS / "2028-05-20-wytham-frontier-v15"
     tile_missions([other], catalog, TileOptions(laz=False))  # its UTM zone: the same CRS
     assert catalog_json_crs(catalog) == CRS
-    with pytest.raises(CRSError, match="--crs"):
+    with pytest.raises(CRSError, match="option crs"):
         tile_missions([folder], tmp_path / "new", TileOptions())
     result = CliRunner().invoke(cli, ["tile", str(folder), "-o", str(catalog), "-q", "--json"])
     assert result.exit_code == 0, result.output
@@ -234,7 +235,7 @@ def test_anchor_from_the_true_start_places_a_mission_without_gnss(sim: Any, tmp_
     shutil.copytree(made.mission_dir, folder)
     shutil.rmtree(folder / "gnss")
     shutil.rmtree(folder / "payloads" / "gnss")
-    with pytest.raises(GeoreferenceError, match="--anchor"):
+    with pytest.raises(GeoreferenceError, match="option anchor"):
         tile_missions([folder], tmp_path / "refused", TileOptions(crs=CRS))
     # the truth: where the map origin is, and where its x axis points
     lat, lon, alt = made.chain.map_to_lla(np.zeros((1, 3)))[0]

@@ -13,7 +13,8 @@ from standgrid.catalog import Catalog
 from standgrid.mission.live import LiveMission
 from standgrid.mission.metadata import read_metadata
 from standgrid.mission.model import open_mission
-from standgrid.pipeline.tile import TileOptions, tile_missions
+from standgrid.pipeline.tile import tile_missions
+from standgrid.tiling.options import TileOptions
 from tests.conftest import BUNDLED_MISSIONS
 from tests.pipeline_fixtures import MISSIONS, assert_same_tiles_and_cells, tile_files
 

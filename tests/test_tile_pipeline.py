@@ -26,7 +26,7 @@ import shapely
 from scipy.spatial import cKDTree
 
 from standgrid.clouds import write_cloud
-from standgrid.engine import CallbackProgress
+from standgrid.engine import CallbackProgress, Execution
 from standgrid.errors import (
     CRSError,
     GeoreferenceError,
@@ -41,8 +41,9 @@ from standgrid.georeference import MapProjector
 from standgrid.georeference.fit import fit_from_pose_graph
 from standgrid.mission.posegraph import write_pose_graph
 from standgrid.partition import CellId, StandGrid
-from standgrid.pipeline.tile import TileOptions, tile_missions
+from standgrid.pipeline.tile import tile_missions
 from standgrid.stamps import Stamp, stamp_from_filename, unix_ns_to_adjusted_gps_time
+from standgrid.tiling.options import TileOptions
 from tests.conftest import BUNDLED_MISSIONS
 from tests.mission_factory import make_mission
 
@@ -625,7 +626,10 @@ def test_interrupted_run_leaves_the_catalog_intact(tmp_path: Path) -> None:
     messages: list[str] = []
     with pytest.raises(PointCloudFormatError) as info:
         tile_missions(
-            [broken], catalog, TileOptions(), progress=CallbackProgress(on_status=messages.append)
+            [broken],
+            catalog,
+            TileOptions(),
+            execution=Execution(progress=CallbackProgress(on_status=messages.append)),
         )
     assert victim.name in str(info.value)
     # it failed midway: inside the catalog transaction, while aligning the mission to the

@@ -25,8 +25,9 @@ from standgrid.mission.scan import (
     segment_times,
     week_start,
 )
-from standgrid.pipeline.tile import TileOptions, tile_missions
+from standgrid.pipeline.tile import tile_missions
 from standgrid.stamps import unix_ns_to_adjusted_gps_time
+from standgrid.tiling.options import TileOptions
 
 REAL = Path(__file__).resolve().parents[1] / ".." / "shared" / "data" / "real" / "als"
 
@@ -135,7 +136,7 @@ def test_a_vpc_names_the_tiles(tmp_path: Path) -> None:
 
 def test_a_file_without_a_crs_needs_crs(tmp_path: Path) -> None:
     scan = _real("TreeLS/pine_plot.laz")
-    with pytest.raises(CRSError, match="--crs"):
+    with pytest.raises(CRSError, match="option crs"):
         open_scan(scan, ScanOptions(date=dt.date(2020, 1, 1)))
     report = tile_missions(
         [scan],

@@ -15,7 +15,8 @@ import pyogrio
 import pyproj
 import pytest
 
-from standgrid.pipeline.tile import TileOptions, tile_missions
+from standgrid.pipeline.tile import tile_missions
+from standgrid.tiling.options import TileOptions
 from tests.conftest import real_file
 
 CRS = "EPSG:32630"

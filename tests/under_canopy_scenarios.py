@@ -52,8 +52,8 @@ class Campaigns:
 def run(root: Path, seed: int, *, harvest: float = 0.12) -> Campaigns:
     """Simulate the pair into ``root``, run the pipeline, measure."""
     from standgrid.pipeline.run import run_pipeline
-    from standgrid.pipeline.tile import TileOptions
     from standgrid.simulate import load_truth, simulate_pair
+    from standgrid.tiling.options import TileOptions
 
     simulate_pair(
         root, seed, overwrite=True, area=AREA_M, forest="mixed", scanner_kind="handheld",

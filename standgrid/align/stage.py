@@ -103,8 +103,9 @@ def provisional_placement(mission: Mission) -> Placement:
     if meta is None or meta.gnss is None:
         raise NotGeoreferencedError(
             "no GNSS fixes, no pose-graph anchor and no location in metadata.yaml: "
-            "give --anchor LAT LON ALT YAW",
+            "give option anchor",
             path=mission.path,
+            option="anchor",
         )
     lat, lon, alt = meta.gnss
     return Placement(fit_from_anchor(lat, lon, alt, 0.0), None, dict(PROVISIONAL))
@@ -179,7 +180,8 @@ def align_missions(
         reasons = "; ".join(r.reason for r in registrations if not r.accepted and r.moving in lost)
         raise NotGeoreferencedError(
             f"{', '.join(lost)}: no GNSS, and no mission given or in the catalog registers "
-            f"with it ({reasons or 'none overlaps'}): give --anchor LAT LON ALT YAW"
+            f"with it ({reasons or 'none overlaps'}): give option anchor",
+            option="anchor",
         )
     priors: dict[str, Prior] = {}
     for mission, placement in items:

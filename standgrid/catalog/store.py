@@ -60,6 +60,7 @@ from standgrid._atomic import (
 )
 from standgrid.catalog.paths import CATALOG_FILE
 from standgrid.catalog.records import EpochRecord, MissionRecord, TilingSettings
+from standgrid.engine.execution import DEFAULT_LOCK_TIMEOUT  # what a writer waits: 30 s
 from standgrid.errors import (
     OVERWRITE_HINT,
     CatalogBusyError,
@@ -80,8 +81,6 @@ FORMAT_NAME = "standgrid-catalog"
 FORMAT_VERSION = 1
 SCHEMES = ("grid", "voronoi")
 MAX_MISSION_NUMBER = 65535  # LAS point_source_id is uint16; 0 means "unknown"
-#: Seconds a writer waits for another writer before :class:`CatalogBusyError`.
-DEFAULT_LOCK_TIMEOUT = 30.0
 #: Keys every catalog.json has.
 REQUIRED_KEYS = ("format", "version", "crs", "scheme", "grid", "fingerprint", "missions",
                  "epochs", "next_mission_number")  # fmt: skip
@@ -244,8 +243,9 @@ class FileLock:
                     raise CatalogBusyError(
                         f"another process is {what} this catalog (waited {timeout:g} s for "
                         f"{self.path.name}{held_by}); try again when it has finished, or "
-                        "wait longer with --lock-timeout",
+                        "wait longer with option lock_timeout",
                         path=_catalog_of(self.path),
+                        option="lock_timeout",
                     ) from None
                 if not said and now - start >= WAIT_NOTICE_AFTER:
                     said = True

@@ -11,7 +11,7 @@ import logging
 
 import click
 
-from standgrid.errors import OVERWRITE_HINT, OutputExistsError, StandgridError
+from standgrid.errors import OptionError, StandgridError
 
 #: command name -> "module:attribute" of its click command.
 COMMANDS: dict[str, str] = {
@@ -62,10 +62,13 @@ class LazyGroup(click.Group):
         try:
             return super().invoke(ctx)
         except StandgridError as exc:
-            text = str(exc)
-            if isinstance(exc, OutputExistsError):  # the library's hint, as the CLI's flag
-                text = text.replace(OVERWRITE_HINT, f"--{OVERWRITE_HINT}")
-            raise click.ClickException(f"{type(exc).__name__}: {text}") from exc
+            from standgrid.cli.options import say_flags
+
+            # the library names options by their fields: here, and only here, as flags
+            text = f"{type(exc).__name__}: {say_flags(str(exc))}"
+            if isinstance(exc, OptionError):  # a value out of its range: a usage error
+                raise click.UsageError(text) from exc
+            raise click.ClickException(text) from exc
 
 
 class _StderrLines(logging.Handler):

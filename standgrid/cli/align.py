@@ -7,14 +7,7 @@ from typing import Any
 
 import click
 
-from standgrid.cli.options import (
-    TerminalProgress,
-    cluster_options,
-    emit,
-    json_option,
-    lock_timeout_option,
-    quiet_option,
-)
+from standgrid.cli.options import CLUSTER, emit, execution, json_option, options, quiet_option
 
 
 def _human(report: dict[str, Any]) -> str:
@@ -30,18 +23,10 @@ def _human(report: dict[str, Any]) -> str:
 
 @click.command("align")
 @click.argument("catalog", type=click.Path(exists=True, file_okay=False, path_type=Path))
-@cluster_options
-@lock_timeout_option
+@options(*CLUSTER)
 @json_option
 @quiet_option
-def align(
-    catalog: Path,
-    workers: int | None,
-    scheduler: str | None,
-    lock_timeout: float,
-    as_json: bool,
-    quiet: bool,
-) -> None:
+def align(catalog: Path, as_json: bool, quiet: bool, **params: Any) -> None:
     """Register CATALOG's missions to each other on their stems and ground, place them by
     one graph with their GNSS, and re-tile them (each in its own epoch).
 
@@ -54,8 +39,8 @@ def align(
     Example:
       standgrid align catalog
     """
-    from standgrid.pipeline.tile import TileOptions, realign_catalog
+    from standgrid.pipeline.tile import realign_catalog
+    from standgrid.tiling.options import TileOptions
 
-    options = TileOptions(workers=workers, scheduler=scheduler, lock_timeout=lock_timeout)
-    report = realign_catalog(catalog, options, progress=TerminalProgress(quiet))
+    report = realign_catalog(catalog, TileOptions(), execution=execution(params, quiet))
     emit(report.to_dict(), as_json, _human)

@@ -8,10 +8,12 @@ from typing import Any
 import click
 
 from standgrid.cli.options import (
-    TerminalProgress,
+    COMPARE,
+    build,
     emit,
+    execution,
     json_option,
-    lock_timeout_option,
+    options,
     quiet_option,
 )
 
@@ -45,37 +47,10 @@ def _human(r: dict[str, Any]) -> str:
 
 @click.command("compare")
 @click.argument("catalog", type=click.Path(exists=True, file_okay=False, path_type=Path))
-@click.option("--from", "epoch_from", default=None, help="Earlier epoch (default: the first).")
-@click.option("--to", "epoch_to", default=None, help="Later epoch (default: the last).")
-@click.option(
-    "--other", "other", default=None,
-    type=click.Path(exists=True, file_okay=False, path_type=Path),
-    help="Take --to from this catalog (it must be on the same grid); --from and --to then"
-    " default to the first epoch of CATALOG and the last of this one.",
-)  # fmt: skip
-@click.option(
-    "--max-distance", type=float, default=2.0, show_default=True,
-    help="Farthest a tree may be from its position in the earlier epoch to match (m).",
-)  # fmt: skip
-@click.option(
-    "--min-observed", "min_observed_fraction", type=click.FloatRange(0.0, 1.0), default=0.25,
-    show_default=True,
-    help="Least share of a stand observed in both epochs for its change to be reported.",
-)  # fmt: skip
-@lock_timeout_option
+@options(*COMPARE, "lock_timeout")
 @json_option
 @quiet_option
-def compare(
-    catalog: Path,
-    epoch_from: str | None,
-    epoch_to: str | None,
-    other: Path | None,
-    max_distance: float,
-    min_observed_fraction: float,
-    lock_timeout: float,
-    as_json: bool,
-    quiet: bool,
-) -> None:
+def compare(catalog: Path, as_json: bool, quiet: bool, **params: Any) -> None:
     """Compare two enriched epochs of CATALOG, stand by stand and tree by tree.
 
     Writes compare/<from>__<to>/ (stand_changes and tree_changes as CSV and Parquet,
@@ -92,14 +67,6 @@ def compare(
     from standgrid.compare.options import CompareOptions
     from standgrid.pipeline.compare import compare_epochs
 
-    options = CompareOptions(
-        epoch_from=epoch_from,
-        epoch_to=epoch_to,
-        other_catalog=other,
-        max_distance=max_distance,
-        min_observed_fraction=min_observed_fraction,
-    )
-    report = compare_epochs(
-        catalog, options, progress=TerminalProgress(quiet), lock_timeout=lock_timeout
-    )
+    compare_options, running = build(CompareOptions, params), execution(params, quiet)
+    report = compare_epochs(catalog, compare_options, execution=running)
     emit(report.to_dict(), as_json, _human)

@@ -11,12 +11,13 @@ from typing import Any
 import click
 
 from standgrid.cli.options import (
-    TerminalProgress,
-    cluster_options,
+    CLUSTER,
+    ENRICH,
+    build,
     emit,
+    execution,
     json_option,
-    lock_timeout_option,
-    memory_option,
+    options,
     quiet_option,
 )
 
@@ -53,53 +54,10 @@ def _human(r: dict[str, Any]) -> str:
 
 @click.command("enrich")
 @click.argument("catalog", type=click.Path(exists=True, file_okay=False, path_type=Path))
-@click.option("--epoch", "epochs", multiple=True, help="Epoch(s) to enrich (default: all).")
-@click.option(
-    "--pixel", "pixel_size", type=float, default=1.0, show_default=True,
-    help="DTM/CHM/density pixel size in metres (must divide the cell size).",
-)  # fmt: skip
-@click.option(
-    "--halo", type=float, default=10.0, show_default=True,
-    help="Metres of neighbouring tiles each stand is processed with (> a crown radius).",
-)  # fmt: skip
-@click.option(
-    "--height-break", type=float, default=2.0, show_default=True,
-    help="Height above ground (m) separating canopy from ground and understory in metrics.",
-)  # fmt: skip
-@click.option(
-    "--rigidness", type=click.IntRange(1, 3), default=1, show_default=True,
-    help="CSF cloth rigidness: 1 steep terrain, 2 relief, 3 flat.",
-)  # fmt: skip
-@click.option(
-    "--min-observed", "min_observed_fraction", type=click.FloatRange(0.0, 1.0), default=0.25,
-    show_default=True,
-    help="Least share of a stand's area observed for its metrics to be reported.",
-)  # fmt: skip
-@click.option(
-    "--min-density", "min_density", type=click.FloatRange(0.0), default=2.0, show_default=True,
-    help="Least points per m2 of observed ground for a stand's metrics to be reported.",
-)  # fmt: skip
-@cluster_options
-@memory_option
-@lock_timeout_option
+@options(*ENRICH, *CLUSTER)
 @json_option
 @quiet_option
-def enrich(
-    catalog: Path,
-    epochs: tuple[str, ...],
-    pixel_size: float,
-    halo: float,
-    height_break: float,
-    rigidness: int,
-    min_observed_fraction: float,
-    min_density: float,
-    workers: int | None,
-    scheduler: str | None,
-    memory_mb: int,
-    lock_timeout: float,
-    as_json: bool,
-    quiet: bool,
-) -> None:
+def enrich(catalog: Path, as_json: bool, quiet: bool, **params: Any) -> None:
     """Classify ground, build terrain rasters, find trees and compute stand metrics.
 
     Tiles get LAS class 2 for ground, a height_above_ground and a tree_id dimension; each
@@ -120,28 +78,12 @@ def enrich(
       standgrid enrich catalog --epoch 2028 --pixel 0.5 --json
       standgrid enrich catalog --workers 2 --memory 4096
     """
-    from standgrid.engine import MemoryBudget
-    from standgrid.pipeline.enrich import EnrichOptions, enrich_catalog
+    from standgrid.enrich.options import EnrichOptions
+    from standgrid.pipeline.enrich import enrich_catalog
 
-    options = EnrichOptions(
-        pixel_size=pixel_size,
-        halo=halo,
-        height_break=height_break,
-        rigidness=rigidness,
-        min_observed_fraction=min_observed_fraction,
-        min_density_pts_m2=min_density,
-        epochs=epochs,
-        memory_budget=MemoryBudget.megabytes(memory_mb),
-    )
+    enrich_options, running = build(EnrichOptions, params), execution(params, quiet)
     with interruptible():
-        report = enrich_catalog(
-            catalog,
-            options,
-            progress=TerminalProgress(quiet),
-            workers=workers,
-            scheduler=scheduler,
-            lock_timeout=lock_timeout,
-        )
+        report = enrich_catalog(catalog, enrich_options, execution=running)
     emit(report.to_dict(), as_json, _human)
 
 

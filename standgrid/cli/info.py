@@ -7,7 +7,7 @@ from typing import Any
 
 import click
 
-from standgrid.cli.options import emit, json_option
+from standgrid.cli.options import emit, json_option, say_flags
 
 
 def _human(s: dict[str, Any]) -> str:
@@ -85,7 +85,9 @@ def info(mission: Path, strict: bool, as_json: bool) -> None:
     from standgrid.mission.scan import is_scan, scan_summary
 
     if is_scan(mission):
-        emit(scan_summary(mission), as_json, _scan_human)
+        summary = scan_summary(mission)  # what tiling needs, as the library says it: flags here
+        summary["needs"] = [say_flags(need) for need in summary["needs"]]
+        emit(summary, as_json, _scan_human)
         return
     summary = open_mission(mission, strict=strict).summary()
     emit(summary, as_json, _human)

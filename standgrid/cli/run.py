@@ -8,18 +8,21 @@ from typing import Any
 import click
 
 from standgrid.cli.options import (
-    TerminalProgress,
-    cluster_options,
+    CLUSTER,
+    COMPARE,
+    ENRICH,
+    TILE,
+    build,
     emit,
+    execution,
     json_option,
-    lock_timeout_option,
-    no_align_option,
+    options,
     output_option,
-    overwrite_option,
     quiet_option,
-    replace_option,
-    scan_options,
 )
+
+#: enrichment's --epoch (which epochs to enrich) is tiling's there: run enriches all it tiled
+RUN_OPTIONS = (*TILE, "overwrite", *(n for n in ENRICH if n != "epochs"), *COMPARE, *CLUSTER)
 
 QGIS_GUIDE = """\
 Open it in QGIS:
@@ -66,39 +69,10 @@ def _human(r: dict[str, Any]) -> str:
     type=click.Path(exists=True, path_type=Path),
 )  # fmt: skip
 @output_option(help="Catalog folder.")
-@scan_options
-@click.option("--grid", "cell_size", type=float, default=None, help="Cell size (default 20 m).")
-@click.option("--crs", "crs_spec", default="auto", show_default=True, help="Output CRS.")
-@click.option("--buffer", type=float, default=None, help="Tile buffer in metres (default 0).")
-@click.option(
-    "--accept-poor-georeference", is_flag=True,
-    help="Tile even when a GNSS fit's RMSE is far beyond the fixes' stated accuracy.",
-)  # fmt: skip
-@overwrite_option
-@replace_option
-@no_align_option
-@cluster_options
-@lock_timeout_option
+@options(*RUN_OPTIONS)
 @json_option
 @quiet_option
-def run(
-    paths: tuple[Path, ...],
-    output: Path,
-    cell_size: float | None,
-    crs_spec: str,
-    buffer: float | None,
-    scan_date: Any,
-    trajectory: Path | None,
-    accept_poor_georeference: bool,
-    overwrite: bool,
-    replace_missions: bool,
-    no_align: bool,
-    workers: int | None,
-    scheduler: str | None,
-    lock_timeout: float,
-    as_json: bool,
-    quiet: bool,
-) -> None:
+def run(paths: tuple[Path, ...], output: Path, as_json: bool, quiet: bool, **params: Any) -> None:
     """Run the whole path: tile PATHS (missions, folders of missions, or plain scans: LAS/LAZ/
     COPC files, folders of tiles, VPCs) into -o CATALOG,
     enrich every epoch, compare the first epoch with the last, and say what to open in QGIS.
@@ -108,26 +82,17 @@ def run(
       standgrid run data/missions -o standgrid-demo --overwrite
       standgrid run survey-2024/ survey-2028/ -o catalog --grid 100 --crs EPSG:25832
     """
+    from standgrid.compare.options import CompareOptions
+    from standgrid.enrich.options import EnrichOptions
     from standgrid.pipeline.run import run_pipeline
-    from standgrid.pipeline.tile import TileOptions
+    from standgrid.tiling.options import TileOptions
 
     report = run_pipeline(
         list(paths),
         output,
-        TileOptions(
-            cell_size=cell_size,
-            crs=crs_spec,
-            buffer=buffer,
-            overwrite=overwrite,
-            replace_missions=replace_missions,
-            align=not no_align,
-            lock_timeout=lock_timeout,
-            accept_poor_georeference=accept_poor_georeference,
-            scan_date=scan_date,
-            trajectory=trajectory,
-        ),
-        progress=TerminalProgress(quiet),
-        workers=workers,
-        scheduler=scheduler,
+        build(TileOptions, params),
+        build(EnrichOptions, params),
+        build(CompareOptions, params),
+        execution=execution(params, quiet),
     )
     emit(report.to_dict(), as_json, _human)

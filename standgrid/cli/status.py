@@ -7,7 +7,7 @@ from typing import Any
 
 import click
 
-from standgrid.cli.options import emit, json_option
+from standgrid.cli.options import emit, execution, json_option, options
 
 
 def _human(s: dict[str, Any]) -> str:
@@ -41,8 +41,9 @@ def _human(s: dict[str, Any]) -> str:
 
 @click.command(name="status")
 @click.argument("catalog", type=click.Path(exists=True, file_okay=False, path_type=Path))
+@options("lock_timeout")
 @json_option
-def status(catalog: Path, as_json: bool) -> None:
+def status(catalog: Path, as_json: bool, **params: Any) -> None:
     """List a catalog's epochs and what is enriched, compared or stale.
 
     An epoch is enriched, stale (re-tiled after it was enriched: its rasters, tree list,
@@ -58,4 +59,4 @@ def status(catalog: Path, as_json: bool) -> None:
     """
     from standgrid.pipeline.status import catalog_status
 
-    emit(catalog_status(catalog), as_json, _human)
+    emit(catalog_status(catalog, execution=execution(params, True)), as_json, _human)

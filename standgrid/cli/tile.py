@@ -8,37 +8,17 @@ from typing import Any
 import click
 
 from standgrid.cli.options import (
-    TerminalProgress,
-    cluster_options,
+    CLUSTER,
+    TILE,
+    build,
     emit,
+    execution,
     json_option,
-    lock_timeout_option,
-    memory_option,
     mission_argument,
-    no_align_option,
+    options,
     output_option,
-    overwrite_option,
     quiet_option,
-    replace_option,
-    scan_options,
 )
-
-
-def _levels(ctx: click.Context, param: click.Parameter, value: str | None) -> tuple[float, ...]:
-    if not value:
-        return ()
-    try:
-        return tuple(float(v) for v in value.split(","))
-    except ValueError:
-        raise click.BadParameter(f"cell sizes in metres, comma separated: {value!r}") from None
-
-
-def _epoch(ctx: click.Context, param: click.Parameter, value: str | None) -> str | None:
-    import re
-
-    if value is not None and not re.fullmatch(r"[A-Za-z0-9][A-Za-z0-9._-]*", value):
-        raise click.BadParameter(f"letters, digits, '.', '_' and '-' only: {value!r}")
-    return value
 
 
 def _human(report: dict[str, Any]) -> str:
@@ -113,89 +93,11 @@ def alignment_lines(alignment: dict[str, Any] | None) -> list[str]:
 @click.command("tile")
 @mission_argument(nargs=-1, scans=True)
 @output_option(help="Catalog folder (created, or added to when it is a catalog).")
-@click.option(
-    "--grid", "cell_size", type=float, default=None,
-    help="Stand-grid cell size in metres (default 20; an existing catalog keeps its own).",
-)  # fmt: skip
-@click.option(
-    "--levels", default=None, callback=_levels,
-    help="Nested cell sizes, finest first, comma separated (default: SIZE,5*SIZE).",
-)  # fmt: skip
-@click.option("--voronoi", is_flag=True, help="Voronoi cells around payload poses, not a grid.")
-@click.option(
-    "--crs", "crs_spec", default="auto", show_default=True,
-    help="Output CRS: EPSG:XXXX, WKT2, or auto (a new catalog: the missions' UTM zone, or"
-    " clouds already projected their own CRS; an existing catalog: its CRS, refused for a"
-    " mission outside its area of use). Also the CRS of PCD/PLY clouds in"
-    " payload_clouds_in_utm/, which name none.",
-)  # fmt: skip
-@click.option(
-    "--anchor", type=float, nargs=4, default=None, metavar="LAT LON ALT YAW",
-    help="Place a mission without GNSS: map origin at WGS 84 LAT LON (deg) and ellipsoidal"
-    " ALT (m), map x axis YAW deg counter-clockwise from East (90 - compass heading).",
-)  # fmt: skip
-@click.option(
-    "--buffer", type=float, default=None,
-    help="Copy neighbours' points within this many metres into each tile, flagged withheld"
-    " (default 0; an existing catalog keeps its own).",
-)  # fmt: skip
-@click.option(
-    "--las/--laz", "las", default=None,
-    help="Uncompressed LAS or LAZ tiles (default LAZ; an existing catalog keeps its own).",
-)  # fmt: skip
-@click.option(
-    "--copc/--no-copc", "copc", default=None,
-    help="COPC tiles (*.copc.laz: LAZ that QGIS 3.26+, PDAL and web viewers stream by range"
-    " requests; 2-5x slower to write). Default: not COPC; an existing catalog keeps its own.",
-)  # fmt: skip
-@click.option(
-    "--method", type=click.Choice(["yaw2d", "rigid3d"]), default="yaw2d", show_default=True,
-    help="Georeference fit: rotation about z only, or full 3-D.",
-)  # fmt: skip
-@click.option(
-    "--epoch", default=None, callback=_epoch,
-    help="Epoch label (default: the year of each mission). Missions without a date (no"
-    " metadata.yaml, no dated folder name) make an epoch without a date: a year as the label"
-    " stands in for it where a year is needed (FVS Inv_Year); comparing needs dates.",
-)  # fmt: skip
-@scan_options
-@replace_option
-@memory_option
-@no_align_option
-@click.option(
-    "--accept-poor-georeference", is_flag=True,
-    help="Tile even when a GNSS fit's RMSE is far beyond the fixes' stated accuracy.",
-)  # fmt: skip
-@cluster_options
-@overwrite_option
-@lock_timeout_option
+@options(*TILE, "overwrite", *CLUSTER)
 @json_option
 @quiet_option
 def tile(
-    missions: tuple[Path, ...],
-    output: Path,
-    cell_size: float | None,
-    levels: tuple[float, ...],
-    voronoi: bool,
-    crs_spec: str,
-    buffer: float | None,
-    las: bool | None,
-    copc: bool | None,
-    method: str,
-    anchor: tuple[float, float, float, float] | None,
-    epoch: str | None,
-    scan_date: Any,
-    trajectory: Path | None,
-    replace_missions: bool,
-    no_align: bool,
-    memory_mb: int,
-    accept_poor_georeference: bool,
-    workers: int | None,
-    scheduler: str | None,
-    overwrite: bool,
-    lock_timeout: float,
-    as_json: bool,
-    quiet: bool,
+    missions: tuple[Path, ...], output: Path, as_json: bool, quiet: bool, **params: Any
 ) -> None:
     """Georeference MISSIONs (or plain scans) and tile them into the catalog -o CATALOG.
 
@@ -225,30 +127,10 @@ def tile(
       standgrid tile NO_GNSS -o catalog --anchor 51.7733 -1.3372 147.6 78.1
       standgrid tile UTM_PCD_MISSION -o catalog --crs EPSG:32630
     """
-    from standgrid.engine import MemoryBudget
-    from standgrid.pipeline.tile import TileOptions, tile_missions
+    from standgrid.pipeline.tile import tile_missions
+    from standgrid.tiling.options import TileOptions
 
-    options = TileOptions(
-        scheme="voronoi" if voronoi else ("grid" if cell_size is not None else None),
-        cell_size=cell_size,
-        levels=levels,
-        crs=crs_spec,
-        buffer=buffer,
-        laz=None if las is None else not las,
-        copc=copc,
-        method=method,
-        anchor=anchor,
-        epoch=epoch,
-        memory_budget=MemoryBudget.megabytes(memory_mb),
-        overwrite=overwrite,
-        lock_timeout=lock_timeout,
-        accept_poor_georeference=accept_poor_georeference,
-        workers=workers,
-        scheduler=scheduler,
-        replace_missions=replace_missions,
-        align=not no_align,
-        scan_date=scan_date,
-        trajectory=trajectory,
+    report = tile_missions(
+        list(missions), output, build(TileOptions, params), execution=execution(params, quiet)
     )
-    report = tile_missions(list(missions), output, options, progress=TerminalProgress(quiet))
     emit(report.to_dict(), as_json, _human)

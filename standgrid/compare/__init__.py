@@ -35,5 +35,6 @@ __all__ = [
 
 from standgrid._stage import make_callable
 
-#: ``standgrid.compare(catalog, ...)`` is the front door's alias of ``compare_epochs``.
-make_callable(__name__, "standgrid.pipeline.compare:compare_epochs")
+#: Until this package is renamed (a noun), importing it rebinds ``standgrid.compare``: it calls
+#: the front door's :func:`standgrid.api.compare`.
+make_callable(__name__, "standgrid.api:compare")

@@ -31,10 +31,13 @@ def default_epoch(catalog: Catalog, *, first: bool, both_from_it: bool = True) -
     records = catalog.epoch_records
     epochs = sorted(records, key=lambda e: (records[e].date or "", e))
     if len(epochs) < (2 if first and both_from_it else 1):
-        needs = "two epochs (or --other: a second catalog)" if both_from_it else "an epoch"
+        needs = (
+            "two epochs (or option other_catalog: a second catalog)" if both_from_it else "an epoch"
+        )
         raise EpochNotFoundError(
             f"comparing needs {needs}; the catalog has {epochs or 'none'}",
             path=catalog.root,
+            option="other_catalog" if both_from_it else None,
         )
     return epochs[0] if first else epochs[-1]
 

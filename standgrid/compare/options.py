@@ -2,15 +2,19 @@
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 from pathlib import Path
 
+from standgrid.enrich.options import check_range
 from standgrid.enrich.stands import CoverageRule
+from standgrid.errors import OptionError
 
 
 @dataclass(frozen=True)
 class CompareOptions:
-    """Which epochs to compare and how (docs/METRICS.md, "Change").
+    """Which epochs to compare and how (docs/METRICS.md, "Change"); validated when made
+    (:class:`~standgrid.errors.OptionError` naming the field at fault).
 
     ``epoch_from`` / ``epoch_to`` default to the first and the last epoch; with
     ``other_catalog``, ``epoch_to`` is read from that catalog (on the same grid).
@@ -23,3 +27,11 @@ class CompareOptions:
     max_distance: float = 2.0
     #: least share of a stand observed by both epochs for its change to be reported
     min_observed_fraction: float = CoverageRule.min_observed_fraction
+
+    def __post_init__(self) -> None:
+        check_range("max_distance", self.max_distance, 0.0, math.inf, True)
+        check_range("min_observed_fraction", self.min_observed_fraction, 0.0, 1.0, False)
+        for name in ("epoch_from", "epoch_to"):
+            value = getattr(self, name)
+            if value is not None and not isinstance(value, str):
+                raise OptionError(name, f"{value!r}: give an epoch label")

@@ -80,5 +80,6 @@ __all__ = [
 
 from standgrid._stage import make_callable
 
-#: ``standgrid.enrich(catalog, options)`` is the front door's alias of ``enrich_catalog``.
-make_callable(__name__, "standgrid.pipeline.enrich:enrich_catalog")
+#: Until this package is renamed (a noun), importing it rebinds ``standgrid.enrich``: it calls
+#: the front door's :func:`standgrid.api.enrich`.
+make_callable(__name__, "standgrid.api:enrich")

@@ -742,6 +742,7 @@ def check_fit_quality(
             f"{int(used.sum())} fixes, {fit.rmse_m / expected:.0f}x the {expected:.3f} m their "
             f"stated accuracy allows (limit {max_ratio:g}x): the GNSS fixes do not fit the "
             "trajectory (wrong or displaced fixes, or another mission's log); fix the log, or "
-            "accept it explicitly (--accept-poor-georeference)",
+            "accept it explicitly (option accept_poor_georeference)",
             path=source,
+            option="accept_poor_georeference",
         )

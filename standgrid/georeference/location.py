@@ -98,6 +98,7 @@ def check_location(
         f"(latitude {want_lat:.6f}, longitude {want_lon:.6f}; at most {max_distance / 1000:g} "
         f"km allowed); "
         + (hint or "the GNSS fixes or the metadata are of another place")
-        + " (accept it explicitly with --accept-poor-georeference)",
+        + " (accept it explicitly with option accept_poor_georeference)",
         path=source,
+        option="accept_poor_georeference",
     )

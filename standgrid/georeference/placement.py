@@ -164,11 +164,12 @@ def place_mission(
         except GeoreferenceError as exc:
             raise type(exc)(
                 f"{exc.message} (tiling needs a georeference: GNSS fixes, GNSS_LLA_REF/"
-                "GNSS_LLA_TO_MAP in the pose graph, an explicit --anchor LAT LON ALT YAW, "
+                "GNSS_LLA_TO_MAP in the pose graph, an explicit option anchor, "
                 "or clouds already in a projected CRS: payload_clouds_in_utm/ or LAS/LAZ "
                 "with a CRS)",
                 path=exc.path or mission.path,
                 line=exc.line,
+                option="anchor",
             ) from exc
     if not accept_poor:
         check_metadata_location(mission, fit)
@@ -278,13 +279,16 @@ def projected_crs(mission: Mission, crs: str = "auto") -> str:
         folder = clouds[0].path.parent.name
         raise CRSError(
             f"the clouds in {folder}/ are in a projected CRS their files do not name: give it "
-            "with --crs EPSG:XXXX (it is also the catalog's CRS)",
+            "with option crs (EPSG:XXXX; it is also the catalog's CRS)",
             path=mission.path,
+            option="crs",
         )
     text = crs_to_text(resolve_crs(crs))
     if own and own != {text}:
         raise CRSError(
-            f"some clouds carry the CRS {own.pop()}, --crs says {text}", path=mission.path
+            f"some clouds carry the CRS {own.pop()}, option crs says {text}",
+            path=mission.path,
+            option="crs",
         )
     return text
 

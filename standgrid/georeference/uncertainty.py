@@ -167,7 +167,7 @@ def fit_uncertainty(
             f"GNSS baseline too short to fix the heading: the inlier fixes span {baseline:.1f} m "
             f"of trajectory, heading 1-sigma {sigma_yaw:.2f} deg (> {MAX_YAW_SIGMA_DEG} deg); "
             f"points 100 m from the fixes are placed to ~{math.radians(sigma_yaw) * 100:.1f} m "
-            "(1-sigma) only: drive a longer GNSS-covered stretch, or give --anchor with a "
+            "(1-sigma) only: drive a longer GNSS-covered stretch, or give option anchor with a "
             "known heading"
         )
     return GeoreferenceUncertainty(

@@ -252,16 +252,19 @@ def _date(
                 return day, "GPS time"
     if any(kind == "week" for kind, _ in kinds):
         raise MetadataError(
-            "the scan's GPS times are week seconds: give its date (--date YYYY-MM-DD) to place "
-            "them in their week (a header's creation date is often days later)",
+            "the scan's GPS times are week seconds: give its date (option scan_date) "
+            "to place them in their week (a header's creation date is often days "
+            "later)",
             path=path,
+            option="scan_date",
         )
     if facts[0].created is not None:
         return facts[0].created, "header creation date"
     raise MetadataError(
         "the scan's header gives no date (no adjusted standard GPS time, no creation date): "
-        "give it (--date YYYY-MM-DD)",
+        "give it (option scan_date)",
         path=path,
+        option="scan_date",
     )  # fmt: skip
 
 
@@ -278,8 +281,9 @@ def _crs(facts: list[_FileFacts], options: ScanOptions, path: Path) -> str | Non
         return own.pop()
     if options.crs in ("auto", "", None):
         raise CRSError(
-            "the scan names no CRS (no WKT or GeoTIFF VLR): give it (--crs EPSG:XXXX)",
+            "the scan names no CRS (no WKT or GeoTIFF VLR): give it (option crs, EPSG:XXXX)",
             path=path,
+            option="crs",
         )
     return None
 
@@ -519,8 +523,9 @@ def _trajectory_parts(
                 f"{TIME_CHUNK:,} points spans {covered / len(chunks):.0f} s of {whole:.0f} s): "
                 "every trajectory segment would read the whole file; sort it by GPS time "
                 "(e.g. PDAL filters.sort, LAStools lassort -gps_time) or tile it without "
-                "--trajectory",
+                "option trajectory",
                 path=f.path,
+                option="trajectory",
             )
     if span_t[0] > times[-1] or span_t[1] < times[0]:
         raise SensorLogFormatError(

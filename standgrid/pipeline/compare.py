@@ -23,7 +23,7 @@ from standgrid.compare.coverage import (
     stand_change,
 )
 from standgrid.compare.options import CompareOptions
-from standgrid.engine import SILENT, Progress
+from standgrid.engine import Execution
 
 if TYPE_CHECKING:
     import geopandas as gpd
@@ -67,10 +67,9 @@ def pair_folder(epoch_from: str, epoch_to: str) -> str:
 
 def compare_epochs(
     catalog_path: str | Path,
-    options: CompareOptions | None = None,
+    options: CompareOptions = CompareOptions(),
     *,
-    progress: Progress = SILENT,
-    lock_timeout: float | None = 30.0,
+    execution: Execution = Execution(),
 ) -> CompareReport:
     """Change from ``options.epoch_from`` to ``options.epoch_to`` (default: the first and
     last epochs).
@@ -81,14 +80,15 @@ def compare_epochs(
     (:meth:`Catalog.reading`), released before the commit. Tree counts, basal area and
     harvest are compared over the ground both epochs observed only
     (:mod:`standgrid.compare.coverage`); stands with less than
-    ``options.min_observed_fraction`` of it get null changes with a reason.
+    ``options.min_observed_fraction`` of it get null changes with a reason. ``execution``
+    gives the lock timeout and the progress (a comparison runs in this process).
     """
     import os
     import tempfile
 
     from standgrid.catalog import Catalog
 
-    options = options or CompareOptions()
+    progress, lock_timeout = execution.progress, execution.lock_timeout
     epoch_from, epoch_to = options.epoch_from, options.epoch_to
     other_catalog = options.other_catalog
     max_distance, min_observed_fraction = options.max_distance, options.min_observed_fraction
@@ -270,16 +270,17 @@ def _compare(
 
 def _check_pair(source: Catalog, target: Catalog, epoch_from: str, epoch_to: str) -> None:
     """Refuse, saying why, an epoch compared with itself, a stale epoch (enriched, then
-    re-tiled: ``standgrid enrich`` again), and a ``--to`` epoch dated before ``--from``."""
+    re-tiled: enrich it again), and an ``epoch_to`` dated before ``epoch_from``."""
     from standgrid.catalog.records import STALE
     from standgrid.compare.trees import ChangeInputError
     from standgrid.errors import EnrichError
 
     if target is source and epoch_from == epoch_to:
         raise ChangeInputError(
-            f"--from and --to are both epoch {epoch_from!r}: compare two different epochs "
-            f"(epochs: {', '.join(sorted(source.epochs))})",
+            f"option epoch_from and option epoch_to are both epoch {epoch_from!r}: compare "
+            f"two different epochs (epochs: {', '.join(sorted(source.epochs))})",
             path=source.root,
+            option="epoch_to",
         )
     records = {}
     for catalog, epoch in ((source, epoch_from), (target, epoch_to)):
@@ -296,8 +297,9 @@ def _check_pair(source: Catalog, target: Catalog, epoch_from: str, epoch_to: str
     if start and end and end <= start:
         raise ChangeInputError(
             f"epoch {epoch_to!r} ({end}) is not later than epoch {epoch_from!r} ({start}): "
-            "--to must be a later campaign than --from (swap them?)",
+            "option epoch_to must be a later campaign than option epoch_from (swap them?)",
             path=source.root,
+            option="epoch_to",
         )
 
 

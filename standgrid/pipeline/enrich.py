@@ -26,7 +26,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from standgrid.catalog import paths
-from standgrid.engine import SILENT, Progress
+from standgrid.engine import Execution
 from standgrid.enrich.options import EnrichOptions
 from standgrid.enrich.stands import StandAggregator, StandSample
 from standgrid.errors import EnrichError, EpochNotFoundError
@@ -36,10 +36,9 @@ if TYPE_CHECKING:
 
     from standgrid.catalog import Catalog, Transaction
     from standgrid.catalog.chunks import ChunkCell
-    from standgrid.engine import Executor
     from standgrid.partition.protocol import Partition
 
-__all__ = ["EnrichOptions", "EnrichReport", "enrich_catalog"]
+__all__ = ["EnrichReport", "enrich_catalog"]
 
 
 @dataclass
@@ -53,41 +52,28 @@ class EnrichReport:
 
 def enrich_catalog(
     catalog_path: str | Path,
-    options: EnrichOptions | None = None,
+    options: EnrichOptions = EnrichOptions(),
     *,
-    progress: Progress = SILENT,
-    workers: int | None = None,
-    scheduler: str | None = None,
-    executor: Executor | None = None,
-    lock_timeout: float | None = 30.0,
+    execution: Execution = Execution(),
 ) -> EnrichReport:
     """Enrich every epoch of the catalog (or ``options.epochs``); returns what was done.
 
-    Chunks run in this process, on a local dask cluster of ``workers`` processes, on the
-    cluster at ``scheduler``, or on ``executor`` (an open one, which overrides both); this
-    process alone writes the catalog, under its writer lock (waiting up to ``lock_timeout``
-    seconds for another writer).
+    Chunks run as ``execution`` says (this process, or a dask cluster), each process within
+    its memory budget; this process alone writes the catalog, under its writer lock.
     """
-    import contextlib
-
     from standgrid.catalog import Catalog
     from standgrid.catalog.store import require_catalog
-    from standgrid.engine import open_executor
 
-    options = options or EnrichOptions()
     require_catalog(catalog_path)  # before a cluster starts or a lock file is made
     with contextlib.ExitStack() as stack:
-        if executor is None:
-            executor = stack.enter_context(
-                open_executor(workers, scheduler, memory_budget=options.memory_budget.bytes)
-            )
-        catalog = stack.enter_context(Catalog.writing(catalog_path, lock_timeout=lock_timeout))
-        return _enrich(catalog, options, executor, progress)
+        executor = stack.enter_context(execution.open())
+        catalog = stack.enter_context(
+            Catalog.writing(catalog_path, lock_timeout=execution.lock_timeout)
+        )
+        return _enrich(catalog, options, execution.on(executor))
 
 
-def _enrich(
-    catalog: Catalog, options: EnrichOptions, executor: Executor, progress: Progress
-) -> EnrichReport:
+def _enrich(catalog: Catalog, options: EnrichOptions, execution: Execution) -> EnrichReport:
     from standgrid.catalog.invalidate import enrichment_note, invalidate_comparisons
     from standgrid.catalog.project import write_catalog_project
     from standgrid.enrich.allometry import height_diameter_models, impute_dbh, tree_summary
@@ -107,6 +93,7 @@ def _enrich(
             "the catalog has no epochs: tile missions into it first", path=catalog.root
         )
     check_pixel_size(catalog, options.pixel_size)
+    progress = execution.progress
     rule = options.coverage_rule
     report = EnrichReport(catalog.root)
     metric_tables: dict[str, pd.DataFrame] = {}
@@ -116,7 +103,7 @@ def _enrich(
         for epoch in epochs:
             note = enrichment_note(txn.begin_enrichment(epoch))  # says if it was stale
             progress.status(f"enriching epoch {epoch}: {note}")
-            results[epoch] = _enrich_epoch(catalog, txn, epoch, options, executor, progress)
+            results[epoch] = _enrich_epoch(catalog, txn, epoch, options, execution)
         lost = invalidate_comparisons(catalog, txn, set(epochs), "re-enriched")
         if lost:
             progress.status(
@@ -166,9 +153,10 @@ def check_pixel_size(catalog: Catalog, pixel_size: float) -> None:
     candidates = (0.1, 0.2, 0.25, 0.5, 1.0, 2.0, 2.5, 5.0, 10.0, 20.0, 25.0, 50.0, 100.0)
     fits = [f"{c:g}" for c in candidates if c <= size and abs(size / c - round(size / c)) < 1e-9]
     raise EnrichError(
-        f"a raster pixel of {pixel_size:g} m does not divide {what}: give --pixel as a "
-        f"divisor of {size:g} m ({', '.join(fits)})",
+        f"a raster pixel of {pixel_size:g} m does not divide {what}: give option pixel_size "
+        f"as a divisor of {size:g} m ({', '.join(fits)})",
         path=catalog.root,
+        option="pixel_size",
     )
 
 
@@ -188,8 +176,7 @@ def _enrich_epoch(
     txn: Transaction,
     epoch: str,
     options: EnrichOptions,
-    executor: Executor,
-    progress: Progress,
+    execution: Execution,
 ) -> _EpochResult:
     import shapely
 
@@ -208,6 +195,8 @@ def _enrich_epoch(
     from standgrid.enrich.rasters import RasterGrid
     from standgrid.enrich.terrain import GROUND_HALO_M, ground_reach
 
+    executor, progress = execution.executor, execution.progress
+    assert executor is not None
     partition = catalog_partition(catalog, epoch, coverage=False)
     cells = _epoch_cells(catalog, epoch, partition)
     if not cells:
@@ -232,7 +221,7 @@ def _enrich_epoch(
         GROUND_HALO_M,
     )
     # a share of the budget for the chunks a process holds at once (enrich.engine.CHUNK_SHARE)
-    budget = options.memory_budget
+    budget = execution.memory_budget
     block_points = int(budget.bytes * CHUNK_SHARE) // chunks_at_once(executor) // BYTES_PER_POINT
     side = chunk_side(cells, cell_size, halo, block_points)
     reach = functools.partial(ground_reach, lattice=(grid.x0, grid.y0))

@@ -7,10 +7,13 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from standgrid.engine import SILENT, Progress
+from standgrid.compare.options import CompareOptions
+from standgrid.engine import Execution
+from standgrid.enrich.options import EnrichOptions
 from standgrid.errors import MissionNotFoundError
-from standgrid.pipeline.enrich import EnrichOptions, enrich_catalog
-from standgrid.pipeline.tile import TileOptions, tile_missions
+from standgrid.pipeline.enrich import enrich_catalog
+from standgrid.pipeline.tile import tile_missions
+from standgrid.tiling.options import TileOptions
 
 
 @dataclass
@@ -51,30 +54,23 @@ def expand_missions(paths: Sequence[str | Path]) -> list[Path]:
 def run_pipeline(
     paths: Sequence[str | Path],
     catalog: str | Path,
-    tile_options: TileOptions | None = None,
-    enrich_options: EnrichOptions | None = None,
+    tile_options: TileOptions = TileOptions(),
+    enrich_options: EnrichOptions = EnrichOptions(),
+    compare_options: CompareOptions = CompareOptions(),
     *,
-    progress: Progress = SILENT,
-    workers: int | None = None,
-    scheduler: str | None = None,
+    execution: Execution = Execution(),
 ) -> RunReport:
-    """Tile every mission, enrich every epoch, and compare the first epoch with the last
-    (enrichment on a dask cluster with ``workers`` or ``scheduler``)."""
-    from standgrid.engine import open_executor
+    """Tile every mission, enrich every epoch (or ``enrich_options.epochs``), and compare
+    two epochs (``compare_options``; by default the first with the last) when there are
+    two; every stage runs as ``execution`` says (one cluster, or this process, for all)."""
     from standgrid.pipeline.compare import compare_epochs
 
     missions = expand_missions(paths)
-    tile_options = tile_options or TileOptions()
-    enrich_options = enrich_options or EnrichOptions()
-    timeout = tile_options.lock_timeout
-    # one cluster (or this process) for both stages
-    budget = max(tile_options.memory_budget.bytes, enrich_options.memory_budget.bytes)
-    with open_executor(workers, scheduler, memory_budget=budget) as executor:
-        tiled = tile_missions(missions, catalog, tile_options, progress=progress, executor=executor)
-        enriched = enrich_catalog(
-            catalog, enrich_options, progress=progress, executor=executor, lock_timeout=timeout
-        )
+    with execution.open() as executor:
+        running = execution.on(executor)
+        tiled = tile_missions(missions, catalog, tile_options, execution=running)
+        enriched = enrich_catalog(catalog, enrich_options, execution=running)
     compared = None
-    if len(enriched.epochs) >= 2:
-        compared = compare_epochs(catalog, progress=progress, lock_timeout=timeout).to_dict()
+    if len(enriched.epochs) >= 2 or compare_options.other_catalog is not None:
+        compared = compare_epochs(catalog, compare_options, execution=execution).to_dict()
     return RunReport(tiled.to_dict(), enriched.to_dict(), compared)

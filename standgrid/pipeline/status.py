@@ -8,11 +8,14 @@ from typing import Any
 
 from standgrid.catalog.invalidate import other_catalog_change
 from standgrid.catalog.records import ENRICHED, NOT_ENRICHED, STALE
+from standgrid.engine import Execution
 
 __all__ = ["ENRICHED", "NOT_ENRICHED", "STALE", "catalog_status"]
 
 
-def catalog_status(catalog_path: str | Path) -> dict[str, Any]:
+def catalog_status(
+    catalog_path: str | Path, *, execution: Execution = Execution()
+) -> dict[str, Any]:
     """The status of a catalog (the ``standgrid status --json`` document).
 
     An epoch is ``enriched``, ``stale`` (it was enriched, then re-tiled: its results were
@@ -20,11 +23,12 @@ def catalog_status(catalog_path: str | Path) -> dict[str, Any]:
     point counts at ingest (no tile is read). A comparison is ``present``, ``invalidated``
     (removed when one of its epochs was re-tiled, and not made again since) or ``stale`` (made
     against another catalog whose epoch changed since: re-tiled, re-enriched or gone; its
-    results are still there, ``reason`` says why they are out of date).
+    results are still there, ``reason`` says why they are out of date). Reading waits for
+    a writer up to ``execution.lock_timeout``.
     """
     from standgrid.catalog import Catalog
 
-    catalog = Catalog.open(catalog_path)  # one consistent read of catalog.json
+    catalog = Catalog.open(catalog_path, lock_timeout=execution.lock_timeout)  # one read
     missions = catalog.mission_records
     epochs: dict[str, Any] = {}
     invalidated: list[dict[str, Any]] = []

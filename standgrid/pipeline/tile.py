@@ -16,13 +16,11 @@ the catalog, its index and its VPCs.
 from __future__ import annotations
 
 import contextlib
-import datetime as dt
-import math
 import shutil
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import TYPE_CHECKING, Any, Literal
+from typing import TYPE_CHECKING, Any
 
 from standgrid.catalog.index import CatalogIndex
 from standgrid.catalog.setup import (
@@ -38,86 +36,21 @@ from standgrid.catalog.setup import (
     refuse_overlap,
     settle_tiling,
 )
-from standgrid.engine import SILENT, MemoryBudget, Progress
+from standgrid.engine import Execution, Progress
 from standgrid.errors import (
     CatalogError,
     NotGeoreferencedError,
-    TilingError,
+    OptionError,
     out_of_space_error,
 )
 from standgrid.pipeline.tile_epoch import EpochSettings, Ingest, tile_epoch
+from standgrid.tiling.options import TileOptions
 
 if TYPE_CHECKING:
     from standgrid.catalog import Catalog
-    from standgrid.engine import Executor
     from standgrid.mission.model import Mission
 
-__all__ = ["TileOptions", "TileReport", "realign_catalog", "tile_missions"]
-
-
-@dataclass(frozen=True)
-class TileOptions:
-    """How to tile. ``cell_size``/``crs`` of ``None``/``"auto"`` take the catalog's own.
-
-    ``crs="auto"``: a new catalog takes the first fitted mission's UTM zone (or the projected
-    clouds' own CRS); missions added to a catalog take its CRS, also as the CRS of projected
-    clouds that name none, and a mission outside that CRS's area of use is refused
-    (:class:`~standgrid.errors.CRSError`)."""
-
-    #: ``None``: the catalog's scheme ("grid" for a new catalog).
-    scheme: Literal["grid", "voronoi"] | None = None
-    cell_size: float | None = None
-    levels: tuple[float, ...] = ()
-    origin: tuple[float, float] = (0.0, 0.0)
-    crs: str = "auto"
-    #: ``None``: the catalog's setting (0 for a new catalog).
-    buffer: float | None = None
-    #: ``None``: the catalog's setting (LAZ for a new catalog).
-    laz: bool | None = None
-    #: COPC tiles (streamable LAZ; writing costs 2-5x a LAZ tile). ``None``: the catalog's
-    #: setting (not COPC for a new catalog).
-    copc: bool | None = None
-    method: str = "yaw2d"
-    #: ``(lat, lon, alt, yaw_deg)``: place the map frame by hand, no GNSS fit
-    #: (:func:`standgrid.georeference.fit_from_anchor`); one mission per run.
-    anchor: tuple[float, float, float, float] | None = None
-    epoch: str | None = None
-    #: Memory of the partition engine (and of each dask worker) before spilling to disk.
-    memory_budget: MemoryBudget = field(default_factory=MemoryBudget)
-    overwrite: bool = False
-    #: Seconds to wait for another writer of the catalog (None: for ever).
-    lock_timeout: float | None = 30.0
-    #: Tile even when a georeference's residuals are far beyond the fixes' stated accuracy.
-    accept_poor_georeference: bool = False
-    #: Run the per-payload and per-cell work on a local dask cluster of this many processes.
-    workers: int | None = None
-    #: ... or on the dask cluster at this address (files on storage every worker reaches).
-    scheduler: str | None = None
-    #: Metres: a mission already in its epoch keeps the placement the catalog used while its
-    #: fresh georeference moves none of its points this far from it (the epoch re-tiles in
-    #: place; the offset is reported). None: always the fresh fit (exact, the default).
-    #: See :mod:`standgrid.catalog.placement_policy`.
-    placement_tolerance: float | None = None
-    #: A mission of a name the catalog holds, tiled from another folder, replaces it (else
-    #: :class:`~standgrid.errors.MissionFolderConflictError`). Re-ingesting from the same
-    #: folder is always allowed.
-    replace_missions: bool = False
-    #: Register the missions given together to each other on their stems and ground, and
-    #: place them by one graph with their GNSS (:mod:`standgrid.align`), when two or more
-    #: overlap. False: each mission by its own GNSS fit alone.
-    align: bool = True
-    #: Epoch by mission name (over ``epoch`` and the mission's year): a catalog's own
-    #: labels when its missions are re-tiled (``standgrid align``).
-    epochs: tuple[tuple[str, str], ...] = ()
-    #: Plain scans (LAS/LAZ/COPC files, folders of tiles, VPCs): their date when the header
-    #: gives none (or to override it), and a scanner trajectory file
-    #: (:mod:`standgrid.mission.scan`).
-    scan_date: dt.date | None = None
-    trajectory: Path | None = None
-
-    @property
-    def grid_request(self) -> GridRequest:
-        return GridRequest(self.scheme, self.cell_size, tuple(self.levels), self.origin, self.crs)
+__all__ = ["TileReport", "realign_catalog", "tile_missions"]
 
 
 @dataclass
@@ -175,35 +108,30 @@ def tile_missions(
     catalog_path: str | Path,
     options: TileOptions = TileOptions(),
     *,
-    progress: Progress = SILENT,
-    executor: Executor | None = None,
+    execution: Execution = Execution(),
 ) -> TileReport:
     """Georeference and tile missions into the catalog at ``catalog_path`` (made if absent).
 
-    ``mission_paths`` are mission folders or missions already opened (``open_mission``).
-    ``progress`` is told how far it got; ``executor`` (an open one) overrides
-    ``options.workers``/``options.scheduler``. Raises a
+    ``mission_paths`` are mission folders or missions already opened (``open_mission``);
+    the per-payload and per-cell work runs as ``execution`` says. Raises a
     :class:`~standgrid.errors.StandgridError` subclass on any bad input, leaving the
     catalog as it was.
     """
     from standgrid.catalog import Catalog, build_folder, publish, remove_stale_builds, writer_lock
-    from standgrid.engine import open_executor
     from standgrid.mission.model import Mission
 
     if not mission_paths:
         raise CatalogError("no missions given")
-    tolerance = options.placement_tolerance
-    if tolerance is not None and not (math.isfinite(tolerance) and tolerance >= 0):
-        raise TilingError(f"placement tolerance {tolerance!r}: give metres >= 0, or None")
     if options.anchor is not None and len(mission_paths) > 1:
-        raise CatalogError("an anchor places one mission: tile one mission per --anchor")
+        raise OptionError("anchor", "an anchor places one mission: tile one mission per anchor")
+    progress, timeout = execution.progress, execution.lock_timeout
     auto = options.crs in ("auto", "", None)
     path = absolute_output(catalog_path, options.overwrite)
     # the output before any work (again later: missions opened, under the lock)
     refuse_overlap(path, [g.path if isinstance(g, Mission) else g for g in mission_paths])
     refuse_foreign_folder(path)
     # --crs auto adding to a catalog: the catalog's CRS (also that of clouds naming none)
-    held_crs = existing_crs(path, options.overwrite, options.lock_timeout) if auto else None
+    held_crs = existing_crs(path, options.overwrite, timeout) if auto else None
     clouds_crs = held_crs or options.crs
     ingests = [_prepare(given, options, progress, clouds_crs) for given in mission_paths]
     names = [i.mission.name for i in ingests]
@@ -213,30 +141,24 @@ def tile_missions(
         )
 
     refuse_overlap(path, [i.mission.path for i in ingests])
-    request = options.grid_request
+    request = GridRequest(options.scheme, options.cell_size, tuple(options.levels), options.origin,
+                          options.crs)  # fmt: skip
     placements = [i.placement for i in ingests]
     with contextlib.ExitStack() as stack:
-        if executor is None:
-            executor = stack.enter_context(
-                open_executor(
-                    options.workers, options.scheduler, memory_budget=options.memory_budget.bytes
-                )
-            )
+        executor = stack.enter_context(execution.open())
         # One lock, beside the catalog, covers reading it, creating it and replacing it.
-        lock = stack.enter_context(writer_lock(path, timeout=options.lock_timeout))
+        lock = stack.enter_context(writer_lock(path, timeout=timeout))
         remove_stale_builds(path)
         if is_catalog(path) and not options.overwrite:
-            with Catalog.writing(path, held=lock, lock_timeout=options.lock_timeout) as catalog:
+            with Catalog.writing(path, held=lock, lock_timeout=timeout) as catalog:
                 check_existing(catalog, request)
-                return _ingest(catalog, ingests, options, executor, progress)
+                return _ingest(catalog, ingests, options, execution.on(executor))
         refuse_foreign_folder(path)
         if path.is_dir() and not any(path.iterdir()):
             # an empty folder (maybe the current one) becomes the catalog in place
             try:
-                catalog = create_catalog(
-                    path, path, lock, placements, request, options.lock_timeout
-                )
-                return _ingest(catalog, ingests, options, executor, progress)
+                catalog = create_catalog(path, path, lock, placements, request, timeout)
+                return _ingest(catalog, ingests, options, execution.on(executor))
             except BaseException:
                 for child in path.iterdir():  # back to the empty folder it was
                     shutil.rmtree(child) if child.is_dir() else child.unlink()
@@ -245,9 +167,9 @@ def tile_missions(
         # only when complete: a failure or a kill leaves nothing, or the old catalog.
         build = build_folder(path)
         try:
-            catalog = create_catalog(build, path, lock, placements, request, options.lock_timeout)
-            report = _ingest(catalog, ingests, options, executor, progress)
-            publish(build, path, timeout=options.lock_timeout)
+            catalog = create_catalog(build, path, lock, placements, request, timeout)
+            report = _ingest(catalog, ingests, options, execution.on(executor))
+            publish(build, path, timeout=timeout)
         except BaseException as exc:
             shutil.rmtree(build, ignore_errors=True)
             full = out_of_space_error(exc, path)
@@ -274,8 +196,9 @@ def _prepare(
         mission = open_scan(given, scan)
     else:
         if options.trajectory is not None:
-            raise CatalogError("--trajectory is for plain scans (LAS/LAZ files or folders of "
-                               "them); a mission has its pose graph", path=Path(given))  # fmt: skip
+            raise CatalogError("option trajectory is for plain scans (LAS/LAZ files or "
+                               "folders of them); a mission has its pose graph",
+                               path=Path(given), option="trajectory")  # fmt: skip
         mission = open_mission(given, cache_points=0)
     progress.status(f"georeferencing {mission.name}")
     try:
@@ -304,24 +227,24 @@ def _prepare(
     else:
         raise CatalogError(
             "no metadata.yaml and no conventional folder name: cannot tell the epoch "
-            "(give one with --epoch)",
+            "(give one with option epoch)",
             path=mission.path,
+            option="epoch",
         )
     date = meta.date.isoformat() if meta is not None else ""
     return Ingest(mission, placement, epoch, date)
 
 
 def _ingest(
-    catalog: Catalog,
-    ingests: list[Ingest],
-    options: TileOptions,
-    executor: Executor,
-    progress: Progress,
+    catalog: Catalog, ingests: list[Ingest], options: TileOptions, execution: Execution
 ) -> TileReport:
-    """Tile the prepared missions into a catalog opened for writing, in one transaction."""
+    """Tile the prepared missions into a catalog opened for writing, in one transaction
+    (``execution.executor``: open)."""
     from standgrid.catalog.invalidate import invalidate_epochs, retile_reason
     from standgrid.catalog.vpcs import stage_epoch_vpc
 
+    executor, progress = execution.executor, execution.progress
+    assert executor is not None
     report = TileReport(catalog.root, catalog.crs, catalog.scheme, catalog.fingerprint)
     report.workers = executor.workers
     with catalog.transaction() as txn:
@@ -330,7 +253,7 @@ def _ingest(
         # a placement given by hand (an anchor, a fit method) is applied exactly
         by_hand = options.anchor is not None or options.method != TileOptions.method
         tolerance = None if by_hand else options.placement_tolerance
-        settings = EpochSettings(tiling, options.memory_budget, tolerance)
+        settings = EpochSettings(tiling, execution.memory_budget, tolerance)
         if options.align and not by_hand and _alignable(catalog, ingests):
             from standgrid.pipeline.align import align_ingests
 
@@ -339,8 +262,9 @@ def _ingest(
             if ingest.placement.alignment and _is_provisional(ingest.placement):
                 raise NotGeoreferencedError(
                     "no GNSS fixes and no pose-graph anchor, and no other mission (given, or "
-                    "in the catalog) registers with it: give --anchor LAT LON ALT YAW",
+                    "in the catalog) registers with it: give option anchor",
                     path=ingest.mission.path,
+                    option="anchor",
                 )
         for ingest in ingests:
             ingest.number = txn.mission_number(ingest.mission.name)
@@ -403,8 +327,7 @@ def realign_catalog(
     catalog_path: str | Path,
     options: TileOptions = TileOptions(),
     *,
-    progress: Progress = SILENT,
-    executor: Executor | None = None,
+    execution: Execution = Execution(),
 ) -> TileReport:
     """Re-tile every mission of a catalog from the folder it was tiled from, in its own
     epoch, aligned all together (``standgrid align``). Raises
@@ -414,17 +337,18 @@ def realign_catalog(
     from standgrid.catalog import Catalog
 
     path = Path(catalog_path)
-    records = Catalog.open(path, lock_timeout=options.lock_timeout).mission_records
+    records = Catalog.open(path, lock_timeout=execution.lock_timeout).mission_records
     if not records:
         raise CatalogError("no missions in the catalog: nothing to align", path=path)
     gone = sorted(n for n, r in records.items() if not r.path or not Path(r.path).is_dir())
     if gone:
         raise CatalogError(
             f"cannot re-align: the folders of {', '.join(gone)} are gone (tile them again "
-            "from where they are now, with --replace)",
+            "from where they are now, with option replace_missions)",
             path=path,
+            option="replace_missions",
         )
     missions = [Path(str(r.path)) for _, r in sorted(records.items())]
     epochs = tuple(sorted((n, r.epoch) for n, r in records.items()))
     settings = replace(options, align=True, epochs=epochs, overwrite=False)
-    return tile_missions(missions, path, settings, progress=progress, executor=executor)
+    return tile_missions(missions, path, settings, execution=execution)

@@ -94,7 +94,8 @@ def tile_mission(
     import json
 
     from standgrid.mission.live import LiveMission
-    from standgrid.pipeline.tile import TileOptions, tile_missions
+    from standgrid.pipeline.tile import tile_missions
+    from standgrid.tiling.options import TileOptions
 
     live = LiveMission(Path(folder))
     options = TileOptions(placement_tolerance=placement_tolerance)

@@ -1,0 +1,1 @@
+"""Tiling: missions georeferenced and partitioned into a catalog's tiles."""

@@ -169,8 +169,8 @@ class _FileFacts:
 def _facts(path: Path) -> _FileFacts:
     import laspy
 
+    from standgrid.crs import CRS
     from standgrid.mission.clouds import check_las_size
-    from standgrid.mission.model import _crs_text
 
     count = check_las_size(path)
     try:
@@ -190,7 +190,7 @@ def _facts(path: Path) -> _FileFacts:
         raise PointCloudFormatError(f"unreadable LAS/LAZ header ({exc})", path=path) from exc
     if created is not None and created.year < 1990:
         created = None
-    return _FileFacts(path, count, None if crs is None else _crs_text(crs), bool(standard),
+    return _FileFacts(path, count, None if crs is None else CRS.of(crs).text, bool(standard),
                       has_time, created, box, first)  # fmt: skip
 
 

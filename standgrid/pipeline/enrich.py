@@ -199,8 +199,8 @@ def _enrich_epoch(
     from standgrid.enrich.coverage import Coverage, cells_mask
     from standgrid.enrich.engine import BlockJob, EpochRasters, apply_blocks, chunks_at_once
     from standgrid.enrich.outputs import tree_table, write_coverage, write_raster
-    from standgrid.enrich.rasters import RasterGrid
     from standgrid.enrich.terrain import GROUND_HALO_M, ground_reach
+    from standgrid.rastergrid import RasterGrid
 
     partition = catalog_partition(catalog, epoch, coverage=False)
     cells = _epoch_cells(catalog, epoch, partition)
@@ -214,6 +214,7 @@ def _enrich_epoch(
         cell_size=cell_size,
         pixel_size=options.pixel_size,
         closed=True,
+        crs=catalog.crs,
     )
     # the buffer must reach every copy a tile holds, so those get heights and ids too; and
     # be wider than the coverage closing (2 x radius), so chunks agree with the whole epoch
@@ -281,12 +282,11 @@ def _enrich_epoch(
         ("chm", "canopy height model: height above ground (m)"),
     ):
         arrays[name][unseen] = np.nan  # terrain (and heights over it) extrapolated there
-        write_raster(txn, paths.raster(epoch, name), arrays[name], grid, catalog.crs, description)
+        write_raster(txn, paths.raster(epoch, name), arrays[name], grid, description)
     write_raster(
-        txn, paths.raster(epoch, "density"), arrays["density"], grid, catalog.crs,
-        "points per square metre",
+        txn, paths.raster(epoch, "density"), arrays["density"], grid, "points per square metre",
     )  # fmt: skip
-    write_coverage(txn, paths.raster(epoch, "observed"), coverage, catalog.crs)
+    write_coverage(txn, paths.raster(epoch, "observed"), coverage)
     observed_m2 = float(sum(s.observed_m2 for s in samples))  # each cell's, clipped to it
     summary = {
         "cells": len(cells),

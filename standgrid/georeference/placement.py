@@ -218,10 +218,9 @@ def held_placement(mission: Mission, record: dict[str, Any]) -> Placement:
     if graph is None or len(graph) == 0 or gnss is None or len(gnss) == 0:
         return Placement(GeoreferenceFit.without_fixes((lat, lon, alt), transform, method))
     fit = evaluate_georeference(
-        transform, (lat, lon, alt), method, gnss.stamps_ns, gnss.lat, gnss.lon, gnss.alt,
-        gnss.quality, gnss.h_std, graph.stamps_ns, graph.positions, v_std=gnss.v_std,
+        transform, (lat, lon, alt), method, gnss, graph.stamps_ns, graph.positions,
         source=gnss_file(mission),
-    )  # fmt: skip
+    )
     return Placement(fit)
 
 

@@ -39,10 +39,12 @@ class GridRequest:
     def definition(self, crs: str) -> dict[str, Any]:
         """The catalog.json ``grid`` of this request in the CRS ``crs``."""
         from standgrid.partition import StandGrid
+        from standgrid.partition.grid import grid_crs
 
         if self.scheme == "voronoi":
             return {"scheme": "voronoi", "crs": crs}  # cells come from the payloads
-        grid = StandGrid(crs, self.cell_size or 20.0, origin=self.origin, levels=self.levels)
+        size = self.cell_size or 20.0
+        grid = StandGrid(grid_crs(crs), size, origin=self.origin, levels=self.levels)
         return grid.to_dict()
 
 

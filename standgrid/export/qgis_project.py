@@ -103,7 +103,7 @@ def _style_root(qml: str) -> ET.Element:
     return ET.fromstring(qml.split("\n", 1)[1] if qml.startswith("<!DOCTYPE") else qml)
 
 
-def _map_layer(layer: ProjectLayer, layer_id: str, crs: str) -> ET.Element:
+def _map_layer(layer: ProjectLayer, layer_id: str, crs: CRSLike) -> ET.Element:
     vector = layer.provider == "ogr"
     style = _style_root(with_no_value(layer.qml) if vector else layer.qml)
     element = ET.Element(

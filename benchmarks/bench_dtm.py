@@ -29,8 +29,9 @@ from threadpoolctl import threadpool_limits
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from standgrid.enrich.rasters import RasterGrid, dtm_from_ground
+from standgrid.enrich.rasters import dtm_from_ground
 from standgrid.enrich.terrain import DTM_MARGIN_M, thin
+from standgrid.rastergrid import RasterGrid
 
 
 def old_dtm_from_ground(

@@ -52,7 +52,7 @@ def main() -> None:
     projector = MapProjector(fit, "auto")
     chunks = make_chunks(args.points, args.chunk)
     print(
-        f"{args.points:,} points, {len(chunks)} chunks of {args.chunk:,}; CRS {projector.crs_text}"
+        f"{args.points:,} points, {len(chunks)} chunks of {args.chunk:,}; CRS {projector.crs.text}"
     )
     t_copy = run("numpy copy (baseline)", lambda c: c.copy(), chunks)
     t_exact = run("MapProjector.exact", projector.exact, chunks)

@@ -86,7 +86,7 @@ def run_scenario(
 
 
 def observed_mask(catalog: Path, epoch: str) -> Any:
-    from standgrid.enrich.rasters import read_raster
+    from standgrid.geotiff import read_raster
 
     raster = read_raster(catalog / f"rasters/{epoch}/observed.tif")
     return raster.array == 1, raster.grid

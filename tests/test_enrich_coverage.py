@@ -19,7 +19,6 @@ from standgrid.enrich.coverage import (
     polygon_mask_area,
 )
 from standgrid.enrich.metrics import tree_metrics
-from standgrid.enrich.rasters import RasterGrid
 from standgrid.enrich.stands import (
     CoverageRule,
     StandAggregator,
@@ -28,6 +27,7 @@ from standgrid.enrich.stands import (
     stand_row,
 )
 from standgrid.errors import EnrichError
+from standgrid.rastergrid import RasterGrid
 
 GRID = RasterGrid(0.0, 0.0, 1.0, 40, 40)
 

@@ -124,7 +124,7 @@ def test_a_las_file_read_as_a_point_cloud_gives_the_same_ground() -> None:
 
 def _window_over(xyz: np.ndarray) -> Any:
     """The 1 m raster (on the 20 m lattice) covering the points."""
-    from standgrid.enrich.rasters import RasterGrid
+    from standgrid.rastergrid import RasterGrid
 
     bounds = (xyz[:, 0].min(), xyz[:, 1].min(), xyz[:, 0].max(), xyz[:, 1].max())
     return RasterGrid.covering(bounds, origin=(0.0, 0.0), cell_size=20.0)

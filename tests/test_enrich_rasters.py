@@ -2,13 +2,15 @@
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import numpy as np
 import pytest
 import rasterio
 
+from standgrid.crs import CRS
 from standgrid.enrich.ground import classify_ground
 from standgrid.enrich.rasters import (
-    RasterGrid,
     chm,
     chm_from_pixels,
     density,
@@ -17,10 +19,10 @@ from standgrid.enrich.rasters import (
     height_above_ground,
     heights_and_pixels,
     pixel_counts,
-    read_raster,
-    write_cog,
 )
 from standgrid.errors import EnrichError, GridError, OutputExistsError
+from standgrid.geotiff import read_raster, write_cog
+from standgrid.rastergrid import RasterGrid
 from tests.conftest import real_file
 
 ORIGIN = (600_000.5, 5_100_000.25)
@@ -147,13 +149,16 @@ def test_pixels_found_with_the_heights_are_each_points_pixel_and_serve_the_raste
 
 def test_write_cog_and_read_back(tmp_path) -> None:
     grid = RasterGrid.covering(
-        (ORIGIN[0], ORIGIN[1], ORIGIN[0] + 599, ORIGIN[1] + 599), origin=ORIGIN, cell_size=20.0
+        (ORIGIN[0], ORIGIN[1], ORIGIN[0] + 599, ORIGIN[1] + 599),
+        origin=ORIGIN,
+        cell_size=20.0,
+        crs="EPSG:32632",
     )
     rng = np.random.default_rng(2)
     data = rng.uniform(0, 40, grid.shape).astype(np.float32)
     data[5, 7] = np.nan
     path = tmp_path / "rasters" / "chm.tif"
-    write_cog(path, data, grid, crs="EPSG:32632", description="canopy height (m)")
+    write_cog(path, data, grid, description="canopy height (m)")
     assert [p.name for p in path.parent.iterdir()] == ["chm.tif"]  # no temporary left
     with rasterio.open(path) as ds:
         assert ds.driver == "GTiff" and ds.crs.to_epsg() == 32632
@@ -166,18 +171,20 @@ def test_write_cog_and_read_back(tmp_path) -> None:
         back = ds.read(1)
     assert np.array_equal(back, data, equal_nan=True)
     raster = read_raster(path)
-    assert raster.grid == grid and raster.crs == "EPSG:32632"
+    assert raster.grid == grid and raster.crs == CRS.of(32632) and raster.crs.text == "EPSG:32632"
     assert np.isnan(raster.array[5, 7]) and np.nansum(raster.array) == pytest.approx(
         np.nansum(data), rel=1e-6
     )
     with pytest.raises(OutputExistsError):
-        write_cog(path, data, grid, crs="EPSG:32632", overwrite=False)
+        write_cog(path, data, grid, overwrite=False)
+    local_grid = replace(grid, crs=None)
     counts = np.arange(grid.nrows * grid.ncols, dtype=np.uint16).reshape(grid.shape)
-    write_cog(tmp_path / "n.tif", counts, grid, crs=None, nodata=0)
+    write_cog(tmp_path / "n.tif", counts, local_grid, nodata=0)
     local = read_raster(tmp_path / "n.tif")
-    assert local.crs is None and np.isnan(local.array[0, 0]) and local.array[0, 1] == 1
+    assert local.grid == local_grid and local.crs is None
+    assert np.isnan(local.array[0, 0]) and local.array[0, 1] == 1
     with pytest.raises(EnrichError):
-        write_cog(tmp_path / "bad.tif", data[:-1], grid, crs=None)
+        write_cog(tmp_path / "bad.tif", data[:-1], grid)
 
 
 @pytest.mark.realdata
@@ -202,9 +209,9 @@ def test_real_chablais_dtm_from_own_csf_matches_the_file_ground(tmp_path) -> Non
     heights = height_above_ground(xyz, dtm, grid)
     canopy = chm(xyz, heights, grid)
     assert 25 < np.nanmax(canopy) < 45  # a mountain conifer stand
-    write_cog(tmp_path / "dtm.tif", dtm, grid, crs="EPSG:2154", description="DTM")
+    write_cog(tmp_path / "dtm.tif", dtm, replace(grid, crs=CRS.of(2154)), description="DTM")
     back = read_raster(tmp_path / "dtm.tif")
-    assert back.crs == "EPSG:2154" and np.allclose(back.array, dtm)
+    assert back.crs == CRS.of("EPSG:2154") and np.allclose(back.array, dtm)
     assert np.nanmin(back.array) > 1340 and np.nanmax(back.array) < 1410
 
 

@@ -8,11 +8,12 @@ import pytest
 from scipy.spatial import cKDTree
 
 from standgrid.enrich.ground import classify_ground
-from standgrid.enrich.rasters import RasterGrid, dtm_from_ground, height_above_ground
+from standgrid.enrich.rasters import dtm_from_ground, height_above_ground
 from standgrid.enrich.trees import segment_trees, tree_id_from_xy, xy_from_tree_id
 from standgrid.errors import EnrichError
 from standgrid.features.circles import fit_circle, fit_circles, kasa_circle, link_clusters
 from standgrid.features.stems import find_stems
+from standgrid.rastergrid import RasterGrid
 from tests.conftest import real_file
 
 X0, Y0 = 500_000.0, 5_200_000.0  # projected coordinates: ids and rasters must cope

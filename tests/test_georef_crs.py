@@ -1,4 +1,5 @@
-"""resolve_crs / crs_to_text: EPSG, WKT2, 'auto' UTM zones, refusals, real ALS header CRSs."""
+"""The CRS value and resolve_crs: EPSG, WKT2, 'auto' UTM zones, refusals, canonical text,
+hashing and pickling, cached transformers, real ALS header CRSs."""
 
 from __future__ import annotations
 
@@ -6,8 +7,9 @@ import pyproj
 import pytest
 from pyproj.exceptions import CRSError as PyprojCRSError
 
+from standgrid.crs import CRS
 from standgrid.errors import CRSError
-from standgrid.georeference import crs_to_text, resolve_crs
+from standgrid.georeference import resolve_crs
 from standgrid.georeference.crs import standard_utm_zone
 from tests.conftest import real_file
 
@@ -27,9 +29,9 @@ from tests.conftest import real_file
 )
 def test_auto_picks_the_utm_zone(lon: float, lat: float, code: int) -> None:
     crs = resolve_crs("auto", lon=lon, lat=lat)
-    assert crs.to_epsg() == code
-    assert crs_to_text(crs) == f"EPSG:{code}"
-    aou = crs.area_of_use
+    assert crs.epsg == code
+    assert crs.text == f"EPSG:{code}"
+    aou = crs.pyproj_crs.area_of_use
     exception_zone = (lon, lat) in {(5.5, 60.5), (15.0, 78.0)}
     assert aou is not None
     assert exception_zone or aou.west - 1e-9 <= lon <= aou.east + 1e-9
@@ -44,14 +46,42 @@ def test_standard_zone_formula() -> None:
 
 @pytest.mark.parametrize("spec", [32630, "EPSG:32630", "epsg:32630", " EPSG:32630 "])
 def test_codes_resolve(spec: int | str) -> None:
-    assert resolve_crs(spec) == pyproj.CRS.from_epsg(32630)
+    crs = resolve_crs(spec)
+    assert crs == CRS.of(32630) and crs.text == "EPSG:32630"
+    assert crs.pyproj_crs == pyproj.CRS.from_epsg(32630)
 
 
 def test_wkt_and_crs_objects_resolve() -> None:
     utm = pyproj.CRS.from_epsg(25832)
-    assert resolve_crs(utm.to_wkt("WKT2_2019")) == utm
-    assert resolve_crs(utm.to_wkt("WKT1_GDAL")).to_epsg() == 25832
-    assert resolve_crs(utm) is utm
+    assert resolve_crs(utm.to_wkt("WKT2_2019")).pyproj_crs == utm
+    assert resolve_crs(utm.to_wkt("WKT1_GDAL")).epsg == 25832
+    assert resolve_crs(utm).pyproj_crs is utm
+    value = CRS.of(utm)
+    assert CRS.of(value) is value and value.wkt2 == utm.to_wkt("WKT2_2019")
+
+
+def test_a_crs_is_a_hashable_immutable_value() -> None:
+    import dataclasses
+    import pickle
+
+    a, b = CRS.of("EPSG:32630"), CRS.of(32630)
+    assert a == b and hash(a) == hash(b) and len({a, b, CRS.of(32631)}) == 2
+    assert a != "EPSG:32630" and str(a) == "EPSG:32630"  # text only where it is written
+    with pytest.raises(dataclasses.FrozenInstanceError):
+        a.text = "EPSG:32631"  # type: ignore[misc]
+    back = pickle.loads(pickle.dumps(a))
+    assert back == a and back.pyproj_crs == a.pyproj_crs
+    assert CRS.of(4326).is_geographic and CRS.of(4326).northing_first
+    assert not CRS.of(32630).northing_first and CRS.of(32630).is_projected
+    assert CRS.of("OGC:CRS84").equivalent(CRS.of("OGC:CRS84").wkt2)
+
+
+def test_transformers_are_always_xy_and_cached() -> None:
+    utm = CRS.of(32630)
+    to_utm = CRS.of(4326).transformer_to(utm)
+    assert CRS.of("EPSG:4326").transformer_to("EPSG:32630") is to_utm
+    x, y = to_utm.transform(-3.0, 0.0)  # lon, lat: the zone's central meridian, the equator
+    assert x == pytest.approx(500_000.0) and y == pytest.approx(0.0, abs=1e-6)
 
 
 @pytest.mark.parametrize(
@@ -97,7 +127,7 @@ def test_auto_needs_a_position_inside_utm(lon: float | None, lat: float | None) 
         resolve_crs("auto", lon=lon, lat=lat)
 
 
-def test_crs_to_text_falls_back_to_wkt2_and_round_trips() -> None:
+def test_text_falls_back_to_wkt2_and_round_trips() -> None:
     # A custom transverse Mercator (no EPSG code) built from parameters, not a PROJ string.
     conversion = pyproj.crs.coordinate_operation.TransverseMercatorConversion(
         latitude_natural_origin=0.0,
@@ -107,10 +137,10 @@ def test_crs_to_text_falls_back_to_wkt2_and_round_trips() -> None:
         scale_factor_natural_origin=1.0,
     )
     custom = pyproj.crs.ProjectedCRS(conversion=conversion, geodetic_crs=pyproj.CRS.from_epsg(4326))
-    text = crs_to_text(custom)
+    text = CRS.of(custom).text
     assert text.startswith("PROJCRS[")
-    assert resolve_crs(text) == custom
-    assert crs_to_text(resolve_crs(text)) == text
+    assert resolve_crs(text).pyproj_crs == custom
+    assert resolve_crs(text).text == text and resolve_crs(text) == CRS.of(custom)
 
 
 @pytest.mark.parametrize(
@@ -128,5 +158,5 @@ def test_real_als_header_crs(relative: str, code: int) -> None:
         header_crs = reader.header.parse_crs()
     assert header_crs is not None
     crs = resolve_crs(header_crs)
-    assert crs.to_epsg() == code
-    assert crs_to_text(crs) == f"EPSG:{code}"
+    assert crs.epsg == code
+    assert crs.text == f"EPSG:{code}"

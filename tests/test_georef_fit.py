@@ -64,15 +64,9 @@ class Scenario:
 
     def fit(self, **kw: object) -> GeoreferenceFit:
         return fit_georeference(
-            self.fix_stamps_ns,
-            self.lat,
-            self.lon,
-            self.alt,
-            self.quality,
-            self.h_std,
+            fixes_of(self),
             self.node_stamps_ns,
             self.node_map,
-            v_std=self.v_std,
             **kw,  # type: ignore[arg-type]
         )
 
@@ -247,17 +241,8 @@ def test_unmatched_fixes_are_reported() -> None:
     keep[100:140] = False
     stamps = sc.fix_stamps_ns.copy()
     stamps[:5] = T0_NS - NS_PER_S
-    fit = fit_georeference(
-        stamps,
-        sc.lat,
-        sc.lon,
-        sc.alt,
-        sc.quality,
-        sc.h_std,
-        node_t[keep],
-        node_p[keep],
-        lla_ref=WYTHAM,
-    )
+    fixes = fixes_with(stamps, sc.lat, sc.lon, sc.alt, sc.quality, sc.h_std)
+    fit = fit_georeference(fixes, node_t[keep], node_p[keep], lla_ref=WYTHAM)
     in_gap = (stamps > node_t[99]) & (stamps < node_t[140])
     by = fit.rejected_by_reason
     assert by["trajectory_gap"] == int((in_gap & ~sc.invalid).sum()) > 0
@@ -281,12 +266,16 @@ def test_too_few_fixes_names_the_counts() -> None:
     q[:] = 0
     with pytest.raises(InsufficientGnssError, match="none valid"):
         fit_georeference(
-            sc.fix_stamps_ns, sc.lat, sc.lon, sc.alt, q, None, sc.node_stamps_ns, sc.node_map
+            fixes_with(sc.fix_stamps_ns, sc.lat, sc.lon, sc.alt, q),
+            sc.node_stamps_ns,
+            sc.node_map,
         )
     q[:8] = 4
     with pytest.raises(InsufficientGnssError, match="32 invalid"):
         fit_georeference(
-            sc.fix_stamps_ns, sc.lat, sc.lon, sc.alt, q, None, sc.node_stamps_ns, sc.node_map
+            fixes_with(sc.fix_stamps_ns, sc.lat, sc.lon, sc.alt, q),
+            sc.node_stamps_ns,
+            sc.node_map,
         )
 
 
@@ -306,26 +295,12 @@ def test_bad_arguments() -> None:
         sc.fit(method="similarity")
     with pytest.raises(GeoreferenceError, match="differ in length"):
         fit_georeference(
-            sc.fix_stamps_ns[:-1],
-            sc.lat,
-            sc.lon,
-            sc.alt,
-            sc.quality,
-            None,
+            fixes_with(sc.fix_stamps_ns[:-1], sc.lat, sc.lon, sc.alt, sc.quality),
             sc.node_stamps_ns,
             sc.node_map,
         )
     with pytest.raises(GeoreferenceError, match="trajectory positions"):
-        fit_georeference(
-            sc.fix_stamps_ns,
-            sc.lat,
-            sc.lon,
-            sc.alt,
-            sc.quality,
-            None,
-            sc.node_stamps_ns,
-            sc.node_map[:-1],
-        )
+        fit_georeference(fixes_of(sc), sc.node_stamps_ns, sc.node_map[:-1])
 
 
 def test_closed_form_solvers_are_exact_without_noise() -> None:
@@ -387,6 +362,19 @@ def graph_of(sc: Scenario, anchored: bool, source: Path | None = None) -> PoseGr
 
 def fixes_of(sc: Scenario) -> GnssFixes:
     return GnssFixes(sc.fix_stamps_ns, sc.lat, sc.lon, sc.alt, sc.quality, sc.h_std, sc.v_std)
+
+
+def fixes_with(
+    stamps: np.ndarray,
+    lat: np.ndarray,
+    lon: np.ndarray,
+    alt: np.ndarray,
+    quality: np.ndarray,
+    h_std: np.ndarray | None = None,
+) -> GnssFixes:
+    """Fixes without stated stds where none are given (NaN: the quality's sigma)."""
+    nan = np.full(len(lat), np.nan)
+    return GnssFixes(stamps, lat, lon, alt, quality, nan if h_std is None else h_std, nan)
 
 
 @dataclass
@@ -463,17 +451,8 @@ def test_systematic_blocks_of_bad_fixes() -> None:
     n = n + 30.0 * north_block
     u = u + 25.0 * up_block
     lat, lon, alt = enu_to_lla(e, n, u, WYTHAM)
-    fit = fit_georeference(
-        sc.fix_stamps_ns,
-        lat,
-        lon,
-        alt,
-        sc.quality,
-        sc.h_std,
-        sc.node_stamps_ns,
-        sc.node_map,
-        lla_ref=WYTHAM,
-    )
+    fixes = fixes_with(sc.fix_stamps_ns, lat, lon, alt, sc.quality, sc.h_std)
+    fit = fit_georeference(fixes, sc.node_stamps_ns, sc.node_map, lla_ref=WYTHAM)
     assert not fit.inliers[north_block | up_block].any()
     assert fit.inliers[~(north_block | up_block)].mean() > 0.97
     np.testing.assert_allclose(fit.translation, sc.T_enu_map[:3, 3], atol=0.05)

@@ -45,7 +45,7 @@ def projector() -> MapProjector:
 
 
 def test_auto_crs_and_exact_matches_independent_chain(projector: MapProjector) -> None:
-    assert projector.crs_text == "EPSG:32630"
+    assert projector.crs.text == "EPSG:32630"
     pts = np.random.default_rng(0).uniform(-3000, 3000, (2000, 3)) * [1, 1, 0.02]
     out = projector.exact(pts)
     assert out.dtype == np.float64 and out.shape == (2000, 3)
@@ -140,7 +140,7 @@ def test_real_als_crs_other_datum_round_trip() -> None:
     lon, lat, h = to_geo.transform(centre[0], centre[1], centre[2], errcheck=True)
     fit = anchored_fit((lat, lon, h), rp=0.0)
     proj = MapProjector(fit, crs)
-    assert proj.crs_text == "EPSG:3005"
+    assert proj.crs.text == "EPSG:3005"
     at_ref = fit.T_map_enu[:3, 3][None, :]
     np.testing.assert_allclose(proj.exact(at_ref)[0], centre, rtol=0, atol=1e-6)
     pts = np.random.default_rng(4).uniform(-500, 500, (500, 3)) * [1, 1, 0.1]

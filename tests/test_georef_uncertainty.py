@@ -11,16 +11,16 @@ import pytest
 from standgrid.geometry import invert_pose, yaw_of
 from standgrid.georeference import GeoreferenceFit, fit_georeference
 from standgrid.georeference.uncertainty import MAX_YAW_SIGMA_DEG
+from standgrid.mission.sensors import GnssFixes
 from standgrid.simulate import SimulationConfig, run_simulation
 
 
 def _fit(sim, keep: np.ndarray | None = None) -> GeoreferenceFit:  # type: ignore[no-untyped-def]
     g = sim.gnss.fixes
     k = np.ones(len(g), dtype=bool) if keep is None else keep
-    return fit_georeference(
-        g.stamps_ns[k], g.lat[k], g.lon[k], g.alt[k], g.quality[k], g.h_std[k],
-        sim.graph.stamps_ns, sim.graph.positions, v_std=g.v_std[k],
-    )  # fmt: skip
+    kept = GnssFixes(g.stamps_ns[k], g.lat[k], g.lon[k], g.alt[k], g.quality[k], g.h_std[k],
+                     g.v_std[k])  # fmt: skip
+    return fit_georeference(kept, sim.graph.stamps_ns, sim.graph.positions)
 
 
 def _z_scores(sim, fit: GeoreferenceFit) -> np.ndarray:  # type: ignore[no-untyped-def]
@@ -84,10 +84,7 @@ def test_short_baseline_warns_that_the_heading_is_not_fixed() -> None:
 def test_both_methods_report_an_uncertainty(method: str) -> None:
     sim = run_simulation(5, 1, SimulationConfig(area=60.0, drift_m=0.0))
     g = sim.gnss.fixes
-    fit = fit_georeference(
-        g.stamps_ns, g.lat, g.lon, g.alt, g.quality, g.h_std,
-        sim.graph.stamps_ns, sim.graph.positions, v_std=g.v_std, method=method,
-    )  # fmt: skip
+    fit = fit_georeference(g, sim.graph.stamps_ns, sim.graph.positions, method=method)
     assert fit.uncertainty is not None
     assert np.all(np.isfinite(fit.uncertainty.sigma_translation_m))
     assert np.all(np.abs(_z_scores(sim, fit)) < 4.0)

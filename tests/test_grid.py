@@ -12,6 +12,7 @@ import shapely
 from hypothesis import assume, given, settings
 from hypothesis import strategies as st
 
+from standgrid.crs import CRS
 from standgrid.errors import CellIdError, CRSError, GridError
 from standgrid.partition import CellId, StandGrid, index_to_key, key_to_index
 
@@ -288,15 +289,17 @@ def test_crs_normalisation_and_rejection():
     import pyproj
 
     wkt = pyproj.CRS.from_epsg(32632).to_wkt(version="WKT2_2019")
-    assert StandGrid(wkt).crs == "EPSG:32632"
-    assert StandGrid(pyproj.CRS.from_epsg(3067)).crs == "EPSG:3067"  # type: ignore[arg-type]
+    assert StandGrid(wkt).crs == CRS.of("EPSG:32632") and StandGrid(wkt).crs.text == "EPSG:32632"
+    assert StandGrid(pyproj.CRS.from_epsg(3067)).crs.text == "EPSG:3067"  # type: ignore[arg-type]
+    assert StandGrid(CRS.of(32632)) == StandGrid("EPSG:32632")
+    assert StandGrid(wkt).to_dict()["crs"] == "EPSG:32632"  # text only in the definition
     custom = pyproj.CRS.from_proj4(
         "+proj=tmerc +lat_0=0 +lon_0=9.1 +k=1 +x_0=0 +y_0=0 +ellps=GRS80"
     )
     custom_wkt = custom.to_wkt(version="WKT2_2019")
     grid = StandGrid(custom_wkt)
-    assert grid.crs.startswith("PROJCRS")
-    assert pyproj.CRS.from_user_input(grid.crs) == custom
+    assert grid.crs.text.startswith("PROJCRS")
+    assert grid.crs.pyproj_crs == custom
     assert StandGrid.from_json(grid.to_json()) == grid
     for bad in ["+proj=utm +zone=32 +datum=WGS84", "EPSG:4326", "EPSG:4978", "not a crs"]:
         with pytest.raises(CRSError):

@@ -178,14 +178,15 @@ def test_slope_aspect_of_a_stand_reaching_past_the_dtm(tmp_path: Path) -> None:
     import rasterio.mask
     import shapely
 
-    from standgrid.enrich.rasters import RasterGrid, write_cog
+    from standgrid.geotiff import write_cog
     from standgrid.growth.fvs import slope_aspect
+    from standgrid.rastergrid import RasterGrid
 
-    grid = RasterGrid(1000.0, 2000.0, 1.0, 60, 60)
+    grid = RasterGrid(1000.0, 2000.0, 1.0, 60, 60, crs="EPSG:32630")
     cx, cy = grid.centers()
     plane = 100.0 + 0.10 * (cx - 1000.0) - 0.05 * (cy - 2000.0)  # rises east, falls north
     dtm = tmp_path / "dtm.tif"
-    write_cog(dtm, plane.astype(np.float32), grid, crs="EPSG:32630")
+    write_cog(dtm, plane.astype(np.float32), grid)
     triangle = shapely.Polygon([(980, 2030), (1030, 2075), (1030, 2030)])  # past W and N edges
     slope, aspect, elevation = slope_aspect(dtm, triangle)
     with rasterio.open(dtm) as src:

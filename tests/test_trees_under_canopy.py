@@ -76,9 +76,10 @@ def test_an_airborne_plot_keeps_its_canopy_tops_and_says_what_they_miss(tmp_path
     import laspy
 
     from standgrid.enrich.ground import classify_ground
-    from standgrid.enrich.rasters import RasterGrid, dtm_from_ground, height_above_ground
+    from standgrid.enrich.rasters import dtm_from_ground, height_above_ground
     from standgrid.enrich.trees import segment_trees
     from standgrid.pipeline.run import run_pipeline
+    from standgrid.rastergrid import RasterGrid
 
     source = real_file("als/las_chablais3.laz")
     las = laspy.read(source)

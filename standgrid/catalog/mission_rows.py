@@ -13,6 +13,7 @@ from standgrid.errors import CatalogError, GeoreferenceError
 
 if TYPE_CHECKING:
     from standgrid.catalog.store import Catalog
+    from standgrid.crs import CRSLike
     from standgrid.georeference.placement import Placement, ToCatalog
     from standgrid.mission.model import Mission, Payload
     from standgrid.partition.schema import Schema
@@ -111,11 +112,12 @@ def trajectory_rows(mission: Mission, to_catalog: ToCatalog, epoch: str) -> list
     return [{"mission": mission.name, "epoch": epoch, "geometry": shapely.LineString(xyz[:, :2])}]
 
 
-def gnss_rows(mission: Mission, placement: Placement, crs: str) -> Any:
+def gnss_rows(mission: Mission, placement: Placement, crs: CRSLike) -> Any:
     """One ``gnss_fixes`` row per fix (a frame): projected position, residuals, inlier flag."""
     import pandas as pd
-    import pyproj
     import shapely
+
+    from standgrid.crs import CRS
 
     gnss, fit = mission.gnss, placement.fit
     if fit is None or gnss is None or len(gnss) == 0 or len(fit.fix_stamps_ns) == 0:
@@ -125,7 +127,7 @@ def gnss_rows(mission: Mission, placement: Placement, crs: str) -> Any:
             "the georeference fit does not list the mission's GNSS fixes in order",
             path=mission.path,
         )
-    to_crs = pyproj.Transformer.from_crs("EPSG:4979", crs, always_xy=True)
+    to_crs = CRS.of("EPSG:4979").transformer_to(crs)
     valid = np.isfinite(gnss.lat) & np.isfinite(gnss.lon)
     x, y = to_crs.transform(gnss.lon[valid], gnss.lat[valid])
     stamps = np.asarray(fit.fix_stamps_ns, dtype=np.int64)[valid]

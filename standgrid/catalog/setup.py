@@ -39,10 +39,12 @@ class GridRequest:
     def definition(self, crs: str) -> dict[str, Any]:
         """The catalog.json ``grid`` of this request in the CRS ``crs``."""
         from standgrid.partition import StandGrid
+        from standgrid.partition.grid import grid_crs
 
         if self.scheme == "voronoi":
             return {"scheme": "voronoi", "crs": crs}  # cells come from the payloads
-        grid = StandGrid(crs, self.cell_size or 20.0, origin=self.origin, levels=self.levels)
+        size = self.cell_size or 20.0
+        grid = StandGrid(grid_crs(crs), size, origin=self.origin, levels=self.levels)
         return grid.to_dict()
 
 
@@ -102,11 +104,11 @@ def check_existing(catalog: Catalog, request: GridRequest) -> None:
     """Refuse adding missions in another CRS, scheme or grid than the catalog's."""
     from dataclasses import replace
 
-    from standgrid.georeference import crs_to_text, resolve_crs
+    from standgrid.georeference import resolve_crs
 
     path = catalog.root
     if request.crs not in ("auto", "", None):
-        wanted = crs_to_text(resolve_crs(request.crs))
+        wanted = resolve_crs(request.crs).text
         if wanted != catalog.crs:
             raise CRSError(
                 f"the catalog is in {catalog.crs}; cannot add missions in {wanted}",
@@ -143,9 +145,10 @@ def check_area_of_use(catalog: Catalog, placed: Iterable[tuple[str, Placement]])
     """:class:`CRSError` when a fitted mission (its georeference's origin) lies more than
     :data:`AREA_OF_USE_MARGIN_DEG` outside the area of use of the catalog's CRS (pyproj
     ``CRS.area_of_use``; a CRS without one is not checked)."""
-    import pyproj
+    from standgrid.crs import CRS
 
-    area = pyproj.CRS.from_user_input(catalog.crs).area_of_use
+    crs = CRS.of(catalog.crs)
+    area = crs.pyproj_crs.area_of_use
     if area is None:
         return
     m = AREA_OF_USE_MARGIN_DEG
@@ -159,8 +162,7 @@ def check_area_of_use(catalog: Catalog, placed: Iterable[tuple[str, Placement]])
             inside_lon = lon >= area.west - m or lon <= area.east + m
         if inside_lon and area.south - m <= lat <= area.north + m:
             continue
-        crs = pyproj.CRS.from_user_input(catalog.crs)
-        code = crs.to_authority()
+        code = crs.authority
         label = f"{code[0]}:{code[1]} ({crs.name})" if code else crs.name
         hint = _swapped_near_catalog(catalog, lat, lon)
         raise CRSError(
@@ -214,16 +216,16 @@ def create_catalog(
     """A new, empty catalog at ``path`` (to be published at ``final``) in the requested (or
     the missions' UTM, or their clouds' own projected) CRS."""
     from standgrid.catalog.store import Catalog
-    from standgrid.georeference import crs_to_text, resolve_crs
+    from standgrid.georeference import resolve_crs
 
     first = placements[0]
     if first.fit is None and request.crs in ("auto", "", None):
         assert first.source_crs is not None
-        crs = first.source_crs  # projected clouds: their own CRS
+        crs = first.source_crs.text  # projected clouds: their own CRS
     else:
         fit = next((p.fit for p in placements if p.fit is not None), None)
         lat, lon = (fit.lla_ref[0], fit.lla_ref[1]) if fit is not None else (None, None)
-        crs = crs_to_text(resolve_crs(request.crs, lon=lon, lat=lat))
+        crs = resolve_crs(request.crs, lon=lon, lat=lat).text
     scheme = request.scheme or "grid"
     catalog = Catalog.build(path, request.definition(crs), crs, scheme, final=final, held=lock)
     catalog.lock_timeout = lock_timeout

@@ -75,7 +75,7 @@ def georef(
     report: dict[str, Any] = {
         "mission": str(mission),
         "method": fit.method,
-        "crs": projector.crs_text,
+        "crs": projector.crs.text,
         "crs_name": projector.crs.name,
         "vertical": "WGS 84 ellipsoidal height (m)",
         "lla_ref": list(fit.lla_ref),

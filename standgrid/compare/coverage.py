@@ -27,8 +27,8 @@ from numpy.typing import NDArray
 
 from standgrid.compare.rasters import read_aligned_pair
 from standgrid.enrich.coverage import polygon_mask_area, sample_mask
-from standgrid.enrich.rasters import RasterGrid
 from standgrid.enrich.stands import INSUFFICIENT_COVERAGE
+from standgrid.rastergrid import RasterGrid
 
 UNOBSERVED = "unobserved"
 #: Tree-based stand values recomputed over the co-observed ground.

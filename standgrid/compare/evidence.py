@@ -107,7 +107,7 @@ def canopy_standing(
     """Per top, whether the epoch's canopy height model reaches :data:`CANOPY_SHARE` of
     ``height`` within :data:`CANOPY_REACH_M` of it: the crown is there."""
     from standgrid.catalog import paths
-    from standgrid.enrich.rasters import read_raster
+    from standgrid.geotiff import read_raster
 
     chm = read_raster(catalog.path(paths.raster(epoch, "chm")))
     grid = chm.grid

@@ -5,7 +5,7 @@ size, and origins that differ by a whole number of pixels (tolerance 1e-6 pixel)
 extents may differ: the difference covers their intersection (default) or their union, with
 nodata wherever either input has no value. Output: ``to - from``, float32, nodata
 :data:`NODATA`, a Cloud-Optimized GeoTIFF written atomically by the one COG writer of the
-project, :func:`standgrid.enrich.rasters.write_cog` (GDAL ``COG`` driver; a tiled GeoTIFF
+project, :func:`standgrid.geotiff.write_cog` (GDAL ``COG`` driver; a tiled GeoTIFF
 with overviews when that driver is missing), with its QGIS style beside it (``<name>.qml``).
 Two rasters without CRS (local coordinates) count as the same CRS; square pixels are
 required.
@@ -16,13 +16,15 @@ from __future__ import annotations
 import os
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Literal
+from typing import Literal
 
 import numpy as np
 
-from standgrid.enrich.rasters import NODATA, RasterGrid, raster_crs_text
-from standgrid.errors import FormatError, GridMismatchError
+from standgrid.crs import CRS
+from standgrid.errors import GridMismatchError
 from standgrid.export.styles import write_raster_style
+from standgrid.geotiff import NODATA, read_grid, read_window, write_cog
+from standgrid.rastergrid import RasterGrid
 
 ALIGNMENT_TOLERANCE_PX = 1e-6
 
@@ -35,68 +37,21 @@ class ChmDifference:
     width: int
     height: int
     transform: tuple[float, ...]  # affine a, b, c, d, e, f
-    crs: str | None
+    crs: CRS | None
     valid_pixels: int
     mean_change_m: float | None
 
 
-@dataclass(frozen=True)
-class _Grid:
-    path: Path
-    crs: Any
-    transform: Any
-    width: int
-    height: int
-
-    @property
-    def left(self) -> float:
-        return float(self.transform.c)
-
-    @property
-    def top(self) -> float:
-        return float(self.transform.f)
-
-    @property
-    def right(self) -> float:
-        return self.left + self.width * float(self.transform.a)
-
-    @property
-    def bottom(self) -> float:
-        return self.top + self.height * float(self.transform.e)
-
-
-def _open_grid(path: Path) -> _Grid:
-    import rasterio
-
-    try:
-        with rasterio.open(path) as src:
-            grid = _Grid(path, src.crs, src.transform, src.width, src.height)
-            count = src.count
-    except rasterio.errors.RasterioIOError as exc:
-        raise FormatError(f"cannot read raster: {exc}", path=path) from exc
-    if count < 1:
-        raise FormatError("raster has no band", path=path)
-    t = grid.transform
-    if t.b != 0 or t.d != 0 or t.a <= 0 or t.e >= 0:
-        raise FormatError("raster is not north-up (rotated or flipped transform)", path=path)
-    return grid
-
-
-def _check_same_pixel_grid(a: _Grid, b: _Grid) -> None:
+def _check_same_pixel_grid(a: RasterGrid, b: RasterGrid, where: str) -> None:
     """Raise :class:`GridMismatchError` unless ``a`` and ``b`` share CRS, pixel size, alignment."""
-    where = f"{a.path} vs {b.path}"
-    if bool(a.crs) != bool(b.crs) or (a.crs and a.crs != b.crs):
+    if a.crs != b.crs:
+        raise GridMismatchError(f"different CRS: {a.crs} vs {b.crs} ({where})")
+    if not np.isclose(a.pixel_size, b.pixel_size, rtol=1e-9, atol=0):
         raise GridMismatchError(
-            f"different CRS: {raster_crs_text(a.crs)} vs {raster_crs_text(b.crs)} ({where})"
+            f"different pixel size: {a.pixel_size} x {a.pixel_size} m vs "
+            f"{b.pixel_size} x {b.pixel_size} m ({where})"
         )
     ta, tb = a.transform, b.transform
-    same_size = np.isclose(ta.a, tb.a, rtol=1e-9, atol=0) and np.isclose(
-        ta.e, tb.e, rtol=1e-9, atol=0
-    )
-    if not same_size:
-        raise GridMismatchError(
-            f"different pixel size: {ta.a} x {-ta.e} m vs {tb.a} x {-tb.e} m ({where})"
-        )
     for name, offset, size in (("x", tb.c - ta.c, ta.a), ("y", tb.f - ta.f, -ta.e)):
         pixels = offset / size
         if abs(pixels - round(pixels)) > ALIGNMENT_TOLERANCE_PX:
@@ -106,28 +61,22 @@ def _check_same_pixel_grid(a: _Grid, b: _Grid) -> None:
             )
 
 
-def _read_into(
-    grid: _Grid, out: np.ndarray, left: float, top: float, res: tuple[float, float]
-) -> None:
-    """Paste band 1 of ``grid`` (float64, NaN = nodata) into ``out`` whose corner is left/top."""
-    import rasterio
-    from rasterio.windows import Window
-
-    col0 = round((grid.left - left) / res[0])
-    row0 = round((top - grid.top) / res[1])
+def _read_into(path: Path, grid: RasterGrid, out: np.ndarray, target: RasterGrid) -> None:
+    """Paste band 1 of the raster at ``path`` (its ``grid``; float64, NaN = nodata) into
+    ``out``, an array of the aligned grid ``target``."""
+    left, top = target.bounds[0], target.bounds[3]
+    res = target.pixel_size
+    col0 = round((grid.bounds[0] - left) / res)
+    row0 = round((top - grid.bounds[3]) / res)
     # overlap in output pixel indices
-    r_start, r_stop = max(row0, 0), min(row0 + grid.height, out.shape[0])
-    c_start, c_stop = max(col0, 0), min(col0 + grid.width, out.shape[1])
+    r_start, r_stop = max(row0, 0), min(row0 + grid.nrows, out.shape[0])
+    c_start, c_stop = max(col0, 0), min(col0 + grid.ncols, out.shape[1])
     if r_start >= r_stop or c_start >= c_stop:
         return
+    from rasterio.windows import Window
+
     window = Window(c_start - col0, r_start - row0, c_stop - c_start, r_stop - r_start)
-    try:
-        with rasterio.open(grid.path) as src:
-            data = src.read(1, window=window, masked=True)
-    except rasterio.errors.RasterioIOError as exc:
-        raise FormatError(f"cannot read raster: {exc}", path=grid.path) from exc
-    values = np.ma.filled(data.astype(np.float64), np.nan)
-    out[r_start:r_stop, c_start:c_stop] = values
+    out[r_start:r_stop, c_start:c_stop] = read_window(path, window)
 
 
 def read_aligned_pair(
@@ -140,24 +89,22 @@ def read_aligned_pair(
     or joint (union) extent: (a, b, grid), float64 with NaN for nodata and outside."""
     if extent not in ("intersection", "union"):
         raise ValueError(f"extent must be 'intersection' or 'union', not {extent!r}")
-    a = _open_grid(Path(path_a))
-    b = _open_grid(Path(path_b))
-    _check_same_pixel_grid(a, b)
-    res = (float(a.transform.a), float(-a.transform.e))
-    if not np.isclose(res[0], res[1], rtol=1e-9, atol=0):
-        raise FormatError(f"non-square pixels {res[0]} x {res[1]} m", path=a.path)
+    path_a, path_b = Path(path_a), Path(path_b)
+    a, b = read_grid(path_a), read_grid(path_b)
+    _check_same_pixel_grid(a, b, f"{path_a} vs {path_b}")
+    res = a.pixel_size
     pick = (max, min) if extent == "intersection" else (min, max)
-    left, right = pick[0](a.left, b.left), pick[1](a.right, b.right)
-    bottom, top = pick[0](a.bottom, b.bottom), pick[1](a.top, b.top)
-    width = round((right - left) / res[0])
-    height = round((top - bottom) / res[1])
+    left, right = pick[0](a.bounds[0], b.bounds[0]), pick[1](a.bounds[2], b.bounds[2])
+    bottom, top = pick[0](a.bounds[1], b.bounds[1]), pick[1](a.bounds[3], b.bounds[3])
+    width = round((right - left) / res)
+    height = round((top - bottom) / res)
     if width <= 0 or height <= 0:
-        raise GridMismatchError(f"rasters do not overlap ({a.path} vs {b.path})")
+        raise GridMismatchError(f"rasters do not overlap ({path_a} vs {path_b})")
+    grid = RasterGrid(left, top - height * res, res, width, height, a.crs)
     first = np.full((height, width), np.nan)
     second = np.full((height, width), np.nan)
-    _read_into(a, first, left, top, res)
-    _read_into(b, second, left, top, res)
-    grid = RasterGrid(left, top - height * res[0], res[0], width, height)
+    _read_into(path_a, a, first, grid)
+    _read_into(path_b, b, second, grid)
     return first, second, grid
 
 
@@ -176,19 +123,15 @@ def chm_difference(
     goes beside it as ``<name>.qml``, or to ``style`` when given.
     """
     before, after, grid = read_aligned_pair(chm_from_path, chm_to_path, extent=extent)
-    crs_text = raster_crs_text(_open_grid(Path(chm_from_path)).crs)
     difference = after - before
     valid = np.isfinite(difference)
     data = np.where(valid, difference, NODATA).astype(np.float32)
-
-    from standgrid.enrich.rasters import write_cog
 
     final = Path(out_path)
     write_cog(
         final,
         data,
         grid,
-        crs=crs_text,
         nodata=NODATA,
         description="CHM difference to - from (m)",
         overwrite=overwrite,
@@ -200,7 +143,7 @@ def chm_difference(
         width=grid.ncols,
         height=grid.nrows,
         transform=tuple(grid.transform)[:6],
-        crs=crs_text,
+        crs=grid.crs,
         valid_pixels=n_valid,
         mean_change_m=float(difference[valid].mean()) if n_valid else None,
     )

@@ -25,14 +25,10 @@ from standgrid.enrich.metrics import (
     tree_metrics,
 )
 from standgrid.enrich.rasters import (
-    RasterData,
-    RasterGrid,
     chm,
     density,
     dtm_from_ground,
     height_above_ground,
-    read_raster,
-    write_cog,
 )
 from standgrid.enrich.trees import (
     TREE_COLUMNS,
@@ -45,6 +41,8 @@ from standgrid.enrich.trees import (
     tree_id_from_xy,
     xy_from_tree_id,
 )
+from standgrid.geotiff import RasterData, read_raster, write_cog
+from standgrid.rastergrid import RasterGrid
 
 __all__ = [
     "DEFAULT_STRATA",

@@ -14,15 +14,14 @@ computation over the whole epoch gives, whatever the chunk layout (docs/METRICS.
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
 from numpy.typing import NDArray
 
-from standgrid.enrich.rasters import RasterGrid
 from standgrid.enrich.stands import StandSample, measure_heights, stem_xy
+from standgrid.rastergrid import RasterGrid
 
 if TYPE_CHECKING:
     import pandas as pd
@@ -179,13 +178,7 @@ def _trees(
 
 def _window(grid: RasterGrid, bounds: tuple[float, float, float, float]) -> RasterGrid:
     """The pixels of ``grid``'s lattice covering ``bounds`` (may reach beyond ``grid``)."""
-    ps = grid.pixel_size
-    xmin, ymin, xmax, ymax = bounds
-    i0 = math.floor((xmin - grid.x0) / ps + 1e-9)
-    j0 = math.floor((ymin - grid.y0) / ps + 1e-9)
-    i1 = max(math.ceil((xmax - grid.x0) / ps - 1e-9), i0 + 1)
-    j1 = max(math.ceil((ymax - grid.y0) / ps - 1e-9), j0 + 1)
-    return RasterGrid(grid.x0 + i0 * ps, grid.y0 + j0 * ps, ps, i1 - i0, j1 - j0)
+    return grid.window_grid(grid.window(bounds, clip=False))
 
 
 def _slices(

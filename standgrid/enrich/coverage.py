@@ -22,8 +22,8 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from standgrid.enrich.rasters import RasterGrid
 from standgrid.errors import EnrichError
+from standgrid.rastergrid import RasterGrid
 
 #: Gaps in the ground returns up to about twice this radius are closed (m).
 CLOSING_RADIUS_M = 2.0
@@ -127,17 +127,10 @@ def sample_mask(mask: NDArray[np.bool_], grid: RasterGrid, x: Any, y: Any) -> ND
 
 def window(grid: RasterGrid, polygon: Any) -> tuple[RasterGrid, tuple[slice, slice]]:
     """The pixels of ``grid`` covering ``polygon``'s bounds, and their slice of the array."""
-    xmin, ymin, xmax, ymax = polygon.bounds
-    ps = grid.pixel_size
-    tol = 1e-9
-    i0 = max(0, math.floor((xmin - grid.x0) / ps + tol))
-    i1 = min(grid.ncols, math.ceil((xmax - grid.x0) / ps - tol))
-    j0 = max(0, math.floor((ymin - grid.y0) / ps + tol))
-    j1 = min(grid.nrows, math.ceil((ymax - grid.y0) / ps - tol))
-    i1, j1 = max(i1, i0 + 1), max(j1, j0 + 1)
-    sub = RasterGrid(grid.x0 + i0 * ps, grid.y0 + j0 * ps, ps, i1 - i0, j1 - j0)
-    rows = slice(grid.nrows - j1, grid.nrows - j0)  # row 0 is the northern edge
-    return sub, (rows, slice(i0, i1))
+    pixels = grid.window(polygon.bounds)
+    r0, c0 = int(pixels.row_off), int(pixels.col_off)  # row 0 is the northern edge
+    rows, cols = slice(r0, r0 + int(pixels.height)), slice(c0, c0 + int(pixels.width))
+    return grid.window_grid(pixels), (rows, cols)
 
 
 def polygon_mask_area(mask: NDArray[np.bool_], grid: RasterGrid, polygon: Any) -> float:

@@ -25,7 +25,7 @@ from standgrid.enrich.block import RASTERS, BlockContext, BlockResult, enrich_bl
 if TYPE_CHECKING:
     from standgrid.catalog.chunks import Chunk
     from standgrid.engine import Executor, Progress
-    from standgrid.enrich.rasters import RasterGrid
+    from standgrid.rastergrid import RasterGrid
 
 
 #: Shares of a process's memory budget (issue 22: its peak RSS stays within 1.1 x the budget

@@ -10,39 +10,40 @@ import numpy as np
 from numpy.typing import NDArray
 
 from standgrid.catalog import paths
-from standgrid.enrich.rasters import NODATA
+from standgrid.geotiff import NODATA
 
 if TYPE_CHECKING:
     import pandas as pd
 
     from standgrid.catalog import Catalog, Transaction
     from standgrid.enrich.coverage import Coverage
-    from standgrid.enrich.rasters import RasterGrid
+    from standgrid.rastergrid import RasterGrid
 
 
 def write_raster(
-    txn: Transaction, rel: str, array: NDArray[np.float32], grid: RasterGrid, crs: str, text: str
+    txn: Transaction, rel: str, array: NDArray[np.float32], grid: RasterGrid, text: str
 ) -> None:
-    from standgrid.enrich.rasters import write_cog
+    """One raster of an epoch (in its grid's CRS), with its QGIS style."""
     from standgrid.export.styles import raster_style_path, write_raster_style
+    from standgrid.geotiff import write_cog
 
     data = np.where(np.isfinite(array), array, NODATA).astype(np.float32)
     tif = txn.stage(rel)
-    write_cog(tif, data, grid, crs=crs, nodata=NODATA, description=text)
+    write_cog(tif, data, grid, nodata=NODATA, description=text)
     write_raster_style(tif, qml=txn.stage(raster_style_path(rel)))  # QGIS default style
 
 
-def write_coverage(txn: Transaction, rel: str, coverage: Coverage, crs: str) -> None:
+def write_coverage(txn: Transaction, rel: str, coverage: Coverage) -> None:
+    """An epoch's coverage mask (in its grid's CRS), with its QGIS style."""
     from standgrid.enrich.coverage import MASK_NODATA
-    from standgrid.enrich.rasters import write_cog
     from standgrid.export.styles import raster_style_path, write_raster_style
+    from standgrid.geotiff import write_cog
 
     tif = txn.stage(rel)
     write_cog(
         tif,
         coverage.as_mask_raster(),
         coverage.grid,
-        crs=crs,
         nodata=MASK_NODATA,
         description="observed ground: 1 observed, 0 not observed (docs/METRICS.md)",
     )

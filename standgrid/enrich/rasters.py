@@ -1,175 +1,26 @@
-"""Terrain and canopy rasters pixel-aligned to the stand grid, written as Cloud-Optimized GeoTIFFs.
+"""Terrain and canopy rasters pixel-aligned to the stand grid (DTM, heights, CHM, density).
 
-A :class:`RasterGrid` is a pixel lattice whose pixel size divides the stand cell size and whose
-corner lies on the stand grid origin plus an integer number of pixels, so rasters of every epoch
-(and every stand cell) overlay pixel for pixel. Row 0 is the northern row (GeoTIFF order).
+Their :class:`~standgrid.rastergrid.RasterGrid` is a pixel lattice whose pixel size divides
+the stand cell size and whose corner lies on the stand grid origin plus an integer number of
+pixels, so rasters of every epoch (and every stand cell) overlay pixel for pixel; they are
+written by :func:`standgrid.geotiff.write_cog`.
 """
 
 from __future__ import annotations
 
 import contextlib
 import math
-import os
-from dataclasses import dataclass
-from typing import Any, NamedTuple
+from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
 
-from standgrid._atomic import atomic_output
 from standgrid.enrich.ground import PointsLike, as_xyz, one_thread
-from standgrid.errors import EnrichError, FormatError, GridError
+from standgrid.errors import EnrichError
+from standgrid.rastergrid import BLOCK, RasterGrid, blocks
 
-_TOL = 1e-9
-#: The no-data value of every raster standgrid writes (DTM, CHM, density, CHM change).
-NODATA = -9999.0
 #: An empty CHM pixel is filled when at least this many of its 8 neighbours hold a height.
 FILL_MIN_NEIGHBOURS = 6
-
-
-@dataclass(frozen=True)
-class RasterGrid:
-    """``ncols`` x ``nrows`` pixels of ``pixel_size`` m; lower-left corner ``(x0, y0)``."""
-
-    x0: float
-    y0: float
-    pixel_size: float
-    ncols: int
-    nrows: int
-
-    @classmethod
-    def covering(
-        cls,
-        bounds: tuple[float, float, float, float],
-        *,
-        origin: tuple[float, float],
-        cell_size: float,
-        pixel_size: float = 1.0,
-        snap_to_cells: bool = True,
-        closed: bool = False,
-    ) -> RasterGrid:
-        """The aligned raster covering ``bounds`` = (xmin, ymin, xmax, ymax).
-
-        ``origin`` and ``cell_size`` are the stand grid's; ``pixel_size`` must divide
-        ``cell_size``. With ``snap_to_cells`` the extent grows to whole stand cells. Bounds
-        are of points (half-open: a point at ``xmax`` is inside) unless ``closed``: the
-        bounds of polygons, so cells whose upper edge is ``xmax`` end the raster there.
-        """
-        if pixel_size <= 0 or cell_size <= 0:
-            raise GridError(f"pixel size {pixel_size} and cell size {cell_size} must be > 0")
-        ratio = cell_size / pixel_size
-        if abs(ratio - round(ratio)) > 1e-6:
-            raise GridError(
-                f"pixel size {pixel_size} m does not divide the cell size {cell_size} m"
-            )
-        xmin, ymin, xmax, ymax = (float(v) for v in bounds)
-        if not (np.isfinite([xmin, ymin, xmax, ymax]).all() and xmax >= xmin and ymax >= ymin):
-            raise GridError(f"invalid bounds {bounds}")
-        step = cell_size if snap_to_cells else pixel_size
-        ox, oy = float(origin[0]), float(origin[1])
-        i0 = math.floor((xmin - ox) / step + _TOL)
-        j0 = math.floor((ymin - oy) / step + _TOL)
-        if closed:  # the bounds of polygons: an upper edge on the lattice ends the raster
-            i1 = max(math.ceil((xmax - ox) / step - _TOL), i0 + 1)
-            j1 = max(math.ceil((ymax - oy) / step - _TOL), j0 + 1)
-        else:  # half-open: a point at xmax must be inside
-            i1 = max(math.floor((xmax - ox) / step + _TOL) + 1, i0 + 1)
-            j1 = max(math.floor((ymax - oy) / step + _TOL) + 1, j0 + 1)
-        per = round(step / pixel_size)
-        return cls(
-            x0=ox + i0 * step,
-            y0=oy + j0 * step,
-            pixel_size=float(pixel_size),
-            ncols=(i1 - i0) * per,
-            nrows=(j1 - j0) * per,
-        )
-
-    @property
-    def shape(self) -> tuple[int, int]:
-        return (self.nrows, self.ncols)
-
-    @property
-    def bounds(self) -> tuple[float, float, float, float]:
-        return (
-            self.x0,
-            self.y0,
-            self.x0 + self.ncols * self.pixel_size,
-            self.y0 + self.nrows * self.pixel_size,
-        )
-
-    @property
-    def transform(self) -> Any:
-        """The rasterio ``Affine`` (north-up)."""
-        from affine import Affine
-
-        return Affine(self.pixel_size, 0.0, self.x0, 0.0, -self.pixel_size, self.bounds[3])
-
-    def pixel_of(
-        self, x: NDArray[np.float64], y: NDArray[np.float64]
-    ) -> tuple[NDArray[np.int64], NDArray[np.int64]]:
-        """(row, col) of the pixel containing each point (may be outside ``shape``)."""
-        x, y = np.asarray(x), np.asarray(y)
-        if x.ndim != 1 or y.shape != x.shape:
-            col = np.floor(self._pixel_units(x, self.x0)).astype(np.int64)
-            row_from_south = np.floor(self._pixel_units(y, self.y0)).astype(np.int64)
-            return self.nrows - 1 - row_from_south, col
-        row, col = np.empty(len(x), dtype=np.int64), np.empty(len(x), dtype=np.int64)
-        for part in _blocks(len(x)):  # blocks that stay in the CPU's cache
-            col[part] = self._pixel_floor(x[part], self.x0)
-            row[part] = self._pixel_floor(y[part], self.y0)  # from the south, for now
-            np.subtract(self.nrows - 1, row[part], out=row[part])
-        return row, col
-
-    def _pixel_units(self, values: NDArray[np.floating], origin: float) -> NDArray[np.floating]:
-        """(values - origin) / pixel_size (a new array): pixel units from the corner."""
-        units = np.asarray(values) - origin
-        units /= self.pixel_size
-        return units
-
-    def _pixel_floor(self, values: NDArray[np.floating], origin: float) -> NDArray[np.floating]:
-        """floor((values - origin) / pixel_size) (a new float array): the pixel index."""
-        units = self._pixel_units(values, origin)
-        return np.floor(units, out=units)
-
-    def flat_index(self, x: NDArray[np.float64], y: NDArray[np.float64]) -> NDArray[np.int64]:
-        """Each point's pixel as ``row * ncols + col``; points outside the raster raise
-        :class:`EnrichError`."""
-        x, y = np.asarray(x), np.asarray(y)
-        index = np.empty(len(x), dtype=np.int64)
-        col = np.empty(min(len(x), _BLOCK), dtype=np.int64)
-        outside = False
-        for part in _blocks(len(x)):  # blocks that stay in the CPU's cache
-            n = part.stop - part.start
-            col[:n] = self._pixel_floor(x[part], self.x0)
-            row = index[part]
-            row[...] = self._pixel_floor(y[part], self.y0)  # from the south, for now
-            # as unsigned, a negative index is huge: one maximum tells if any is outside
-            outside |= int(col[:n].view(np.uint64).max()) >= self.ncols
-            outside |= int(row.view(np.uint64).max()) >= self.nrows
-            np.subtract(self.nrows - 1, row, out=row)
-            row *= self.ncols
-            row += col[:n]
-        if outside:
-            row_of, col_of = self.pixel_of(x, y)
-            out = (row_of < 0) | (row_of >= self.nrows) | (col_of < 0) | (col_of >= self.ncols)
-            raise EnrichError(
-                f"{int(out.sum())} of {len(x)} points fall outside the raster {self.bounds}"
-            )
-        return index
-
-    def centers(self) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
-        """Pixel-centre coordinates, each of ``shape``."""
-        xs = self.x0 + (np.arange(self.ncols) + 0.5) * self.pixel_size
-        ys = self.bounds[3] - (np.arange(self.nrows) + 0.5) * self.pixel_size
-        return np.meshgrid(xs, ys)
-
-    def _flat_index(self, xyz: NDArray[np.float64]) -> NDArray[np.int64]:
-        return self.flat_index(xyz[:, 0], xyz[:, 1])
-
-
-def _blocks(n: int) -> list[slice]:
-    """Slices of ``n`` rows in blocks of :data:`_BLOCK`."""
-    return [slice(start, min(start + _BLOCK, n)) for start in range(0, n, _BLOCK)]
 
 
 def dtm_from_ground(
@@ -298,7 +149,7 @@ def _heights(
     if grid.ncols == 1 or grid.nrows == 1:  # degenerate axis: interpolate along the other only
         table = np.pad(table, ((0, grid.ncols == 1), (0, grid.nrows == 1)), mode="edge")
     heights = np.empty(len(xyz), dtype=np.float32)
-    for rows in _blocks(len(xyz)):  # blocks that stay in the CPU's cache
+    for rows in blocks(len(xyz)):  # blocks that stay in the CPU's cache
         # axis 0 = column index (x), axis 1 = row index counted from the south (y), in pixel
         # units from the first centre, clamped at the edge half-pixel
         u = grid._pixel_units(x[rows], grid.x0)
@@ -322,10 +173,6 @@ def _heights(
     if not np.isfinite(table).all():  # after the points' check: that error comes first
         raise EnrichError("the DTM has empty (non-finite) pixels")
     return heights
-
-
-#: Points per block of element-wise arithmetic over many points.
-_BLOCK = 1 << 16
 
 
 def _bilinear(
@@ -478,10 +325,10 @@ def _inflate(
     inner = (slice(margin, margin + grid.nrows), slice(margin, margin + grid.ncols))
     padded[inner] = top.reshape(grid.shape)
     flat = padded.ravel()
-    index = np.empty(min(len(x), _BLOCK), dtype=np.int64)
+    index = np.empty(min(len(x), BLOCK), dtype=np.int64)
     for angle in np.arange(8) * (np.pi / 4):
         dx, dy = subcircle * np.cos(angle), subcircle * np.sin(angle)
-        for part in _blocks(len(x)):  # in the points' order, as one call per angle would
+        for part in blocks(len(x)):  # in the points' order, as one call per angle would
             n = part.stop - part.start
             shifted = x[part] + dx
             index[:n] = grid._pixel_floor(shifted, grid.x0)  # column
@@ -503,7 +350,7 @@ def _highest_per_subpixel(
     step = grid.pixel_size / n
     cols, rows = grid.ncols * n, grid.nrows * n
     index = np.empty(len(x), dtype=np.int64)
-    for part in _blocks(len(x)):  # blocks that stay in the CPU's cache
+    for part in blocks(len(x)):  # blocks that stay in the CPU's cache
         units = x[part] - grid.x0
         units /= step
         col = np.clip(np.floor(units, out=units).astype(np.int64), 0, cols - 1)
@@ -553,129 +400,3 @@ def pixel_counts(pixels: NDArray[np.int64], grid: RasterGrid) -> NDArray[np.int6
     """Points per pixel of ``grid``, from their pixels (:meth:`RasterGrid.flat_index`)."""
     counts = np.bincount(_checked_pixels(pixels, grid), minlength=grid.nrows * grid.ncols)
     return counts.astype(np.int64, copy=False).reshape(grid.shape)
-
-
-def write_cog(
-    path: str | os.PathLike[str],
-    array: NDArray[np.generic],
-    grid: RasterGrid,
-    *,
-    crs: str | None,
-    nodata: float | None = None,
-    description: str | None = None,
-    overwrite: bool = True,
-    blocksize: int = 256,
-) -> None:
-    """Write one band as a Cloud-Optimized GeoTIFF (deflate, tiled, overviews), atomically.
-
-    NaN pixels are written as ``nodata`` when given (NaN is the nodata of float rasters
-    by default). ``crs`` is ``EPSG:XXXX`` or WKT2 (``None`` for local coordinates).
-    """
-    import rasterio
-    from rasterio.io import MemoryFile
-    from rasterio.shutil import copy as rio_copy
-
-    data = np.asarray(array)
-    if data.shape != grid.shape:
-        raise EnrichError(f"array shape {data.shape} does not match the raster grid {grid.shape}")
-    if nodata is None and np.issubdtype(data.dtype, np.floating):
-        nodata = float("nan")
-    if nodata is not None and not math.isnan(nodata):
-        data = np.where(np.isnan(data), nodata, data).astype(data.dtype)
-    profile: dict[str, Any] = {
-        "driver": "GTiff",
-        "width": grid.ncols,
-        "height": grid.nrows,
-        "count": 1,
-        "dtype": data.dtype.name,
-        "transform": grid.transform,
-        "nodata": nodata,
-    }
-    if crs is not None:
-        profile["crs"] = rasterio.crs.CRS.from_user_input(crs)
-    with atomic_output(path, overwrite=overwrite) as tmp, MemoryFile() as mem:
-        with mem.open(**profile) as ds:
-            ds.write(data, 1)
-            if description:
-                ds.set_band_description(1, description)
-                ds.update_tags(DESCRIPTION=description)
-        with mem.open() as src:
-            with rasterio.Env() as env:
-                has_cog = "COG" in env.drivers()
-            if has_cog:
-                rio_copy(
-                    src,
-                    str(tmp),
-                    driver="COG",
-                    COMPRESS="DEFLATE",
-                    BLOCKSIZE=blocksize,
-                    OVERVIEWS="AUTO",
-                    RESAMPLING="AVERAGE",
-                )
-            else:  # pragma: no cover - GDAL < 3.1
-                _write_cog_fallback(src, str(tmp), blocksize)
-
-
-def _write_cog_fallback(src: Any, target: str, blocksize: int) -> None:  # pragma: no cover
-    """Tiled deflate GeoTIFF with internal overviews, for GDAL without the COG driver."""
-    from rasterio.enums import Resampling
-    from rasterio.io import MemoryFile
-    from rasterio.shutil import copy as rio_copy
-
-    profile = src.profile | {"tiled": True, "blockxsize": blocksize, "blockysize": blocksize}
-    with MemoryFile() as mem, mem.open(**profile) as staged:
-        staged.write(src.read())
-        factors = [f for f in (2, 4, 8, 16, 32) if min(src.width, src.height) // f >= 1]
-        if factors:
-            staged.build_overviews(factors, Resampling.average)
-        rio_copy(
-            staged,
-            target,
-            driver="GTiff",
-            tiled=True,
-            blockxsize=blocksize,
-            blockysize=blocksize,
-            compress="deflate",
-            COPY_SRC_OVERVIEWS="YES",
-        )
-
-
-class RasterData(NamedTuple):
-    """A single-band raster read back: values (NaN for nodata), its grid, CRS text, description."""
-
-    array: NDArray[np.float64]
-    grid: RasterGrid
-    crs: str | None
-    description: str | None
-
-
-def read_raster(path: str | os.PathLike[str]) -> RasterData:
-    """Read a north-up single-band raster written by :func:`write_cog` (nodata -> NaN)."""
-    import rasterio
-    from rasterio.errors import RasterioIOError
-
-    try:
-        with rasterio.open(path) as ds:
-            t = ds.transform
-            if t.b != 0 or t.d != 0 or t.e != -t.a:
-                raise FormatError("not a north-up raster with square pixels", path=path)
-            data = ds.read(1, masked=True).astype(np.float64).filled(np.nan)
-            grid = RasterGrid(
-                x0=t.c, y0=t.f + t.e * ds.height, pixel_size=t.a, ncols=ds.width, nrows=ds.height
-            )
-            crs = raster_crs_text(ds.crs)
-            description = ds.descriptions[0] if ds.descriptions else None
-    except RasterioIOError as exc:
-        raise FormatError(f"cannot read raster: {exc}", path=path) from exc
-    return RasterData(data, grid, crs, description)
-
-
-def raster_crs_text(crs: Any) -> str | None:
-    """A rasterio CRS as standgrid stores CRSs (EPSG:XXXX or WKT2); None for no CRS."""
-    if not crs:
-        return None
-    import pyproj
-
-    from standgrid.georeference.crs import crs_to_text
-
-    return crs_to_text(pyproj.CRS.from_wkt(crs.to_wkt()))

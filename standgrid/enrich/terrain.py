@@ -30,9 +30,10 @@ import numpy as np
 from numpy.typing import NDArray
 
 from standgrid.enrich.ground import classify_ground
-from standgrid.enrich.rasters import RasterGrid, dtm_from_ground, heights_and_pixels
+from standgrid.enrich.rasters import dtm_from_ground, heights_and_pixels
 from standgrid.errors import EnrichError, StandgridError
 from standgrid.partition.lattice import lattice_index, lowest_in_squares, square_keys
+from standgrid.rastergrid import RasterGrid
 
 
 @dataclass(frozen=True)

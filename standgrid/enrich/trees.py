@@ -40,7 +40,7 @@ from numpy.typing import NDArray
 
 from standgrid.enrich.crowns import CrownOptions, VoxelGraph
 from standgrid.enrich.ground import PointsLike, as_xyz
-from standgrid.enrich.rasters import RasterGrid, chm
+from standgrid.enrich.rasters import chm
 from standgrid.errors import EnrichError
 from standgrid.features.circles import (
     CircleFit,
@@ -50,6 +50,7 @@ from standgrid.features.circles import (
     link_clusters,
 )
 from standgrid.features.stems import StemOptions, StemSet, empty_stems, find_stems, stem_points
+from standgrid.rastergrid import RasterGrid
 
 __all__ = [
     "TREE_COLUMNS",

@@ -34,6 +34,7 @@ from types import TracebackType
 from typing import TYPE_CHECKING, Any, NamedTuple
 
 from standgrid._atomic import atomic_output, write_text_atomic
+from standgrid.crs import CRS, CRSLike
 from standgrid.errors import CatalogError, CRSError, short_of_room_error
 from standgrid.export import styles
 
@@ -68,13 +69,11 @@ GPKG_VERSION = "1.2"
 GEOMETRY_LAYERS = frozenset({"cells", "payloads", "trajectories", "gnss_fixes"})
 
 
-def _parse_crs(crs: str) -> Any:
-    import pyproj
-
+def _parse_crs(crs: CRSLike) -> CRS:
     try:
-        return pyproj.CRS.from_user_input(crs)
-    except pyproj.exceptions.CRSError as exc:
-        raise CRSError(f"unusable CRS {crs!r}: {exc}") from exc
+        return CRS.of(crs)
+    except CRSError as exc:
+        raise CRSError(f"unusable CRS {crs!r}: {exc.message}") from exc
 
 
 def index_layer_names(path: str | os.PathLike[str]) -> set[str]:
@@ -141,7 +140,7 @@ def cell_row(
 
 
 def layer_frame(
-    layer: str, rows: Sequence[Mapping[str, Any]] | pd.DataFrame, crs: str
+    layer: str, rows: Sequence[Mapping[str, Any]] | pd.DataFrame, crs: CRSLike
 ) -> gpd.GeoDataFrame | pd.DataFrame:
     """A frame for a standard layer, columns in schema order; missing columns raise.
 
@@ -168,7 +167,8 @@ def layer_frame(
         return frame[order].reset_index(drop=True)
     if isinstance(frame, gpd.GeoDataFrame) and frame.crs is not None:
         return gpd.GeoDataFrame(frame[[*order, "geometry"]], geometry="geometry", crs=frame.crs)
-    return gpd.GeoDataFrame(frame[[*order, "geometry"]], geometry="geometry", crs=_parse_crs(crs))
+    crs_value = _parse_crs(crs).pyproj_crs
+    return gpd.GeoDataFrame(frame[[*order, "geometry"]], geometry="geometry", crs=crs_value)
 
 
 class IndexWriter:
@@ -183,15 +183,14 @@ class IndexWriter:
     def __init__(
         self,
         gpkg_path: str | os.PathLike[str],
-        crs: str,
+        crs: CRSLike,
         *,
         base: str | os.PathLike[str] | None = None,
         durable: bool = True,
     ) -> None:
         self.path = Path(gpkg_path)
         self.durable = durable
-        self.crs = crs
-        self._crs = _parse_crs(crs)
+        self.crs = _parse_crs(crs)
         self.base = Path(base) if base is not None else (self.path if self.path.exists() else None)
         self._stack: contextlib.ExitStack | None = None
         self._tmp: Path | None = None
@@ -253,8 +252,8 @@ class IndexWriter:
         )
         if isinstance(data, gpd.GeoDataFrame):
             if data.crs is None:
-                data = data.set_crs(self._crs)
-            elif not self._crs.equals(data.crs):
+                data = data.set_crs(self.crs.pyproj_crs)
+            elif not self.crs.pyproj_crs.equals(data.crs):
                 raise CRSError(
                     f"layer {name!r} is in {data.crs.to_string()}, the index is in {self.crs}",
                     path=self.path,
@@ -303,7 +302,7 @@ class IndexWriter:
 def write_index(
     gpkg_path: str | os.PathLike[str],
     *,
-    crs: str,
+    crs: CRSLike,
     cells: Any = None,
     payloads: Any = None,
     trajectories: Any = None,
@@ -362,7 +361,7 @@ class VpcTile(NamedTuple):
 
     path: str | os.PathLike[str]
     bounds: Sequence[float]
-    crs: str
+    crs: CRSLike
     point_count: int
     datetime: str | None = None
 
@@ -389,17 +388,12 @@ def write_vpc(
     tile path is taken as already relative to it, so a staged VPC can name final tiles).
     ``durable=False``: a VPC staged in a catalog transaction (its commit fsyncs it).
     """
-    import pyproj
-
     out = Path(vpc_path)
     root = out.parent.resolve()
-    transformers: dict[str, Any] = {}
     features = []
     for raw in tiles:
         tile = VpcTile(*raw)
         crs = _parse_crs(tile.crs)
-        if tile.crs not in transformers:
-            transformers[tile.crs] = pyproj.Transformer.from_crs(crs, "EPSG:4326", always_xy=True)
         b = [float(v) for v in tile.bounds]
         if len(b) == 6:
             xmin, ymin, zmin, xmax, ymax, zmax = b
@@ -408,7 +402,7 @@ def write_vpc(
             zmin = zmax = 0.0
         else:
             raise CatalogError(f"tile bounds must have 4 or 6 values, got {len(b)}", path=tile.path)
-        lon0, lat0, lon1, lat1 = transformers[tile.crs].transform_bounds(
+        lon0, lat0, lon1, lat1 = crs.transformer_to("EPSG:4326").transform_bounds(
             xmin, ymin, xmax, ymax, densify_pts=21
         )
         if Path(tile.path).is_absolute():
@@ -434,9 +428,9 @@ def write_vpc(
             "pc:schemas": [],
             "proj:bbox": [xmin, ymin, zmin, xmax, ymax, zmax],
             "proj:geometry": {"type": "Polygon", "coordinates": [_ring(xmin, ymin, xmax, ymax)]},
-            "proj:wkt2": crs.to_wkt(),
+            "proj:wkt2": crs.wkt2,
         }
-        epsg = crs.to_epsg()
+        epsg = crs.epsg
         if epsg is not None:
             properties["proj:epsg"] = epsg
         rel_id = relative.removesuffix(".copc.laz").removesuffix(".laz").removesuffix(".las")

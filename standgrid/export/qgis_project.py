@@ -29,6 +29,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from standgrid._atomic import atomic_output
+from standgrid.crs import CRS, CRSLike
 from standgrid.errors import CRSError
 from standgrid.export.styles import with_no_value
 
@@ -79,16 +80,14 @@ class ProjectGroup:
     visible: bool = True
 
 
-def _crs_element(crs: str) -> ET.Element:
-    import pyproj
-
+def _crs_element(crs: CRSLike) -> ET.Element:
     try:
-        parsed = pyproj.CRS.from_user_input(crs)
-    except pyproj.exceptions.CRSError as exc:
-        raise CRSError(f"unusable CRS {crs!r} for the QGIS project: {exc}") from exc
+        parsed = CRS.of(crs)
+    except CRSError as exc:
+        raise CRSError(f"unusable CRS {crs!r} for the QGIS project: {exc.message}") from exc
     srs = ET.Element("spatialrefsys", nativeFormat="Wkt")
-    ET.SubElement(srs, "wkt").text = parsed.to_wkt()
-    authority = parsed.to_authority()
+    ET.SubElement(srs, "wkt").text = parsed.wkt2
+    authority = parsed.authority
     authid = f"{authority[0]}:{authority[1]}" if authority else ""
     ET.SubElement(srs, "authid").text = authid
     ET.SubElement(srs, "description").text = parsed.name
@@ -104,7 +103,7 @@ def _style_root(qml: str) -> ET.Element:
     return ET.fromstring(qml.split("\n", 1)[1] if qml.startswith("<!DOCTYPE") else qml)
 
 
-def _map_layer(layer: ProjectLayer, layer_id: str, crs: str) -> ET.Element:
+def _map_layer(layer: ProjectLayer, layer_id: str, crs: CRSLike) -> ET.Element:
     vector = layer.provider == "ogr"
     style = _style_root(with_no_value(layer.qml) if vector else layer.qml)
     element = ET.Element(
@@ -135,7 +134,7 @@ def _map_layer(layer: ProjectLayer, layer_id: str, crs: str) -> ET.Element:
 def project_document(
     groups: Sequence[ProjectGroup],
     *,
-    crs: str,
+    crs: CRSLike,
     extent: tuple[float, float, float, float],
     title: str = "",
 ) -> str:
@@ -223,7 +222,7 @@ def write_qgis_project(
     path: str | os.PathLike[str],
     groups: Sequence[ProjectGroup],
     *,
-    crs: str,
+    crs: CRSLike,
     extent: tuple[float, float, float, float],
     title: str = "",
 ) -> Path:

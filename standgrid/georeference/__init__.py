@@ -1,7 +1,7 @@
 """Georeferencing: GNSS fixes -> a transform from the SLAM map frame into a projected CRS."""
 
 from .anchor import fit_from_anchor
-from .crs import crs_to_text, resolve_crs, utm_crs_for
+from .crs import resolve_crs, utm_crs_for
 from .enu import ecef_to_lla, enu_rotation, enu_to_lla, lla_to_ecef, lla_to_enu
 from .fit import (
     FIX_STATUS,
@@ -17,7 +17,6 @@ __all__ = [
     "FIX_STATUS",
     "GeoreferenceFit",
     "MapProjector",
-    "crs_to_text",
     "ecef_to_lla",
     "enu_rotation",
     "enu_to_lla",

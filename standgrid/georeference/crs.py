@@ -1,83 +1,36 @@
-"""Output coordinate reference systems: resolve a user's spec, store it canonically.
+"""Output coordinate reference systems: a user's spec (or ``"auto"``) as a projected CRS value.
 
-standgrid projects maps into *projected* (metric, x/y) CRSs only, and keeps a CRS as
-``EPSG:XXXX`` or WKT2 text, never as a PROJ string. Heights are WGS 84 ellipsoidal heights,
-so compound CRSs (with a vertical datum) are refused rather than silently mislabelled.
+standgrid projects maps into *projected* (metric, x/y) CRSs only (a
+:class:`~standgrid.crs.CRS`, written as ``EPSG:XXXX`` or WKT2 text, never as a PROJ string).
+Heights are WGS 84 ellipsoidal heights, so compound CRSs (with a vertical datum) are refused
+rather than silently mislabelled.
 """
 
 from __future__ import annotations
 
 import math
 
-import pyproj
 from pyproj.aoi import AreaOfInterest
 from pyproj.database import query_utm_crs_info
-from pyproj.exceptions import CRSError as PyprojCRSError
 
+from standgrid.crs import CRS, CRSLike
 from standgrid.errors import CRSError
-
-CRSSpec = int | str | pyproj.CRS
 
 #: UTM covers these latitudes; beyond them a polar stereographic (UPS) CRS is needed.
 UTM_LAT_RANGE = (-80.0, 84.0)
 
 
-def resolve_crs(spec: CRSSpec, *, lon: float | None = None, lat: float | None = None) -> pyproj.CRS:
-    """A projected :class:`pyproj.CRS` from ``spec``.
+def resolve_crs(spec: CRSLike, *, lon: float | None = None, lat: float | None = None) -> CRS:
+    """The projected :class:`~standgrid.crs.CRS` ``spec`` names.
 
-    ``spec`` is an EPSG code (``32630``), ``"EPSG:32630"``, WKT/WKT2 text, a ``pyproj.CRS``,
-    or ``"auto"``: the WGS 84 UTM zone (EPSG:326xx north / 327xx south) of ``lon``/``lat``
-    (degrees). Raises :class:`~standgrid.errors.CRSError` for unknown codes, PROJ strings,
-    geographic/geocentric CRSs and compound (vertical-datum) CRSs.
+    ``spec`` is what :meth:`CRS.of <standgrid.crs.CRS.of>` takes, or ``"auto"``: the WGS 84
+    UTM zone (EPSG:326xx north / 327xx south) of ``lon``/``lat`` (degrees). Raises
+    :class:`~standgrid.errors.CRSError` for unknown codes, PROJ strings, geographic/geocentric
+    CRSs and compound (vertical-datum) CRSs.
     """
-    if isinstance(spec, pyproj.CRS):
-        crs = spec
-    elif isinstance(spec, bool):  # bool is an int subclass: True is not EPSG:1
-        raise CRSError(f"not a CRS: {spec!r}")
-    elif isinstance(spec, int):
-        try:
-            crs = pyproj.CRS.from_epsg(spec)
-        except PyprojCRSError as exc:
-            raise CRSError(f"unknown EPSG code {spec}") from exc
-    elif isinstance(spec, str):
-        text = spec.strip()
-        if text.lower() == "auto":
-            return utm_crs_for(lon, lat)
-        if text.startswith("+") or "+proj=" in text or text.lower().startswith("proj="):
-            raise CRSError(
-                f"PROJ strings are not accepted ({text[:40]!r}): give an EPSG code "
-                "('EPSG:32630') or WKT2 text, which keep the datum unambiguous"
-            )
-        if not text:
-            raise CRSError("empty CRS spec")
-        try:
-            crs = pyproj.CRS.from_user_input(text)
-        except PyprojCRSError as exc:
-            raise CRSError(f"unknown CRS {text[:80]!r}") from exc
-    else:
-        raise CRSError(f"not a CRS spec: {type(spec).__name__} {spec!r}")
-    _require_projected(crs)
-    return crs
-
-
-def _require_projected(crs: pyproj.CRS) -> None:
-    if crs.is_compound:
-        raise CRSError(
-            f"compound CRS {crs.name!r} refused: standgrid writes WGS 84 ellipsoidal heights, "
-            "so give the horizontal projected CRS alone (e.g. its EPSG code)"
-        )
-    if not crs.is_projected:
-        kind = (
-            "geographic"
-            if crs.is_geographic
-            else "geocentric"
-            if crs.is_geocentric
-            else "non-projected"
-        )
-        raise CRSError(
-            f"{kind} CRS {crs.name!r} refused: give a projected (metric x/y) CRS, "
-            "e.g. 'auto' for UTM"
-        )
+    if isinstance(spec, str) and spec.strip().lower() == "auto":
+        return utm_crs_for(lon, lat)
+    return CRS.of(spec).projected()
 
 
 def standard_utm_zone(lon: float, lat: float) -> int:
@@ -93,7 +46,7 @@ def standard_utm_zone(lon: float, lat: float) -> int:
     return zone
 
 
-def utm_crs_for(lon: float | None, lat: float | None) -> pyproj.CRS:
+def utm_crs_for(lon: float | None, lat: float | None) -> CRS:
     """The WGS 84 UTM CRS (EPSG:326xx / 327xx) containing ``lon``/``lat`` (degrees)."""
     if lon is None or lat is None or not (math.isfinite(lon) and math.isfinite(lat)):
         raise CRSError(f"'auto' CRS needs a finite lon/lat (got lon={lon}, lat={lat})")
@@ -115,19 +68,4 @@ def utm_crs_for(lon: float | None, lat: float | None) -> pyproj.CRS:
         code = codes[0]
     else:  # pragma: no cover - the PROJ database covers every zone
         raise CRSError(f"no WGS 84 UTM zone found for lon={lon}, lat={lat}")
-    return pyproj.CRS.from_epsg(code)
-
-
-def crs_to_text(crs: pyproj.CRS) -> str:
-    """Canonical text: ``EPSG:XXXX`` when that code round-trips to an equal CRS, else WKT2_2019."""
-    epsg = crs.to_epsg()
-    if epsg is not None:
-        try:
-            if pyproj.CRS.from_epsg(epsg) == crs:
-                return f"EPSG:{epsg}"
-        except PyprojCRSError:  # pragma: no cover - to_epsg only returns known codes
-            pass
-    wkt = crs.to_wkt("WKT2_2019")
-    if not wkt:
-        raise CRSError(f"CRS {crs.name!r} cannot be written as WKT2")
-    return wkt
+    return CRS.of(code)

@@ -8,13 +8,12 @@ ellipsoidal metres, everything float64 and vectorised.
 
 from __future__ import annotations
 
-from functools import lru_cache
-
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 from pyproj import Transformer
 from pyproj.exceptions import ProjError
 
+from standgrid.crs import CRS
 from standgrid.errors import GeoreferenceError
 
 FloatArray = NDArray[np.float64]
@@ -25,14 +24,12 @@ GEOGRAPHIC_3D = "EPSG:4979"
 GEOCENTRIC = "EPSG:4978"
 
 
-@lru_cache(maxsize=1)
 def _lla_to_ecef_transformer() -> Transformer:
-    return Transformer.from_crs(GEOGRAPHIC_3D, GEOCENTRIC, always_xy=True)
+    return CRS.of(GEOGRAPHIC_3D).transformer_to(GEOCENTRIC)
 
 
-@lru_cache(maxsize=1)
 def _ecef_to_lla_transformer() -> Transformer:
-    return Transformer.from_crs(GEOCENTRIC, GEOGRAPHIC_3D, always_xy=True)
+    return CRS.of(GEOCENTRIC).transformer_to(GEOGRAPHIC_3D)
 
 
 def _f64(a: ArrayLike) -> FloatArray:

@@ -39,7 +39,7 @@ from numpy.typing import ArrayLike, NDArray
 from standgrid.errors import GeoreferenceError, InsufficientGnssError, PoorGeoreferenceError
 from standgrid.geometry import Matrix4, invert_pose, transform_points, yaw_of
 from standgrid.mission.posegraph import PoseGraph
-from standgrid.mission.sensors import FixQuality
+from standgrid.mission.sensors import FixQuality, GnssFixes
 from standgrid.stamps import NS_PER_S
 
 from .enu import LLA, lla_to_enu
@@ -286,27 +286,21 @@ def interpolate_trajectory(
 
 
 def _prepare(
-    fix_stamps_ns: ArrayLike,
-    lat: ArrayLike,
-    lon: ArrayLike,
-    alt: ArrayLike,
-    quality: ArrayLike,
-    h_std: ArrayLike | None,
-    v_std: ArrayLike | None,
+    fixes: GnssFixes,
     traj_stamps_ns: ArrayLike,
     traj_positions_map: ArrayLike,
     max_time_gap_s: float,
     lla_ref: LLA | None,
     source: Path | None,
 ) -> _Prepared:
-    stamps = np.asarray(fix_stamps_ns, dtype=np.int64).ravel()
-    cols = [np.asarray(c, dtype=np.float64).ravel() for c in (lat, lon, alt)]
-    qual = np.asarray(quality).astype(np.int64).ravel()
+    stamps = np.asarray(fixes.stamps_ns, dtype=np.int64).ravel()
+    cols = [np.asarray(c, dtype=np.float64).ravel() for c in (fixes.lat, fixes.lon, fixes.alt)]
+    qual = np.asarray(fixes.quality).astype(np.int64).ravel()
+    h_std, v_std = fixes.h_std, fixes.v_std
     n = len(stamps)
     lengths = {len(c) for c in cols} | {len(qual)}
     for extra in (h_std, v_std):
-        if extra is not None:
-            lengths.add(len(np.asarray(extra).ravel()))
+        lengths.add(len(np.asarray(extra).ravel()))
     if lengths != {n}:
         raise GeoreferenceError(
             f"GNSS columns differ in length ({sorted(lengths | {n})})", path=source
@@ -573,47 +567,31 @@ def _assemble(
 
 
 def fit_georeference(
-    fix_stamps_ns: ArrayLike,
-    lat: ArrayLike,
-    lon: ArrayLike,
-    alt: ArrayLike,
-    quality: ArrayLike,
-    h_std: ArrayLike | None,
+    fixes: GnssFixes,
     traj_stamps_ns: ArrayLike,
     traj_positions_map: ArrayLike,
     *,
-    v_std: ArrayLike | None = None,
     method: str = "yaw2d",
     min_fixes: int = 10,
     max_time_gap_s: float = DEFAULT_MAX_TIME_GAP_S,
     lla_ref: LLA | None = None,
     source: Path | None = None,
 ) -> GeoreferenceFit:
-    """Fit ``T_enu_map`` from GNSS fixes and the SLAM trajectory (see the module docstring).
+    """Fit ``T_enu_map`` from GNSS ``fixes`` and the SLAM trajectory (see the module docstring).
 
+    Std columns of ``fixes`` that are NaN (or <= 0) fall back to the fix quality's sigma.
+    ``source`` (default: the file the fixes came from) is named in errors.
     Raises :class:`InsufficientGnssError` (naming ``source`` and the counts of invalid,
     unmatched and outlier fixes) when fewer than ``min_fixes`` good fixes remain, or when the
     good fixes span less than :data:`MIN_SPREAD_M` (yaw unobservable); ``rigid3d`` also
     needs a trajectory that is not a straight line.
     """
+    source = fixes.source if source is None else source
     if method not in FIT_METHODS:
         raise GeoreferenceError(
             f"unknown georeference method {method!r}; use one of {FIT_METHODS}", path=source
         )
-    prep = _prepare(
-        fix_stamps_ns,
-        lat,
-        lon,
-        alt,
-        quality,
-        h_std,
-        v_std,
-        traj_stamps_ns,
-        traj_positions_map,
-        max_time_gap_s,
-        lla_ref,
-        source,
-    )
+    prep = _prepare(fixes, traj_stamps_ns, traj_positions_map, max_time_gap_s, lla_ref, source)
     usable = prep.usable
     n_usable = int(usable.sum())
     if n_usable < max(min_fixes, 2):
@@ -653,34 +631,17 @@ def evaluate_georeference(
     T_enu_map: Matrix4,
     lla_ref: LLA,
     method: str,
-    fix_stamps_ns: ArrayLike,
-    lat: ArrayLike,
-    lon: ArrayLike,
-    alt: ArrayLike,
-    quality: ArrayLike,
-    h_std: ArrayLike | None,
+    fixes: GnssFixes,
     traj_stamps_ns: ArrayLike,
     traj_positions_map: ArrayLike,
     *,
-    v_std: ArrayLike | None = None,
     max_time_gap_s: float = DEFAULT_MAX_TIME_GAP_S,
     source: Path | None = None,
 ) -> GeoreferenceFit:
-    """Residuals and outlier flags of GNSS fixes under a *given* transform (nothing is refitted)."""
-    prep = _prepare(
-        fix_stamps_ns,
-        lat,
-        lon,
-        alt,
-        quality,
-        h_std,
-        v_std,
-        traj_stamps_ns,
-        traj_positions_map,
-        max_time_gap_s,
-        lla_ref,
-        source,
-    )
+    """Residuals and outlier flags of GNSS ``fixes`` under a *given* transform (nothing is
+    refitted)."""
+    source = fixes.source if source is None else source
+    prep = _prepare(fixes, traj_stamps_ns, traj_positions_map, max_time_gap_s, lla_ref, source)
     return _assemble(prep, np.asarray(T_enu_map, dtype=np.float64), method, None)
 
 

@@ -60,15 +60,9 @@ def georeference_mission(
             anchor.T_enu_map,
             anchor.lla_ref,
             anchor.method,
-            gnss.stamps_ns,
-            gnss.lat,
-            gnss.lon,
-            gnss.alt,
-            gnss.quality,
-            gnss.h_std,
+            gnss,
             graph.stamps_ns,
             graph.positions,
-            v_std=gnss.v_std,
             max_time_gap_s=max_time_gap_s,
             source=path,
         )
@@ -84,15 +78,9 @@ def georeference_mission(
             "the mission's GNSS log has no fixes", path=gnss_log if gnss_log else path
         )
     return fit_georeference(
-        gnss.stamps_ns,
-        gnss.lat,
-        gnss.lon,
-        gnss.alt,
-        gnss.quality,
-        gnss.h_std,
+        gnss,
         graph.stamps_ns,
         graph.positions,
-        v_std=gnss.v_std,
         method=method,
         min_fixes=min_fixes,
         max_time_gap_s=max_time_gap_s,

@@ -18,6 +18,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 from numpy.typing import NDArray
 
+from standgrid.crs import CRS, CRSLike
 from standgrid.errors import CatalogError, CRSError, GeoreferenceError
 
 if TYPE_CHECKING:
@@ -37,23 +38,27 @@ class Placement:
     clouds are already in (``source_crs``)."""
 
     fit: GeoreferenceFit | None
-    source_crs: str | None = None
+    source_crs: CRS | None = None
     #: How alignment with other missions moved it (:mod:`standgrid.align`), None: GNSS only.
     alignment: dict[str, Any] | None = None
 
-    def to_catalog(self, crs: str, name: str) -> ToCatalog:
+    def __post_init__(self) -> None:
+        if self.source_crs is not None:  # text from a catalog record: the value
+            object.__setattr__(self, "source_crs", CRS.of(self.source_crs))
+
+    def to_catalog(self, crs: CRSLike, name: str) -> ToCatalog:
         """The recipe into the catalog CRS ``crs`` (``name``: the mission's, for messages)."""
         import uuid
 
         # a key unique to this recipe: what a process builds for it is never another's
-        return ToCatalog(self.fit, self.source_crs, crs, f"{name}:{uuid.uuid4().hex}")
+        return ToCatalog(self.fit, self.source_crs, CRS.of(crs), f"{name}:{uuid.uuid4().hex}")
 
     def record(self) -> dict[str, Any]:
         """What the catalog stores about how the mission was placed."""
         out: dict[str, Any]
         if self.fit is None:
             out = {"format": "standgrid.georeference/1", "method": "projected",
-                   "source_crs": self.source_crs}  # fmt: skip
+                   "source_crs": _text(self.source_crs)}  # fmt: skip
         else:
             out = self.fit.to_dict()
         if self.alignment is not None:
@@ -64,7 +69,7 @@ class Placement:
         """The headline figures of the placement (the tile report's ``georeference``)."""
         out: dict[str, Any]
         if self.fit is None:
-            out = {"method": "projected", "source_crs": self.source_crs, "fixes_used": 0,
+            out = {"method": "projected", "source_crs": _text(self.source_crs), "fixes_used": 0,
                    "fixes_rejected": 0, "rmse_horizontal_m": None,
                    "uncertainty": None}  # fmt: skip
         else:
@@ -79,8 +84,8 @@ class ToCatalog:
     """Points of one mission into the catalog CRS (picklable; pyproj objects built lazily)."""
 
     fit: GeoreferenceFit | None
-    source_crs: str | None
-    crs: str
+    source_crs: CRS | None
+    crs: CRS
     key: str
 
     @property
@@ -108,9 +113,8 @@ class ToCatalog:
                 assert self.fit is not None
                 found = MapProjector(self.fit, self.crs)
             else:
-                import pyproj
-
-                found = pyproj.Transformer.from_crs(self.source_crs, self.crs, always_xy=True)
+                assert self.source_crs is not None
+                found = self.source_crs.transformer_to(self.crs)
             _BUILT[name] = found
         return found
 
@@ -137,7 +141,7 @@ class ToCatalog:
 def place_mission(
     mission: Mission,
     *,
-    crs: str = "auto",
+    crs: CRSLike = "auto",
     anchor: tuple[float, float, float, float] | None = None,
     method: str = "yaw2d",
     accept_poor: bool = False,
@@ -215,15 +219,14 @@ def held_placement(mission: Mission, record: dict[str, Any]) -> Placement:
     if graph is None or len(graph) == 0 or gnss is None or len(gnss) == 0:
         return Placement(GeoreferenceFit.without_fixes((lat, lon, alt), transform, method))
     fit = evaluate_georeference(
-        transform, (lat, lon, alt), method, gnss.stamps_ns, gnss.lat, gnss.lon, gnss.alt,
-        gnss.quality, gnss.h_std, graph.stamps_ns, graph.positions, v_std=gnss.v_std,
+        transform, (lat, lon, alt), method, gnss, graph.stamps_ns, graph.positions,
         source=gnss_file(mission),
-    )  # fmt: skip
+    )
     return Placement(fit)
 
 
 def placement_offset(
-    used: Placement, fresh: Placement, xyz_map: NDArray[np.float64], crs: str
+    used: Placement, fresh: Placement, xyz_map: NDArray[np.float64], crs: CRSLike
 ) -> float:
     """How far (m, 3-D: catalog CRS x, y and ellipsoidal height) ``fresh`` would put any point
     of the convex hull of ``xyz_map`` (map frame, e.g. the corners of every payload's box)
@@ -262,17 +265,16 @@ def cloud_payloads(mission: Mission) -> list[Payload]:
     return [p for p in mission.payloads if p.kind == "point_cloud"]
 
 
-def projected_crs(mission: Mission, crs: str = "auto") -> str:
+def projected_crs(mission: Mission, crs: CRSLike = "auto") -> CRS:
     """The one projected CRS of a mission's projected clouds: their files' own (LAS/LAZ),
     else ``crs`` (PCD/PLY in ``payload_clouds_in_utm/`` carry none)."""
-    from standgrid.georeference import crs_to_text, resolve_crs
+    from standgrid.georeference import resolve_crs
 
     clouds = cloud_payloads(mission)
     own = {p.crs for p in clouds if p.crs is not None}
     if len(own) > 1:
-        raise CRSError(
-            f"the mission's clouds are in several CRSs: {sorted(own)}", path=mission.path
-        )
+        texts = sorted(c.text for c in own)
+        raise CRSError(f"the mission's clouds are in several CRSs: {texts}", path=mission.path)
     if own and len(own) == 1 and all(p.crs is not None for p in clouds):
         return own.pop()
     if crs in ("auto", "", None):
@@ -283,14 +285,18 @@ def projected_crs(mission: Mission, crs: str = "auto") -> str:
             path=mission.path,
             option="crs",
         )
-    text = crs_to_text(resolve_crs(crs))
-    if own and own != {text}:
+    wanted = resolve_crs(crs)
+    if own and own != {wanted}:
         raise CRSError(
-            f"some clouds carry the CRS {own.pop()}, option crs says {text}",
+            f"some clouds carry the CRS {own.pop()}, option crs says {wanted}",
             path=mission.path,
             option="crs",
         )
-    return text
+    return wanted
+
+
+def _text(crs: CRS | None) -> str | None:
+    return None if crs is None else crs.text
 
 
 def gnss_file(mission: Mission) -> Path:

@@ -12,18 +12,17 @@ reverse, so the round trip is exact either way.
 
 from __future__ import annotations
 
-import threading
 from typing import Any
 
 import numpy as np
-import pyproj
 from numpy.typing import ArrayLike, NDArray
 from pyproj.enums import TransformDirection
 from pyproj.exceptions import ProjError
 
+from standgrid.crs import CRS, CRSLike
 from standgrid.errors import GeoreferenceError
 
-from .crs import CRSSpec, crs_to_text, resolve_crs
+from .crs import resolve_crs
 from .enu import GEOCENTRIC, ecef_to_lla, enu_rotation, reference_ecef
 from .fit import GeoreferenceFit
 
@@ -47,24 +46,22 @@ def _as_points(xyz: ArrayLike) -> FloatArray:
 class MapProjector:
     """Map-frame points of one georeferenced mission -> a projected CRS (and back)."""
 
-    def __init__(self, fit: GeoreferenceFit, crs: CRSSpec) -> None:
+    def __init__(self, fit: GeoreferenceFit, crs: CRSLike) -> None:
         lat, lon, _ = fit.lla_ref
         self.fit = fit
-        self.crs: pyproj.CRS = resolve_crs(crs, lon=lon, lat=lat)
-        self.crs_text = crs_to_text(self.crs)
+        self.crs = resolve_crs(crs, lon=lon, lat=lat)
         r_enu_ecef = enu_rotation(lat, lon)
         T = np.asarray(fit.T_enu_map, dtype=np.float64)
         # ecef = R_ecef_map @ p_map + t_ecef
         self._r_ecef_map = r_enu_ecef.T @ T[:3, :3]
         self._t_ecef = r_enu_ecef.T @ T[:3, 3] + reference_ecef(fit.lla_ref)
-        self._transformer = pyproj.Transformer.from_crs(GEOCENTRIC, self.crs, always_xy=True)
-        # a pyproj Transformer is not thread-safe: one projector may serve several threads
-        self._lock = threading.Lock()
+        # cached and shared: pyproj's transformers are thread-safe (thread-local inside)
+        self._transformer = CRS.of(GEOCENTRIC).transformer_to(self.crs)
         self.fast_chunks = 0
         self.fallback_chunks = 0
 
     def __repr__(self) -> str:
-        return f"MapProjector(method={self.fit.method!r}, crs={self.crs_text[:40]!r})"
+        return f"MapProjector(method={self.fit.method!r}, crs={self.crs.text[:40]!r})"
 
     # --- exact chain --------------------------------------------------------------------
 
@@ -95,10 +92,9 @@ class MapProjector:
         if len(pts) == 0:
             return np.zeros((0, 3))
         try:
-            with self._lock:
-                x, y, z = self._transformer.transform(
-                    pts[:, 0], pts[:, 1], pts[:, 2], direction=direction, errcheck=True
-                )
+            x, y, z = self._transformer.transform(
+                pts[:, 0], pts[:, 1], pts[:, 2], direction=direction, errcheck=True
+            )
         except ProjError as exc:
             raise GeoreferenceError(f"projection to/from {self.crs.name!r} failed: {exc}") from exc
         return np.stack([np.asarray(x), np.asarray(y), np.asarray(z)], axis=-1).astype(
@@ -182,7 +178,7 @@ class MapProjector:
     def describe(self) -> dict[str, Any]:
         """CRS and vertical reference as JSON-ready text."""
         return {
-            "crs": self.crs_text,
+            "crs": self.crs.text,
             "crs_name": self.crs.name,
             "vertical": "WGS 84 ellipsoidal height (m)",
         }

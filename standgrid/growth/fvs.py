@@ -259,7 +259,7 @@ def _export_fvs(
     geoid: GeoidModel | NoGeoidModel,
     heights_above_sea_level: bool = False,
 ) -> FvsExport:
-    from pyproj import Transformer
+    from standgrid.crs import CRS
 
     key = stand_key(level)
     wanted = catalog_epochs(catalog, epochs)
@@ -273,7 +273,7 @@ def _export_fvs(
             report_notes.append(f"{epoch}: no date; Inv_Year {years_of[epoch]} is its label")
     stands = read_stands(catalog)
     polygons = _stand_polygons(catalog)
-    to_wgs84 = Transformer.from_crs(catalog.crs, "EPSG:4326", always_xy=True)
+    to_wgs84 = CRS.of(catalog.crs).transformer_to("EPSG:4326")
     report = FvsExport(Path(out), species_default_used=False, notes=report_notes)
     elevations = {e: epoch_elevation(catalog, e, geoid, heights_above_sea_level) for e in wanted}
     for epoch, elevation in elevations.items():

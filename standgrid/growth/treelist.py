@@ -123,7 +123,7 @@ def generic_tree_list(
     trees per hectare, where ``stand_area_m2`` is the stand's observed area; the others are
     listed with null expansion (not counted, not dropped).
     """
-    from pyproj import Transformer
+    from standgrid.crs import CRS
 
     key = stand_key(level)
     stands = read_stands(catalog)
@@ -174,7 +174,7 @@ def generic_tree_list(
         )
         frames.append(out)
     table = pd.concat(frames, ignore_index=True)
-    to_wgs84 = Transformer.from_crs(catalog.crs, "EPSG:4326", always_xy=True)
+    to_wgs84 = CRS.of(catalog.crs).transformer_to("EPSG:4326")
     lon, lat = to_wgs84.transform(*stem_xy(table))
     table["lon"], table["lat"] = lon, lat
     table["crs"] = catalog.crs

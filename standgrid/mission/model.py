@@ -17,6 +17,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from standgrid.clouds import read_cloud, read_cloud_header
+from standgrid.crs import CRS
 from standgrid.errors import (
     DuplicateStampError,
     MetadataError,
@@ -68,7 +69,7 @@ class Payload:
     kind: PayloadKind = "point_cloud"
     sensor: str | None = None
     #: The projected CRS of a ``utm``-frame cloud, when its file says (LAS/LAZ CRS VLR).
-    crs: str | None = field(default=None, hash=False, compare=False)
+    crs: CRS | None = field(default=None, hash=False, compare=False)
     #: A plain scan's payload is a part of a LAS/LAZ file: its points ``[start, stop)`` ...
     span: tuple[int, int] | None = field(default=None, hash=False, compare=False)
     #: ... of GPS times in ``[lo, hi)`` (a trajectory segment); None: all of them.
@@ -81,6 +82,10 @@ class Payload:
     time_offset: float = field(default=0.0, hash=False, compare=False)
     #: ... and a week (604,800 s) more for a file time below this (after the rollover).
     time_wrap: float | None = field(default=None, hash=False, compare=False)
+
+    def __post_init__(self) -> None:
+        if self.crs is not None:  # the text a file or record gives: the value
+            object.__setattr__(self, "crs", CRS.of(self.crs))
 
 
 class CloudCache:
@@ -503,8 +508,8 @@ def _cloud_payloads(
     ]
 
 
-def _las_crs(path: Path) -> Any:
-    """The CRS a LAS/LAZ header carries (pyproj.CRS), or None."""
+def _las_crs(path: Path) -> CRS | None:
+    """The CRS a LAS/LAZ header carries, or None."""
     import laspy
 
     from standgrid.clouds.las_header import check_las_header
@@ -512,19 +517,10 @@ def _las_crs(path: Path) -> Any:
     check_las_header(path)
     try:
         with laspy.open(path) as reader:
-            return reader.header.parse_crs()
+            found = reader.header.parse_crs()
     except (laspy.errors.LaspyException, ValueError, OSError, EOFError) as exc:
         raise PointCloudFormatError(f"unreadable LAS/LAZ header ({exc})", path=path) from exc
-
-
-def _crs_text(crs: Any) -> str:
-    """``EPSG:XXXX`` when the code round-trips to an equal CRS, else WKT2 (as the catalog)."""
-    import pyproj
-
-    epsg = crs.to_epsg()
-    if epsg is not None and pyproj.CRS.from_epsg(epsg) == crs:
-        return f"EPSG:{epsg}"
-    return str(crs.to_wkt("WKT2_2019"))
+    return None if found is None else CRS.of(found)
 
 
 def _projected_las(items: list[Payload]) -> list[Payload]:
@@ -541,7 +537,7 @@ def _projected_las(items: list[Payload]) -> list[Payload]:
                         "clouds in a projected CRS (metres) or in the robot/map frame",
                         path=p.path,
                     )
-                p = replace(p, frame="utm", crs=_crs_text(crs))
+                p = replace(p, frame="utm", crs=crs)
         out.append(p)
     return out
 

@@ -36,6 +36,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
+from standgrid.crs import CRS
 from standgrid.errors import (
     CRSError,
     MetadataError,
@@ -170,7 +171,6 @@ def _facts(path: Path) -> _FileFacts:
     import laspy
 
     from standgrid.clouds.las import check_las_size
-    from standgrid.mission.model import _crs_text
 
     count = check_las_size(path)
     try:
@@ -190,7 +190,7 @@ def _facts(path: Path) -> _FileFacts:
         raise PointCloudFormatError(f"unreadable LAS/LAZ header ({exc})", path=path) from exc
     if created is not None and created.year < 1990:
         created = None
-    return _FileFacts(path, count, None if crs is None else _crs_text(crs), bool(standard),
+    return _FileFacts(path, count, None if crs is None else CRS.of(crs).text, bool(standard),
                       has_time, created, box, first)  # fmt: skip
 
 
@@ -356,9 +356,10 @@ def open_scan(path: str | Path, options: ScanOptions = ScanOptions()) -> Any:
                 stop = min(start + options.part_points, f.points)
                 parts.append((f.path, (start, stop), None, centre))
     offsets = {f.path: _week_offset(*kind, day) for f, kind in zip(facts, kinds, strict=True)}
+    crs_value = None if crs is None else CRS.of(crs)
     payloads = [
         Payload(Stamp.from_ns(base * NS_PER_S + k), None, file, "utm", {}, "point_cloud",
-                crs=crs, span=span, window=window, site=site, time_offset=offsets[file][0],
+                crs=crs_value, span=span, window=window, site=site, time_offset=offsets[file][0],
                 time_wrap=offsets[file][1])
         for k, (file, span, window, site) in enumerate(parts)
     ]  # fmt: skip

@@ -31,6 +31,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
+from standgrid.crs import CRS, CRSLike
 from standgrid.errors import CellIdError, CRSError, GridError
 
 #: Cell indices must fit in a signed 32-bit integer so two of them pack into one int64 key.
@@ -47,18 +48,18 @@ _CELL_RE = re.compile(rf"^([0-9]+(?:p[0-9]+)?)m_E({_INT})_N({_INT})$")
 # --- CRS ---------------------------------------------------------------------------------
 
 
-@functools.lru_cache(maxsize=64)
-def normalise_crs(crs: Any) -> str:
-    """The canonical stored form of a grid CRS: ``"EPSG:XXXX"`` when it round-trips, else WKT2.
-
-    The rules are georeferencing's (``resolve_crs``): PROJ strings and non-projected CRSs are
-    refused with ``CRSError``.
-    """
-    from standgrid.georeference.crs import crs_to_text, resolve_crs
-
+def grid_crs(crs: CRSLike) -> CRS:
+    """A grid's CRS: projected and explicit (``CRSError`` for ``'auto'``, PROJ strings and
+    non-projected CRSs)."""
     if isinstance(crs, str) and crs.strip().lower() == "auto":
         raise CRSError("a grid needs an explicit CRS, not 'auto'")
-    return crs_to_text(resolve_crs(crs))
+    return CRS.of(crs).projected()
+
+
+def normalise_crs(crs: CRSLike) -> str:
+    """The canonical stored form of a grid CRS (:func:`grid_crs`'s text): ``"EPSG:XXXX"``
+    when it round-trips, else WKT2."""
+    return grid_crs(crs).text
 
 
 # --- cell ids ----------------------------------------------------------------------------
@@ -215,14 +216,14 @@ class StandGrid:
     Every coarser level is an exact integer multiple of the finer one.
     """
 
-    crs: str
+    crs: CRS
     cell_size: float = 20.0
     origin: tuple[float, float] = (0.0, 0.0)
     levels: tuple[float, ...] = field(default=())
 
     def __post_init__(self) -> None:
         set_ = functools.partial(object.__setattr__, self)
-        set_("crs", normalise_crs(self.crs))
+        set_("crs", grid_crs(self.crs))
         size = _as_float(self.cell_size, "cell_size")
         if size <= 0:
             raise GridError(f"cell_size must be positive, got {self.cell_size!r}")
@@ -347,7 +348,7 @@ class StandGrid:
         return {
             "format": _GRID_FORMAT,
             "version": _GRID_VERSION,
-            "crs": self.crs,
+            "crs": self.crs.text,
             "cell_size": self.cell_size,
             "origin": list(self.origin),
             "levels": list(self.levels),

@@ -192,8 +192,8 @@ def _enrich_epoch(
         chunks_at_once,
     )
     from standgrid.enrich.outputs import tree_table, write_coverage, write_raster
-    from standgrid.enrich.rasters import RasterGrid
     from standgrid.enrich.terrain import GROUND_HALO_M, ground_reach
+    from standgrid.rastergrid import RasterGrid
 
     executor, progress = execution.executor, execution.progress
     assert executor is not None
@@ -209,6 +209,7 @@ def _enrich_epoch(
         cell_size=cell_size,
         pixel_size=options.pixel_size,
         closed=True,
+        crs=catalog.crs,
     )
     # the buffer must reach every copy a tile holds, so those get heights and ids too; and
     # be wider than the coverage closing (2 x radius), so chunks agree with the whole epoch
@@ -275,12 +276,11 @@ def _enrich_epoch(
         ("chm", "canopy height model: height above ground (m)"),
     ):
         arrays[name][unseen] = np.nan  # terrain (and heights over it) extrapolated there
-        write_raster(txn, paths.raster(epoch, name), arrays[name], grid, catalog.crs, description)
+        write_raster(txn, paths.raster(epoch, name), arrays[name], grid, description)
     write_raster(
-        txn, paths.raster(epoch, "density"), arrays["density"], grid, catalog.crs,
-        "points per square metre",
+        txn, paths.raster(epoch, "density"), arrays["density"], grid, "points per square metre",
     )  # fmt: skip
-    write_coverage(txn, paths.raster(epoch, "observed"), coverage, catalog.crs)
+    write_coverage(txn, paths.raster(epoch, "observed"), coverage)
     observed_m2 = float(sum(s.observed_m2 for s in samples))  # each cell's, clipped to it
     summary = {
         "cells": len(cells),

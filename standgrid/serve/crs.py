@@ -12,6 +12,7 @@ from typing import Any
 
 import numpy as np
 
+from standgrid.crs import CRS
 from standgrid.errors import CRSError
 from standgrid.serve.problems import Problem
 
@@ -20,22 +21,20 @@ _EPSG_URI = "http://www.opengis.net/def/crs/EPSG/0/"
 
 
 @functools.lru_cache(maxsize=16)
-def _crs(uri_or_spec: str) -> Any:
-    import pyproj
-
+def _crs(uri_or_spec: str) -> CRS:
     spec = "OGC:CRS84" if uri_or_spec == CRS84 else uri_or_spec
     if spec.startswith(_EPSG_URI):
         spec = "EPSG:" + spec.removeprefix(_EPSG_URI)
     try:
-        return pyproj.CRS.from_user_input(spec)
-    except pyproj.exceptions.CRSError as exc:
-        raise CRSError(f"unusable CRS {uri_or_spec!r}: {exc}") from exc
+        return CRS.of(spec)
+    except CRSError as exc:
+        raise CRSError(f"unusable CRS {uri_or_spec!r}: {exc.message}") from exc
 
 
 @functools.lru_cache(maxsize=16)
 def catalog_crs_uri(catalog_crs: str) -> str | None:
     """The URI of the catalog's CRS (``.../EPSG/0/<code>``), or None without an EPSG code."""
-    code = _crs(catalog_crs).to_epsg()
+    code = _crs(catalog_crs).epsg
     return None if code is None else f"{_EPSG_URI}{code}"
 
 
@@ -62,19 +61,11 @@ def geographic_axes(uri: str) -> tuple[str, str] | None:
     crs = _crs(uri)
     if not crs.is_geographic:
         return None
-    return ("lat", "lon") if _northing_first(crs) else ("lon", "lat")
+    return ("lat", "lon") if crs.northing_first else ("lon", "lat")
 
 
-def _northing_first(crs: Any) -> bool:
-    axes = crs.axis_info
-    return bool(axes) and axes[0].direction.lower() in ("north", "south")
-
-
-@functools.lru_cache(maxsize=32)
 def _transformer(source: str, target: str) -> Any:
-    import pyproj
-
-    return pyproj.Transformer.from_crs(_crs(source), _crs(target), always_xy=True)
+    return _crs(source).transformer_to(_crs(target))
 
 
 def transform_xy(
@@ -111,7 +102,7 @@ def bbox_polygon(bbox: list[float], bbox_crs_uri: str, target: str) -> Any:
     if len(bbox) == 6:  # minx, miny, minz, maxx, maxy, maxz: heights play no part
         bbox = [bbox[0], bbox[1], bbox[3], bbox[4]]
     a0, b0, a1, b1 = bbox
-    if _northing_first(_crs(bbox_crs_uri)):
+    if _crs(bbox_crs_uri).northing_first:
         a0, b0, a1, b1 = b0, a0, b1, a1
     if a0 > a1 or b0 > b1:
         raise Problem(400, f"bbox: lower corner {bbox[:2]} above or right of the upper one")
@@ -130,12 +121,12 @@ def bbox_polygon(bbox: list[float], bbox_crs_uri: str, target: str) -> Any:
 
 @functools.lru_cache(maxsize=64)
 def _same(a: str, b: str) -> bool:
-    return a == b or bool(_crs(a) == _crs(b))
+    return a == b or _crs(a).equivalent(_crs(b))
 
 
 @functools.lru_cache(maxsize=16)
 def _uri_northing_first(uri: str) -> bool:
-    return _northing_first(_crs(uri))
+    return _crs(uri).northing_first
 
 
 def bounds_to_crs84(bounds: tuple[float, float, float, float], source: str) -> list[float]:

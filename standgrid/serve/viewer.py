@@ -77,10 +77,10 @@ def viewer_config(catalog: Catalog, layers: set[str]) -> dict[str, Any]:
     (and CHM differences) with their colour ramp tops, which layers exist, the tiles' format
     (``tiles``: with ``copc`` the page streams a cell's points from its tile itself) and the
     most points one 3-D view draws."""
-    import pyproj
+    from standgrid.crs import CRS
 
-    crs = pyproj.CRS.from_user_input(catalog.crs)
-    epsg = crs.to_epsg()
+    crs = CRS.of(catalog.crs)
+    epsg = crs.epsg
     published = published_files(catalog)
     epochs = []
     for label, record in catalog.epoch_records.items():
@@ -111,7 +111,7 @@ def viewer_config(catalog: Catalog, layers: set[str]) -> dict[str, Any]:
         "crs": {
             "code": f"EPSG:{epsg}" if epsg else None,
             "uri": f"http://www.opengis.net/def/crs/EPSG/0/{epsg}" if epsg else None,
-            "wkt": crs.to_wkt(),
+            "wkt": crs.wkt2,
         },
         "epochs": epochs,
         "comparisons": comparisons,

@@ -12,8 +12,8 @@ from collections.abc import Sequence
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
-from pyproj import CRS, Transformer
 
+from standgrid.crs import CRS, CRSLike
 from standgrid.geometry import Matrix4, invert_pose, transform_points
 
 GEODETIC_3D = "EPSG:4979"
@@ -34,17 +34,16 @@ class FrameChain:
 
     def __init__(
         self,
-        crs: str,
+        crs: CRSLike,
         lla_ref: Sequence[float],
         T_map_enu: ArrayLike,
     ) -> None:
-        self.crs = crs
+        self.crs = CRS.of(crs)
         self.lla_ref = (float(lla_ref[0]), float(lla_ref[1]), float(lla_ref[2]))
         self.T_map_enu: Matrix4 = np.asarray(T_map_enu, dtype=np.float64)
         self.T_enu_map: Matrix4 = invert_pose(self.T_map_enu)
-        source = CRS.from_user_input(crs)
-        self._crs_to_geo = Transformer.from_crs(source, GEODETIC_3D, always_xy=True)
-        self._geo_to_ecef = Transformer.from_crs(GEODETIC_3D, ECEF, always_xy=True)
+        self._crs_to_geo = self.crs.transformer_to(GEODETIC_3D)
+        self._geo_to_ecef = CRS.of(GEODETIC_3D).transformer_to(ECEF)
         lat, lon, alt = self.lla_ref
         self._R = enu_rotation(lat, lon)
         ex, ey, ez = self._geo_to_ecef.transform(lon, lat, alt)

@@ -18,12 +18,12 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-import pyproj
 from numpy.typing import NDArray
 from scipy.spatial import cKDTree
 
 from standgrid._atomic import atomic_output, check_replaceable
 from standgrid.clouds.las_header import check_las_header
+from standgrid.crs import CRS
 from standgrid.errors import CRSError, FormatError, MissionNotFoundError
 from standgrid.geometry import Matrix4, invert_pose, transform_points
 from standgrid.mission.layout import is_mission_folder
@@ -69,10 +69,10 @@ class ScanMission:
 
 def _normalise_crs(crs: str) -> str:
     """A user-given CRS as ``EPSG:XXXX`` or WKT2; PROJ strings and non-projected CRSs refused."""
-    from standgrid.georeference.crs import crs_to_text, resolve_crs
+    from standgrid.georeference.crs import resolve_crs
 
     try:
-        return crs_to_text(resolve_crs(crs))
+        return resolve_crs(crs).text
     except CRSError as exc:
         raise CRSError(f"unusable CRS {crs!r}: {exc.message}") from exc
 
@@ -95,9 +95,9 @@ def _read_scans(
             file_crs = las.header.parse_crs()
         except Exception as exc:  # laspy raises several unrelated types for bad files
             raise FormatError(f"cannot read LAS/LAZ: {exc}", path=path) from exc
-        if file_crs is not None:
-            epsg = file_crs.to_epsg()
-            text = f"EPSG:{epsg}" if epsg else file_crs.to_wkt()
+        if file_crs is not None:  # the file's EPSG code as pyproj identifies it, else WKT2
+            found = CRS.of(file_crs)
+            text = f"EPSG:{found.epsg}" if found.epsg else found.wkt2
             if found_crs is not None and text != found_crs and crs is None:
                 raise CRSError(f"CRS {text} differs from {found_crs} of the other files", path=path)
             found_crs = found_crs or text
@@ -109,9 +109,9 @@ def _read_scans(
     if use_crs is None:
         raise CRSError("the scans carry no CRS; pass crs=", path=paths[0])
     try:
-        pyproj.CRS.from_user_input(use_crs)
-    except pyproj.exceptions.CRSError as exc:
-        raise CRSError(f"unusable CRS {use_crs!r}: {exc}", path=paths[0]) from exc
+        CRS.of(use_crs)
+    except CRSError as exc:
+        raise CRSError(f"unusable CRS {use_crs!r}: {exc.message}", path=paths[0]) from exc
     return (np.concatenate(xyz_parts), np.concatenate(inten_parts), np.concatenate(cls_parts),
             use_crs, sources)  # fmt: skip
 

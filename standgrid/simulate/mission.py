@@ -12,10 +12,10 @@ from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
-from pyproj import Transformer
 from scipy.spatial.transform import Rotation
 
 from standgrid._atomic import check_replaceable, temporary_sibling
+from standgrid.crs import CRS
 from standgrid.errors import OutputNotWritableError
 from standgrid.geometry import Matrix4, invert_pose, transform_points
 from standgrid.mission.layout import is_mission_folder
@@ -223,7 +223,7 @@ def _rng(seed: int, stream: int) -> np.random.Generator:
 
 def stand_bounds(area: float) -> tuple[float, float, float, float]:
     """A square stand of side ``area`` m centred on the site, corners on a 10 m grid."""
-    to_utm = Transformer.from_crs("EPSG:4326", SITE_CRS, always_xy=True)
+    to_utm = CRS.of("EPSG:4326").transformer_to(SITE_CRS)
     cx, cy = to_utm.transform(SITE_LON, SITE_LAT)
     x0 = round((cx - area / 2) / 10.0) * 10.0
     y0 = round((cy - area / 2) / 10.0) * 10.0

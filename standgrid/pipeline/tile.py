@@ -9,7 +9,7 @@ across mission boundaries. Everything is written inside one catalog transaction:
 interrupted run leaves the previous catalog intact and a re-run completes it.
 
 The per-payload and per-cell work runs on an executor (this process, or a dask cluster with
-``workers``/``scheduler``; :mod:`standgrid.pipeline.tile_epoch`); this process alone writes
+``workers``/``scheduler``; :mod:`standgrid.tiling.epoch`); this process alone writes
 the catalog, its index and its VPCs.
 """
 
@@ -25,7 +25,15 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any, Literal
 
 from standgrid.catalog.index import CatalogIndex
-from standgrid.catalog.setup import (
+from standgrid.engine import SILENT, MemoryBudget, Progress
+from standgrid.errors import (
+    CatalogError,
+    NotGeoreferencedError,
+    TilingError,
+    out_of_space_error,
+)
+from standgrid.tiling.epoch import EpochSettings, Ingest, tile_epoch
+from standgrid.tiling.setup import (
     GridRequest,
     absolute_output,
     check_area_of_use,
@@ -38,14 +46,6 @@ from standgrid.catalog.setup import (
     refuse_overlap,
     settle_tiling,
 )
-from standgrid.engine import SILENT, MemoryBudget, Progress
-from standgrid.errors import (
-    CatalogError,
-    NotGeoreferencedError,
-    TilingError,
-    out_of_space_error,
-)
-from standgrid.pipeline.tile_epoch import EpochSettings, Ingest, tile_epoch
 
 if TYPE_CHECKING:
     from standgrid.catalog import Catalog
@@ -96,7 +96,7 @@ class TileOptions:
     #: Metres: a mission already in its epoch keeps the placement the catalog used while its
     #: fresh georeference moves none of its points this far from it (the epoch re-tiles in
     #: place; the offset is reported). None: always the fresh fit (exact, the default).
-    #: See :mod:`standgrid.catalog.placement_policy`.
+    #: See :mod:`standgrid.tiling.placement_policy`.
     placement_tolerance: float | None = None
     #: A mission of a name the catalog holds, tiled from another folder, replaces it (else
     #: :class:`~standgrid.errors.MissionFolderConflictError`). Re-ingesting from the same
@@ -320,7 +320,7 @@ def _ingest(
 ) -> TileReport:
     """Tile the prepared missions into a catalog opened for writing, in one transaction."""
     from standgrid.catalog.invalidate import invalidate_epochs, retile_reason
-    from standgrid.catalog.vpcs import stage_epoch_vpc
+    from standgrid.tiling.vpcs import stage_epoch_vpc
 
     report = TileReport(catalog.root, catalog.crs, catalog.scheme, catalog.fingerprint)
     report.workers = executor.workers

@@ -11,16 +11,16 @@ from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Any
 
 from standgrid.engine import MemoryBudget, Progress
-from standgrid.pipeline.tile_cells import EpochWork, write_cells
+from standgrid.tiling.cells import EpochWork, write_cells
 
 if TYPE_CHECKING:
     from standgrid.catalog import Catalog, TilingSettings, Transaction
     from standgrid.catalog.index import CatalogIndex
-    from standgrid.catalog.placement_policy import PlacementChoice
     from standgrid.engine import Executor
     from standgrid.export.las import TileInfo
     from standgrid.georeference.placement import Placement, ToCatalog
     from standgrid.mission.model import Mission
+    from standgrid.tiling.placement_policy import PlacementChoice
 
 
 @dataclass
@@ -71,7 +71,12 @@ def tile_epoch(
     mission in ``renewed`` (this run's missions) are taken out of the old tiles first."""
     import pandas as pd
 
-    from standgrid.catalog.increment import (
+    from standgrid.catalog.partition import catalog_partition
+    from standgrid.errors import CatalogError, ConservationError
+    from standgrid.export.gpkg import cell_row
+    from standgrid.georeference.placement import cloud_payloads
+    from standgrid.partition.chunks import PayloadTask
+    from standgrid.tiling.increment import (
         keep_rows,
         kept_tile_info,
         landing_tiles,
@@ -80,7 +85,7 @@ def tile_epoch(
         source_digest,
         tiles_holding,
     )
-    from standgrid.catalog.mission_rows import (
+    from standgrid.tiling.mission_rows import (
         epoch_sites,
         gnss_rows,
         metadata_extra,
@@ -89,12 +94,7 @@ def tile_epoch(
         tiling_schema,
         trajectory_rows,
     )
-    from standgrid.catalog.partition import catalog_partition
-    from standgrid.catalog.retile import KeptTiles
-    from standgrid.errors import CatalogError, ConservationError
-    from standgrid.export.gpkg import cell_row
-    from standgrid.georeference.placement import cloud_payloads
-    from standgrid.partition.chunks import PayloadTask
+    from standgrid.tiling.retile import KeptTiles
 
     names = {i.mission.name for i in group}
     previous = sorted(catalog.tiles(epoch)) if epoch in catalog.epochs else []
@@ -283,9 +283,9 @@ def _choose_placements(
     settings: EpochSettings,
 ) -> None:
     """Under a placement tolerance, each mission of ``group`` is tiled with the placement
-    :func:`~standgrid.catalog.placement_policy.choose_placement` picks (its recipe into the
+    :func:`~standgrid.tiling.placement_policy.choose_placement` picks (its recipe into the
     catalog CRS renewed when it is the catalog's own)."""
-    from standgrid.catalog.placement_policy import PlacementChoice, choose_placement
+    from standgrid.tiling.placement_policy import PlacementChoice, choose_placement
 
     if settings.placement_tolerance is None:
         for ingest in group:

@@ -27,7 +27,7 @@ from standgrid.enrich.stands import StandSample, measure_heights, stem_xy
 if TYPE_CHECKING:
     import pandas as pd
 
-    from standgrid.catalog.chunks import ChunkPoints
+    from standgrid.enrich.chunks import ChunkPoints
     from standgrid.enrich.options import EnrichOptions
 
 GROUND = 2

@@ -229,11 +229,51 @@ def write_tile(
     :class:`~standgrid.errors.PointCloudFormatError` naming the tile, the field and the first
     offending value, before any file is created.
     """
-    import laspy
-
     out = Path(path)
     if laz is None:
         laz = out.suffix.lower() == ".laz"
+    parts = _tile_parts(out, core, buffer)
+    fields = parts.fields
+    has_colour = all(c in fields for c in _COLOUR_FIELDS)
+    point_format = 7 if has_colour else 6
+    standard = _standard_values(out, parts, has_colour)
+    header = _tile_header(crs, point_format)
+    coordinates = _Coordinates.of(out, parts, lattice_origin)
+    header.offsets = coordinates.offsets
+    header.scales = np.full(3, SCALE)
+    extra = _field_dimensions(out, header, fields, has_colour, intensity_scale)
+    las, packed = _point_record(
+        header, parts, standard, extra, coordinates.offsets, intensity_scale
+    )
+    extent = _file_extent(out, parts, standard, packed, coordinates)
+    _write_las(las, out, laz=bool(laz), overwrite=overwrite, durable=durable, extent=extent)
+    return _tile_info(out, parts, coordinates, extent, point_format, bool(laz), crs, core_bounds)
+
+
+#: A part of a tile's points: its first row, its (3, N) contiguous coordinate columns and
+#: its fields (``withheld`` left out).
+_Part = tuple[int, NDArray[np.float64], dict[str, NDArray[Any]]]
+
+
+@dataclass(frozen=True)
+class _TileParts:
+    """A tile's points as written: the core part, then the buffer part (if any)."""
+
+    core: PointCloud
+    n_core: int
+    n_buffer: int
+    parts: list[_Part]
+    #: Each field as a zero-length array of the dtype (and per-point shape) it is written as.
+    fields: dict[str, NDArray[Any]]
+
+    @property
+    def n(self) -> int:
+        return self.n_core + self.n_buffer
+
+
+def _tile_parts(out: Path, core: PointCloud, buffer: PointCloud | None) -> _TileParts:
+    """The core and buffer parts (a combined cloud split by its ``withheld`` flags), their
+    fields checked to agree. The parts go straight into the record: no concatenated copies."""
     if buffer is None and "withheld" in core.fields:  # a combined cloud (CellPoints.combined())
         flags = np.asarray(las_dimension_values("withheld", core.fields["withheld"], out), bool)
         if flags.any():
@@ -260,26 +300,27 @@ def write_tile(
                 path=out,
             )
     n_core, n_buffer = len(core), len(buffer)
-    n = n_core + n_buffer
-    # The core and buffer parts go straight into the record: no concatenated copies.
     # (x, y, z) as contiguous columns: reduced for the bounds, scaled into the record
-    core_columns = np.ascontiguousarray(core.xyz.T)
-    parts = [(0, core_columns, core_fields)]
+    parts: list[_Part] = [(0, np.ascontiguousarray(core.xyz.T), core_fields)]
     if n_buffer:
-        buffer_columns = np.ascontiguousarray(buffer.xyz.T)
-        parts.append((n_core, buffer_columns, buffer_fields))
-    #: Each field as a zero-length array of the dtype (and per-point shape) it is written as.
-    fields: dict[str, NDArray[Any]] = {
+        parts.append((n_core, np.ascontiguousarray(buffer.xyz.T), buffer_fields))
+    fields = {
         name: _probe(values, buffer_fields[name] if n_buffer else None)
         for name, values in core_fields.items()
     }
-    has_colour = all(c in fields for c in _COLOUR_FIELDS)
-    point_format = 7 if has_colour else 6
-    # The standard dimensions' values, checked (and floats made integers) before any work.
-    standard: dict[str, list[tuple[int, NDArray[Any]]]] = {
+    return _TileParts(core, n_core, n_buffer, parts, fields)
+
+
+def _standard_values(
+    out: Path, parts: _TileParts, has_colour: bool
+) -> dict[str, list[tuple[int, NDArray[Any]]]]:
+    """The standard dimensions' values per part, checked (and floats made integers) before
+    any work; a multi-valued intensity refused."""
+    fields = parts.fields
+    standard = {
         name: [
             (start, las_dimension_values(name, f[name], out, first_point=start))
-            for start, _, f in parts
+            for start, _, f in parts.parts
         ]
         for name in (*_STANDARD_FIELDS, *(_COLOUR_FIELDS if has_colour else ()))
         if name in fields
@@ -290,6 +331,12 @@ def write_tile(
             "LAS intensity holds one value per point",
             path=out,
         )
+    return standard
+
+
+def _tile_header(crs: str, point_format: int) -> Any:
+    """A LAS 1.4 header: standard GPS time, the CRS as OGC WKT."""
+    import laspy
 
     parsed_crs, wkt = _crs_wkt(crs)
     header = laspy.LasHeader(point_format=point_format, version="1.4")
@@ -300,49 +347,75 @@ def write_tile(
     for vlr in header.vlrs:
         if isinstance(vlr, laspy.vlrs.known.WktCoordinateSystemVlr):
             vlr.string = wkt
+    return header
 
-    core_lo, core_hi = _column_bounds(core_columns)
-    all_lo, all_hi = core_lo, core_hi
-    if n_buffer:
-        buffer_lo, buffer_hi = _column_bounds(buffer_columns)
-        all_lo, all_hi = buffer_lo, buffer_hi
-        if n_core:
-            all_lo, all_hi = np.minimum(core_lo, buffer_lo), np.maximum(core_hi, buffer_hi)
-    # min and max propagate NaN and reach +-inf: finite extremes mean finite coordinates
-    if n and not (np.all(np.isfinite(all_lo)) and np.all(np.isfinite(all_hi))):
-        raise PointCloudFormatError("non-finite coordinates", path=out)
-    # Offsets are whole metres from the grid's origin: the stored 1 mm lattice is then the
-    # one snap_to_storage(origin) snaps to, whatever the origin.
-    lattice = np.array([float(lattice_origin[0]), float(lattice_origin[1]), 0.0])
-    offsets = lattice + np.floor(all_lo - lattice) if n else np.zeros(3)
-    if n:
-        span = np.round((all_hi - offsets) / SCALE)
-        if np.any(span > INT32_MAX):
-            raise PointCloudFormatError(
-                f"tile spans {(all_hi - offsets).max():.0f} m: too large for 1 mm "
-                "coordinates in LAS int32",
-                path=out,
-            )
-    header.offsets = offsets
-    header.scales = np.full(3, SCALE)
 
-    # Decide where every field goes before allocating the record.
+@dataclass(frozen=True)
+class _Coordinates:
+    """The core's and all points' coordinate extremes, and the tile's offsets."""
+
+    core_lo: NDArray[np.float64]
+    core_hi: NDArray[np.float64]
+    all_lo: NDArray[np.float64]
+    all_hi: NDArray[np.float64]
+    offsets: NDArray[np.float64]
+
+    @classmethod
+    def of(cls, out: Path, parts: _TileParts, lattice_origin: tuple[float, float]) -> _Coordinates:
+        """Refuses non-finite coordinates and a tile too large for 1 mm int32 coordinates."""
+        n = parts.n
+        core_lo, core_hi = _column_bounds(parts.parts[0][1])
+        all_lo, all_hi = core_lo, core_hi
+        if parts.n_buffer:
+            buffer_lo, buffer_hi = _column_bounds(parts.parts[1][1])
+            all_lo, all_hi = buffer_lo, buffer_hi
+            if parts.n_core:
+                all_lo, all_hi = np.minimum(core_lo, buffer_lo), np.maximum(core_hi, buffer_hi)
+        # min and max propagate NaN and reach +-inf: finite extremes mean finite coordinates
+        if n and not (np.all(np.isfinite(all_lo)) and np.all(np.isfinite(all_hi))):
+            raise PointCloudFormatError("non-finite coordinates", path=out)
+        # Offsets are whole metres from the grid's origin: the stored 1 mm lattice is then the
+        # one snap_to_storage(origin) snaps to, whatever the origin.
+        lattice = np.array([float(lattice_origin[0]), float(lattice_origin[1]), 0.0])
+        offsets = lattice + np.floor(all_lo - lattice) if n else np.zeros(3)
+        if n:
+            span = np.round((all_hi - offsets) / SCALE)
+            if np.any(span > INT32_MAX):
+                raise PointCloudFormatError(
+                    f"tile spans {(all_hi - offsets).max():.0f} m: too large for 1 mm "
+                    "coordinates in LAS int32",
+                    path=out,
+                )
+        return cls(core_lo, core_hi, all_lo, all_hi, offsets)
+
+
+def _field_dimensions(
+    out: Path,
+    header: Any,
+    fields: dict[str, NDArray[Any]],
+    has_colour: bool,
+    intensity_scale: float,
+) -> dict[str, tuple[NDArray[Any], str]]:
+    """Where every field goes, decided before the record is allocated: the extra-bytes
+    dimensions added to ``header`` (name -> (probe, the field it is filled from)), and the
+    field manifest VLR."""
+    import laspy
+
     manifest: dict[str, str] = {}
-    extra: dict[str, NDArray[Any]] = {}
-    source_of: dict[str, str] = {}  # the field each extra dimension is filled from
+    extra: dict[str, tuple[NDArray[Any], str]] = {}
     for name, values in fields.items():
         manifest[name] = (
             values.dtype.str if values.ndim == 1 else f"{values.shape[1]}{values.dtype.str}"
         )
         if name == "intensity":
             if not _intensity_is_native(values):
-                extra["intensity_raw"], source_of["intensity_raw"] = values, name
+                extra["intensity_raw"] = (values, name)
         elif name in _COLOUR_FIELDS:
             if not has_colour:
-                extra[name], source_of[name] = values, name
+                extra[name] = (values, name)
         elif name not in _LAS_DIMENSION_NAMES:
-            extra[name], source_of[name] = values, name
-    for name, values in extra.items():
+            extra[name] = (values, name)
+    for name, (values, _) in extra.items():
         if len(name.encode()) > 32:
             raise PointCloudFormatError(
                 f"field name {name!r} is longer than the 32 bytes LAS extra bytes allow", path=out
@@ -362,24 +435,39 @@ def write_tile(
             json.dumps({"fields": manifest, "intensity_scale": intensity_scale}).encode(),
         )
     )
+    return extra
 
-    record = _blank_record(header.point_format, n_core, n_buffer)
+
+def _point_record(
+    header: Any,
+    parts: _TileParts,
+    standard: dict[str, list[tuple[int, NDArray[Any]]]],
+    extra: dict[str, tuple[NDArray[Any], str]],
+    offsets: NDArray[np.float64],
+    intensity_scale: float,
+) -> tuple[Any, dict[str, NDArray[Any]]]:
+    """The ``laspy.LasData`` of every part's points, and the bit fields' values as given to
+    laspy (which packs them)."""
+    import laspy
+
+    fields = parts.fields
+    record = _blank_record(header.point_format, parts.n_core, parts.n_buffer)
     points = laspy.PackedPointRecord(record, header.point_format)
 
     def put(target: str, name: str, convert: Any = None) -> None:
         """Field ``name`` of every part into dimension ``target`` (cast to the field's dtype)."""
         dtype = fields[name].dtype
-        for start, _, part_fields in parts:
+        for start, _, part_fields in parts.parts:
             values = part_fields[name].astype(dtype, copy=False)
             record[target][start : start + len(values)] = (
                 values if convert is None else convert(values)
             )
 
     for axis, upper in enumerate("XYZ"):
-        for start, part_columns, _ in parts:
+        for start, part_columns, _ in parts.parts:
             part = part_columns[axis]
             record[upper][start : start + len(part)] = _storage_ints(part, offsets[axis])
-    packed: dict[str, NDArray[Any]] = {}  # the bit fields' values, as given to laspy
+    packed: dict[str, NDArray[Any]] = {}
     for name, checked in standard.items():
         if name in (record.dtype.names or ()):
             for start, values in checked:
@@ -392,43 +480,68 @@ def write_tile(
             put("intensity", "intensity")
         else:
             put("intensity", "intensity", lambda v: _scaled_intensity(v, intensity_scale))
-    for name, values in extra.items():
+    for name, (values, source) in extra.items():
         to_bytes = (lambda v: v.astype(np.uint8)) if values.dtype == np.bool_ else None
-        put(name, source_of[name], to_bytes)
-    las = laspy.LasData(header, points)
-    extent = None
-    if n:  # what laspy would compute from the packed points, from the values at hand
-        returns = packed.get("return_number")
-        if returns is not None:
-            by_return = np.bincount(returns.astype(np.int64), minlength=16)
-        else:  # every point is return 1 of 1 (the blank record)
-            by_return = np.zeros(16, np.int64)
-            by_return[1] = n
-        gps = (0.0, 0.0)
-        if "gps_time" in standard:
-            stored = [v for _, v in standard["gps_time"] if len(v)]
-            # np.min/np.max, not min/max: a NaN extreme of any part propagates
-            gps = (
-                float(np.min([v.min() for v in stored])),
-                float(np.max([v.max() for v in stored])),
-            )
-            check_finite_gps_time(*gps, stored, out)  # NaN or inf extremes: not written
-        # rounding is monotonic: the stored extremes are the rounded true extremes
-        file_lo = offsets + np.round((all_lo - offsets) / SCALE) * SCALE
-        file_hi = offsets + np.round((all_hi - offsets) / SCALE) * SCALE
-        extent = _Extent(file_lo, file_hi, gps, by_return)
+        put(name, source, to_bytes)
+    return laspy.LasData(header, points), packed
 
-    _write_las(las, out, laz=bool(laz), overwrite=overwrite, durable=durable, extent=extent)
 
+def _file_extent(
+    out: Path,
+    parts: _TileParts,
+    standard: dict[str, list[tuple[int, NDArray[Any]]]],
+    packed: dict[str, NDArray[Any]],
+    coordinates: _Coordinates,
+) -> _Extent | None:
+    """What laspy would compute from the packed points, from the values at hand (None: no
+    points); refuses NaN or infinite GPS times."""
+    n = parts.n
+    if not n:
+        return None
+    returns = packed.get("return_number")
+    if returns is not None:
+        by_return = np.bincount(returns.astype(np.int64), minlength=16)
+    else:  # every point is return 1 of 1 (the blank record)
+        by_return = np.zeros(16, np.int64)
+        by_return[1] = n
+    gps = (0.0, 0.0)
+    if "gps_time" in standard:
+        stored = [v for _, v in standard["gps_time"] if len(v)]
+        # np.min/np.max, not min/max: a NaN extreme of any part propagates
+        gps = (
+            float(np.min([v.min() for v in stored])),
+            float(np.max([v.max() for v in stored])),
+        )
+        check_finite_gps_time(*gps, stored, out)  # NaN or inf extremes: not written
+    # rounding is monotonic: the stored extremes are the rounded true extremes
+    offsets = coordinates.offsets
+    file_lo = offsets + np.round((coordinates.all_lo - offsets) / SCALE) * SCALE
+    file_hi = offsets + np.round((coordinates.all_hi - offsets) / SCALE) * SCALE
+    return _Extent(file_lo, file_hi, gps, by_return)
+
+
+def _tile_info(
+    out: Path,
+    parts: _TileParts,
+    coordinates: _Coordinates,
+    extent: _Extent | None,
+    point_format: int,
+    compressed: bool,
+    crs: str,
+    core_bounds: Any,
+) -> TileInfo:
+    """What was written: counts, the core's bounds and z statistics, points per source."""
+    core, n_core = parts.core, parts.n_core
     z = core.xyz[:, 2]
     if n_core:
+        core_lo, core_hi = coordinates.core_lo, coordinates.core_hi
         bounds = (*map(float, core_lo), *map(float, core_hi))
         z_stats = (
             float(core_lo[2]),
             float(core_hi[2]),
             float(z.mean()),
             # the same values in the same order as z: percentile copies them either way
-            float(np.percentile(core_columns[2], 95)),
+            float(np.percentile(parts.parts[0][1][2], 95)),
         )
     else:
         bounds = (float("nan"),) * 6
@@ -444,7 +557,7 @@ def write_tile(
     return TileInfo(
         path=out,
         core_count=n_core,
-        buffer_count=n_buffer,
+        buffer_count=parts.n_buffer,
         bounds=bounds,
         file_bounds=file_bounds,
         z_min=z_stats[0],
@@ -452,7 +565,7 @@ def write_tile(
         z_mean=z_stats[2],
         z_p95=z_stats[3],
         point_format=point_format,
-        compressed=bool(laz),
+        compressed=compressed,
         crs=crs,
         core_bounds=core_bounds,
         points_per_source=per_source,

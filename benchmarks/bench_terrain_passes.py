@@ -88,15 +88,15 @@ def main() -> None:
     import standgrid.enrich.coverage as coverage
     import standgrid.enrich.rasters as rasters
     import standgrid.enrich.terrain as terrain
-    from standgrid.catalog.chunks import (
+    from standgrid.engine import Execution
+    from standgrid.enrich.block import _window
+    from standgrid.enrich.chunks import (
         BYTES_PER_POINT,
         cells_of,
         chunk_side,
         plan_chunks,
         read_chunk,
     )
-    from standgrid.engine import Execution
-    from standgrid.enrich.block import _window
     from standgrid.enrich.options import EnrichOptions
     from standgrid.enrich.trees import CHM_SUBCIRCLE_M
 

@@ -45,7 +45,7 @@ _CHILD = textwrap.dedent(
 
 _IMPORTS = (
     "import numpy, laspy, pyproj, shapely\n"
-    "import standgrid.pipeline.tile, standgrid.partition.engine, standgrid.export.tiles\n"
+    "import standgrid.pipeline.tile, standgrid.partition.engine, standgrid.tiling.cell_task\n"
 )
 
 

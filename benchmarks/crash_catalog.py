@@ -7,7 +7,7 @@ random moments, concurrent writers included, and check after each kill that
 2. the next run completes;
 3. no point is lost: afterwards every mission holds exactly its points.
 
-Commit points are named by ``$STANDGRID_CRASH_AT`` (``standgrid.catalog.store.crash_point``):
+Commit points are named by ``$STANDGRID_CRASH_AT`` (``standgrid.catalog.journal.crash_point``):
 ``staged``, ``journal``, ``rename-<k>``, ``before-catalog-json``, ``applied`` inside a
 transaction, ``publish`` and ``exchanged`` when a built catalog replaces another.
 

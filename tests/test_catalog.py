@@ -390,12 +390,12 @@ def test_readers_are_held_off_only_for_the_journal_and_renames(
 ) -> None:
     """The staged files reach the disk before the commit takes the readers lock: a reader
     arriving meanwhile reads the last commit at once (it waited for the whole fsync)."""
-    import standgrid.catalog.store as store
+    import standgrid.catalog.transaction as transaction
 
     catalog = make(tmp_path)
     ingest(catalog, "m-a", "e1", {"tiles/e1/a.laz": b"old"})
     seen: list[object] = []
-    real_fsync_tree = store.fsync_tree
+    real_fsync_tree = transaction.fsync_tree
 
     def fsync_tree_then_read(root: Path) -> None:
         real_fsync_tree(root)
@@ -403,7 +403,7 @@ def test_readers_are_held_off_only_for_the_journal_and_renames(
             with Catalog.reading(catalog.root, lock_timeout=0.5) as snapshot:
                 seen.append(snapshot.missions["m-a"].get("round"))
 
-    monkeypatch.setattr(store, "fsync_tree", fsync_tree_then_read)
+    monkeypatch.setattr(transaction, "fsync_tree", fsync_tree_then_read)
     with catalog.transaction() as txn:
         txn.stage("tiles/e1/a.laz").write_bytes(b"new")
         txn.record_mission("m-a", epoch="e1", date="e1", round=2, tiles=["tiles/e1/a.laz"])

@@ -28,8 +28,8 @@ import pandas as pd
 import pytest
 import rasterio
 
-from standgrid.catalog.chunks import ChunkCell, chunk_side, plan_chunks
 from standgrid.engine import Execution
+from standgrid.enrich.chunks import ChunkCell, chunk_side, plan_chunks
 from standgrid.enrich.options import EnrichOptions
 from standgrid.enrich.terrain import ground_reach
 from standgrid.pipeline.enrich import enrich_catalog
@@ -146,7 +146,7 @@ def _assert_same(a: Path, b: Path) -> None:
 def test_the_epoch_is_cut_into_chunks_that_own_every_cell_once(single: Path) -> None:
     import pyogrio
 
-    from standgrid.catalog.chunks import cells_of
+    from standgrid.enrich.chunks import cells_of
 
     cells = pyogrio.read_dataframe(single / "index.gpkg", layer="cells")
     cells = cells[cells["epoch"].astype(str) == "2024"]

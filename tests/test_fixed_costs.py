@@ -37,8 +37,8 @@ def test_cli_and_tile_command_import_no_pandas() -> None:
         "import standgrid.cli\n"
         "from standgrid.cli import LazyGroup\n"
         "LazyGroup._load('tile')\n"
-        "import standgrid.pipeline.tile, standgrid.catalog.index, standgrid.catalog.vpcs\n"
-        "import standgrid.catalog.mission_rows, standgrid.export.gpkg\n"
+        "import standgrid.pipeline.tile, standgrid.catalog.index, standgrid.tiling.vpcs\n"
+        "import standgrid.tiling.mission_rows, standgrid.export.gpkg\n"
         "heavy = ['pandas', 'geopandas', 'pyarrow', 'scipy', 'standgrid.align']\n"
         "print(json.dumps([m for m in heavy if m in sys.modules]))\n"
     )

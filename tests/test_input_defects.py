@@ -82,10 +82,10 @@ def test_swapped_mission_outside_the_catalog_crs_gets_the_swap_hint(tmp_path: Pa
     """Tiling into an existing catalog: a mission outside the area of use of its CRS is
     refused, and read the other way round it lies by the catalog's missions: said."""
     from standgrid.catalog import Catalog
-    from standgrid.catalog.setup import check_area_of_use
     from standgrid.errors import CRSError
     from standgrid.georeference import fit_from_anchor
     from standgrid.georeference.placement import Placement
+    from standgrid.tiling.setup import check_area_of_use
 
     catalog = Catalog.create(tmp_path / "catalog", {"scheme": "voronoi", "crs": CRS}, CRS,
                              "voronoi")  # fmt: skip

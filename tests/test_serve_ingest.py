@@ -252,7 +252,7 @@ def test_a_tiler_killed_while_committing_then_the_server_restart_consistent(
     import signal
 
     from standgrid.catalog import Catalog
-    from standgrid.catalog.store import CRASH_ENV, JOURNAL_FILE
+    from standgrid.catalog.journal import CRASH_ENV, JOURNAL_FILE
     from standgrid.mission.metadata import read_metadata
     from standgrid.partition import StandGrid
 

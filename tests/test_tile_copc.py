@@ -14,9 +14,9 @@ import pandas as pd
 import pytest
 
 from standgrid.catalog import Catalog, TilingSettings
-from standgrid.catalog.setup import settle_tiling
 from standgrid.errors import TilingError
 from standgrid.export.las import read_tile
+from standgrid.tiling.setup import settle_tiling
 from tests.pipeline_fixtures import BUFFER_M, copc_pair, enriched_pair
 
 

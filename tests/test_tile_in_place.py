@@ -102,7 +102,7 @@ def test_a_buffered_catalog_is_re_tiled_whole(tmp_path: Path) -> None:
 def test_a_cloud_rewritten_with_its_old_size_and_mtime_is_still_a_change(tmp_path: Path) -> None:
     import os
 
-    from standgrid.catalog.increment import placement_digest, source_digest
+    from standgrid.tiling.increment import placement_digest, source_digest
 
     placement = placement_digest({"method": "anchor"})
     cloud = tmp_path / "cloud.pcd"
@@ -151,8 +151,8 @@ def test_the_source_field_rules_version_is_in_the_digest_of_clouds_with_those_fi
     tiles and its epoch's enrichment, stay as they were."""
     import laspy
 
-    from standgrid.catalog import increment
-    from standgrid.catalog.increment import placement_digest, source_digest
+    from standgrid.tiling import increment
+    from standgrid.tiling.increment import placement_digest, source_digest
 
     pcd = sorted(next(BUNDLED_MISSIONS.iterdir()).glob("payload_clouds/*.pcd"))[0]
     las_path = tmp_path / "cloud.las"

@@ -24,7 +24,7 @@ from standgrid.catalog import paths
 from standgrid.errors import CatalogError
 
 if TYPE_CHECKING:
-    from standgrid.catalog.store import Catalog, Transaction
+    from standgrid.catalog import Catalog, Transaction
 
 
 class CatalogIndex:

@@ -28,7 +28,7 @@ from typing import TYPE_CHECKING, Any
 from standgrid.catalog import paths
 
 if TYPE_CHECKING:
-    from standgrid.catalog.store import Transaction
+    from standgrid.catalog.transaction import Transaction
     from standgrid.export.qgis_project import ProjectGroup, ProjectLayer
 
 #: The cell metric of the choropleth: column, legend text.

@@ -186,7 +186,7 @@ def open_executor(
     # thread (lazrs' LAZ compression) per worker too: a worker is one core.
     # Threads that wait sleep (standgrid.WAIT_POLICY, as this process has it: a user's own
     # setting included), set before the worker's interpreter loads numpy's OpenBLAS.
-    from standgrid import WAIT_POLICY, wait_passively
+    from standgrid._threads import WAIT_POLICY, wait_passively
 
     wait_passively()
     environ = "distributed.nanny.pre-spawn-environ"

@@ -25,7 +25,7 @@ def _not_a_cancelled_task(record: logging.LogRecord) -> bool:
 
 def dask_setup(worker: Any) -> None:
     """Called by dask in the worker process as it starts."""
-    from standgrid import wait_passively
+    from standgrid._threads import wait_passively
 
     wait_passively()  # (done on import already; a worker started by hand, too)
     if threading.current_thread() is threading.main_thread():

@@ -9,6 +9,8 @@
   is seen), stable ``tree_id_from_xy``; :mod:`.circles`: ``fit_circle``, ``fit_circles``.
 - :mod:`.metrics`: ``area_metrics`` (lidR ``stdmetrics_z`` set per cell), ``tree_metrics``
   (stems/ha, basal area, QMD, mean and dominant height). Definitions: docs/METRICS.md.
+- :mod:`.apply`: ``catalog_apply``, an epoch enriched chunk by chunk (:mod:`.chunks`: the
+  buffered chunks' layout; :mod:`.engine`: runs them and gives results back in order).
 """
 
 from standgrid.enrich.ground import as_xyz, classify_ground

@@ -26,7 +26,7 @@ from standgrid.rastergrid import RasterGrid
 if TYPE_CHECKING:
     import pandas as pd
 
-    from standgrid.catalog.chunks import ChunkPoints
+    from standgrid.enrich.chunks import ChunkPoints
     from standgrid.enrich.options import EnrichOptions
 
 GROUND = 2

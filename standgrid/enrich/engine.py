@@ -23,8 +23,8 @@ from standgrid.engine.executor import SerialExecutor, run_limited
 from standgrid.enrich.block import RASTERS, BlockContext, BlockResult, enrich_block, paste
 
 if TYPE_CHECKING:
-    from standgrid.catalog.chunks import Chunk
     from standgrid.engine import Executor, Progress
+    from standgrid.enrich.chunks import Chunk
     from standgrid.rastergrid import RasterGrid
 
 
@@ -57,14 +57,14 @@ class BlockJob:
     @property
     def working_bytes(self) -> int:
         """The peak bytes this job's computation is estimated to hold."""
-        from standgrid.catalog.chunks import BYTES_PER_POINT
+        from standgrid.enrich.chunks import BYTES_PER_POINT
 
         return self.chunk.block_points * BYTES_PER_POINT
 
 
 def run_block(job: BlockJob) -> BlockResult:
     """Read, enrich and rewrite one chunk's tiles (runs on a worker)."""
-    from standgrid.catalog.chunks import read_chunk, write_chunk_tiles
+    from standgrid.enrich.chunks import read_chunk, write_chunk_tiles
     from standgrid.enrich.terrain import ring_bin
 
     grid = job.context.grid

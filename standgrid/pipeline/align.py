@@ -21,7 +21,7 @@ if TYPE_CHECKING:
     from standgrid.catalog import Catalog, Transaction
     from standgrid.georeference.placement import Placement
     from standgrid.mission.model import Mission
-    from standgrid.pipeline.tile_epoch import Ingest
+    from standgrid.tiling.epoch import Ingest
 
 #: A catalog mission is a reference when its trajectory comes this close (m) to a new one's.
 REFERENCE_REACH_M = 30.0

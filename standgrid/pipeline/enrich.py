@@ -1,10 +1,10 @@
 """Enrich a catalog: ground, terrain rasters, height above ground, trees, stand metrics.
 
-Per epoch, the chunk engine (:mod:`standgrid.enrich.engine`) cuts the cells into buffered
-chunks (:mod:`standgrid.catalog.chunks`), enriches each (:func:`standgrid.enrich.block.
-enrich_block`: here, or on dask workers) and rewrites its tiles; this module merges the
-chunks' rasters, trees and samples, fits the height-diameter models, and writes the stand
-metrics (all in one catalog transaction; the previous state stays intact on any error):
+Per epoch, :func:`standgrid.enrich.apply.catalog_apply` cuts the cells into buffered chunks,
+enriches each (here, or on dask workers), rewrites its tiles and merges the chunks' rasters,
+trees and samples; this module writes the rasters, fits the height-diameter models, and
+writes the stand metrics (all in one catalog transaction; the previous state stays intact
+on any error):
 
 - tiles rewritten with ``classification`` (2 = ground, 1 = other), ``height_above_ground``
   and ``tree_id`` (0 = no tree);
@@ -18,7 +18,6 @@ metrics (all in one catalog transaction; the previous state stays intact on any 
 from __future__ import annotations
 
 import contextlib
-import functools
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -28,15 +27,13 @@ import numpy as np
 from standgrid.catalog import paths
 from standgrid.engine import Execution
 from standgrid.enrich.options import EnrichOptions
-from standgrid.enrich.stands import StandAggregator, StandSample
+from standgrid.enrich.stands import StandSample
 from standgrid.errors import EnrichError, EpochNotFoundError
 
 if TYPE_CHECKING:
     import pandas as pd
 
     from standgrid.catalog import Catalog, Transaction
-    from standgrid.catalog.chunks import ChunkCell
-    from standgrid.partition.protocol import Partition
 
 __all__ = ["EnrichReport", "enrich_catalog"]
 
@@ -178,97 +175,21 @@ def _enrich_epoch(
     options: EnrichOptions,
     execution: Execution,
 ) -> _EpochResult:
-    import shapely
-
-    from standgrid.catalog.chunks import BYTES_PER_POINT, chunk_side, plan_chunks
-    from standgrid.catalog.partition import catalog_partition
-    from standgrid.enrich.block import BlockContext
+    from standgrid.enrich.apply import catalog_apply
     from standgrid.enrich.coverage import Coverage, cells_mask
-    from standgrid.enrich.engine import (
-        CHUNK_SHARE,
-        BlockJob,
-        EpochRasters,
-        apply_blocks,
-        chunks_at_once,
-    )
     from standgrid.enrich.outputs import tree_table, write_coverage, write_raster
-    from standgrid.enrich.terrain import GROUND_HALO_M, ground_reach
-    from standgrid.rastergrid import RasterGrid
 
-    executor, progress = execution.executor, execution.progress
-    assert executor is not None
-    partition = catalog_partition(catalog, epoch, coverage=False)
-    cells = _epoch_cells(catalog, epoch, partition)
-    if not cells:
-        raise EnrichError(f"epoch {epoch} has no tiles", path=catalog.root)
-    origin, cell_size = partition.raster_alignment()
-    polygons = [c.polygon for c in cells]
-    grid = RasterGrid.covering(
-        tuple(shapely.bounds(shapely.union_all(polygons))),
-        origin=origin,
-        cell_size=cell_size,
-        pixel_size=options.pixel_size,
-        closed=True,
-        crs=catalog.crs,
-    )
-    # the buffer must reach every copy a tile holds, so those get heights and ids too; and
-    # be wider than the coverage closing (2 x radius), so chunks agree with the whole epoch
-    tiling_buffer = txn.tiling_settings().buffer
-    # and hold every point CSF sees around the ground squares of the cells it owns
-    halo = max(
-        options.halo,
-        tiling_buffer,
-        2 * options.coverage_closing_m + 2 * grid.pixel_size,
-        GROUND_HALO_M,
-    )
-    # a share of the budget for the chunks a process holds at once (enrich.engine.CHUNK_SHARE)
-    budget = execution.memory_budget
-    block_points = int(budget.bytes * CHUNK_SHARE) // chunks_at_once(executor) // BYTES_PER_POINT
-    side = chunk_side(cells, cell_size, halo, block_points)
-    reach = functools.partial(ground_reach, lattice=(grid.x0, grid.y0))
-    chunks = plan_chunks(cells, side=side, origin=origin, buffer=halo, reach=reach)
-    size = partition.cell_size(cells[0].cell_id)
-    context = BlockContext(grid, options, half_open=partition.half_open, cell_size=size)
-    jobs = [
-        BlockJob(
-            chunk,
-            str(catalog.root),
-            tuple(str(txn.stage(c.tile)) for c in chunk.cells),
-            context,
-            origin,
-            budget_bytes=budget.bytes,
-        )
-        for chunk in chunks
-    ]
-    progress.status(
-        f"{epoch}: {len(cells)} cells in {len(chunks)} chunks of up to {side:g} m "
-        f"(+{halo:g} m buffer) on {executor.workers} worker(s)"
-    )
-    stand_of = {c.cell_id: c.stand_id for c in cells}
-    stand_ids = sorted({s for s in stand_of.values() if s is not None})
-    # side of the coarser stands (1 ha: 100 m) the cells aggregate into
-    stand_size = partition.cell_size(stand_ids[0]) if stand_ids else None
-    stands = StandAggregator(
-        stand_of, stand_size, options.coverage_rule, height_break=options.height_break
-    )
-    rasters = EpochRasters.empty(grid)
-    samples: list[StandSample] = []
-    tree_frames = []
-    with contextlib.closing(apply_blocks(jobs, executor, progress, f"{epoch}: chunks")) as done:
-        for job, result in done:
-            rasters.paste(job.chunk, result)
-            stands.add(result.samples)
-            samples.extend(result.samples)
-            tree_frames.append(result.trees)
+    applied = catalog_apply(catalog, txn, epoch, options, execution=execution)
+    grid, polygons, samples = applied.grid, applied.polygons, applied.samples
     if all(s.no_ground for s in samples):
         raise EnrichError(
             f"epoch {epoch}: no ground points anywhere, so no terrain model", path=catalog.root
         )
-    arrays = rasters.arrays
+    arrays = applied.rasters
     in_cells = cells_mask(grid, polygons)
     coverage = Coverage(grid, arrays["observed"] & in_cells, arrays["near_ground"] & in_cells,
                         in_cells)  # fmt: skip
-    trees = tree_table(tree_frames, epoch)
+    trees = tree_table(applied.tree_frames, epoch)
 
     unseen = ~coverage.near_ground
     for name, description in (
@@ -283,14 +204,14 @@ def _enrich_epoch(
     write_coverage(txn, paths.raster(epoch, "observed"), coverage)
     observed_m2 = float(sum(s.observed_m2 for s in samples))  # each cell's, clipped to it
     summary = {
-        "cells": len(cells),
+        "cells": len(polygons),
         "cells_without_ground": sum(s.no_ground for s in samples),
-        "chunks": len(chunks),
+        "chunks": applied.chunks,
         "raster_pixel_size_m": options.pixel_size,
         "observed_m2": observed_m2,
         "observed_fraction": observed_m2 / float(sum(p.area for p in polygons)),
     }
-    return _EpochResult(samples, stands.result(), trees, summary)
+    return _EpochResult(samples, applied.stands, trees, summary)
 
 
 def _tree_uids(catalog: Catalog, trees: dict[str, pd.DataFrame]) -> dict[str, Any]:
@@ -307,11 +228,3 @@ def _tree_uids(catalog: Catalog, trees: dict[str, pd.DataFrame]) -> dict[str, An
             others[epoch] = pd.read_parquet(path, columns=None)
     dates = {e: r.date or e for e, r in catalog.epoch_records.items()}
     return assign_tree_uids(trees, dates, others)
-
-
-def _epoch_cells(catalog: Catalog, epoch: str, partition: Partition) -> list[ChunkCell]:
-    from standgrid.catalog.chunks import cells_of
-    from standgrid.catalog.index import CatalogIndex
-
-    cells = CatalogIndex(catalog).read("cells", epoch).sort_values("cell_id")
-    return cells_of(cells, partition.stand_of)

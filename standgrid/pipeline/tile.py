@@ -9,7 +9,7 @@ across mission boundaries. Everything is written inside one catalog transaction:
 interrupted run leaves the previous catalog intact and a re-run completes it.
 
 The per-payload and per-cell work runs on an executor (this process, or a dask cluster with
-``workers``/``scheduler``; :mod:`standgrid.pipeline.tile_epoch`); this process alone writes
+``workers``/``scheduler``; :mod:`standgrid.tiling.epoch`); this process alone writes
 the catalog, its index and its VPCs.
 """
 
@@ -23,7 +23,16 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 from standgrid.catalog.index import CatalogIndex
-from standgrid.catalog.setup import (
+from standgrid.engine import Execution, Progress
+from standgrid.errors import (
+    CatalogError,
+    NotGeoreferencedError,
+    OptionError,
+    out_of_space_error,
+)
+from standgrid.tiling.epoch import EpochSettings, Ingest, tile_epoch
+from standgrid.tiling.options import TileOptions
+from standgrid.tiling.setup import (
     GridRequest,
     absolute_output,
     check_area_of_use,
@@ -36,15 +45,6 @@ from standgrid.catalog.setup import (
     refuse_overlap,
     settle_tiling,
 )
-from standgrid.engine import Execution, Progress
-from standgrid.errors import (
-    CatalogError,
-    NotGeoreferencedError,
-    OptionError,
-    out_of_space_error,
-)
-from standgrid.pipeline.tile_epoch import EpochSettings, Ingest, tile_epoch
-from standgrid.tiling.options import TileOptions
 
 if TYPE_CHECKING:
     from standgrid.catalog import Catalog
@@ -241,7 +241,7 @@ def _ingest(
     """Tile the prepared missions into a catalog opened for writing, in one transaction
     (``execution.executor``: open)."""
     from standgrid.catalog.invalidate import invalidate_epochs, retile_reason
-    from standgrid.catalog.vpcs import stage_epoch_vpc
+    from standgrid.tiling.vpcs import stage_epoch_vpc
 
     executor, progress = execution.executor, execution.progress
     assert executor is not None

@@ -63,7 +63,7 @@ class TileOptions:
     #: Metres: a mission already in its epoch keeps the placement the catalog used while its
     #: fresh georeference moves none of its points this far from it (the epoch re-tiles in
     #: place; the offset is reported). None: always the fresh fit (exact, the default).
-    #: See :mod:`standgrid.catalog.placement_policy`.
+    #: See :mod:`standgrid.tiling.placement_policy`.
     placement_tolerance: float | None = None
     #: A mission of a name the catalog holds, tiled from another folder, replaces it (else
     #: :class:`~standgrid.errors.MissionFolderConflictError`). Re-ingesting from the same

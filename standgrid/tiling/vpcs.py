@@ -8,7 +8,7 @@ from typing import TYPE_CHECKING
 from standgrid.catalog import paths
 
 if TYPE_CHECKING:
-    from standgrid.catalog.store import Transaction
+    from standgrid.catalog.transaction import Transaction
     from standgrid.export.las import TileInfo
 
 

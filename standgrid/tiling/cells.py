@@ -34,12 +34,12 @@ ENCODE_FACTOR = 3.0
 
 if TYPE_CHECKING:
     from standgrid.catalog import Transaction
-    from standgrid.catalog.retile import KeptTiles
     from standgrid.engine import Executor
     from standgrid.export.las import TileInfo
     from standgrid.partition.chunks import PayloadTask
     from standgrid.partition.engine import BufferFunction
     from standgrid.partition.protocol import Partition
+    from standgrid.tiling.retile import KeptTiles
 
 
 @dataclass(frozen=True)
@@ -93,10 +93,10 @@ def budget_shares(budget: int) -> tuple[int, int]:
 def _in_this_process(
     work: EpochWork, txn: Transaction, executor: Executor, progress: Progress
 ) -> Cells:
-    from standgrid.catalog.retile import kept_points
-    from standgrid.export.tiles import CellTile, write_cell
     from standgrid.partition import PartitionEngine
     from standgrid.partition.chunks import payload_chunk
+    from standgrid.tiling.cell_task import CellTile, write_cell
+    from standgrid.tiling.retile import kept_points
 
     done = Cells()
     epoch, origin = work.epoch, work.partition.lattice_origin
@@ -184,10 +184,10 @@ def _cloud_bytes(cloud: Any) -> int:
 
 
 def _on_cluster(work: EpochWork, txn: Transaction, executor: Executor, progress: Progress) -> Cells:
-    from standgrid.catalog.retile import kept_points
-    from standgrid.export.tiles import RunCellTile, write_run_cell
     from standgrid.partition.chunks import payload_chunk
     from standgrid.partition.spill import SpillTask, cell_extents, spill_chunk
+    from standgrid.tiling.cell_task import RunCellTile, write_run_cell
+    from standgrid.tiling.retile import kept_points
 
     done = Cells()
     epoch, origin = work.epoch, work.partition.lattice_origin

@@ -125,9 +125,9 @@ def _mission_points(
     crs: str,
 ) -> NDArray[np.float64]:
     """Map-frame points whose convex hull holds every point of the mission (module doc)."""
-    from standgrid.catalog.increment import placement_digest, source_digest
-    from standgrid.catalog.mission_rows import payload_rows
     from standgrid.georeference.placement import cloud_payloads
+    from standgrid.tiling.increment import placement_digest, source_digest
+    from standgrid.tiling.mission_rows import payload_rows
 
     to_catalog = held.to_catalog(crs, mission.name)
     _, sources = payload_rows([_Placed(mission, number, to_catalog)], epoch)

@@ -11,16 +11,19 @@ from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Any
 
 from standgrid.engine import MemoryBudget, Progress
-from standgrid.pipeline.tile_cells import EpochWork, write_cells
+from standgrid.tiling.cells import Cells, EpochWork, write_cells
 
 if TYPE_CHECKING:
     from standgrid.catalog import Catalog, TilingSettings, Transaction
     from standgrid.catalog.index import CatalogIndex
-    from standgrid.catalog.placement_policy import PlacementChoice
     from standgrid.engine import Executor
     from standgrid.export.las import TileInfo
     from standgrid.georeference.placement import Placement, ToCatalog
     from standgrid.mission.model import Mission
+    from standgrid.partition.chunks import PayloadTask
+    from standgrid.partition.protocol import Partition
+    from standgrid.tiling.increment import Increment
+    from standgrid.tiling.placement_policy import PlacementChoice
 
 
 @dataclass
@@ -69,32 +72,89 @@ def tile_epoch(
 ) -> EpochResult:
     """(Re)tile ``epoch``: its kept points plus the payloads of ``group``; the points of every
     mission in ``renewed`` (this run's missions) are taken out of the old tiles first."""
-    import pandas as pd
+    plan = _plan_epoch(catalog, index, epoch, group, renewed, settings, executor, progress)
+    written = _write_epoch_cells(catalog, txn, epoch, plan, settings, executor, progress)
+    tiles = _gather_tiles(catalog, txn, index, epoch, plan, written.cells)
+    fed = _check_conservation(catalog, epoch, written)
+    removed = sorted(set(plan.previous) - {rel for rel, _ in tiles.result.tiles})
+    for rel in removed:
+        txn.delete(rel)
+    before = txn.epoch_record(epoch)
+    for name in before.missions if before else ():
+        if name not in plan.names:
+            txn.set_mission_tiles(name, tiles.tiles_of.get(name, ()))
+    _record_missions(catalog, txn, index, epoch, group, plan, tiles)
+    result = tiles.result
+    result.changed = plan.increment is None or bool(plan.read or plan.rewrite)
+    settled = txn.settle_epoch(epoch, settings.tiling, changed=result.changed)
+    if not result.changed and settled and before and settled.date != before.date:
+        result.changed = True  # the epoch's date moved: what was computed for it is stale
+        settled = txn.settle_epoch(epoch, settings.tiling, changed=True)
+    done, left_in, increment = written.cells, tiles.left_in, plan.increment
+    result.report = {
+        "date": settled.date or "" if settled else "",  # None: every mission moved out
+        "points_in": fed + left_in,
+        "points_kept_from_catalog": done.kept_in + left_in,
+        "points_new": sum(written.new_in.values()),
+        "withheld_left_out": written.withheld_left_out,
+        "points_out": done.points_out + left_in,
+        "points_rewritten": done.points_out,
+        "buffer_points": done.buffer_points,
+        "cells": len(result.tiles),
+        "cells_rewritten": len(done.tiles),
+        "cells_removed": len(removed),
+        "payloads_unchanged": len(increment.unchanged) if increment else 0,
+        "bytes_spilled": done.bytes_spilled,
+    }
+    return result
 
-    from standgrid.catalog.increment import (
+
+@dataclass
+class _EpochPlan:
+    """What (re)tiling an epoch reads and rewrites."""
+
+    names: set[str]
+    #: the epoch's tiles before (catalog-relative)
+    previous: list[str]
+    schema: Any
+    #: the ``payloads`` rows of ``group``'s missions (in payload order) and their tasks
+    rows: list[dict[str, Any]]
+    tasks: list[PayloadTask]
+    #: the stored ``payloads`` rows of the epoch's other missions
+    others: Any
+    partition: Partition
+    #: None: the whole epoch is re-tiled
+    increment: Increment | None
+    #: the payloads read (indices into ``rows``), the old tiles rewritten, what they lose
+    read: list[int]
+    rewrite: list[str]
+    drop: dict[str, Any]
+
+
+def _plan_epoch(
+    catalog: Catalog,
+    index: CatalogIndex,
+    epoch: str,
+    group: list[Ingest],
+    renewed: list[int],
+    settings: EpochSettings,
+    executor: Executor,
+    progress: Progress,
+) -> _EpochPlan:
+    """The placements chosen, the payloads' rows and digests, the partition, and what is
+    re-tiled: the whole epoch, or in place the tiles holding dropped payloads or receiving
+    changed ones (:func:`~standgrid.tiling.increment.plan_increment`)."""
+    from standgrid.catalog.partition import catalog_partition
+    from standgrid.partition.chunks import PayloadTask
+    from standgrid.tiling.increment import (
         keep_rows,
-        kept_tile_info,
         landing_tiles,
         placement_digest,
         plan_increment,
         source_digest,
         tiles_holding,
     )
-    from standgrid.catalog.mission_rows import (
-        epoch_sites,
-        gnss_rows,
-        metadata_extra,
-        mission_row,
-        payload_rows,
-        tiling_schema,
-        trajectory_rows,
-    )
-    from standgrid.catalog.partition import catalog_partition
-    from standgrid.catalog.retile import KeptTiles
-    from standgrid.errors import CatalogError, ConservationError
-    from standgrid.export.gpkg import cell_row
-    from standgrid.georeference.placement import cloud_payloads
-    from standgrid.partition.chunks import PayloadTask
+    from standgrid.tiling.mission_rows import epoch_sites, payload_rows, tiling_schema
 
     names = {i.mission.name for i in group}
     previous = sorted(catalog.tiles(epoch)) if epoch in catalog.epochs else []
@@ -130,51 +190,106 @@ def tile_epoch(
             f"{epoch}: {len(increment.unchanged)} payloads unchanged, {len(read)} to read; "
             f"{len(rewrite)} of {len(previous)} tiles rewritten"
         )
+    return _EpochPlan(
+        names, previous, schema, rows, tasks, others, partition, increment, read, rewrite, drop
+    )
 
-    new_in: dict[str, int] = dict.fromkeys(names, 0)
-    withheld_left_out = 0  # source points flagged withheld (deleted), not tiled
+
+@dataclass
+class _Written:
+    """The cells written, and the new payloads' points per mission."""
+
+    cells: Cells
+    new_in: dict[str, int]
+    withheld_left_out: int = 0  # source points flagged withheld (deleted), not tiled
+
+
+def _write_epoch_cells(
+    catalog: Catalog,
+    txn: Transaction,
+    epoch: str,
+    plan: _EpochPlan,
+    settings: EpochSettings,
+    executor: Executor,
+    progress: Progress,
+) -> _Written:
+    """The kept points and the payloads read through the partition into the staged tiles;
+    each payload's row gets its point count and footprint."""
+    from standgrid.catalog.partition import catalog_partition
+    from standgrid.tiling.mission_rows import epoch_sites
+    from standgrid.tiling.retile import KeptTiles
+
+    rows, read, partition = plan.rows, plan.read, plan.partition
+    written = _Written(Cells(), dict.fromkeys(plan.names, 0))
 
     def on_payload(k: int, points: int, footprint: Any, withheld: int) -> None:
-        nonlocal withheld_left_out
         row = rows[read[k]]
         row["point_count"] = points
         row["withheld_left_out"] = withheld
         row["geometry"] = footprint
-        new_in[row["mission"]] += points
-        withheld_left_out += withheld
+        written.new_in[row["mission"]] += points
+        written.withheld_left_out += withheld
 
+    origin = partition.lattice_origin
     work = EpochWork(
         epoch=epoch,
         kept=[
-            KeptTiles(catalog.path(rel), lattice_origin=origin, schema=schema, **drop)
-            for rel in rewrite
+            KeptTiles(catalog.path(rel), lattice_origin=origin, schema=plan.schema, **plan.drop)
+            for rel in plan.rewrite
         ],
-        payloads=[tasks[k] for k in read],
+        payloads=[plan.tasks[k] for k in read],
         partition=partition,
         buffer=partition.buffer(settings.tiling.buffer) if settings.tiling.buffer else None,
         on_payload=on_payload,
-        final_partition=lambda: catalog_partition(catalog, payloads=epoch_sites(others, rows)),
+        final_partition=lambda: catalog_partition(catalog, payloads=epoch_sites(plan.others, rows)),
         crs=catalog.crs,
         laz=settings.tiling.laz,
         copc=settings.tiling.copc,
         memory_budget=settings.memory_budget,
     )
-    done = write_cells(work, txn, executor, progress)
-    kept_in = done.kept_in
+    written.cells = write_cells(work, txn, executor, progress)
+    return written
+
+
+@dataclass
+class _Tiles:
+    """The epoch's tiles after the run: written ones and those left as they were."""
+
+    result: EpochResult
+    #: the index's ``cells`` rows of every tile
+    cell_rows: list[dict[str, Any]]
+    #: mission name -> the tiles holding its points
+    tiles_of: dict[str, set[str]]
+    #: points in the tiles left as they were
+    left_in: int
+
+
+def _gather_tiles(
+    catalog: Catalog,
+    txn: Transaction,
+    index: CatalogIndex,
+    epoch: str,
+    plan: _EpochPlan,
+    done: Cells,
+) -> _Tiles:
+    """The written tiles' rows, and the untouched tiles' rows as indexed; refuses points
+    landed in a tile that was to stay, and an untouched tile without a row."""
+    from standgrid.errors import CatalogError, ConservationError
+    from standgrid.export.gpkg import cell_row
+    from standgrid.tiling.increment import kept_tile_info
+
     number_to_name = {r.number: n for n, r in txn.mission_records().items()}
-    tiles_of: dict[str, set[str]] = {}
-    result = EpochResult({})
-    cell_rows: list[dict[str, Any]] = []
+    tiles = _Tiles(EpochResult({}), [], {}, 0)
     for cell_id, rel, info in done.tiles:
         missions = sorted(number_to_name[n] for n in info.points_per_source)
         for name in missions:
-            tiles_of.setdefault(name, set()).add(rel)
-        size = partition.cell_size(cell_id)
+            tiles.tiles_of.setdefault(name, set()).add(rel)
+        size = plan.partition.cell_size(cell_id)
         row = cell_row(cell_id, info, level=0, cell_size=size, epoch=epoch, missions=missions,
                        tile_path=rel)  # fmt: skip
-        cell_rows.append(row)
-        result.tiles.append((rel, info))
-    untouched, left_in = set(previous) - set(rewrite), 0
+        tiles.cell_rows.append(row)
+        tiles.result.tiles.append((rel, info))
+    untouched = set(plan.previous) - set(plan.rewrite)
     clash = sorted(untouched & {rel for _, rel, _ in done.tiles})
     if clash:  # a payload read twice, changed in between: nothing may be overwritten
         raise ConservationError(
@@ -186,33 +301,59 @@ def tile_epoch(
     for row in index.read("cells", epoch).to_dict("records"):
         if row["tile_path"] in untouched:  # left as it is, with its row
             rowless.discard(row["tile_path"])
-            left_in += int(row["point_count"])
+            tiles.left_in += int(row["point_count"])
             for name in filter(None, str(row["missions"]).split(",")):
-                tiles_of.setdefault(name, set()).add(row["tile_path"])
-            cell_rows.append(row)
-            result.tiles.append((row["tile_path"], kept_tile_info(
+                tiles.tiles_of.setdefault(name, set()).add(row["tile_path"])
+            tiles.cell_rows.append(row)
+            tiles.result.tiles.append((row["tile_path"], kept_tile_info(
                 catalog.path(row["tile_path"]), row, catalog.crs)))  # fmt: skip
-
     if rowless:
         raise CatalogError(
             f"epoch {epoch}: tiles without a row in the index's cells layer: "
             f"{', '.join(sorted(rowless)[:3])}",
             path=catalog.root,
         )
-    fed = kept_in + sum(new_in.values())
+    return tiles
+
+
+def _check_conservation(catalog: Catalog, epoch: str, written: _Written) -> int:
+    """The points fed (kept and new); :class:`ConservationError` unless every one was
+    partitioned and written."""
+    from standgrid.errors import ConservationError
+
+    done = written.cells
+    fed = done.kept_in + sum(written.new_in.values())
     if done.points_in != fed or done.points_out != fed:
         raise ConservationError(
             f"epoch {epoch}: {fed} points fed, {done.points_in} partitioned, "
             f"{done.points_out} written",
             path=catalog.root,
         )
-    rels = {rel for rel, _ in result.tiles}
-    for rel in set(previous) - rels:
-        txn.delete(rel)
-    before = txn.epoch_record(epoch)
-    for name in before.missions if before else ():
-        if name not in names:
-            txn.set_mission_tiles(name, tiles_of.get(name, ()))
+    return fed
+
+
+def _record_missions(
+    catalog: Catalog,
+    txn: Transaction,
+    index: CatalogIndex,
+    epoch: str,
+    group: list[Ingest],
+    plan: _EpochPlan,
+    tiles: _Tiles,
+) -> None:
+    """Each mission of ``group`` recorded in the catalog state and the report; the epoch's
+    cells, payloads and the missions' trajectories, GNSS fixes and rows into the index."""
+    import pandas as pd
+
+    from standgrid.georeference.placement import cloud_payloads
+    from standgrid.tiling.mission_rows import (
+        gnss_rows,
+        metadata_extra,
+        mission_row,
+        trajectory_rows,
+    )
+
+    rows, names, tiles_of = plan.rows, plan.names, tiles.tiles_of
     mission_rows, trajectories, fixes = [], [], []
     for ingest in group:
         mission = ingest.mission
@@ -224,7 +365,7 @@ def tile_epoch(
             point_count=sum(r["point_count"] for r in mine_rows),
             tiles=sorted(tiles_of.get(mission.name, ())), **metadata_extra(mission),
         )  # fmt: skip
-        result.missions[mission.name] = {
+        tiles.result.missions[mission.name] = {
             "number": record["number"],
             "epoch": epoch,
             "payloads": record["payload_count"],
@@ -242,7 +383,7 @@ def tile_epoch(
             mission, ingest.placement, ingest.number, epoch, ingest.date, catalog,
             placement_offset_m=_note(ingest)["offset_m"],
         ))  # fmt: skip
-    index.replace("cells", cell_rows, epochs={epoch})
+    index.replace("cells", tiles.cell_rows, epochs={epoch})
     index.replace("payloads", rows, missions=names)
     index.replace("trajectories", trajectories, missions=names)
     fixes = [f for f in fixes if len(f)]
@@ -250,27 +391,6 @@ def tile_epoch(
         "gnss_fixes", pd.concat(fixes, ignore_index=True) if fixes else [], missions=names
     )
     index.replace("missions", mission_rows, missions=names)
-    result.changed = increment is None or bool(read or rewrite)
-    settled = txn.settle_epoch(epoch, settings.tiling, changed=result.changed)
-    if not result.changed and settled and before and settled.date != before.date:
-        result.changed = True  # the epoch's date moved: what was computed for it is stale
-        settled = txn.settle_epoch(epoch, settings.tiling, changed=True)
-    result.report = {
-        "date": settled.date or "" if settled else "",  # None: every mission moved out
-        "points_in": fed + left_in,
-        "points_kept_from_catalog": kept_in + left_in,
-        "points_new": sum(new_in.values()),
-        "withheld_left_out": withheld_left_out,
-        "points_out": done.points_out + left_in,
-        "points_rewritten": done.points_out,
-        "buffer_points": done.buffer_points,
-        "cells": len(result.tiles),
-        "cells_rewritten": len(done.tiles),
-        "cells_removed": len(set(previous) - rels),
-        "payloads_unchanged": len(increment.unchanged) if increment else 0,
-        "bytes_spilled": done.bytes_spilled,
-    }
-    return result
 
 
 def _choose_placements(
@@ -283,9 +403,9 @@ def _choose_placements(
     settings: EpochSettings,
 ) -> None:
     """Under a placement tolerance, each mission of ``group`` is tiled with the placement
-    :func:`~standgrid.catalog.placement_policy.choose_placement` picks (its recipe into the
+    :func:`~standgrid.tiling.placement_policy.choose_placement` picks (its recipe into the
     catalog CRS renewed when it is the catalog's own)."""
-    from standgrid.catalog.placement_policy import PlacementChoice, choose_placement
+    from standgrid.tiling.placement_policy import PlacementChoice, choose_placement
 
     if settings.placement_tolerance is None:
         for ingest in group:

@@ -1,4 +1,5 @@
-"""The catalog as buffered chunks (lidR's ``catalog_apply`` layout): plan, read, rewrite.
+"""An epoch as buffered chunks, the layout of :func:`~standgrid.enrich.apply.catalog_apply`
+(lidR's): plan, read, rewrite.
 
 A *chunk* owns a block of cells (a square of ``side`` metres of the stand grid, or the
 Voronoi cells whose centre falls in it) and sees, besides their tiles, every neighbour's

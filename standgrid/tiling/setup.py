@@ -9,7 +9,8 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any, Literal
 
 from standgrid._atomic import check_replaceable
-from standgrid.catalog.store import CATALOG_FILE, is_standgrid_catalog
+from standgrid.catalog.paths import CATALOG_FILE
+from standgrid.catalog.state import is_standgrid_catalog
 from standgrid.errors import (
     CRSError,
     GridMismatchError,
@@ -21,8 +22,8 @@ from standgrid.errors import (
 )
 
 if TYPE_CHECKING:
+    from standgrid.catalog import Catalog, FileLock, Transaction
     from standgrid.catalog.records import TilingSettings
-    from standgrid.catalog.store import Catalog, FileLock, Transaction
     from standgrid.georeference.placement import Placement
 
 

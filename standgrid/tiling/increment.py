@@ -92,7 +92,6 @@ def source_digest(source: dict[str, Any], placement: str, schema: Any) -> str:
         "point_source_id": int(source["point_source_id"]),
         "payload_id": int(source["payload_id"]),
         "placement": placement,
-
         # the fields the points are written with; enrichment's own fields (reset in every
         # rewritten tile, added to the epoch's schema by enrich) are not the payload's
         "schema": {

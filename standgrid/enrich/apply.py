@@ -1,0 +1,153 @@
+"""``catalog_apply`` for enrichment (lidR's layout), one entry point for an epoch.
+
+The epoch's cells are cut into buffered chunks (:mod:`standgrid.enrich.chunks`);
+:func:`~standgrid.enrich.engine.run_block`, a pure function of one chunk (read its tiles and
+its neighbours' points in the buffer, :func:`~standgrid.enrich.block.enrich_block`, rewrite
+its tiles where the transaction staged them), runs on each, here or on dask workers; the
+engine (:func:`~standgrid.enrich.engine.apply_blocks`) gives the results back in chunk order
+and they are merged here: the raster windows pasted, the stand samples and trees collected.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import functools
+from dataclasses import dataclass
+from typing import TYPE_CHECKING, Any
+
+from standgrid.enrich.stands import StandAggregator, StandSample
+from standgrid.errors import EnrichError
+
+if TYPE_CHECKING:
+    import pandas as pd
+    from numpy.typing import NDArray
+
+    from standgrid.catalog import Catalog, Transaction
+    from standgrid.engine import Execution
+    from standgrid.enrich.chunks import ChunkCell
+    from standgrid.enrich.options import EnrichOptions
+    from standgrid.partition.protocol import Partition
+    from standgrid.rastergrid import RasterGrid
+
+
+@dataclass
+class AppliedEpoch:
+    """An epoch's chunks, enriched and merged (trees not yet attached to the stands)."""
+
+    grid: RasterGrid
+    #: the cells' polygons (in cell id order)
+    polygons: list[Any]
+    #: the epoch's rasters on ``grid`` (:data:`~standgrid.enrich.block.RASTERS`)
+    rasters: dict[str, NDArray[Any]]
+    #: every cell's sample and every coarser stand's
+    samples: list[StandSample]
+    stands: list[StandSample]
+    tree_frames: list[pd.DataFrame]
+    chunks: int
+
+
+def catalog_apply(
+    catalog: Catalog,
+    txn: Transaction,
+    epoch: str,
+    options: EnrichOptions,
+    *,
+    execution: Execution,
+) -> AppliedEpoch:
+    """Enrich ``epoch`` chunk by chunk on ``execution``'s executor (open) and within its
+    memory budget: its tiles rewritten into ``txn``'s staging, the chunks' rasters, samples
+    and trees merged in chunk order."""
+    import shapely
+
+    from standgrid.catalog.partition import catalog_partition
+    from standgrid.enrich.block import BlockContext
+    from standgrid.enrich.chunks import BYTES_PER_POINT, chunk_side, plan_chunks
+    from standgrid.enrich.engine import (
+        CHUNK_SHARE,
+        BlockJob,
+        EpochRasters,
+        apply_blocks,
+        chunks_at_once,
+    )
+    from standgrid.enrich.terrain import GROUND_HALO_M, ground_reach
+    from standgrid.rastergrid import RasterGrid
+
+    executor, progress = execution.executor, execution.progress
+    if executor is None:
+        raise EnrichError("catalog_apply needs an open executor (Execution.executor)")
+
+    partition = catalog_partition(catalog, epoch, coverage=False)
+    cells = _epoch_cells(catalog, epoch, partition)
+    if not cells:
+        raise EnrichError(f"epoch {epoch} has no tiles", path=catalog.root)
+    origin, cell_size = partition.raster_alignment()
+    polygons = [c.polygon for c in cells]
+    grid = RasterGrid.covering(
+        tuple(shapely.bounds(shapely.union_all(polygons))),
+        origin=origin,
+        cell_size=cell_size,
+        pixel_size=options.pixel_size,
+        closed=True,
+        crs=catalog.crs,
+    )
+    # the buffer must reach every copy a tile holds, so those get heights and ids too; and
+    # be wider than the coverage closing (2 x radius), so chunks agree with the whole epoch
+    tiling_buffer = txn.tiling_settings().buffer
+    # and hold every point CSF sees around the ground squares of the cells it owns
+    halo = max(
+        options.halo,
+        tiling_buffer,
+        2 * options.coverage_closing_m + 2 * grid.pixel_size,
+        GROUND_HALO_M,
+    )
+    # a share of the budget for the chunks a process holds at once (enrich.engine.CHUNK_SHARE)
+    budget = execution.memory_budget
+    block_points = int(budget.bytes * CHUNK_SHARE) // chunks_at_once(executor) // BYTES_PER_POINT
+    side = chunk_side(cells, cell_size, halo, block_points)
+    reach = functools.partial(ground_reach, lattice=(grid.x0, grid.y0))
+    chunks = plan_chunks(cells, side=side, origin=origin, buffer=halo, reach=reach)
+    size = partition.cell_size(cells[0].cell_id)
+    context = BlockContext(grid, options, half_open=partition.half_open, cell_size=size)
+    jobs = [
+        BlockJob(
+            chunk,
+            str(catalog.root),
+            tuple(str(txn.stage(c.tile)) for c in chunk.cells),
+            context,
+            origin,
+            budget_bytes=budget.bytes,
+        )
+        for chunk in chunks
+    ]
+    progress.status(
+        f"{epoch}: {len(cells)} cells in {len(chunks)} chunks of up to {side:g} m "
+        f"(+{halo:g} m buffer) on {executor.workers} worker(s)"
+    )
+    stand_of = {c.cell_id: c.stand_id for c in cells}
+    stand_ids = sorted({s for s in stand_of.values() if s is not None})
+    # side of the coarser stands (1 ha: 100 m) the cells aggregate into
+    stand_size = partition.cell_size(stand_ids[0]) if stand_ids else None
+    stands = StandAggregator(
+        stand_of, stand_size, options.coverage_rule, height_break=options.height_break
+    )
+    rasters = EpochRasters.empty(grid)
+    samples: list[StandSample] = []
+    tree_frames = []
+    with contextlib.closing(apply_blocks(jobs, executor, progress, f"{epoch}: chunks")) as done:
+        for job, result in done:
+            rasters.paste(job.chunk, result)
+            stands.add(result.samples)
+            samples.extend(result.samples)
+            tree_frames.append(result.trees)
+    return AppliedEpoch(
+        grid, polygons, rasters.arrays, samples, stands.result(), tree_frames, len(chunks)
+    )
+
+
+def _epoch_cells(catalog: Catalog, epoch: str, partition: Partition) -> list[ChunkCell]:
+    """The epoch's cells (in cell id order) from the index's ``cells`` layer."""
+    from standgrid.catalog.index import CatalogIndex
+    from standgrid.enrich.chunks import cells_of
+
+    cells = CatalogIndex(catalog).read("cells", epoch).sort_values("cell_id")
+    return cells_of(cells, partition.stand_of)

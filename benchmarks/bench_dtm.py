@@ -29,8 +29,8 @@ from threadpoolctl import threadpool_limits
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from standgrid.enrich.rasters import dtm_from_ground
-from standgrid.enrich.terrain import DTM_MARGIN_M, thin
+from standgrid.enrichment.rasters import dtm_from_ground
+from standgrid.enrichment.terrain import DTM_MARGIN_M, thin
 from standgrid.rastergrid import RasterGrid
 
 

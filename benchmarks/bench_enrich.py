@@ -83,7 +83,7 @@ def measure_enrich(catalog: Path, workers: int, memory_mb: int) -> dict[str, Any
     import pyogrio
 
     from standgrid.engine import Execution, open_executor
-    from standgrid.enrich.options import EnrichOptions
+    from standgrid.enrichment.options import EnrichOptions
     from standgrid.pipeline.enrich import enrich_catalog
 
     cells = pyogrio.read_dataframe(catalog / "index.gpkg", layer="cells", read_geometry=False)
@@ -127,7 +127,7 @@ def measure_imports() -> dict[str, Any]:
     import skimage.measure
     import skimage.segmentation  # noqa: F401
 
-    import standgrid.enrich.block
+    import standgrid.enrichment.block
     import standgrid.pipeline.enrich  # noqa: F401
 
     return {}

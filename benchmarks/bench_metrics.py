@@ -12,7 +12,7 @@ import time
 
 import numpy as np
 
-from standgrid.enrich.metrics import area_metrics
+from standgrid.enrichment.metrics import area_metrics
 
 
 def best_of(repeat: int, func: object) -> float:

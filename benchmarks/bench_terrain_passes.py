@@ -15,7 +15,7 @@ process, in alternating order, after one untimed round on the first chunk:
 - tree CHM: ``chm`` with the pit-free subcircle, as ``segment_trees`` calls it.
 
 Every output is asserted bit-identical (NaN where NaN, signs of zeros included). The
-baseline's ``standgrid/enrich/{terrain,rasters}.py`` are taken from git (``git show``).
+baseline's ``standgrid/enrichment/{terrain,rasters}.py`` are taken from git (``git show``).
 Prints CPU seconds of both and the share saved.
 """
 
@@ -59,9 +59,9 @@ def baseline_modules(revision: str, folder: Path) -> tuple[Any, Any]:
             text=True,
         ).stdout
 
-    rasters = load("baseline_rasters", show("standgrid/enrich/rasters.py"))
-    terrain_source = show("standgrid/enrich/terrain.py").replace(
-        "from standgrid.enrich.rasters import", "from baseline_rasters import"
+    rasters = load("baseline_rasters", show("standgrid/enrichment/rasters.py"))
+    terrain_source = show("standgrid/enrichment/terrain.py").replace(
+        "from standgrid.enrichment.rasters import", "from baseline_rasters import"
     )
     return rasters, load("baseline_terrain", terrain_source)
 
@@ -85,20 +85,20 @@ def main() -> None:
     import pyogrio
     import shapely
 
-    import standgrid.enrich.coverage as coverage
-    import standgrid.enrich.rasters as rasters
-    import standgrid.enrich.terrain as terrain
+    import standgrid.enrichment.coverage as coverage
+    import standgrid.enrichment.rasters as rasters
+    import standgrid.enrichment.terrain as terrain
     from standgrid.engine import Execution
-    from standgrid.enrich.block import _window
-    from standgrid.enrich.chunks import (
+    from standgrid.enrichment.block import _window
+    from standgrid.enrichment.chunks import (
         BYTES_PER_POINT,
         cells_of,
         chunk_side,
         plan_chunks,
         read_chunk,
     )
-    from standgrid.enrich.options import EnrichOptions
-    from standgrid.enrich.trees import CHM_SUBCIRCLE_M
+    from standgrid.enrichment.options import EnrichOptions
+    from standgrid.enrichment.trees import CHM_SUBCIRCLE_M
 
     old_rasters, old_terrain = baseline_modules(args.baseline, Path(tempfile.mkdtemp()))
     cells = cells_of(pyogrio.read_dataframe(args.catalog / "index.gpkg", layer="cells"))

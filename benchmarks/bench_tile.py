@@ -69,7 +69,7 @@ TARGET_SPEEDUP = 1.7
 
 
 #: Libraries a small ``standgrid tile`` should not need (reported by ``--fixed-cost``).
-HEAVY_MODULES = ("pandas", "geopandas", "pyarrow", "scipy.spatial", "standgrid.align")
+HEAVY_MODULES = ("pandas", "geopandas", "pyarrow", "scipy.spatial", "standgrid.alignment")
 
 
 def _peak_mb() -> dict[str, float]:

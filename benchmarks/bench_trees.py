@@ -38,7 +38,7 @@ sys.path.insert(0, str(REPO))
 _RUN_ONE = """
 import pickle, sys, time
 from threadpoolctl import threadpool_limits
-from standgrid.enrich.trees import segment_trees
+from standgrid.enrichment.trees import segment_trees
 xyz, heights, options = pickle.loads(open(sys.argv[1], "rb").read())
 with threadpool_limits(1):
     segment_trees(xyz[:20000], heights[:20000], **options)  # imports, not timed
@@ -52,8 +52,8 @@ open(sys.argv[2], "wb").write(pickle.dumps(out))
 
 def capture(catalog: Path, workdir: Path) -> list[Path]:
     """The saved inputs of every ``segment_trees`` call of an enrichment of ``catalog``."""
-    import standgrid.enrich.trees as trees
-    from standgrid.enrich.options import EnrichOptions
+    import standgrid.enrichment.trees as trees
+    from standgrid.enrichment.options import EnrichOptions
     from standgrid.pipeline.enrich import enrich_catalog
 
     saved = sorted(workdir.glob("chunk_*.pkl"))
@@ -132,7 +132,7 @@ def main() -> None:
 
     from threadpoolctl import threadpool_limits
 
-    import standgrid.enrich.trees as new
+    import standgrid.enrichment.trees as new
 
     chunks = capture(args.catalog, args.workdir)
     folder = baseline_tree(args.baseline)

@@ -27,7 +27,7 @@ sys.path.insert(0, str(REPO))
 import numpy as np  # noqa: E402
 import pandas as pd  # noqa: E402
 
-from standgrid.compare.coverage import CoObserved  # noqa: E402
+from standgrid.comparison.coverage import CoObserved  # noqa: E402
 from standgrid.partition import StandGrid  # noqa: E402
 from tests.coverage_scenarios import (  # noqa: E402
     observed_mask,

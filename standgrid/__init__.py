@@ -41,10 +41,10 @@ from standgrid.errors import OptionError, StandgridError  # noqa: E402
 if TYPE_CHECKING:
     from standgrid.api import align, compare, enrich, run, status, tile
     from standgrid.catalog.store import Catalog, open_catalog
-    from standgrid.compare.options import CompareOptions
+    from standgrid.comparison.options import CompareOptions
     from standgrid.engine.execution import Execution
     from standgrid.engine.progress import Progress
-    from standgrid.enrich.options import EnrichOptions
+    from standgrid.enrichment.options import EnrichOptions
     from standgrid.georeference.retrieval import retrieve_payload_by_gnss
     from standgrid.mission.model import open_mission
     from standgrid.mission.retrieval import retrieve_payload_by_pose, retrieve_payload_by_type
@@ -89,15 +89,15 @@ _LAZY: dict[str, tuple[str, str]] = {
     "open_mission": ("standgrid.mission.model", "open_mission"),
     "StandGrid": ("standgrid.partition.grid", "StandGrid"),
     "TileOptions": ("standgrid.tiling.options", "TileOptions"),
-    "EnrichOptions": ("standgrid.enrich.options", "EnrichOptions"),
-    "CompareOptions": ("standgrid.compare.options", "CompareOptions"),
+    "EnrichOptions": ("standgrid.enrichment.options", "EnrichOptions"),
+    "CompareOptions": ("standgrid.comparison.options", "CompareOptions"),
     "Execution": ("standgrid.engine.execution", "Execution"),
     "Progress": ("standgrid.engine.progress", "Progress"),
     "retrieve_payload_by_type": ("standgrid.mission.retrieval", "retrieve_payload_by_type"),
     "retrieve_payload_by_pose": ("standgrid.mission.retrieval", "retrieve_payload_by_pose"),
     "retrieve_payload_by_gnss": ("standgrid.georeference.retrieval", "retrieve_payload_by_gnss"),
-    # the verbs (typed in standgrid.api); a stage package not yet renamed to a noun rebinds its
-    # name when imported (standgrid._stage), calling the same verb
+    # the verbs (typed in standgrid.api); the stage packages are nouns (tiling, enrichment,
+    # comparison, alignment), so importing one never rebinds a verb
     **{verb: ("standgrid.api", verb) for verb in ("tile", "align", "enrich", "compare", "run")},
     "status": ("standgrid.api", "status"),
 }

@@ -12,9 +12,9 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 if TYPE_CHECKING:
-    from standgrid.compare.options import CompareOptions
+    from standgrid.comparison.options import CompareOptions
     from standgrid.engine.execution import Execution
-    from standgrid.enrich.options import EnrichOptions
+    from standgrid.enrichment.options import EnrichOptions
     from standgrid.mission.model import Mission
     from standgrid.pipeline.compare import CompareReport
     from standgrid.pipeline.enrich import EnrichReport
@@ -67,7 +67,7 @@ def enrich(
 ) -> EnrichReport:
     """Ground, terrain rasters, trees and stand metrics for every epoch of ``catalog`` (or
     ``options.epochs``): :func:`standgrid.pipeline.enrich.enrich_catalog`."""
-    from standgrid.enrich.options import EnrichOptions
+    from standgrid.enrichment.options import EnrichOptions
     from standgrid.pipeline.enrich import enrich_catalog
 
     return enrich_catalog(catalog, options or EnrichOptions(), execution=_execution(execution))
@@ -81,7 +81,7 @@ def compare(
 ) -> CompareReport:
     """Change between two enriched epochs (default: the first and the last):
     :func:`standgrid.pipeline.compare.compare_epochs`."""
-    from standgrid.compare.options import CompareOptions
+    from standgrid.comparison.options import CompareOptions
     from standgrid.pipeline.compare import compare_epochs
 
     return compare_epochs(catalog, options or CompareOptions(), execution=_execution(execution))
@@ -97,8 +97,8 @@ def run(
     execution: Execution | None = None,
 ) -> RunReport:
     """Tile, enrich every epoch and compare two: :func:`standgrid.pipeline.run.run_pipeline`."""
-    from standgrid.compare.options import CompareOptions
-    from standgrid.enrich.options import EnrichOptions
+    from standgrid.comparison.options import CompareOptions
+    from standgrid.enrichment.options import EnrichOptions
     from standgrid.pipeline.run import run_pipeline
     from standgrid.tiling.options import TileOptions
 

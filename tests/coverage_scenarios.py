@@ -46,7 +46,7 @@ def run_scenario(
     harvest: bool,
     enrich_options: Any = None,
 ) -> Scenario:
-    from standgrid.enrich.options import EnrichOptions
+    from standgrid.enrichment.options import EnrichOptions
     from standgrid.partition import StandGrid
     from standgrid.pipeline.compare import compare_epochs
     from standgrid.pipeline.enrich import enrich_catalog
@@ -105,7 +105,7 @@ def truth_per_stand(
 
     A cell's ground is its observed pixels; a 1 ha stand's is the observed pixels of its
     measured cells (as enrich aggregates them)."""
-    from standgrid.enrich.coverage import sample_mask
+    from standgrid.enrichment.coverage import sample_mask
     from standgrid.partition import CellId
 
     on = sample_mask(mask, grid, trees["x"].to_numpy(), trees["y"].to_numpy())

@@ -1,4 +1,4 @@
-"""Alignment of missions (standgrid.align): stem registration, the mission graph (GTSAM),
+"""Alignment of missions (standgrid.alignment): stem registration, the mission graph (GTSAM),
 GNSS priors that admit correlated errors, and the simulator's canopy GNSS."""
 
 from __future__ import annotations
@@ -9,9 +9,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from standgrid.align.graph import Prior, correlation_time, solve
-from standgrid.align.register import RegisterOptions, register
-from standgrid.align.stage import PlacedLandmarks
+from standgrid.alignment.graph import Prior, correlation_time, solve
+from standgrid.alignment.register import RegisterOptions, register
+from standgrid.alignment.stage import PlacedLandmarks
 
 
 def _stems(rng: np.random.Generator, n: int = 120, side: float = 60.0) -> np.ndarray:
@@ -163,7 +163,7 @@ def test_canopy_gnss_is_biased_correlated_and_states_too_little() -> None:
 def test_a_mission_placed_nowhere_near_is_found_by_the_global_stem_search() -> None:
     """Without GNSS the map frame is anywhere: turned 123 deg and 40 m off, the stem pairs
     of like length and DBH find it, and the fine registration finishes it."""
-    from standgrid.align.register import register_global
+    from standgrid.alignment.register import register_global
 
     rng = np.random.default_rng(11)
     world = _stems(rng, 400, side=100.0)  # more stems than the search's 150 stoutest

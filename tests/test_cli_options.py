@@ -11,9 +11,9 @@ from click.testing import CliRunner
 
 from standgrid.cli import cli
 from standgrid.cli.options import CLUSTER, COMPARE, ENRICH, REGISTRY, TILE, say_flags
-from standgrid.compare.options import CompareOptions
+from standgrid.comparison.options import CompareOptions
 from standgrid.engine.execution import Execution
-from standgrid.enrich.options import EnrichOptions
+from standgrid.enrichment.options import EnrichOptions
 from standgrid.tiling.options import TileOptions
 
 CLASSES = {c.__name__: c for c in (TileOptions, EnrichOptions, CompareOptions, Execution)}

@@ -9,7 +9,7 @@ import pytest
 import rasterio
 from rasterio.transform import Affine
 
-from standgrid.compare.rasters import NODATA, chm_difference
+from standgrid.comparison.rasters import NODATA, chm_difference
 from standgrid.errors import FormatError, GridMismatchError, OutputExistsError
 
 X0, Y0, RES = 500_000.0, 6_700_100.0, 0.5

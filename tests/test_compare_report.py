@@ -15,8 +15,8 @@ import pyogrio
 import pytest
 import shapely
 
-from standgrid.compare import compare_stands, match_trees, write_change_outputs
-from standgrid.compare.trees import ChangeInputError
+from standgrid.comparison import compare_stands, match_trees, write_change_outputs
+from standgrid.comparison.trees import ChangeInputError
 
 CRS = "EPSG:32633"
 X0, Y0, SIZE = 600_000.0, 5_000_000.0, 50.0

@@ -10,8 +10,8 @@ import pandas as pd
 import pytest
 import shapely
 
-from standgrid.compare.stands import assign_stands, check_same_grid, compare_stands
-from standgrid.compare.trees import match_trees
+from standgrid.comparison.stands import assign_stands, check_same_grid, compare_stands
+from standgrid.comparison.trees import match_trees
 from standgrid.errors import FormatError, GridMismatchError, StandgridError
 
 DATE_FROM = dt.date(2021, 5, 10)

@@ -10,7 +10,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from standgrid.compare.trees import ChangeInputError, interval_years, match_trees
+from standgrid.comparison.trees import ChangeInputError, interval_years, match_trees
 from standgrid.errors import FormatError, StandgridError
 from tests.conftest import real_file
 
@@ -240,8 +240,8 @@ def test_bad_tree_tables_are_refused():
 
 def _brute_force_cost(before: pd.DataFrame, after: pd.DataFrame) -> float:
     """Minimum total cost over every partial one-to-one matching (the documented objective)."""
-    from standgrid.enrich.identity import UNMATCHED_COST
-    from standgrid.enrich.identity import pair_costs as _pair_costs
+    from standgrid.enrichment.identity import UNMATCHED_COST
+    from standgrid.enrichment.identity import pair_costs as _pair_costs
 
     n, m = len(before), len(after)
     cost = np.full((n, m), np.inf)
@@ -274,8 +274,8 @@ def _brute_force_cost(before: pd.DataFrame, after: pd.DataFrame) -> float:
 
 
 def _result_cost(result) -> float:
-    from standgrid.enrich.identity import UNMATCHED_COST
-    from standgrid.enrich.identity import pair_costs as _pair_costs
+    from standgrid.enrichment.identity import UNMATCHED_COST
+    from standgrid.enrichment.identity import pair_costs as _pair_costs
 
     grown = result.grown
     costs, _ = _pair_costs(
@@ -372,7 +372,7 @@ def test_real_tree_positions_with_simulated_second_epoch():
 
 def test_sparse_solver_of_large_components_equals_dense(monkeypatch):
     """A regeneration-dense stand (6000 stems/ha): candidates chain into big components."""
-    import standgrid.enrich.identity as trees_module
+    import standgrid.enrichment.identity as trees_module
 
     rng = np.random.default_rng(5)
     n = 600

@@ -17,7 +17,7 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from standgrid.enrich.coverage import sample_mask
+from standgrid.enrichment.coverage import sample_mask
 from standgrid.partition import StandGrid
 from tests.coverage_scenarios import (
     Scenario,
@@ -58,7 +58,7 @@ def _stand_errors(scenario: Scenario) -> pd.DataFrame:
 
 def _true_change(scenario: Scenario, changes: pd.DataFrame) -> pd.DataFrame:
     """Truth stems/ha and basal area per 1 ha stand over the co-observed ground."""
-    from standgrid.compare.coverage import CoObserved
+    from standgrid.comparison.coverage import CoObserved
 
     e1, e2 = _epochs(scenario.catalog)
     co = CoObserved.read(

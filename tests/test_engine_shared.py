@@ -10,7 +10,7 @@ from threadpoolctl import threadpool_info
 
 from standgrid.engine.executor import run_limited
 from standgrid.engine.shared import ONE_THREAD_BLAS, ProcessWide
-from standgrid.enrich.ground import _QUIET_STDOUT
+from standgrid.enrichment.ground import _QUIET_STDOUT
 
 
 def _blas_threads() -> list[int]:
@@ -82,7 +82,7 @@ def test_every_concurrent_task_thread_runs_openmp_on_one_thread() -> None:
     """CSF's cloth is not deterministic on two OpenMP threads: a second task thread, entering
     while the first is inside, must be limited too (libgomp's limit is per thread)."""
     pytest.importorskip("CSF")  # loads the OpenMP runtime CSF uses
-    from standgrid.enrich.ground import one_thread
+    from standgrid.enrichment.ground import one_thread
 
     if not _openmp_threads():
         pytest.skip("no OpenMP runtime loaded")

@@ -11,15 +11,15 @@ import pytest
 import shapely
 import shapely.geometry
 
-from standgrid.enrich.allometry import MIN_TREES, fit_height_diameter, impute_dbh
-from standgrid.enrich.coverage import (
+from standgrid.enrichment.allometry import MIN_TREES, fit_height_diameter, impute_dbh
+from standgrid.enrichment.coverage import (
     cells_mask,
     coverage_from_hits,
     ground_hits,
     polygon_mask_area,
 )
-from standgrid.enrich.metrics import tree_metrics
-from standgrid.enrich.stands import (
+from standgrid.enrichment.metrics import tree_metrics
+from standgrid.enrichment.stands import (
     CoverageRule,
     StandAggregator,
     StandSample,

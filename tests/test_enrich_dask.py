@@ -29,9 +29,9 @@ import pytest
 import rasterio
 
 from standgrid.engine import Execution
-from standgrid.enrich.chunks import ChunkCell, chunk_side, plan_chunks
-from standgrid.enrich.options import EnrichOptions
-from standgrid.enrich.terrain import ground_reach
+from standgrid.enrichment.chunks import ChunkCell, chunk_side, plan_chunks
+from standgrid.enrichment.options import EnrichOptions
+from standgrid.enrichment.terrain import ground_reach
 from standgrid.pipeline.enrich import enrich_catalog
 from standgrid.pipeline.tile import tile_missions
 from standgrid.tiling.options import TileOptions
@@ -146,7 +146,7 @@ def _assert_same(a: Path, b: Path) -> None:
 def test_the_epoch_is_cut_into_chunks_that_own_every_cell_once(single: Path) -> None:
     import pyogrio
 
-    from standgrid.enrich.chunks import cells_of
+    from standgrid.enrichment.chunks import cells_of
 
     cells = pyogrio.read_dataframe(single / "index.gpkg", layer="cells")
     cells = cells[cells["epoch"].astype(str) == "2024"]
@@ -211,7 +211,7 @@ def test_workers_started_by_hand_compress_laz_on_one_thread(scheduler: str) -> N
 def test_another_chunk_layout_gives_the_same_catalog(tiled: Path, single: Path) -> None:
     """Another memory budget cuts the epoch into other chunks, and changes nothing: ground
     squares see their whole halo (the chunk reads the lowest points of a wider ring), the
-    terrain's triangles are at most :data:`~standgrid.enrich.terrain.DTM_MARGIN_M` long,
+    terrain's triangles are at most :data:`~standgrid.enrichment.terrain.DTM_MARGIN_M` long,
     stems are fitted from their cluster's own corner and stands sum their cells in id order.
     (Before: 0.7 % of heights differed, by up to 0.27 m, where a block's edge cut the
     ground's hull.)"""

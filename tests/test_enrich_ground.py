@@ -7,7 +7,7 @@ from typing import Any
 import numpy as np
 import pytest
 
-from standgrid.enrich.ground import as_xyz, classify_ground
+from standgrid.enrichment.ground import as_xyz, classify_ground
 from standgrid.errors import EnrichError
 from standgrid.pointcloud import PointCloud
 from tests.conftest import real_file
@@ -134,7 +134,7 @@ def _window_over(xyz: np.ndarray) -> Any:
 def test_terrain_from_the_lowest_returns_finds_the_ground_of_the_real_steep_scan() -> None:
     """What enrichment runs: CSF over the lowest return of each quarter cloth cell, in 40 m
     squares, then every return within 0.5 m of the TIN terrain is ground."""
-    from standgrid.enrich.terrain import classify_terrain
+    from standgrid.enrichment.terrain import classify_terrain
 
     xyz, cls = read_chablais()
     window = _window_over(xyz)
@@ -160,7 +160,7 @@ def test_terrain_on_a_generated_slope() -> None:
     nothing else. CSF over a 40 m window (a 20 m square and 10 m around it) leaves the cloth
     above the ground along the last ~6 m upslope (measured: recall 0.949 overall, 1.0 more
     than 10 m from that edge; whole-area CSF: 0.99): a documented limit (docs/METRICS.md)."""
-    from standgrid.enrich.terrain import classify_terrain
+    from standgrid.enrichment.terrain import classify_terrain
 
     xyz, truth = generated_slope()
     terrain = classify_terrain(xyz, _window_over(xyz))

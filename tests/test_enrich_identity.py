@@ -5,8 +5,8 @@ from __future__ import annotations
 import numpy as np
 import pandas as pd
 
-from standgrid.compare.trees import match_trees
-from standgrid.enrich.identity import assign_tree_uids
+from standgrid.comparison.trees import match_trees
+from standgrid.enrichment.identity import assign_tree_uids
 
 
 def survey(rng: np.random.Generator, truth: pd.DataFrame, seen: np.ndarray) -> pd.DataFrame:

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 from scipy import stats
 
-from standgrid.enrich.metrics import (
+from standgrid.enrichment.metrics import (
     QUANTILE_PERCENTS,
     REASON_NO_DBH,
     REASON_NO_HEIGHT,
@@ -219,7 +219,7 @@ def test_stand_grid_cell_keys_work_as_metric_keys() -> None:
 
 
 def test_float32_heights_give_the_float64_metrics_to_the_bit_and_their_sorted_order() -> None:
-    from standgrid.enrich.metrics import area_metrics_sorted
+    from standgrid.enrichment.metrics import area_metrics_sorted
 
     rng = np.random.default_rng(11)
     h32 = (rng.gamma(2.0, 6.0, 30_000) - 1.0).astype(np.float32)
@@ -244,7 +244,7 @@ def test_float32_heights_give_the_float64_metrics_to_the_bit_and_their_sorted_or
 def test_measured_heights_left_sorted_measure_the_same_stand() -> None:
     import pandas as pd
 
-    from standgrid.enrich.stands import StandSample, measure_heights
+    from standgrid.enrichment.stands import StandSample, measure_heights
 
     def cells(seed: int) -> list[StandSample]:
         rng = np.random.default_rng(seed)

@@ -9,8 +9,8 @@ import pytest
 import rasterio
 
 from standgrid.crs import CRS
-from standgrid.enrich.ground import classify_ground
-from standgrid.enrich.rasters import (
+from standgrid.enrichment.ground import classify_ground
+from standgrid.enrichment.rasters import (
     chm,
     chm_from_pixels,
     density,
@@ -361,7 +361,7 @@ def test_dtm_matches_the_reference_tin_interpolation(max_edge: float | None) -> 
 def test_barycentric_transforms_are_scipys() -> None:
     from scipy.spatial import Delaunay
 
-    from standgrid.enrich.rasters import _barycentric_transforms
+    from standgrid.enrichment.rasters import _barycentric_transforms
 
     for name, ground, _ in ground_cases()[:4]:
         tin = Delaunay(ground[:, :2] - ORIGIN)

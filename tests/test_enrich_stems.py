@@ -9,8 +9,8 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from standgrid.enrich.stands import NO_TOP_IN_STAND, CoverageRule, StandSample, stand_row
-from standgrid.enrich.trees import segment_trees
+from standgrid.enrichment.stands import NO_TOP_IN_STAND, CoverageRule, StandSample, stand_row
+from standgrid.enrichment.trees import segment_trees
 from standgrid.features.stems import find_stems
 
 X0, Y0 = 600_000.0, 5_700_000.0

@@ -6,8 +6,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from standgrid.enrich import terrain
-from standgrid.enrich.ground import classify_ground
+from standgrid.enrichment import terrain
+from standgrid.enrichment.ground import classify_ground
 from standgrid.partition.lattice import lowest_in_squares
 
 LATTICE = (0.3, -0.7)

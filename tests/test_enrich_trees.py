@@ -7,9 +7,9 @@ import pandas as pd
 import pytest
 from scipy.spatial import cKDTree
 
-from standgrid.enrich.ground import classify_ground
-from standgrid.enrich.rasters import dtm_from_ground, height_above_ground
-from standgrid.enrich.trees import segment_trees, tree_id_from_xy, xy_from_tree_id
+from standgrid.enrichment.ground import classify_ground
+from standgrid.enrichment.rasters import dtm_from_ground, height_above_ground
+from standgrid.enrichment.trees import segment_trees, tree_id_from_xy, xy_from_tree_id
 from standgrid.errors import EnrichError
 from standgrid.features.circles import fit_circle, fit_circles, kasa_circle, link_clusters
 from standgrid.features.stems import find_stems
@@ -325,8 +325,8 @@ def test_real_mixed_conifer_trees_agree_with_lidr_segmentation() -> None:
 def test_full_chain_on_a_simulated_robot_mission() -> None:
     """CSF -> DTM -> heights -> trees on the simulator's points, against its ground truth."""
     simulate = pytest.importorskip("standgrid.simulate")
-    from standgrid.enrich.allometry import fit_height_diameter, impute_dbh
-    from standgrid.enrich.metrics import cell_index, tree_metrics
+    from standgrid.enrichment.allometry import fit_height_diameter, impute_dbh
+    from standgrid.enrichment.metrics import cell_index, tree_metrics
 
     sim = simulate.run_simulation(7, 1, simulate.SimulationConfig(area=60.0))
     xyz = np.concatenate([sim.payload(k)[1].xyz for k in range(len(sim.spans))])

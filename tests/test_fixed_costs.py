@@ -39,7 +39,7 @@ def test_cli_and_tile_command_import_no_pandas() -> None:
         "LazyGroup._load('tile')\n"
         "import standgrid.pipeline.tile, standgrid.catalog.index, standgrid.tiling.vpcs\n"
         "import standgrid.tiling.mission_rows, standgrid.export.gpkg\n"
-        "heavy = ['pandas', 'geopandas', 'pyarrow', 'scipy', 'standgrid.align']\n"
+        "heavy = ['pandas', 'geopandas', 'pyarrow', 'scipy', 'standgrid.alignment']\n"
         "print(json.dumps([m for m in heavy if m in sys.modules]))\n"
     )
     assert json.loads(_python(code)) == []

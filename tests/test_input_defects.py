@@ -320,8 +320,8 @@ def small_enriched(tmp_path_factory: pytest.TempPathFactory) -> Path:
 def test_compare_says_stale_same_and_reversed_epochs(small_enriched: Path, tmp_path: Path) -> None:
     from standgrid.catalog import Catalog
     from standgrid.catalog.invalidate import invalidate_epochs
-    from standgrid.compare.options import CompareOptions
-    from standgrid.compare.trees import ChangeInputError
+    from standgrid.comparison.options import CompareOptions
+    from standgrid.comparison.trees import ChangeInputError
     from standgrid.pipeline.compare import compare_epochs
 
     both = "option epoch_from and option epoch_to are both epoch '2024'"
@@ -338,7 +338,7 @@ def test_compare_says_stale_same_and_reversed_epochs(small_enriched: Path, tmp_p
 
 def test_raster_pixel_that_does_not_fit_is_explained(small_enriched: Path, tmp_path: Path) -> None:
     from standgrid.catalog import Catalog
-    from standgrid.enrich.options import EnrichOptions
+    from standgrid.enrichment.options import EnrichOptions
     from standgrid.pipeline.enrich import check_pixel_size, enrich_catalog
 
     voronoi = Catalog.create(tmp_path / "voronoi", {"scheme": "voronoi", "crs": CRS}, CRS,

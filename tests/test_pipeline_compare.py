@@ -16,7 +16,7 @@ import pyogrio
 import pytest
 import rasterio
 
-from standgrid.compare.options import CompareOptions
+from standgrid.comparison.options import CompareOptions
 from standgrid.errors import EnrichError, EpochNotFoundError, GridMismatchError
 from standgrid.partition import StandGrid
 from standgrid.pipeline.compare import compare_epochs

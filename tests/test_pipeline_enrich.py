@@ -408,7 +408,7 @@ def test_metrics_of_a_cell_recomputed_from_its_tile(pair: EnrichedPair, epoch: s
 def test_unknown_epoch_is_refused_before_any_work(pair: EnrichedPair) -> None:
     before = (pair.path / "catalog.json").read_bytes()
     with pytest.raises(EpochNotFoundError, match="1999"):
-        from standgrid.enrich.options import EnrichOptions
+        from standgrid.enrichment.options import EnrichOptions
 
         enrich_catalog(pair.path, EnrichOptions(epochs=("1999",)))
     assert (pair.path / "catalog.json").read_bytes() == before

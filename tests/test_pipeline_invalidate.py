@@ -21,9 +21,9 @@ from click.testing import CliRunner
 from standgrid.catalog.invalidate import enrichment_note, without_enrichment
 from standgrid.catalog.records import EpochRecord
 from standgrid.cli import cli
-from standgrid.compare.options import CompareOptions
+from standgrid.comparison.options import CompareOptions
 from standgrid.engine import CallbackProgress, Execution
-from standgrid.enrich.options import EnrichOptions
+from standgrid.enrichment.options import EnrichOptions
 from standgrid.errors import EnrichError
 from standgrid.pipeline.compare import compare_epochs
 from standgrid.pipeline.enrich import enrich_catalog

@@ -28,7 +28,7 @@ def test_stems_first_finds_every_stem_with_its_own_height_and_dbh() -> None:
     segmentation finds understorey and snags, measures their DBH and gives each tree its
     own height; the canopy-top recipe alone (``stems=False``, what standgrid did before)
     misses the understorey and inherits the crowns over it."""
-    from standgrid.enrich.trees import segment_trees
+    from standgrid.enrichment.trees import segment_trees
 
     sim = run_simulation(
         5, 1, SimulationConfig(area=60.0, points_per_payload=POINTS_PER_PAYLOAD, **MIXED)
@@ -75,9 +75,9 @@ def test_an_airborne_plot_keeps_its_canopy_tops_and_says_what_they_miss(tmp_path
     covered by a 26 m crown whose top stands 0.35 m over its edge has unknown stems, not 0."""
     import laspy
 
-    from standgrid.enrich.ground import classify_ground
-    from standgrid.enrich.rasters import dtm_from_ground, height_above_ground
-    from standgrid.enrich.trees import segment_trees
+    from standgrid.enrichment.ground import classify_ground
+    from standgrid.enrichment.rasters import dtm_from_ground, height_above_ground
+    from standgrid.enrichment.trees import segment_trees
     from standgrid.pipeline.run import run_pipeline
     from standgrid.rastergrid import RasterGrid
 

@@ -125,7 +125,7 @@ def test_a_trees_points_are_marked_with_its_exact_id(
 
 def test_tree_keys_tell_apart_trees_on_one_row() -> None:
     """Tree ids pack x and y at 0.1 m; trees whose tops share a y row must not share a key."""
-    from standgrid.enrich.trees import tree_id_from_xy
+    from standgrid.enrichment.trees import tree_id_from_xy
     from standgrid.serve.viewer import tree_key
 
     x = 614_700.0 + np.arange(200) * 0.1

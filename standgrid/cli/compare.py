@@ -64,7 +64,7 @@ def compare(catalog: Path, as_json: bool, quiet: bool, **params: Any) -> None:
       standgrid compare catalog --from 2024 --to 2028
       standgrid compare catalog-2024 --other catalog-2028 --json
     """
-    from standgrid.compare.options import CompareOptions
+    from standgrid.comparison.options import CompareOptions
     from standgrid.pipeline.compare import compare_epochs
 
     compare_options, running = build(CompareOptions, params), execution(params, quiet)

@@ -23,7 +23,7 @@ from standgrid.cli.options import (
 
 
 def _human(r: dict[str, Any]) -> str:
-    from standgrid.enrich.allometry import MIN_TREES
+    from standgrid.enrichment.allometry import MIN_TREES
 
     lines = [f"enriched {r['catalog']}"]
     for epoch, e in r["epochs"].items():
@@ -78,7 +78,7 @@ def enrich(catalog: Path, as_json: bool, quiet: bool, **params: Any) -> None:
       standgrid enrich catalog --epoch 2028 --pixel 0.5 --json
       standgrid enrich catalog --workers 2 --memory 4096
     """
-    from standgrid.enrich.options import EnrichOptions
+    from standgrid.enrichment.options import EnrichOptions
     from standgrid.pipeline.enrich import enrich_catalog
 
     enrich_options, running = build(EnrichOptions, params), execution(params, quiet)

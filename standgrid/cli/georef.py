@@ -92,7 +92,7 @@ def georef(
         "uncertainty": None if fit.uncertainty is None else fit.uncertainty.to_dict(),
         "warnings": [] if fit.uncertainty is None else list(fit.uncertainty.warnings),
     }
-    from standgrid.align.graph import placement_sigma
+    from standgrid.alignment.graph import placement_sigma
 
     honest = placement_sigma(fit, opened.trajectory()[1]) if fit.uncertainty else None
     # the fit's covariance sees white noise; under a canopy errors are correlated and biased

@@ -82,8 +82,8 @@ def run(paths: tuple[Path, ...], output: Path, as_json: bool, quiet: bool, **par
       standgrid run data/missions -o standgrid-demo --overwrite
       standgrid run survey-2024/ survey-2028/ -o catalog --grid 100 --crs EPSG:25832
     """
-    from standgrid.compare.options import CompareOptions
-    from standgrid.enrich.options import EnrichOptions
+    from standgrid.comparison.options import CompareOptions
+    from standgrid.enrichment.options import EnrichOptions
     from standgrid.pipeline.run import run_pipeline
     from standgrid.tiling.options import TileOptions
 

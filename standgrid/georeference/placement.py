@@ -39,7 +39,7 @@ class Placement:
 
     fit: GeoreferenceFit | None
     source_crs: CRS | None = None
-    #: How alignment with other missions moved it (:mod:`standgrid.align`), None: GNSS only.
+    #: How alignment with other missions moved it (:mod:`standgrid.alignment`), None: GNSS only.
     alignment: dict[str, Any] | None = None
 
     def __post_init__(self) -> None:

@@ -22,7 +22,7 @@ import pandas as pd
 
 from standgrid._atomic import atomic_output
 from standgrid.catalog import Catalog, EpochRecord, paths
-from standgrid.enrich.stands import counted_trees
+from standgrid.enrichment.stands import counted_trees
 from standgrid.errors import EpochDateError, FormatError
 from standgrid.georeference.geoid import GeoidModel, NoGeoidModel, find_geoid
 from standgrid.growth.elevation import above_sea_level, epoch_elevation

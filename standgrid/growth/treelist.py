@@ -18,7 +18,7 @@ import pandas as pd
 
 from standgrid._atomic import atomic_output
 from standgrid.catalog import Catalog, paths
-from standgrid.enrich.stands import counted_trees, stem_xy
+from standgrid.enrichment.stands import counted_trees, stem_xy
 from standgrid.errors import EpochNotFoundError, FormatError, NotEnrichedError
 
 #: Tree-list formats by file suffix.

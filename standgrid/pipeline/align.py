@@ -1,6 +1,6 @@
 """Alignment inside a tiling run: the missions given, and the catalog's missions they
 overlap (held where the catalog placed them: the reference), through
-:func:`standgrid.align.align_missions`. Landmarks are kept in the catalog
+:func:`standgrid.alignment.align_missions`. Landmarks are kept in the catalog
 (``align/<mission>.npz``, keyed by the mission's files) so a mission is read for them once.
 """
 
@@ -17,7 +17,7 @@ import numpy as np
 from standgrid.engine import Progress
 
 if TYPE_CHECKING:
-    from standgrid.align.landmarks import Landmarks
+    from standgrid.alignment.landmarks import Landmarks
     from standgrid.catalog import Catalog, Transaction
     from standgrid.georeference.placement import Placement
     from standgrid.mission.model import Mission
@@ -34,7 +34,7 @@ _MEMO_LOCK = threading.Lock()
 
 def _recorded_sigma(record: Any, mission: Mission, crs: str) -> float | None:
     """A catalog mission's absolute DRMS 1-sigma: as aligned, else from its GNSS fit."""
-    from standgrid.align.graph import placement_sigma
+    from standgrid.alignment.graph import placement_sigma
     from standgrid.errors import GeoreferenceError
     from standgrid.georeference.fit import GeoreferenceFit
 
@@ -97,8 +97,8 @@ def _references(
     if not len(new_nodes):
         return []
     tree = cKDTree(new_nodes)
-    from standgrid.align.register import GLOBAL_REACH_M
-    from standgrid.align.stage import is_provisional
+    from standgrid.alignment.register import GLOBAL_REACH_M
+    from standgrid.alignment.stage import is_provisional
 
     # a mission placed only by its metadata may be that far off: look as far as its search
     reach = REFERENCE_REACH_M
@@ -127,7 +127,7 @@ def _references(
 
 
 def _landmarks(mission: Mission, txn: Transaction, progress: Progress) -> Landmarks:
-    from standgrid.align.landmarks import (
+    from standgrid.alignment.landmarks import (
         landmarks_key,
         load_landmarks,
         mission_landmarks,
@@ -158,7 +158,7 @@ def align_ingests(
 ) -> dict[str, Any] | None:
     """Align the missions given (their placements replaced) with each other and with the
     catalog's missions they overlap; None when there is nothing to align."""
-    from standgrid.align import AlignOptions, align_missions
+    from standgrid.alignment import AlignOptions, align_missions
 
     fitted = [i for i in ingests if i.placement.fit is not None]
     if not fitted:

@@ -16,13 +16,13 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 from standgrid.catalog import paths
-from standgrid.compare.coverage import (
+from standgrid.comparison.coverage import (
     UNOBSERVED,
     CoObserved,
     mark_unobserved,
     stand_change,
 )
-from standgrid.compare.options import CompareOptions
+from standgrid.comparison.options import CompareOptions
 from standgrid.engine import Execution
 
 if TYPE_CHECKING:
@@ -79,7 +79,7 @@ def compare_epochs(
     and written under its writer lock; the other catalog is read as a consistent snapshot
     (:meth:`Catalog.reading`), released before the commit. Tree counts, basal area and
     harvest are compared over the ground both epochs observed only
-    (:mod:`standgrid.compare.coverage`); stands with less than
+    (:mod:`standgrid.comparison.coverage`); stands with less than
     ``options.min_observed_fraction`` of it get null changes with a reason. ``execution``
     gives the lock timeout and the progress (a comparison runs in this process).
     """
@@ -131,8 +131,8 @@ def _compare(
 
     from standgrid.catalog.invalidate import other_epoch_read
     from standgrid.catalog.project import write_catalog_project
-    from standgrid.compare import chm_difference, compare_stands, match_trees
-    from standgrid.compare.assemble import (
+    from standgrid.comparison import chm_difference, compare_stands, match_trees
+    from standgrid.comparison.assemble import (
         forest_metrics,
         headline,
         locate_trees,
@@ -140,15 +140,15 @@ def _compare(
         presence,
         with_coverage,
     )
-    from standgrid.compare.evidence import MISSED, confirm_change
-    from standgrid.compare.inputs import (
+    from standgrid.comparison.evidence import MISSED, confirm_change
+    from standgrid.comparison.inputs import (
         default_epoch,
         enriched_epoch,
         epoch_metrics,
         read_table,
     )
-    from standgrid.compare.stands import check_same_grid
-    from standgrid.enrich.identity import MAX_DISTANCE_M
+    from standgrid.comparison.stands import check_same_grid
+    from standgrid.enrichment.identity import MAX_DISTANCE_M
     from standgrid.export.styles import raster_style_path
 
     check_same_grid(source.fingerprint, target.fingerprint, label_a="from", label_b="to")
@@ -272,7 +272,7 @@ def _check_pair(source: Catalog, target: Catalog, epoch_from: str, epoch_to: str
     """Refuse, saying why, an epoch compared with itself, a stale epoch (enriched, then
     re-tiled: enrich it again), and an ``epoch_to`` dated before ``epoch_from``."""
     from standgrid.catalog.records import STALE
-    from standgrid.compare.trees import ChangeInputError
+    from standgrid.comparison.trees import ChangeInputError
     from standgrid.errors import EnrichError
 
     if target is source and epoch_from == epoch_to:
@@ -316,7 +316,7 @@ def _write_outputs(
     """Write the change tables into the staging folder and register every file; the change
     layers replace those of the index (:class:`CatalogIndex`, staged in ``txn``)."""
     from standgrid.catalog.index import CatalogIndex
-    from standgrid.compare.report import change_layers
+    from standgrid.comparison.report import change_layers
 
     out_dir = txn.stage(paths.comparison(epoch_from, epoch_to, "stand_changes.csv")).parent
     result, layers = change_layers(
@@ -349,7 +349,7 @@ def _cell_polygons(
     import geopandas as gpd
     import pandas as pd
 
-    from standgrid.enrich.outputs import stand_polygons
+    from standgrid.enrichment.outputs import stand_polygons
     from standgrid.export.gpkg import read_index_layer
 
     cells = pd.concat(

@@ -1,6 +1,6 @@
 """Enrich a catalog: ground, terrain rasters, height above ground, trees, stand metrics.
 
-Per epoch, :func:`standgrid.enrich.apply.catalog_apply` cuts the cells into buffered chunks,
+Per epoch, :func:`standgrid.enrichment.apply.catalog_apply` cuts the cells into buffered chunks,
 enriches each (here, or on dask workers), rewrites its tiles and merges the chunks' rasters,
 trees and samples; this module writes the rasters, fits the height-diameter models, and
 writes the stand metrics (all in one catalog transaction; the previous state stays intact
@@ -26,8 +26,8 @@ import numpy as np
 
 from standgrid.catalog import paths
 from standgrid.engine import Execution
-from standgrid.enrich.options import EnrichOptions
-from standgrid.enrich.stands import StandSample
+from standgrid.enrichment.options import EnrichOptions
+from standgrid.enrichment.stands import StandSample
 from standgrid.errors import EnrichError, EpochNotFoundError
 
 if TYPE_CHECKING:
@@ -73,9 +73,9 @@ def enrich_catalog(
 def _enrich(catalog: Catalog, options: EnrichOptions, execution: Execution) -> EnrichReport:
     from standgrid.catalog.invalidate import enrichment_note, invalidate_comparisons
     from standgrid.catalog.project import write_catalog_project
-    from standgrid.enrich.allometry import height_diameter_models, impute_dbh, tree_summary
-    from standgrid.enrich.outputs import metrics_table, write_layers, write_tables
-    from standgrid.enrich.stands import stand_rows
+    from standgrid.enrichment.allometry import height_diameter_models, impute_dbh, tree_summary
+    from standgrid.enrichment.outputs import metrics_table, write_layers, write_tables
+    from standgrid.enrichment.stands import stand_rows
 
     if not catalog.crs:
         raise EnrichError("the catalog has no CRS (not georeferenced)", path=catalog.root)
@@ -175,9 +175,9 @@ def _enrich_epoch(
     options: EnrichOptions,
     execution: Execution,
 ) -> _EpochResult:
-    from standgrid.enrich.apply import catalog_apply
-    from standgrid.enrich.coverage import Coverage, cells_mask
-    from standgrid.enrich.outputs import tree_table, write_coverage, write_raster
+    from standgrid.enrichment.apply import catalog_apply
+    from standgrid.enrichment.coverage import Coverage, cells_mask
+    from standgrid.enrichment.outputs import tree_table, write_coverage, write_raster
 
     applied = catalog_apply(catalog, txn, epoch, options, execution=execution)
     grid, polygons, samples = applied.grid, applied.polygons, applied.samples
@@ -216,10 +216,10 @@ def _enrich_epoch(
 
 def _tree_uids(catalog: Catalog, trees: dict[str, pd.DataFrame]) -> dict[str, Any]:
     """Each epoch's ``tree_uid``s: its trees paired with those of the catalog's other
-    enriched epochs (:func:`standgrid.enrich.identity.assign_tree_uids`)."""
+    enriched epochs (:func:`standgrid.enrichment.identity.assign_tree_uids`)."""
     import pandas as pd
 
-    from standgrid.enrich.identity import assign_tree_uids
+    from standgrid.enrichment.identity import assign_tree_uids
 
     others = {}
     for epoch, record in catalog.epoch_records.items():

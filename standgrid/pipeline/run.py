@@ -7,9 +7,9 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from standgrid.compare.options import CompareOptions
+from standgrid.comparison.options import CompareOptions
 from standgrid.engine import Execution
-from standgrid.enrich.options import EnrichOptions
+from standgrid.enrichment.options import EnrichOptions
 from standgrid.errors import MissionNotFoundError
 from standgrid.pipeline.enrich import enrich_catalog
 from standgrid.pipeline.tile import tile_missions

@@ -68,7 +68,7 @@ class TileReport:
     #: Epochs not tiled whose results were removed too (their DBH imputation pooled the trees
     #: of re-tiled epochs): epoch -> what was removed.
     also_invalidated: dict[str, dict[str, Any]] = field(default_factory=dict)
-    #: What alignment did (:meth:`standgrid.align.AlignResult.to_dict`); None: not run.
+    #: What alignment did (:meth:`standgrid.alignment.AlignResult.to_dict`); None: not run.
     alignment: dict[str, Any] | None = None
 
     @property
@@ -210,7 +210,7 @@ def _prepare(
         # no GNSS and no anchor: the catalog (or the missions given with it) may place it
         if not options.align or mission.graph is None or mission.is_projected:
             raise
-        from standgrid.align.stage import provisional_placement
+        from standgrid.alignment.stage import provisional_placement
 
         try:
             placement = provisional_placement(mission)
@@ -312,13 +312,13 @@ def _ingest(
 
 def _alignable(catalog: Catalog, ingests: list[Ingest]) -> bool:
     """Two missions at least (given, or in the catalog besides them): else alignment has
-    nothing to do, and :mod:`standgrid.align` (stems: pandas, scipy) is not even imported."""
+    nothing to do, and :mod:`standgrid.alignment` (stems: pandas, scipy) is not even imported."""
     given = {i.mission.name for i in ingests}
     return len(ingests) > 1 or any(name not in given for name in catalog.mission_records)
 
 
 def _is_provisional(placement: Any) -> bool:
-    from standgrid.align.stage import is_provisional  # only placements with an alignment
+    from standgrid.alignment.stage import is_provisional  # only placements with an alignment
 
     return is_provisional(placement)
 

@@ -195,7 +195,7 @@ def mission_row(
         "n_used": 0 if fit is None else int(fit.n_used),
         "n_rejected": 0 if fit is None else int(fit.n_rejected),
         "placement_offset_m": float(placement_offset_m),
-        # alignment (standgrid.align): DRMS 1-sigma, absolute and relative to the missions
+        # alignment (standgrid.alignment): DRMS 1-sigma, absolute and relative to the missions
         # it was registered with; null when not aligned
         "aligned": bool(aligned.get("aligned", False)),
         "registered_with": ",".join(aligned.get("registered_with", ())),

@@ -70,7 +70,7 @@ class TileOptions:
     #: folder is always allowed.
     replace_missions: bool = False
     #: Register the missions given together to each other on their stems and ground, and
-    #: place them by one graph with their GNSS (:mod:`standgrid.align`), when two or more
+    #: place them by one graph with their GNSS (:mod:`standgrid.alignment`), when two or more
     #: overlap. False: each mission by its own GNSS fit alone.
     align: bool = True
     #: Epoch by mission name (over ``epoch`` and the mission's year): a catalog's own

@@ -1,10 +1,10 @@
 """``catalog_apply`` for enrichment (lidR's layout), one entry point for an epoch.
 
-The epoch's cells are cut into buffered chunks (:mod:`standgrid.enrich.chunks`);
-:func:`~standgrid.enrich.engine.run_block`, a pure function of one chunk (read its tiles and
-its neighbours' points in the buffer, :func:`~standgrid.enrich.block.enrich_block`, rewrite
+The epoch's cells are cut into buffered chunks (:mod:`standgrid.enrichment.chunks`);
+:func:`~standgrid.enrichment.engine.run_block`, a pure function of one chunk (read its tiles and
+its neighbours' points in the buffer, :func:`~standgrid.enrichment.block.enrich_block`, rewrite
 its tiles where the transaction staged them), runs on each, here or on dask workers; the
-engine (:func:`~standgrid.enrich.engine.apply_blocks`) gives the results back in chunk order
+engine (:func:`~standgrid.enrichment.engine.apply_blocks`) gives the results back in chunk order
 and they are merged here: the raster windows pasted, the stand samples and trees collected.
 """
 
@@ -15,7 +15,7 @@ import functools
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any
 
-from standgrid.enrich.stands import StandAggregator, StandSample
+from standgrid.enrichment.stands import StandAggregator, StandSample
 from standgrid.errors import EnrichError
 
 if TYPE_CHECKING:
@@ -24,8 +24,8 @@ if TYPE_CHECKING:
 
     from standgrid.catalog import Catalog, Transaction
     from standgrid.engine import Execution
-    from standgrid.enrich.chunks import ChunkCell
-    from standgrid.enrich.options import EnrichOptions
+    from standgrid.enrichment.chunks import ChunkCell
+    from standgrid.enrichment.options import EnrichOptions
     from standgrid.partition.protocol import Partition
     from standgrid.rastergrid import RasterGrid
 
@@ -37,7 +37,7 @@ class AppliedEpoch:
     grid: RasterGrid
     #: the cells' polygons (in cell id order)
     polygons: list[Any]
-    #: the epoch's rasters on ``grid`` (:data:`~standgrid.enrich.block.RASTERS`)
+    #: the epoch's rasters on ``grid`` (:data:`~standgrid.enrichment.block.RASTERS`)
     rasters: dict[str, NDArray[Any]]
     #: every cell's sample and every coarser stand's
     samples: list[StandSample]
@@ -60,16 +60,16 @@ def catalog_apply(
     import shapely
 
     from standgrid.catalog.partition import catalog_partition
-    from standgrid.enrich.block import BlockContext
-    from standgrid.enrich.chunks import BYTES_PER_POINT, chunk_side, plan_chunks
-    from standgrid.enrich.engine import (
+    from standgrid.enrichment.block import BlockContext
+    from standgrid.enrichment.chunks import BYTES_PER_POINT, chunk_side, plan_chunks
+    from standgrid.enrichment.engine import (
         CHUNK_SHARE,
         BlockJob,
         EpochRasters,
         apply_blocks,
         chunks_at_once,
     )
-    from standgrid.enrich.terrain import GROUND_HALO_M, ground_reach
+    from standgrid.enrichment.terrain import GROUND_HALO_M, ground_reach
     from standgrid.rastergrid import RasterGrid
 
     executor, progress = execution.executor, execution.progress
@@ -147,7 +147,7 @@ def catalog_apply(
 def _epoch_cells(catalog: Catalog, epoch: str, partition: Partition) -> list[ChunkCell]:
     """The epoch's cells (in cell id order) from the index's ``cells`` layer."""
     from standgrid.catalog.index import CatalogIndex
-    from standgrid.enrich.chunks import cells_of
+    from standgrid.enrichment.chunks import cells_of
 
     cells = CatalogIndex(catalog).read("cells", epoch).sort_values("cell_id")
     return cells_of(cells, partition.stand_of)

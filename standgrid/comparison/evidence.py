@@ -132,7 +132,7 @@ def confirm_change(
     trees_from: pd.DataFrame,
     trees_to: pd.DataFrame,
 ) -> pd.DataFrame:
-    """The matched-tree table (after :func:`standgrid.compare.coverage.mark_unobserved`)
+    """The matched-tree table (after :func:`standgrid.comparison.coverage.mark_unobserved`)
     with its removed and new trees on co-observed ground checked against the other survey:
     a tree found from its stem against the other survey's points (:func:`stems_standing`),
     one found from its top alone against its canopy height model (:func:`canopy_standing`).

@@ -15,7 +15,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from standgrid.enrich.ground import PointsLike, as_xyz, one_thread
+from standgrid.enrichment.ground import PointsLike, as_xyz, one_thread
 from standgrid.errors import EnrichError
 from standgrid.rastergrid import BLOCK, RasterGrid, blocks
 

@@ -4,9 +4,9 @@ Outputs of :func:`write_change_outputs`:
 
 - ``<out_dir>/stand_changes.{csv,parquet}``: one row per stand, keyed by
   ``cell_id, epoch_from, epoch_to`` (first columns), every change column of
-  :func:`standgrid.compare.stands.compare_stands`; no geometry.
+  :func:`standgrid.comparison.stands.compare_stands`; no geometry.
 - ``<out_dir>/tree_changes.{csv,parquet}`` (with tree changes): one row per tree of
-  :func:`standgrid.compare.trees.match_trees`, plus ``epoch_from, epoch_to``.
+  :func:`standgrid.comparison.trees.match_trees`, plus ``epoch_from, epoch_to``.
 - GeoPackage layers ``stand_changes`` (cell polygons + change columns; default QGIS style:
   diverging RdBu ramp centred on 0 over ``style_field``) and ``tree_changes`` (points at the
   tree positions; default style: one colour per ``status``): :func:`change_layers`, written
@@ -29,7 +29,7 @@ import numpy as np
 import pandas as pd
 
 from standgrid._atomic import atomic_output
-from standgrid.compare.trees import ChangeInputError, TreeMatches
+from standgrid.comparison.trees import ChangeInputError, TreeMatches
 
 STAND_LAYER = "stand_changes"
 TREE_LAYER = "tree_changes"

@@ -1,7 +1,7 @@
 """One identity per tree across epochs: trees of two surveys paired one to one, and each
 epoch's trees given the ``tree_uid`` of the same tree in the catalog's other epochs.
 
-Pairing rule (shared with ``standgrid compare``, :mod:`standgrid.compare.trees`): a tree of
+Pairing rule (shared with ``standgrid compare``, :mod:`standgrid.comparison.trees`): a tree of
 the earlier epoch and one of the later are candidates within ``max_distance`` (2 m) of each
 other that did not lose more than ``max_height_loss`` (30 %) of their height; the cost of a
 pair is ``(d / max_distance)^2 + (loss / max_height_loss)^2 + (gain / max_height_gain)^2``,

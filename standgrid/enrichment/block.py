@@ -7,7 +7,7 @@ classification, height and tree id, their raster pixels (DTM, CHM, density, obse
 ground), the trees whose top stands in them and one :class:`StandSample` per cell. The
 buffer must be wider than a crown and than twice the coverage closing radius, and the
 chunk brings the lowest points of a ring out to the halo of every ground square it
-touches (:func:`standgrid.enrich.terrain.ground_reach`), so that the owned part is what one
+touches (:func:`standgrid.enrichment.terrain.ground_reach`), so that the owned part is what one
 computation over the whole epoch gives, whatever the chunk layout (docs/METRICS.md,
 "Chunks").
 """
@@ -20,14 +20,14 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 from numpy.typing import NDArray
 
-from standgrid.enrich.stands import StandSample, measure_heights, stem_xy
+from standgrid.enrichment.stands import StandSample, measure_heights, stem_xy
 from standgrid.rastergrid import RasterGrid
 
 if TYPE_CHECKING:
     import pandas as pd
 
-    from standgrid.enrich.chunks import ChunkPoints
-    from standgrid.enrich.options import EnrichOptions
+    from standgrid.enrichment.chunks import ChunkPoints
+    from standgrid.enrichment.options import EnrichOptions
 
 GROUND = 2
 OTHER = 1
@@ -61,9 +61,9 @@ class BlockResult:
 
 def enrich_block(points: ChunkPoints, context: BlockContext) -> BlockResult:
     """Ground, heights, coverage, trees and rasters of one chunk (see the module doc)."""
-    from standgrid.enrich.coverage import cells_mask, coverage_from_hits
-    from standgrid.enrich.rasters import chm_from_pixels, density_from_pixels, pixel_counts
-    from standgrid.enrich.terrain import classify_terrain
+    from standgrid.enrichment.coverage import cells_mask, coverage_from_hits
+    from standgrid.enrichment.rasters import chm_from_pixels, density_from_pixels, pixel_counts
+    from standgrid.enrichment.terrain import classify_terrain
 
     chunk, xyz, options = points.chunk, points.xyz, context.options
     buffered = _window(context.grid, chunk.buffered_bounds)
@@ -142,7 +142,7 @@ def _trees(
     and every block point's tree id."""
     import shapely
 
-    from standgrid.enrich.trees import segment_trees
+    from standgrid.enrichment.trees import segment_trees
 
     chunk, options = points.chunk, context.options
     segmentation = segment_trees(

@@ -2,7 +2,7 @@
 
 Two campaigns rarely cover the same ground. Tree counts, basal area and harvest are
 compared only where both observed the ground (the intersection of their
-``rasters/<epoch>/observed.tif`` masks, :mod:`standgrid.enrich.coverage`):
+``rasters/<epoch>/observed.tif`` masks, :mod:`standgrid.enrichment.coverage`):
 
 - a tree removed or new outside that ground was not seen twice: ``unobserved``, neither
   harvest nor ingrowth;
@@ -25,9 +25,9 @@ import numpy as np
 import pandas as pd
 from numpy.typing import NDArray
 
-from standgrid.compare.rasters import read_aligned_pair
-from standgrid.enrich.coverage import polygon_mask_area, sample_mask
-from standgrid.enrich.stands import INSUFFICIENT_COVERAGE
+from standgrid.comparison.rasters import read_aligned_pair
+from standgrid.enrichment.coverage import polygon_mask_area, sample_mask
+from standgrid.enrichment.stands import INSUFFICIENT_COVERAGE
 from standgrid.rastergrid import RasterGrid
 
 UNOBSERVED = "unobserved"
@@ -50,7 +50,7 @@ class CoObserved:
     def within(self, *polygon_sets: list[Any]) -> CoObserved:
         """Only the pixels inside one polygon of every set (e.g. each epoch's measured
         cells)."""
-        from standgrid.enrich.coverage import cells_mask
+        from standgrid.enrichment.coverage import cells_mask
 
         mask = self.mask.copy()
         for polygons in polygon_sets:
@@ -135,8 +135,8 @@ def stand_change(
 
 def _per_ha(dbh_m: pd.Series, area_m2: float) -> dict[str, float]:
     """stems/ha, basal area/ha and QMD of trees with these DBHs over ``area_m2`` (the stand
-    metrics' own formulas, :func:`standgrid.enrich.metrics.tree_metrics`)."""
-    from standgrid.enrich.metrics import tree_metrics
+    metrics' own formulas, :func:`standgrid.enrichment.metrics.tree_metrics`)."""
+    from standgrid.enrichment.metrics import tree_metrics
 
     if area_m2 <= 0:
         return dict.fromkeys(CO_OBSERVED_METRICS, math.nan)

@@ -1,6 +1,6 @@
 """Ground and terrain of a block of points (what enrichment builds everything else on).
 
-1. CSF (:func:`standgrid.enrich.ground.classify_ground`) runs over the lowest return of
+1. CSF (:func:`standgrid.enrichment.ground.classify_ground`) runs over the lowest return of
    each quarter cloth cell (the returns the cloth comes to rest on: a 30-40x smaller cloud
    for dense scans), square by square: :data:`GROUND_SQUARE_M` squares on a fixed lattice
    (the stand grid's), each seen with :data:`GROUND_HALO_M` around it;
@@ -29,8 +29,8 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
-from standgrid.enrich.ground import classify_ground
-from standgrid.enrich.rasters import dtm_from_ground, heights_and_pixels
+from standgrid.enrichment.ground import classify_ground
+from standgrid.enrichment.rasters import dtm_from_ground, heights_and_pixels
 from standgrid.errors import EnrichError, StandgridError
 from standgrid.partition.lattice import lattice_index, lowest_in_squares, square_keys
 from standgrid.rastergrid import RasterGrid

@@ -18,7 +18,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 from numpy.typing import NDArray
 
-from standgrid.align.graph import (
+from standgrid.alignment.graph import (
     GNSS_BIAS_M,
     Prior,
     gnss_prior,
@@ -26,8 +26,8 @@ from standgrid.align.graph import (
     solve,
     unplaced_prior,
 )
-from standgrid.align.landmarks import Landmarks, mission_landmarks
-from standgrid.align.register import RegisterOptions, Registration, register, register_global
+from standgrid.alignment.landmarks import Landmarks, mission_landmarks
+from standgrid.alignment.register import RegisterOptions, Registration, register, register_global
 from standgrid.engine import SILENT, Progress
 from standgrid.errors import NotGeoreferencedError
 
@@ -45,7 +45,7 @@ MISFIT_SIGMAS = 3.0
 
 @dataclass(frozen=True)
 class AlignOptions:
-    """How to align (see :mod:`standgrid.align`)."""
+    """How to align (see :mod:`standgrid.alignment`)."""
 
     register: RegisterOptions = field(default_factory=RegisterOptions)
     #: Horizontal RMS (m) of the GNSS bias per recording assumed for non-RTK fixes.

@@ -38,9 +38,9 @@ import numpy as np
 import pandas as pd
 from numpy.typing import NDArray
 
-from standgrid.enrich.crowns import CrownOptions, VoxelGraph
-from standgrid.enrich.ground import PointsLike, as_xyz
-from standgrid.enrich.rasters import chm
+from standgrid.enrichment.crowns import CrownOptions, VoxelGraph
+from standgrid.enrichment.ground import PointsLike, as_xyz
+from standgrid.enrichment.rasters import chm
 from standgrid.errors import EnrichError
 from standgrid.features.circles import (
     CircleFit,
@@ -385,10 +385,10 @@ def _tops_of_stems(
     plus ``1 - dbh / the stoutest candidate's``, plus ``(gap / 10 m)^2`` (at most 1) for
     the open air between where the trunk was last seen and the crown's lowest point over
     it, and each unpaired stem or top 1 (the optimal assignment of
-    :mod:`standgrid.enrich.identity`): a crown goes to the stem it grows from and stands
+    :mod:`standgrid.enrichment.identity`): a crown goes to the stem it grows from and stands
     over, the stoutest under it whose trunk runs into it; a small tree under a big crown
     and a snag under another tree's crown keep none."""
-    from standgrid.enrich.identity import solve_pairs
+    from standgrid.enrichment.identity import solve_pairs
 
     n = len(stems)
     stem_top = np.full(n, -1, dtype=np.int64)

@@ -1,7 +1,7 @@
 """One ``stand_metrics`` row per stand: the coverage rule, then the area- and tree-based sets.
 
 A stand (a 20 m cell, or a 1 ha stand aggregating its cells) is measured over its
-**observed** ground (:mod:`standgrid.enrich.coverage`): heights of the points standing on
+**observed** ground (:mod:`standgrid.enrichment.coverage`): heights of the points standing on
 it, trees whose stem stands on it, per-hectare values divided by its area. A stand whose
 observed fraction or point density is below :class:`CoverageRule` gets null metrics with
 ``null_reason`` starting ``insufficient_coverage``, never a number from a sliver of data.
@@ -18,7 +18,7 @@ import numpy as np
 import pandas as pd
 from numpy.typing import NDArray
 
-from standgrid.enrich.metrics import fmt_break
+from standgrid.enrichment.metrics import fmt_break
 from standgrid.errors import EnrichError
 
 INSUFFICIENT_COVERAGE = "insufficient_coverage"
@@ -206,7 +206,7 @@ def measure_heights(
 
 
 def _measure_batch(samples: list[StandSample], height_break: float, sort_heights: bool) -> None:
-    from standgrid.enrich.metrics import area_metrics_sorted
+    from standgrid.enrichment.metrics import area_metrics_sorted
 
     keys = np.arange(len(samples), dtype=np.int64)
     # float32 heights (as enrichment holds them) stay float32: the metrics sort them as such
@@ -231,7 +231,7 @@ def _measure_batch(samples: list[StandSample], height_break: float, sort_heights
 def _batch_rows(
     samples: list[StandSample], rule: CoverageRule, height_break: float, tops: bool
 ) -> list[dict[str, Any]]:
-    from standgrid.enrich.metrics import tree_metrics
+    from standgrid.enrichment.metrics import tree_metrics
 
     keys = np.arange(len(samples), dtype=np.int64)
     with_trees = [(k, s.trees) for k, s in enumerate(samples) if len(s.trees)]

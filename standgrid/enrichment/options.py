@@ -5,7 +5,7 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
-from standgrid.enrich.stands import CoverageRule
+from standgrid.enrichment.stands import CoverageRule
 from standgrid.errors import OptionError
 
 #: field -> (least value, greatest value, least excluded): every number's range.

@@ -6,8 +6,8 @@ import math
 from dataclasses import dataclass
 from pathlib import Path
 
-from standgrid.enrich.options import check_range
-from standgrid.enrich.stands import CoverageRule
+from standgrid.enrichment.options import check_range
+from standgrid.enrichment.stands import CoverageRule
 from standgrid.errors import OptionError
 
 

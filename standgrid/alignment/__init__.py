@@ -6,7 +6,7 @@ registration (:mod:`.register`, small_gicp for the fine step) -> graph and margi
 (:mod:`.graph`) -> corrected placements.
 """
 
-from standgrid.align.register import RegisterOptions, Registration
-from standgrid.align.stage import AlignOptions, AlignResult, align_missions
+from standgrid.alignment.register import RegisterOptions, Registration
+from standgrid.alignment.stage import AlignOptions, AlignResult, align_missions
 
 __all__ = ["AlignOptions", "AlignResult", "RegisterOptions", "Registration", "align_missions"]

@@ -27,7 +27,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from standgrid.align.register import Registration, rot2d
+from standgrid.alignment.register import Registration, rot2d
 
 FloatArray = NDArray[np.float64]
 

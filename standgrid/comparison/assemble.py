@@ -9,8 +9,8 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from standgrid.compare.coverage import CO_OBSERVED_METRICS
-from standgrid.enrich.stands import SAMPLE_COLUMNS, TREE_COUNT_COLUMNS
+from standgrid.comparison.coverage import CO_OBSERVED_METRICS
+from standgrid.enrichment.stands import SAMPLE_COLUMNS, TREE_COUNT_COLUMNS
 
 if TYPE_CHECKING:
     import geopandas as gpd

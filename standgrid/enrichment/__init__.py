@@ -13,8 +13,8 @@
   buffered chunks' layout; :mod:`.engine`: runs them and gives results back in order).
 """
 
-from standgrid.enrich.ground import as_xyz, classify_ground
-from standgrid.enrich.metrics import (
+from standgrid.enrichment.ground import as_xyz, classify_ground
+from standgrid.enrichment.metrics import (
     DEFAULT_STRATA,
     QUANTILE_PERCENTS,
     REASON_NO_DBH,
@@ -26,13 +26,13 @@ from standgrid.enrich.metrics import (
     strata_columns,
     tree_metrics,
 )
-from standgrid.enrich.rasters import (
+from standgrid.enrichment.rasters import (
     chm,
     density,
     dtm_from_ground,
     height_above_ground,
 )
-from standgrid.enrich.trees import (
+from standgrid.enrichment.trees import (
     TREE_COLUMNS,
     CircleFit,
     TreeSegmentation,
@@ -77,9 +77,3 @@ __all__ = [
     "write_cog",
     "xy_from_tree_id",
 ]
-
-from standgrid._stage import make_callable
-
-#: Until this package is renamed (a noun), importing it rebinds ``standgrid.enrich``: it calls
-#: the front door's :func:`standgrid.api.enrich`.
-make_callable(__name__, "standgrid.api:enrich")

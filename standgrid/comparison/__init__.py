@@ -8,10 +8,10 @@
 Annualisation everywhere: change / years, years = days between the epochs' dates / 365.25.
 """
 
-from standgrid.compare.rasters import NODATA, ChmDifference, chm_difference
-from standgrid.compare.report import ChangeOutputs, write_change_outputs
-from standgrid.compare.stands import assign_stands, check_same_grid, compare_stands
-from standgrid.compare.trees import (
+from standgrid.comparison.rasters import NODATA, ChmDifference, chm_difference
+from standgrid.comparison.report import ChangeOutputs, write_change_outputs
+from standgrid.comparison.stands import assign_stands, check_same_grid, compare_stands
+from standgrid.comparison.trees import (
     ChangeInputError,
     TreeMatches,
     interval_years,
@@ -32,9 +32,3 @@ __all__ = [
     "match_trees",
     "write_change_outputs",
 ]
-
-from standgrid._stage import make_callable
-
-#: Until this package is renamed (a noun), importing it rebinds ``standgrid.compare``: it calls
-#: the front door's :func:`standgrid.api.compare`.
-make_callable(__name__, "standgrid.api:compare")

@@ -4,7 +4,7 @@ Definitions
 -----------
 Annualisation
     ``<metric>_per_year = <metric>_delta / years`` with years = days between the two epochs'
-    dates / 365.25 (:func:`standgrid.compare.trees.interval_years`).
+    dates / 365.25 (:func:`standgrid.comparison.trees.interval_years`).
 
 Stands in one epoch only
     Listed, never dropped: ``presence`` is ``"both"``, ``"from_only"`` or ``"to_only"``, the
@@ -33,7 +33,7 @@ from typing import Any
 import numpy as np
 import pandas as pd
 
-from standgrid.compare.trees import ChangeInputError, DateLike, TreeMatches, interval_years
+from standgrid.comparison.trees import ChangeInputError, DateLike, TreeMatches, interval_years
 from standgrid.errors import FormatError, GridMismatchError
 
 KEY = "cell_id"

@@ -1,4 +1,4 @@
-"""An epoch as buffered chunks, the layout of :func:`~standgrid.enrich.apply.catalog_apply`
+"""An epoch as buffered chunks, the layout of :func:`~standgrid.enrichment.apply.catalog_apply`
 (lidR's): plan, read, rewrite.
 
 A *chunk* owns a block of cells (a square of ``side`` metres of the stand grid, or the

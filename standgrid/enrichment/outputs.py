@@ -16,7 +16,7 @@ if TYPE_CHECKING:
     import pandas as pd
 
     from standgrid.catalog import Catalog, Transaction
-    from standgrid.enrich.coverage import Coverage
+    from standgrid.enrichment.coverage import Coverage
     from standgrid.rastergrid import RasterGrid
 
 
@@ -35,7 +35,7 @@ def write_raster(
 
 def write_coverage(txn: Transaction, rel: str, coverage: Coverage) -> None:
     """An epoch's coverage mask (in its grid's CRS), with its QGIS style."""
-    from standgrid.enrich.coverage import MASK_NODATA
+    from standgrid.enrichment.coverage import MASK_NODATA
     from standgrid.export.styles import raster_style_path, write_raster_style
     from standgrid.geotiff import write_cog
 

@@ -45,7 +45,7 @@ Statuses
     ``grown``: matched (re-observed). ``new``: only in *to* (ingrowth, or a tree hidden
     before). ``removed``: only in *from*, i.e. not re-observed within ``max_distance``:
     harvested or fallen. A stand's harvest count is the number of removed trees whose
-    position lies inside the stand (see :mod:`standgrid.compare.stands`).
+    position lies inside the stand (see :mod:`standgrid.comparison.stands`).
 """
 
 from __future__ import annotations
@@ -57,7 +57,7 @@ from typing import Any, TypeAlias
 import numpy as np
 import pandas as pd
 
-from standgrid.enrich.identity import pair_trees
+from standgrid.enrichment.identity import pair_trees
 from standgrid.errors import FormatError, StandgridError
 
 DAYS_PER_YEAR = 365.25
@@ -215,7 +215,7 @@ def match_trees(
     Tree tables need ``tree_id``, ``x``, ``y`` (float64, projected metres) and ``height_m``;
     ``dbh_m`` and ``crown_area_m2`` are compared when present. Other columns are ignored.
     ``by_uid``: the trees of one catalog's epochs, paired by their ``tree_uid`` (given by the
-    same rule when each epoch was enriched, :mod:`standgrid.enrich.identity`).
+    same rule when each epoch was enriched, :mod:`standgrid.enrichment.identity`).
     """
     if not max_distance > 0 or not 0 < max_height_loss < 1 or not max_height_gain > 0:
         raise ChangeInputError(

@@ -20,11 +20,11 @@ from numpy.typing import NDArray
 
 from standgrid.engine.budget import bounded_map, release_memory
 from standgrid.engine.executor import SerialExecutor, run_limited
-from standgrid.enrich.block import RASTERS, BlockContext, BlockResult, enrich_block, paste
+from standgrid.enrichment.block import RASTERS, BlockContext, BlockResult, enrich_block, paste
 
 if TYPE_CHECKING:
     from standgrid.engine import Executor, Progress
-    from standgrid.enrich.chunks import Chunk
+    from standgrid.enrichment.chunks import Chunk
     from standgrid.rastergrid import RasterGrid
 
 
@@ -57,15 +57,15 @@ class BlockJob:
     @property
     def working_bytes(self) -> int:
         """The peak bytes this job's computation is estimated to hold."""
-        from standgrid.enrich.chunks import BYTES_PER_POINT
+        from standgrid.enrichment.chunks import BYTES_PER_POINT
 
         return self.chunk.block_points * BYTES_PER_POINT
 
 
 def run_block(job: BlockJob) -> BlockResult:
     """Read, enrich and rewrite one chunk's tiles (runs on a worker)."""
-    from standgrid.enrich.chunks import read_chunk, write_chunk_tiles
-    from standgrid.enrich.terrain import ring_bin
+    from standgrid.enrichment.chunks import read_chunk, write_chunk_tiles
+    from standgrid.enrichment.terrain import ring_bin
 
     grid = job.context.grid
     points = read_chunk(
@@ -105,7 +105,7 @@ class EpochRasters:
         return cls(grid, arrays)
 
     def paste(self, chunk: Chunk, result: BlockResult) -> None:
-        from standgrid.enrich.coverage import cells_mask
+        from standgrid.enrichment.coverage import cells_mask
 
         owned = cells_mask(result.window, [c.polygon for c in chunk.cells])
         for name, values in result.rasters.items():

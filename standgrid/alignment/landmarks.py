@@ -190,7 +190,7 @@ def landmarks_key(mission: Mission) -> str:
     and the pose graph's."""
     import hashlib
 
-    digest = hashlib.sha256(b"standgrid.alignment.landmarks/1")
+    digest = hashlib.sha256(b"standgrid.align.landmarks/1")  # the cache's tag, kept
     digest.update(f"{mission.name};".encode())
     files = [p.path for p in mission.payloads]
     graph = getattr(mission.graph, "source", None)

@@ -123,6 +123,14 @@ def catalog_apply(
         f"{epoch}: {len(cells)} cells in {len(chunks)} chunks of up to {side:g} m "
         f"(+{halo:g} m buffer) on {executor.workers} worker(s)"
     )
+    densest = max(c.block_points for c in chunks)
+    if densest > block_points * chunks_at_once(executor):  # one cell and its buffer: no less
+        progress.status(
+            f"{epoch}: the densest chunk ({densest:,} points with its buffer) needs about "
+            f"{densest * BYTES_PER_POINT >> 20} MB, more than the budget's share for chunks "
+            f"({int(budget.bytes * CHUNK_SHARE) >> 20} MB of {budget.bytes >> 20}): the peak "
+            "will exceed the memory budget (a chunk holds at least one cell)"
+        )
     stand_of = {c.cell_id: c.stand_id for c in cells}
     stand_ids = sorted({s for s in stand_of.values() if s is not None})
     # side of the coarser stands (1 ha: 100 m) the cells aggregate into

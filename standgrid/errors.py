@@ -225,6 +225,16 @@ class CatalogConflictError(CatalogError):
     """The catalog changed after it was opened; a transaction on the stale view is refused."""
 
 
+class PayloadNotTiledError(CatalogError, LookupError):
+    """A payload whose layers were asked for is not in the catalog (its mission was not
+    tiled into it, from that folder, or the payload is no cloud)."""
+
+
+class StaleLayersError(CatalogError):
+    """A payload's layers cannot be the catalog's: its epoch is not enriched, was re-tiled
+    since, or the payload's points no longer match its tiles (changed since tiled)."""
+
+
 class PoorGeoreferenceError(GeoreferenceError):
     """A georeference fit whose residuals are far beyond the fixes' stated accuracy."""
 

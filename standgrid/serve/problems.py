@@ -21,6 +21,7 @@ from standgrid.errors import (
     NotGeoreferencedError,
     OutputExistsError,
     PayloadNotFoundError,
+    StaleLayersError,
     StandgridError,
 )
 from standgrid.mission.live import LiveMissionConflictError
@@ -48,7 +49,9 @@ def status_of(exc: StandgridError) -> int:
         return exc.status
     if isinstance(exc, CatalogBusyError):
         return 503
-    conflicts = LiveMissionConflictError | CatalogConflictError | OutputExistsError
+    conflicts = (
+        LiveMissionConflictError | CatalogConflictError | OutputExistsError | StaleLayersError
+    )
     if isinstance(exc, conflicts | NotGeoreferencedError | InsufficientGnssError):
         return 409  # (the last two: not yet, send GNSS fixes first)
     if isinstance(exc, EpochNotFoundError | PayloadNotFoundError | LookupError | FileNotFoundError):

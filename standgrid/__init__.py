@@ -39,15 +39,23 @@ wait_passively()
 from standgrid.errors import OptionError, StandgridError  # noqa: E402
 
 if TYPE_CHECKING:
-    from standgrid.api import align, compare, enrich, run, status, tile
+    from standgrid.api import (
+        align,
+        compare,
+        enrich,
+        retrieve_payload_by_gnss,
+        retrieve_payload_by_pose,
+        retrieve_payload_by_type,
+        run,
+        status,
+        tile,
+    )
     from standgrid.catalog.store import Catalog, open_catalog
     from standgrid.comparison.options import CompareOptions
     from standgrid.engine.execution import Execution
     from standgrid.engine.progress import Progress
     from standgrid.enrichment.options import EnrichOptions
-    from standgrid.georeference.retrieval import retrieve_payload_by_gnss
     from standgrid.mission.model import open_mission
-    from standgrid.mission.retrieval import retrieve_payload_by_pose, retrieve_payload_by_type
     from standgrid.partition.grid import StandGrid
     from standgrid.pointcloud import PointCloud
     from standgrid.stamps import Stamp
@@ -93,9 +101,10 @@ _LAZY: dict[str, tuple[str, str]] = {
     "CompareOptions": ("standgrid.comparison.options", "CompareOptions"),
     "Execution": ("standgrid.engine.execution", "Execution"),
     "Progress": ("standgrid.engine.progress", "Progress"),
-    "retrieve_payload_by_type": ("standgrid.mission.retrieval", "retrieve_payload_by_type"),
-    "retrieve_payload_by_pose": ("standgrid.mission.retrieval", "retrieve_payload_by_pose"),
-    "retrieve_payload_by_gnss": ("standgrid.georeference.retrieval", "retrieve_payload_by_gnss"),
+    # the retrievals, which with a catalog give each payload with its layers (standgrid.api)
+    "retrieve_payload_by_type": ("standgrid.api", "retrieve_payload_by_type"),
+    "retrieve_payload_by_pose": ("standgrid.api", "retrieve_payload_by_pose"),
+    "retrieve_payload_by_gnss": ("standgrid.api", "retrieve_payload_by_gnss"),
     # the verbs (typed in standgrid.api); the stage packages are nouns (tiling, enrichment,
     # comparison, alignment), so importing one never rebinds a verb
     **{verb: ("standgrid.api", verb) for verb in ("tile", "align", "enrich", "compare", "run")},

@@ -1,6 +1,8 @@
 """The retrieval API over HTTP: the catalog's missions, searched by site, date range, robot
 and sensors; a mission's summary; its payloads by type, by SLAM pose and by GNSS position;
-a payload's cloud as LAZ.
+a payload's cloud as LAZ; a payload with its layers from the catalog (per-point ground
+class, height above ground and tree id, its trees and terrain:
+:mod:`standgrid.enrichment.payload_layers`), as LAZ or JSON.
 
 The logic is the library's (:func:`~standgrid.mission.collection.metadata_matches`,
 :func:`~standgrid.mission.retrieval.retrieve_payload_by_type` / ``_by_pose``,
@@ -278,3 +280,71 @@ def _write_local(points: Any, path: Path) -> None:
     ):
         fields["intensity_raw"] = fields.pop("intensity")
     write_cloud(type(points)(points.xyz, fields), path)
+
+
+@router.get(
+    "/{name}/payloads/{payload}",
+    summary="A payload cloud's record, or with ?layers= the payload with its layers from the "
+    "catalog (LAZ with the per-point layers, or JSON with its trees and terrain)",
+    response_class=Response,
+    responses={200: {"content": {"application/vnd.laszip": {}, "application/json": {}}}},
+)
+def payload(
+    request: Request,
+    name: str,
+    payload: str,
+    layers: Annotated[
+        str | None,
+        Query(description="comma separated: ground, height, trees, terrain (or all)"),
+    ] = None,
+    format: Literal["laz", "json"] = "laz",
+    frame: Literal["crs", "payload"] = "crs",
+    points: Annotated[bool, Query(description="JSON: every point's xyz and layers too")] = False,
+) -> Response:
+    """``payload``: its stamp ``<sec>_<nsec>`` or its ``payload_id`` in the catalog. Without
+    ``layers``: the payload's record. With ``layers``: the layers exactly as the catalog's
+    tiles hold them for its points (read at each request: a re-tiled or re-enriched epoch is
+    never served stale): LAZ (``frame`` crs: coordinates as the tiles store them; payload:
+    the payload frame) with ``classification``, ``height_above_ground``, ``tree_id``; or
+    JSON (``format=json``): counts, the tree list and the terrain window. An unknown layer
+    is a 400, an epoch not enriched or re-tiled since a 409."""
+    from standgrid.enrichment.payload_layers import layers_of, parse_layers, write_layered_cloud
+    from standgrid.mission.retrieval import payload_records
+
+    wanted = None if layers is None else parse_layers(layers)  # 400 before any work
+    record = _record(request, name)
+    mission = _opened(record)
+    found = _payload(mission, record, payload)
+    if wanted is None:
+        return _payloads(request, record, payload_records([found]))
+    (layered,) = layers_of(request.app.state.catalog_root, mission, [found], wanted)
+    headers = {"Cache-Control": "no-cache",
+               "X-Standgrid-Enrichment": str(layered.enrichment_id)}  # fmt: skip
+    if format == "json":
+        return JSONResponse(layered.to_dict(points=points), headers=headers)
+    stamp = f"{found.stamp.sec}_{found.stamp.nsec:09d}"
+    with tempfile.TemporaryDirectory(prefix="standgrid-serve-") as folder:
+        path = write_layered_cloud(layered, Path(folder) / "layers.laz", frame=frame)
+        data = path.read_bytes()
+    headers["Content-Disposition"] = f'inline; filename="{record.name}_{stamp}_layers.laz"'
+    return Response(data, media_type="application/vnd.laszip", headers=headers)
+
+
+def _payload(mission: Any, record: MissionRecord, ident: str) -> Any:
+    """The mission's payload cloud of a stamp ``<sec>_<nsec>`` or a catalog ``payload_id``."""
+    from standgrid.georeference.placement import cloud_payloads
+    from standgrid.tiling.mission_rows import PAYLOAD_INDEX_BITS
+
+    clouds = cloud_payloads(mission)
+    match = _STAMP.match(ident)
+    if match is not None:
+        wanted = int(match[1]) * 1_000_000_000 + int(match[2])
+        found = next((p for p in clouds if p.stamp.ns == wanted), None)
+    elif ident.isdigit() and len(ident) <= 12:
+        number, index = divmod(int(ident), 1 << PAYLOAD_INDEX_BITS)
+        found = clouds[index] if number == record.number and index < len(clouds) else None
+    else:
+        raise Problem(400, f"payload {ident[:40]!r} is not <sec>_<nsec, 9 digits> or a payload_id")
+    if found is None:
+        raise Problem(404, f"mission {record.name!r} has no payload cloud {ident}")
+    return found

@@ -563,13 +563,15 @@ def _mission_record(catalog: Catalog, mission: Mission) -> MissionRecord:
 
 def _to_catalog(record: MissionRecord, mission: Mission, crs: str) -> ToCatalog:
     """The recipe the tiler placed the mission's points with, from its catalog record."""
+    from standgrid.crs import CRS
     from standgrid.georeference.fit import GeoreferenceFit
     from standgrid.georeference.placement import Placement, projected_crs
 
     held = dict(record.georeference or {})
     if held.get("method") == "projected" or not held:
-        source = held.get("source_crs") or projected_crs(mission, crs)
-        return Placement(None, str(source)).to_catalog(crs, mission.name)
+        given = held.get("source_crs")
+        source = CRS.of(given) if given else projected_crs(mission, crs)
+        return Placement(None, source).to_catalog(crs, mission.name)
     try:
         transform = np.array(held["T_enu_map"], dtype=np.float64).reshape(4, 4)
         lla = tuple(float(v) for v in held["lla_ref"])

@@ -214,7 +214,7 @@ def test_placement_offset_of_a_known_shift(tmp_path: Path) -> None:
 def test_a_negative_tolerance_is_refused(tmp_path: Path) -> None:
     from standgrid.errors import OptionError, TilingError
 
-    with pytest.raises(OptionError, match="placement_tolerance: -0.01"):  # the options refuse it
+    with pytest.raises(OptionError, match=r"placement_tolerance: -0\.01"):  # the options refuse it
         tile_missions([SOURCE], tmp_path / "c", TileOptions(placement_tolerance=-0.01))
     assert not (tmp_path / "c").exists()
     from standgrid.partition import StandGrid

@@ -107,18 +107,19 @@ def _trajectory(
 
     from standgrid.crs import CRS
 
-    stamps, positions = mission.trajectory() if mission.graph is not None else ([], [])
-    positions = np.asarray(positions, dtype=np.float64).reshape(-1, 3)
+    positions = np.zeros((0, 3))
+    if mission.graph is not None:  # without one, no node (payload poses are not a track)
+        positions = mission.trajectory()[1]
     out: dict[str, Any] = {
         "mission": mission.name,
-        "nodes": len(stamps),
+        "nodes": len(positions),
         "placed": to_catalog is not None,
         "reason": reason,
         "crs": CRS.of(catalog.crs).text,
         "map": _round(positions, PROJECTED_DECIMALS),
         "line": None,
     }
-    if to_catalog is not None and len(stamps) > 1:
+    if to_catalog is not None and len(positions) > 1:
         xyz = to_catalog.projector.exact(positions)
         out["line"] = _placed(shapely.LineString(xyz[:, :2]), catalog)
     return out

@@ -66,7 +66,7 @@ def create_app(
         raise TilingError(f"placement tolerance must be a finite number of metres >= 0, "
                           f"got {placement_tolerance!r}")  # fmt: skip
 
-    from standgrid.serve import files, ingest, ogc, problems, viewer
+    from standgrid.serve import events, files, ingest, ogc, problems, viewer
     from standgrid.serve import missions as retrieval
     from standgrid.serve.auth import WriteGuard
     from standgrid.serve.limits import BodyLimit
@@ -98,6 +98,7 @@ def create_app(
         try:
             yield
         finally:
+            hub.close()
             for worker in workers.values():
                 worker.shutdown()
 
@@ -111,6 +112,8 @@ def create_app(
     app.state.placement_tolerance = placement_tolerance
     for name, worker in workers.items():
         setattr(app.state, name, worker)
+    hub = events.EventHub()
+    app.state.events = hub  # the live event stream (serve.events), closed as the server stops
     app.state.mission_turns = {}  # mission name -> [lock, users] (serve.ingest._turn)
     default_missions = root.with_name(f"{root.name}-missions")
     app.state.missions_root = Path(missions).absolute() if missions else default_missions
@@ -119,6 +122,7 @@ def create_app(
     app.include_router(files.router)
     app.include_router(retrieval.router)
     app.include_router(ingest.router)
+    app.include_router(events.router)
 
     viewer.install(app, description={
         "title": "standgrid",
@@ -127,6 +131,8 @@ def create_app(
             {"rel": "ogc", "href": "/ogc", "title": "OGC API - Features"},
             {"rel": "files", "href": "/files", "title": "catalog files (range requests)"},
             {"rel": "missions", "href": "/missions", "title": "retrieval API"},
+            {"rel": "events", "href": "/events", "type": "text/event-stream",
+             "title": "live events (Server-Sent Events)"},
             {"rel": "service-desc", "href": "/openapi.json", "title": "OpenAPI 3.1"},
             {"rel": "service-doc", "href": "/docs", "title": "API documentation"},
             {"rel": "viewer", "href": "/", "type": "text/html", "title": "web viewer"},

@@ -24,9 +24,11 @@ from fastapi import APIRouter, Query, Request
 from fastapi.responses import JSONResponse
 from pydantic import BaseModel, Field
 
+from standgrid.serve.events import EventHub
+from standgrid.serve.live import tile_with_cells
 from standgrid.serve.problems import Problem
 from standgrid.serve.snapshot import snapshot
-from standgrid.serve.workers import WorkerProcess, live_mission, tile_mission
+from standgrid.serve.workers import WorkerProcess, live_mission
 
 router = APIRouter(prefix="/missions", tags=["Ingest (bearer token)"])
 _NAME = re.compile(r"^[A-Za-z0-9][A-Za-z0-9._-]{0,127}$")
@@ -104,11 +106,42 @@ async def _turn(request: Request, live: Any) -> AsyncIterator[None]:
             del turns[name]
 
 
-async def _write(request: Request, live: Any, method: str, *args: Any) -> Any:
-    """``live.<method>(*args)`` in the mission folders' worker process, in the mission's turn."""
+async def _write(request: Request, live: Any, method: str, *args: Any,
+                 announce: tuple[int, int] | bool = False) -> Any:  # fmt: skip
+    """``live.<method>(*args)`` in the mission folders' worker process, in the mission's turn.
+    Once it stored something (outcome ``created`` or ``stored``), ``announce`` publishes the
+    mission's trajectory (True) and the payload of that stamp (a stamp), still in the turn:
+    a mission's events come in the order its writes were stored."""
     writer: WorkerProcess = request.app.state.mission_writer
     async with _turn(request, live):
-        return await writer.call(live_mission, str(live.path.absolute()), method, *args)
+        result = await writer.call(live_mission, str(live.path.absolute()), method, *args)
+        outcome = result[0] if isinstance(result, tuple) else result
+        if announce is not False and outcome in ("created", "stored"):
+            await _announce(request, live, None if announce is True else announce)
+        return result
+
+
+async def _announce(request: Request, live: Any, stamp: tuple[int, int] | None) -> None:
+    """Publish the ``payload`` event of ``stamp`` (when given) and the ``trajectory`` event
+    of the mission, described in a writer worker (:func:`~standgrid.serve.live.describe`).
+    Described it cannot be (its worker failed): the payload is announced unplaced, without
+    geometry, and the trajectory not at all. Call it in the mission's turn, once stored."""
+    from standgrid.serve.live import describe
+
+    hub: EventHub = request.app.state.events
+    writer: WorkerProcess = request.app.state.mission_writer
+    root = str(request.app.state.catalog_root)
+    try:
+        told = await writer.call(describe, str(live.path.absolute()), root, stamp)
+    except Problem as exc:
+        if stamp is not None:
+            hub.publish("payload", {"mission": live.path.name,
+                                    "payload": f"{stamp[0]}_{stamp[1]:09d}", "placed": False,
+                                    "reason": f"not described: {exc.detail}"})  # fmt: skip
+        return
+    if told["payload"] is not None:
+        hub.publish("payload", told["payload"])
+    hub.publish_changed("trajectory", live.path.name, told["trajectory"])
 
 
 def _answer(outcome: str, status_created: int = 201, **extra: Any) -> JSONResponse:
@@ -136,6 +169,13 @@ async def create(request: Request, mission: NewMission) -> JSONResponse:
     )  # fmt: skip
     live.path.parent.mkdir(parents=True, exist_ok=True)
     outcome = await _write(request, live, "create", metadata)
+    if outcome == "created":
+        hub: EventHub = request.app.state.events
+        hub.publish("mission", {
+            "mission": mission.name, "date": mission.date.isoformat(), "robot": mission.robot,
+            "place": mission.place,
+            "gnss": None if mission.gnss is None else mission.gnss.model_dump(),
+        })  # fmt: skip
     return _answer(outcome, name=mission.name)
 
 
@@ -179,7 +219,9 @@ async def payload(
     if not data:
         raise Problem(400, "empty body: send the cloud file")
     at = Stamp(int(match[1]), int(match[2]))
-    outcome = await _write(request, live, "add_payload", at, data, format, _pose(pose))
+    outcome = await _write(
+        request, live, "add_payload", at, data, format, _pose(pose), announce=(at.sec, at.nsec)
+    )
     return _answer(outcome, stamp=stamp, bytes=len(data))
 
 
@@ -190,7 +232,7 @@ async def payload(
 )
 async def graph(request: Request, name: str) -> JSONResponse:
     live = _live(request, name)
-    outcome = await _write(request, live, "set_graph", await request.body())
+    outcome = await _write(request, live, "set_graph", await request.body(), announce=True)
     return _answer(outcome, status_created=200)
 
 
@@ -202,7 +244,7 @@ async def graph(request: Request, name: str) -> JSONResponse:
 )  # fmt: skip
 async def gnss(request: Request, name: str) -> JSONResponse:
     live = _live(request, name)
-    outcome, new = await _write(request, live, "add_gnss", await request.body())
+    outcome, new = await _write(request, live, "add_gnss", await request.body(), announce=True)
     return _answer(outcome, status_created=200, new_fixes=new)
 
 
@@ -234,7 +276,11 @@ async def tile(
     tolerance = None if exact else request.app.state.placement_tolerance
     folder = str(live.path.absolute())
     async with _turn(request, live):
-        report = await tiler.call(tile_mission, folder, str(root), tolerance)
+        report, cells = await tiler.call(tile_with_cells, folder, str(root), tolerance)
+        hub: EventHub = request.app.state.events
+        tiled = report["missions"].get(name, {})
+        hub.publish("tiled", {"mission": name, "epoch": tiled.get("epoch"), "epochs": cells,
+                              "placement": tiled.get("placement")})  # fmt: skip
     return JSONResponse(_public(request, report))
 
 

@@ -78,6 +78,14 @@ class Server(uvicorn.Server):
             if self._on_started is not None:
                 self._on_started(self.base_url)
 
+    async def shutdown(self, sockets: Any = None) -> None:
+        """End the app's event streams first (:mod:`standgrid.serve.events`): uvicorn then
+        waits only for the requests in flight, not for clients that would listen forever."""
+        hub = getattr(getattr(self.config.app, "state", None), "events", None)
+        if hub is not None:
+            hub.close()
+        await super().shutdown(sockets)
+
 
 def config(app: Any, host: str, port: int, **options: Any) -> uvicorn.Config:
     """uvicorn settings of the service (no access log by default: stderr is for progress;

@@ -1,6 +1,7 @@
 // The standgrid viewer: a 2-D stand map (OpenLayers) over the service's OGC API and COGs,
-// and a 3-D view of a clicked cell's, tree's or payload's points (cell3d.js). Everything it loads comes from
-// the service that serves it (no internet), except an optional user-given basemap.
+// and a 3-D view of a clicked cell's, tree's or payload's points (cell3d.js), with what the robots
+// send drawn as it arrives (live.js). Everything it loads comes from the service that serves it
+// (no internet), except an optional user-given basemap.
 import 'ol/ol.css';
 import './style.css';
 import Map from 'ol/Map.js';
@@ -20,6 +21,7 @@ import proj4 from 'proj4';
 import { basemapSource } from './basemap.js';
 import { openCellView, openPayloadView } from './cell3d.js';
 import { startDecoder } from './copcstream.js';
+import { startLive } from './live.js';
 import { renderStandPage } from './stand.js';
 import { RDBU, VIRIDIS, classBreaks, divergingBreaks, formatValue, metricLabel, metricName, metricUnit, rampColours } from './scales.js';
 
@@ -163,6 +165,10 @@ function treeStyle(feature, resolution) {
 
 // --- legend ---------------------------------------------------------------------------------
 function renderLegend(features) {
+  if (!state.metric) { // no stand metrics (yet): nothing to colour by
+    $('legend').innerHTML = '';
+    return;
+  }
   const unit = metricUnit(state.metric);
   const c = state.change;
   const column = c ? `${state.metric}_delta` : state.metric;
@@ -219,7 +225,8 @@ async function main() {
     return;
   }
   const format = new GeoJSON({ dataProjection, featureProjection: dataProjection });
-  const has = (name) => config.layers.includes(name);
+  // the layers the catalog has now (a live tiling may add some: refreshed by reload())
+  const has = (name) => state.config.layers.includes(name);
   const load = async (name, params) => (
     has(name) ? format.readFeatures(await collection(name, crsUri, params)) : []);
 
@@ -257,6 +264,31 @@ async function main() {
   });
   map.getControls().extend([]);
 
+  // What a tiling (or a resync of the live view) changed: the catalog's layers read again,
+  // in place (the arrays are the ones the clicks search), and the epochs it now has.
+  async function reload(event) {
+    const fresh = await getJson('/viewer/config.json');
+    Object.assign(config, fresh);
+    const [m, c, t, p] = await Promise.all([load('stand_metrics'), load('cells'), load('trajectories'), load('payloads')]);
+    for (const [array, features, source] of [[metrics, m, metricSource], [cells, c, cellSource],
+      [trajectories, t, trajectoryLayer.getSource()], [payloads, p, payloadLayer.getSource()]]) {
+      array.splice(0, array.length, ...features);
+      source.clear(true);
+      source.addFeatures(features);
+    }
+    const labels = config.epochs.map((e) => e.label);
+    if (!labels.includes(state.epoch) && !state.change) state.epoch = labels.includes(event?.epoch) ? event.epoch : labels[0];
+    epochOptions();
+    await showEpoch();
+    restyle();
+    const shown = cells.filter((f) => f.get('epoch') === state.epoch).length;
+    $('status').textContent = `${shown} cells in ${state.epoch} · updated live (${event?.mission || 'resync'})`;
+  }
+  const live = startLive({
+    map, projection: dataProjection, inCatalogCrs: Boolean(config.crs.code), follow: !cells.length,
+    onTiled: reload, onResync: reload, indicator: $('live'),
+  });
+
   // Layer switches.
   const switches = [
     ['CHM (canopy height)', chmLayer, 'chm'], ['20 m cells: metric', cellLayer, 'cells'],
@@ -286,10 +318,14 @@ async function main() {
   if (!columns.includes(state.metric)) state.metric = columns[0];
   $('metric').innerHTML = columns.map((c) => `<option value="${c}">${metricLabel(c)}</option>`).join('');
   $('metric').value = state.metric;
-  $('epoch').innerHTML = config.epochs.map((e) => `<option value="${e.label}">${e.label}`
-    + `${e.date ? ` (${e.date})` : ''}</option>`).join('')
-    + config.comparisons.map((c) => `<option value="change:${c.key}">change ${c.from} → ${c.to}</option>`).join('');
+  function epochOptions() {
+    $('epoch').innerHTML = config.epochs.map((e) => `<option value="${e.label}">${e.label}`
+      + `${e.date ? ` (${e.date})` : ''}</option>`).join('')
+      + config.comparisons.map((c) => `<option value="change:${c.key}">change ${c.from} → ${c.to}</option>`).join('');
+    $('epoch').value = state.change ? `change:${state.change.key}` : state.epoch;
+  }
   state.epoch = config.epochs[0]?.label;
+  epochOptions();
   state.change = null;
 
   // What a control started (read by idle(), so a test waits for it).
@@ -413,7 +449,10 @@ async function main() {
   const extent = createEmpty();
   for (const f of cells.length ? cells : metrics) extend(extent, f.getGeometry().getExtent());
   if (!isEmpty(extent)) view.fit(extent, { padding: [20, 20, 20, 20] });
-  else view.setCenter([0, 0]).setZoom(2);
+  else {  // an empty catalog: anywhere, until the live view shows what arrives
+    view.setCenter([0, 0]);
+    view.setZoom(2);
+  }
 
   // Click a cell: its attributes and its points in 3-D.
   async function openCell(cellId, tree = null) {
@@ -507,6 +546,7 @@ async function main() {
   // Test and automation hook (read by tests/test_viewer_browser.py).
   const idle = async () => {
     await pending;
+    await live.pending;
     await new Promise((resolve) => { map.once('rendercomplete', () => resolve()); map.render(); });
   };
   await idle(); // the first map: cells, stands, CHM (performance.now() counts from navigation)
@@ -519,7 +559,19 @@ async function main() {
   $('status').textContent = `${metrics.filter((f) => f.get('level') === 0 && f.get('epoch') === state.epoch).length} cells · `
     + `map in ${(navigationMs / 1000).toFixed(2)} s, trees in ${(treesMs / 1000).toFixed(2)} s`;
   window.standgrid = {
-    state, map, idle,
+    state, map, idle, live,
+    // What the live view drew: the ids (mission/stamp) of the payloads placed on the map, and
+    // the map coordinates of a payload's position and of its footprint's ring.
+    livePayloads: () => live.payloads.map((p) => `${p.mission}/${p.payload}`),
+    liveGeometry: (id) => {
+      const f = live.source.getFeatureById(id);
+      return f ? f.getGeometry().getCoordinates() : null;
+    },
+    livePixel: (id) => {
+      const f = live.source.getFeatureById(`${id}#position`);
+      return f ? map.getPixelFromCoordinate(f.getGeometry().getCoordinates()) : null;
+    },
+    cellIds: (epoch) => cells.filter((f) => f.get('epoch') === epoch).map((f) => f.get('cell_id')),
     firstMapMs: navigationMs,
     treesMs,
     loadedCells: (epoch) => metrics.filter((f) => f.get('level') === 0 && f.get('epoch') === epoch).length,

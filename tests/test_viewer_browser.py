@@ -1,7 +1,7 @@
 """The web viewer in a real browser: headless Chromium (Debian's ``chromium``) driven by
 Playwright against a real ``standgrid serve`` on the bundled enriched pair. Skipped when
 chromium or the python ``playwright`` package is missing. Screenshots go to
-``$STANDGRID_SCREENSHOTS`` (default ``/work/notes``) when that folder exists."""
+``$STANDGRID_SCREENSHOTS`` when it is set and that folder exists."""
 
 from __future__ import annotations
 
@@ -26,7 +26,8 @@ ARGS = ["--headless", "--no-sandbox", "--disable-gpu", "--disable-background-net
         "--disable-component-update", "--disable-sync", "--no-first-run",
         # WebGL (the CHM layer, the 3-D view) on the CPU: SwiftShader, as --disable-gpu asks
         "--use-angle=swiftshader", "--enable-unsafe-swiftshader"]  # fmt: skip
-SHOTS = Path(os.environ.get("STANDGRID_SCREENSHOTS", "/work/notes"))
+_SHOTS = os.environ.get("STANDGRID_SCREENSHOTS")
+SHOTS = Path(_SHOTS) if _SHOTS else None
 
 
 @pytest.fixture(scope="module")
@@ -71,7 +72,7 @@ class Page:
         return png
 
     def shot(self, name: str) -> None:
-        if SHOTS.is_dir():
+        if SHOTS is not None and SHOTS.is_dir():
             self.page.screenshot(path=str(SHOTS / f"web-{name}.png"))
 
 
@@ -266,7 +267,7 @@ def test_viewer_map_epochs_metrics_and_cell_view(
     metrics_text = stand.page.inner_text("table.metrics")
     assert f"{row['basal_area_m2_ha']:.1f}" in metrics_text
     assert stand.page.locator("section.plots svg").count() == 2
-    if SHOTS.is_dir():
+    if SHOTS is not None and SHOTS.is_dir():
         stand.page.screenshot(path=str(SHOTS / "web-stand.png"), full_page=True)
     assert stand.errors == [] and stand.failed == []
 
@@ -285,7 +286,7 @@ def _keep_shot(view: Page, tmp_path: Path, name: str) -> Path:
     """A screenshot in the test's tmp folder, copied to ``SHOTS`` when that folder exists."""
     path = tmp_path / f"web-{name}.png"
     view.page.screenshot(path=str(path))
-    if SHOTS.is_dir():
+    if SHOTS is not None and SHOTS.is_dir():
         shutil.copy(path, SHOTS / path.name)
     return path
 
@@ -918,7 +919,7 @@ def test_stand_page_of_an_uncompared_catalog(browser: Any, uncompared: Any) -> N
         png = legends.nth(k).screenshot()
         for rgb in EPOCH_COLOURS:
             assert _has_colour(png, rgb), (k, rgb)
-    if SHOTS.is_dir():
+    if SHOTS is not None and SHOTS.is_dir():
         stand.page.screenshot(path=str(SHOTS / "web-stand-uncompared.png"), full_page=True)
 
     # counts as integers: the "trees" and "returns" rows hold no decimals

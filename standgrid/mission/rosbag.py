@@ -473,9 +473,13 @@ class _GridMaps:
         for conn, _, raw in reader.messages(connections=conns):
             msg = _decode(reader, raw, conn, paths)
             report.grid_maps += 1
+            ns = _stamp_ns(gridmap_header(msg))
+            if self.layer not in msg.layers:  # a wrong layer name: said at once
+                where = f"{self.topic} at {Stamp.from_ns(ns)}"
+                raise BagFormatError(f"{where}: no GridMap layer {self.layer!r} "
+                                     f"(layers: {list(msg.layers)})", path=paths[0])  # fmt: skip
             if not len(stamps):
                 continue
-            ns = _stamp_ns(gridmap_header(msg))
             k = int(np.argmin(np.abs(stamps - ns)))
             gap = abs(int(stamps[k]) - ns)
             if gap <= self.max_gap_s * 1e9 and (k not in best or gap < best[k][0]):
@@ -485,7 +489,10 @@ class _GridMaps:
             header = gridmap_header(msg)
             ns, frame = _stamp_ns(header), header.frame_id.lstrip("/")
             where = f"{self.topic} at {Stamp.from_ns(ns)}"
-            heights, res, corner, centre = gridmap_layer(msg, self.layer, where)
+            try:
+                heights, res, corner, centre = gridmap_layer(msg, self.layer, where)
+            except BagFormatError as exc:  # said of the bag
+                raise BagFormatError(exc.message, path=paths[0]) from exc
             to_map = self.frame_pose(frame, ns)
             if to_map is None:
                 report.notes.append(f"{where}: no pose of frame {frame!r}: map left out")

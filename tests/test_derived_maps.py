@@ -278,3 +278,44 @@ def test_enrich_reports_the_mosaic_minus_the_dtm(tiled: Any) -> None:
     assert stats["rmse_m"] < 0.3 and stats["mad_m"] < 0.1
     assert (out / paths.raster("2024", "elevation_map")).is_file()  # enrich keeps it
     print(f"mosaic - DTM: {stats}")
+
+
+def test_voxel_grids_are_placed_and_maps_leave_with_their_mission(
+    sim_maps: Any, tmp_path: Path
+) -> None:
+    """A voxel grid's bounds land around its payload's pose in the catalog CRS; an OctoMap is
+    kept (listed without bounds); re-tiling the mission without maps removes its map and the
+    epoch's mosaic."""
+    from standgrid.api import tile
+    from standgrid.catalog import Catalog
+    from standgrid.catalog.index import CatalogIndex
+
+    folder = tmp_path / sim_maps.mission_dir.name
+    shutil.copytree(sim_maps.mission_dir, folder)
+    stamps = [p.stamp for p in open_mission(folder).payloads]
+    volumetric = folder / "payloads" / "volumetric"
+    write_voxel_npz(volumetric / stamps[0].filename("voxels", "npz"),
+                    np.zeros((4, 4, 4)), 0.5, (-1.0, -1.0, -1.0))  # fmt: skip
+    (volumetric / stamps[1].filename("voxels", "bt")).write_bytes(b"# Octomap OcTree binary\n")
+    out = tmp_path / "catalog"
+    report = tile([folder], out)
+    maps = report.missions[folder.name]["derived_maps"]
+    assert maps["elevation_maps"] == len(stamps)
+    voxels, octomap = maps["volumetric_maps"]
+    assert octomap["kind"] == "octomap" and octomap["bounds"] is None
+    assert voxels["kind"] == "occupancy" and voxels["shape"] == [4, 4, 4]
+    lo, hi = np.array(voxels["bounds"][:3]), np.array(voxels["bounds"][3:])
+    rows = CatalogIndex(Catalog.open(out)).read("payloads")
+    row = rows[rows["stamp_nsec"] == stamps[0].nsec].iloc[0]
+    np.testing.assert_allclose((lo + hi) / 2, [row["x"], row["y"], row["z"]], atol=0.01)
+    assert 1.9 < hi[2] - lo[2] < 2.2 and 1.99 < hi[0] - lo[0] < 2.83  # a 2 m cube, yawed
+    record = Catalog.open(out).mission_records[folder.name]
+    assert record.extra["derived_maps"]["elevation_maps"] == len(stamps)
+
+    shutil.rmtree(folder / "payloads" / "elevation")
+    shutil.rmtree(volumetric)
+    again = tile([folder], out)
+    assert "derived_maps" not in again.missions[folder.name]
+    assert "elevation_map" not in again.epochs["2024"]
+    assert not (out / paths.mission_elevation_map("2024", folder.name)).exists()
+    assert not (out / paths.raster("2024", paths.ELEVATION_MAP)).exists()

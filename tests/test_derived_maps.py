@@ -296,13 +296,23 @@ def test_voxel_grids_are_placed_and_maps_leave_with_their_mission(
     volumetric = folder / "payloads" / "volumetric"
     write_voxel_npz(volumetric / stamps[0].filename("voxels", "npz"),
                     np.zeros((4, 4, 4)), 0.5, (-1.0, -1.0, -1.0))  # fmt: skip
-    (volumetric / stamps[1].filename("voxels", "bt")).write_bytes(b"# Octomap OcTree binary\n")
+    bt = volumetric / stamps[1].filename("voxels", "bt")
+    try:  # a real OctoMap where octomap-python is installed, else one it would not read
+        import octomap
+
+        tree = octomap.OcTree(0.2)
+        tree.updateNode(np.array([0.1, 0.1, 0.1]), True)
+        assert tree.writeBinary(str(bt).encode())
+    except ImportError:
+        octomap = None
+        bt.write_bytes(b"# Octomap OcTree binary file\n")
     out = tmp_path / "catalog"
     report = tile([folder], out)
     maps = report.missions[folder.name]["derived_maps"]
     assert maps["elevation_maps"] == len(stamps)
-    voxels, octomap = maps["volumetric_maps"]
-    assert octomap["kind"] == "octomap" and octomap["bounds"] is None
+    voxels, octree = maps["volumetric_maps"]
+    assert octree["kind"] == "octomap"
+    assert octree["bounds"] is None if octomap is None else len(octree["bounds"]) == 6
     assert voxels["kind"] == "occupancy" and voxels["shape"] == [4, 4, 4]
     lo, hi = np.array(voxels["bounds"][:3]), np.array(voxels["bounds"][3:])
     rows = CatalogIndex(Catalog.open(out)).read("payloads")
@@ -319,3 +329,26 @@ def test_voxel_grids_are_placed_and_maps_leave_with_their_mission(
     assert "elevation_map" not in again.epochs["2024"]
     assert not (out / paths.mission_elevation_map("2024", folder.name)).exists()
     assert not (out / paths.raster("2024", paths.ELEVATION_MAP)).exists()
+
+
+def test_octomaps_read_with_octomap_python(tmp_path: Path) -> None:
+    """``.bt`` and ``.ot`` files written by OctoMap itself (octomap-python, the optional
+    ``octomap`` extra) read back: occupied leaves, box, the sidecar's pose."""
+    octomap = pytest.importorskip("octomap")
+    tree = octomap.OcTree(0.2)
+    for point in ((0.05, 0.05, 0.05), (1.05, 0.45, 0.25)):
+        tree.updateNode(np.array(point), True)
+    tree.updateInnerOccupancy()
+    assert tree.writeBinary(str(tmp_path / "v.bt").encode())
+    assert tree.write(str(tmp_path / "v.ot").encode())
+    (tmp_path / "v.json").write_text(json.dumps({"pose": _yaw(0, (5.0, 0.0, 0.0)).tolist()}))
+    for name in ("v.bt", "v.ot"):
+        octree = read_voxel_grid(tmp_path / name)
+        assert octree.kind == "octomap" and octree.voxel_size == pytest.approx(0.2)
+        occupied = octree.occupied_points()
+        np.testing.assert_allclose(sorted(occupied.tolist()),
+                                   [[5.1, 0.1, 0.1], [6.1, 0.5, 0.3]], atol=1e-6)  # fmt: skip
+        np.testing.assert_allclose(octree.corners().min(axis=0), [5.0, 0.0, 0.0], atol=1e-6)
+    (tmp_path / "bad.bt").write_bytes(b"garbage")
+    with pytest.raises(DerivedMapFormatError, match="OctoMap binary"):
+        read_voxel_grid(tmp_path / "bad.bt")

@@ -88,12 +88,40 @@ class VoxelGrid:
         voxel of the surface) in the base frame ``(N, 3)``."""
         with np.errstate(invalid="ignore"):
             if self.kind == "occupancy":
-                hit = self.values > threshold
+                hit = np.asarray(self.values > threshold)
             else:
-                hit = np.abs(self.values) <= self.voxel_size / 2
+                hit = np.asarray(np.abs(self.values) <= self.voxel_size / 2)
         ijk = np.argwhere(hit).astype(np.float64)
         pts = np.asarray(self.origin, np.float64) + (ijk + 0.5) * self.voxel_size
         return _transformed(pts, self.pose)
+
+
+@dataclass(frozen=True, eq=False)
+class OctreeMap:
+    """An OctoMap (``.bt``/``.ot``, read with octomap-python): its occupied leaves' centres
+    and its metric box in the grid frame (``pose``: T_base_grid, from a JSON sidecar)."""
+
+    occupied: NDArray[np.float64]
+    resolution: float
+    box: tuple[tuple[float, float, float], tuple[float, float, float]]
+    pose: NDArray[np.float64] = field(default_factory=_identity)
+    path: Path | None = None
+    kind: Literal["octomap"] = "octomap"
+
+    @property
+    def voxel_size(self) -> float:
+        return self.resolution
+
+    def corners(self) -> NDArray[np.float64]:
+        """The octree's metric box's 8 corners in the base frame ``(8, 3)``."""
+        lo, hi = self.box
+        box = np.array([[x, y, z] for x in (lo[0], hi[0]) for y in (lo[1], hi[1])
+                        for z in (lo[2], hi[2])])  # fmt: skip
+        return _transformed(box, self.pose)
+
+    def occupied_points(self) -> NDArray[np.float64]:
+        """Centres of the occupied leaves in the base frame ``(N, 3)``."""
+        return _transformed(self.occupied, self.pose)
 
 
 def _transformed(pts: NDArray[np.float64], pose: NDArray[np.float64]) -> NDArray[np.float64]:
@@ -122,18 +150,14 @@ def read_elevation_map(path: str | Path) -> ElevationMap:
     )
 
 
-def read_voxel_grid(path: str | Path) -> VoxelGrid:
+def read_voxel_grid(path: str | Path) -> VoxelGrid | OctreeMap:
     """A volumetric map file: ``.npz`` (``occupancy`` or ``tsdf``, ``voxel_size``, ``origin``,
-    optional ``pose``). OctoMap files (``.bt``/``.ot``) are kept with their payload but not
-    read: no maintained OctoMap reader is a dependency of standgrid."""
+    optional ``pose``), or an OctoMap ``.bt``/``.ot`` (with octomap-python, the optional
+    ``octomap`` extra; its optional JSON sidecar of the same stem gives ``pose``)."""
     p = Path(path)
     suffix = p.suffix.lower().lstrip(".")
     if suffix in ("bt", "ot"):
-        raise DerivedMapFormatError(
-            "OctoMap files are kept with their payload but not read (no maintained OctoMap "
-            "reader is installed): convert it to a voxel grid .npz (docs/FORMATS.md)",
-            path=p,
-        )
+        return _octomap(p)
     if suffix != "npz":
         raise DerivedMapFormatError("not a volumetric map format (.npz, .bt, .ot)", path=p)
     data = _npz(p)
@@ -153,6 +177,42 @@ def read_voxel_grid(path: str | Path) -> VoxelGrid:
     origin = _vector(data, "origin", 3, p)
     return VoxelGrid(values.astype(np.float32), size, (origin[0], origin[1], origin[2]), kind,
                      _pose(data.get("pose"), p), p)  # fmt: skip
+
+
+def _octomap(p: Path) -> OctreeMap:
+    try:
+        import octomap
+    except ImportError:
+        raise DerivedMapFormatError(
+            "reading an OctoMap needs octomap-python (pip install 'standgrid[octomap]'); the "
+            "file is kept with its payload",
+            path=p,
+        ) from None
+    if not p.is_file():
+        raise DerivedMapFormatError("no such file", path=p)
+    if p.suffix.lower() == ".bt":
+        tree = octomap.OcTree(0.1)  # the file's resolution replaces it
+        if not tree.readBinary(str(p).encode()):
+            raise DerivedMapFormatError("not an OctoMap binary (.bt) file", path=p)
+    else:
+        try:
+            tree = octomap.OcTree.read(str(p).encode())
+        except OSError as exc:
+            raise DerivedMapFormatError(f"not an OctoMap (.ot) file: {exc}", path=p) from exc
+    occupied, _ = tree.extractPointCloud()
+    lo = tuple(float(v) for v in tree.getMetricMin())
+    hi = tuple(float(v) for v in tree.getMetricMax())
+    sidecar = p.with_suffix(".json")
+    pose = np.eye(4)
+    if sidecar.is_file():
+        try:
+            meta = json.loads(sidecar.read_text())
+        except (OSError, ValueError) as exc:
+            raise DerivedMapFormatError(f"unreadable JSON sidecar: {exc}", path=sidecar) from exc
+        pose = _pose(meta.get("pose") if isinstance(meta, dict) else None, sidecar)
+    return OctreeMap(np.asarray(occupied, np.float64).reshape(-1, 3),
+                     float(tree.getResolution()), ((lo[0], lo[1], lo[2]), (hi[0], hi[1], hi[2])),
+                     pose, p)  # fmt: skip
 
 
 def _npz(p: Path) -> dict[str, Any]:
@@ -194,9 +254,9 @@ def _pose(value: Any, p: Path) -> NDArray[np.float64]:
         pose = np.asarray(value, np.float64)
     except (TypeError, ValueError) as exc:
         raise DerivedMapFormatError("'pose' must be a 4x4 matrix", path=p) from exc
-    rigid = pose.shape == (4, 4) and np.isfinite(pose).all()
-    rigid = rigid and np.allclose(pose[3], [0, 0, 0, 1])
-    rigid = rigid and np.allclose(pose[:3, :3] @ pose[:3, :3].T, np.eye(3), atol=1e-6)
+    rigid = pose.shape == (4, 4) and bool(np.isfinite(pose).all())
+    rigid = rigid and bool(np.allclose(pose[3], [0, 0, 0, 1]))
+    rigid = rigid and bool(np.allclose(pose[:3, :3] @ pose[:3, :3].T, np.eye(3), atol=1e-6))
     if not rigid:
         raise DerivedMapFormatError("'pose' must be a rigid 4x4 transform (T_base_grid)", path=p)
     return pose
@@ -296,11 +356,15 @@ def write_elevation_npz(
     """Write an elevation map ``.npz`` (the layout :func:`read_elevation_map` reads)."""
     p = Path(path)
     p.parent.mkdir(parents=True, exist_ok=True)
-    extra = {} if pose is None else {"pose": np.asarray(pose, np.float64)}
+    arrays: dict[str, Any] = {
+        "heights": np.asarray(heights, np.float32),
+        "resolution": np.float64(resolution),
+        "origin": np.asarray(origin, np.float64),
+    }
+    if pose is not None:
+        arrays["pose"] = np.asarray(pose, np.float64)
     with p.open("wb") as f:
-        np.savez_compressed(f, heights=np.asarray(heights, np.float32),
-                            resolution=np.float64(resolution),
-                            origin=np.asarray(origin, np.float64), **extra)  # fmt: skip
+        np.savez_compressed(f, **arrays)
     return p
 
 
@@ -315,9 +379,13 @@ def write_voxel_npz(
     """Write a voxel grid ``.npz`` (the layout :func:`read_voxel_grid` reads)."""
     p = Path(path)
     p.parent.mkdir(parents=True, exist_ok=True)
-    extra = {} if pose is None else {"pose": np.asarray(pose, np.float64)}
+    arrays: dict[str, Any] = {
+        kind: np.asarray(values, np.float32),
+        "voxel_size": np.float64(voxel_size),
+        "origin": np.asarray(origin, np.float64),
+    }
+    if pose is not None:
+        arrays["pose"] = np.asarray(pose, np.float64)
     with p.open("wb") as f:
-        np.savez_compressed(f, **{kind: np.asarray(values, np.float32)},
-                            voxel_size=np.float64(voxel_size),
-                            origin=np.asarray(origin, np.float64), **extra)  # fmt: skip
+        np.savez_compressed(f, **arrays)
     return p

@@ -28,7 +28,7 @@ from standgrid.errors import (
     StandgridError,
 )
 from standgrid.geometry import Matrix4, invert_pose
-from standgrid.mission.derived_maps import ElevationMap, VoxelGrid
+from standgrid.mission.derived_maps import ElevationMap, OctreeMap, VoxelGrid
 from standgrid.mission.layout import CloudFolder, Frame, MissionLayout, discover_layout, layer_name
 from standgrid.mission.metadata import MissionMetadata, metadata_from_folder_name, read_metadata
 from standgrid.mission.posegraph import PoseGraph, Vertex
@@ -304,8 +304,8 @@ class Mission:
             raise MissionConsistencyError("payload has no elevation map", path=payload.path)
         return read_elevation_map(payload.elevation_map)
 
-    def load_volumetric_map(self, payload: Payload) -> VoxelGrid:
-        """The payload's volumetric map (a voxel grid; OctoMap files are kept, not read)."""
+    def load_volumetric_map(self, payload: Payload) -> VoxelGrid | OctreeMap:
+        """The payload's volumetric map (a voxel grid, or an OctoMap read with octomap-python)."""
         from standgrid.mission.derived_maps import read_voxel_grid
 
         if payload.volumetric_map is None:
@@ -611,7 +611,10 @@ def _with_derived_maps(
                 msg = f"map matches no payload stamp {f.stamp}"
                 _report(OrphanPayloadError(msg, path=f.path), strict, problems)
                 continue
-            out[k] = replace(out[k], **{key: f.path})
+            if key == "elevation_map":
+                out[k] = replace(out[k], elevation_map=f.path)
+            else:
+                out[k] = replace(out[k], volumetric_map=f.path)
     return out
 
 

@@ -204,7 +204,7 @@ def _enrich_epoch(
     write_coverage(txn, paths.raster(epoch, "observed"), coverage)
     against_dtm = _elevation_map_vs_dtm(txn, epoch, arrays["dtm"], grid)
     observed_m2 = float(sum(s.observed_m2 for s in samples))  # each cell's, clipped to it
-    summary = {
+    summary: dict[str, Any] = {
         "cells": len(polygons),
         "cells_without_ground": sum(s.no_ground for s in samples),
         "chunks": applied.chunks,

@@ -25,7 +25,7 @@ from standgrid.rastergrid import RasterGrid
 
 if TYPE_CHECKING:
     from standgrid.catalog import Catalog, Transaction
-    from standgrid.crs import CRS
+    from standgrid.crs import CRS, CRSLike
     from standgrid.georeference.placement import ToCatalog
     from standgrid.mission.derived_maps import ElevationMap
     from standgrid.mission.model import Mission, Payload
@@ -64,11 +64,14 @@ def has_maps(mission: Mission) -> bool:
 def place_mission_maps(
     mission: Mission,
     to_catalog: ToCatalog,
-    crs: CRS,
+    crs: CRSLike,
     origin: tuple[float, float],
 ) -> PlacedMaps:
     """Place every derived map of ``mission``'s payloads into ``crs`` (its elevation maps
     resampled and averaged on the raster lattice through ``origin``)."""
+    from standgrid.crs import CRS
+
+    crs = CRS.of(crs)
     placed = PlacedMaps()
     pieces: list[tuple[RasterGrid, NDArray[np.float64]]] = []
     for payload in mission.payloads:
@@ -134,15 +137,24 @@ def _place_volume(
     to_catalog: ToCatalog,
     placed: PlacedMaps,
 ) -> None:
+    import importlib.util
+
+    from standgrid.mission.derived_maps import VoxelGrid
+
     path = payload.volumetric_map
     entry: dict[str, Any] = {"stamp": str(payload.stamp), "file": str(path)}
-    if path is not None and path.suffix.lower() in (".bt", ".ot"):
-        entry["kind"] = "octomap"
-        entry["bounds"] = None  # kept, not read (docs/FORMATS.md)
+    octomap = path is not None and path.suffix.lower() in (".bt", ".ot")
+    if octomap and importlib.util.find_spec("octomap") is None:
+        entry.update(kind="octomap", bounds=None)  # kept: no OctoMap reader installed
+        placed.notes.append(f"{path}: kept, not placed (octomap-python is not installed)")
         placed.volumetric.append(entry)
         return
     grid = mission.load_volumetric_map(payload)
-    entry.update(kind=grid.kind, voxel_size=grid.voxel_size, shape=list(grid.values.shape))
+    entry.update(kind=grid.kind, voxel_size=grid.voxel_size)
+    if isinstance(grid, VoxelGrid):
+        entry["shape"] = list(grid.values.shape)
+    else:
+        entry["occupied"] = len(grid.occupied)
     if pose is None:
         entry["bounds"] = None
     else:
@@ -289,6 +301,7 @@ def stage_epoch_mosaic(
     """``rasters/<epoch>/elevation_map.tif`` (and its style): the mean of the epoch's
     missions' placed elevation maps (those on disk not deleted, and ``staged``); removed
     when there are none. Returns its summary (None: no map)."""
+    from standgrid.crs import CRS
     from standgrid.export.styles import raster_style_path, write_raster_style
     from standgrid.geotiff import NODATA, read_raster, write_cog
 
@@ -307,7 +320,7 @@ def stage_epoch_mosaic(
             txn.delete(target)
             txn.delete(paths.raster_style(epoch, paths.ELEVATION_MAP))
         return None
-    crs = catalog.crs
+    crs = CRS.of(catalog.crs)
     grid0 = pieces[0][0]
     origin = (grid0.x0, grid0.y0)  # every piece lies on the one lattice
     grid, heights = mean_mosaic(pieces, origin, crs)

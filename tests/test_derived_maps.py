@@ -280,6 +280,19 @@ def test_enrich_reports_the_mosaic_minus_the_dtm(tiled: Any) -> None:
     print(f"mosaic - DTM: {stats}")
 
 
+def test_tiling_an_unchanged_epoch_again_reports_the_mosaic_minus_its_dtm(
+    sim_maps: Any, tiled: Any
+) -> None:
+    """Nothing moved: the DTM still holds, so tiling says the difference at once."""
+    from standgrid.api import tile
+
+    out, _ = tiled
+    enriched = json.loads((out / paths.CATALOG_FILE).read_text())["epochs"]["2024"]
+    again = tile([sim_maps.mission_dir], out)
+    mosaic = again.epochs["2024"]["elevation_map"]
+    assert mosaic["minus_dtm"] == enriched["enrichment"]["elevation_map_minus_dtm"]
+
+
 def test_voxel_grids_are_placed_and_maps_leave_with_their_mission(
     sim_maps: Any, tmp_path: Path
 ) -> None:

@@ -8,7 +8,9 @@ catalog's raster lattice (the DTM's: corners on the lattice origin plus whole pi
 coarser than the pixel) linear between cell centres. A mission's maps are averaged where
 they overlap into ``maps/<epoch>/<mission>.elevation.tif``; the epoch's mosaic
 ``rasters/<epoch>/elevation_map.tif`` is the mean of its missions' (a mission kept from an
-earlier run keeps its own), so it is rebuilt whenever the epoch is tiled.
+earlier run keeps its own), so it is rebuilt whenever the epoch is tiled; where the epoch's
+DTM still holds (its points did not move) the mosaic minus the DTM is reported then, else
+by the next ``enrich``.
 """
 
 from __future__ import annotations
@@ -328,9 +330,14 @@ def stage_epoch_mosaic(
     write_cog(tif, heights.astype(np.float32), grid, nodata=NODATA,
               description="payloads' elevation maps, placed and averaged (m)")  # fmt: skip
     write_raster_style(tif, "dtm", qml=txn.stage(raster_style_path(target)))
-    return {
+    summary: dict[str, Any] = {
         "raster": target,
         "missions": len(pieces),
         "pixels": int(np.isfinite(heights).sum()),
         "pixel_size_m": PIXEL_M,
     }
+    dtm = txn.current(paths.raster(epoch, "dtm"))
+    if dtm is not None:  # the epoch's points did not move: its DTM still holds
+        terrain = read_raster(dtm)
+        summary["minus_dtm"] = difference(heights, grid, terrain.array, terrain.grid)
+    return summary

@@ -365,3 +365,21 @@ def test_octomaps_read_with_octomap_python(tmp_path: Path) -> None:
     (tmp_path / "bad.bt").write_bytes(b"garbage")
     with pytest.raises(DerivedMapFormatError, match="OctoMap binary"):
         read_voxel_grid(tmp_path / "bad.bt")
+
+
+def test_the_mosaic_outlives_another_mission_tiled_into_its_epoch(
+    sim_maps: Any, tmp_path: Path
+) -> None:
+    """A second robot's mission (no maps) into the same epoch re-tiles it: the mosaic is made
+    again from the first mission's kept map; invalidation leaves it (tiling's own)."""
+    from standgrid.api import tile
+
+    out = tmp_path / "catalog"
+    first = tile([sim_maps.mission_dir], out).epochs["2024"]["elevation_map"]
+    before = read_raster(out / first["raster"])
+    other = simulate_mission(tmp_path / "b", seed=4, epoch=3, area=50.0, points_per_payload=800)
+    report = tile([other.mission_dir], out)
+    assert report.epochs["2024"]["points_new"] > 0 and "invalidated" not in report.epochs["2024"]
+    after = read_raster(out / report.epochs["2024"]["elevation_map"]["raster"])
+    assert after.grid == before.grid
+    np.testing.assert_array_equal(after.array, before.array)

@@ -67,6 +67,12 @@ ELEVATION_MAP = "elevation_map"
 MAPS = "maps"
 
 
+def tiled_rasters(epoch: str) -> tuple[str, str]:
+    """The rasters of ``rasters/<epoch>/`` that tiling writes (the elevation-map mosaic and
+    its style), not enrichment: re-tiling remakes them, invalidation leaves them."""
+    return raster(epoch, ELEVATION_MAP), raster_style(epoch, ELEVATION_MAP)
+
+
 def maps_folder(epoch: str) -> str:
     """The folder of one epoch's per-mission placed elevation maps."""
     return f"{MAPS}/{epoch}"

@@ -304,7 +304,7 @@ def _ingest(
         cells = len(index.read("cells"))
         # the re-tiled epochs' enrichment and comparisons describe points that are gone
         removed_by_epoch = invalidate_epochs(catalog, txn, reasons, status=progress.status)
-        # the elevation-map mosaics (the rasters folders were just emptied): after it
+        # the epochs' elevation-map mosaics, of their missions' maps (kept and new)
         for epoch in sorted({*report.epochs, *removed_by_epoch}):
             mosaic = stage_epoch_mosaic(catalog, txn, epoch, maps_staged)
             if mosaic is not None and epoch in report.epochs:

@@ -82,6 +82,10 @@ class SensorLogFormatError(FormatError):
     """A malformed GNSS or IMU text log."""
 
 
+class DerivedMapFormatError(FormatError):
+    """A malformed elevation map or volumetric map attached to a payload (docs/FORMATS.md)."""
+
+
 class BagFormatError(FormatError):
     """A ROS bag cannot be read, or a message in it cannot be decoded or used."""
 

@@ -15,6 +15,7 @@ from standgrid.clouds import write_cloud
 from standgrid.errors import BagFormatError
 from standgrid.geometry import invert_pose, pose_matrix
 from standgrid.mission.build import build_payloads
+from standgrid.mission.gridmap import GRIDMAP_MSGS_ROS1, register_gridmap_types
 from standgrid.mission.model import open_mission
 from standgrid.mission.posegraph import write_pose_graph
 from standgrid.mission.rosbag import bag_to_mission
@@ -216,7 +217,10 @@ def _messages(sim: Any, scans: dict[int, np.ndarray], ts: Any, use_tf: bool, lay
     return out
 
 
-def write_bag(kind: str, path: Path, sim: Any, scans: dict[int, np.ndarray]) -> Path:
+def write_bag(
+    kind: str, path: Path, sim: Any, scans: dict[int, np.ndarray], extra: Any = None
+) -> Path:
+    """The simulated mission as a bag (``extra(ts, ros1)``: more messages, GridMaps)."""
     if kind == "ros1":
         ts = get_typestore(Stores.ROS1_NOETIC)
         # tf2_msgs is not in rosbags' ROS 1 store: register it from its .msg definition.
@@ -225,9 +229,11 @@ def write_bag(kind: str, path: Path, sim: Any, scans: dict[int, np.ndarray]) -> 
                 "geometry_msgs/TransformStamped[] transforms", "tf2_msgs/msg/TFMessage"
             )
         )
+        register_gridmap_types(ts, GRIDMAP_MSGS_ROS1)
+        messages = _messages(sim, scans, ts, True, "f32") + (extra(ts, True) if extra else [])
         with Writer1(path) as writer:
             conns: dict[str, Any] = {}
-            for topic, msgtype, ns, msg in _messages(sim, scans, ts, True, "f32"):
+            for topic, msgtype, ns, msg in sorted(messages, key=lambda m: m[2]):
                 if topic not in conns:
                     conns[topic] = writer.add_connection(topic, msgtype, typestore=ts)
                 writer.write(conns[topic], ns, ts.serialize_ros1(msg, msgtype))
@@ -235,9 +241,11 @@ def write_bag(kind: str, path: Path, sim: Any, scans: dict[int, np.ndarray]) -> 
     ts = get_typestore(Stores.ROS2_HUMBLE)
     plugin = StoragePlugin.SQLITE3 if kind == "sqlite3" else StoragePlugin.MCAP
     layout = "f64_organised" if kind == "sqlite3" else "f64_be"
+    register_gridmap_types(ts)
+    messages = _messages(sim, scans, ts, False, layout) + (extra(ts, False) if extra else [])
     with Writer2(path, version=9, storage_plugin=plugin) as writer:
         conns = {}
-        for topic, msgtype, ns, msg in _messages(sim, scans, ts, False, layout):
+        for topic, msgtype, ns, msg in sorted(messages, key=lambda m: m[2]):
             if topic not in conns:
                 conns[topic] = writer.add_connection(topic, msgtype, typestore=ts)
             writer.write(conns[topic], ns, ts.serialize_cdr(msg, msgtype))
@@ -339,3 +347,106 @@ def test_malformed_bag_is_a_typed_error(tmp_path: Path, sim: Any, scans: dict) -
     junk.write_bytes(b"#ROSBAG V2.0\n" + b"\x00" * 50)
     with pytest.raises(BagFormatError, match=r"junk\.bag"):
         bag_to_mission([junk], tmp_path / "out")
+
+
+# --- grid_map_msgs/GridMap: payload elevation maps -----------------------------------------
+
+#: A GridMap's side (m) and cells, and its buffer's start indices (a scrolled circular buffer).
+GRID_SIDE, GRID_RES, GRID_START = 12.0, 0.5, (5, 17)
+
+
+def _slope(x: np.ndarray, y: np.ndarray) -> np.ndarray:
+    """Heights of the maps published in the map frame: not symmetric in x and y."""
+    return 100.0 + 0.3 * x - 0.1 * y + 0.5 * np.sin(0.4 * x)
+
+
+def _gridmap(ts: Any, ns: int, frame: str, heights: np.ndarray, centre: Any, ros1: bool) -> Any:
+    """A GridMap as grid_map writes it: layer matrices with the row index along -x and the
+    column index along -y, column-major, scrolled by GRID_START; an extra layer first."""
+    types = ts.types
+    matrix = heights.T[::-1, ::-1]
+    rows, cols = matrix.shape
+    buffer = np.roll(matrix, GRID_START, axis=(0, 1))
+    dim = types["std_msgs/msg/MultiArrayDimension"]
+    layout = types["std_msgs/msg/MultiArrayLayout"](
+        dim=[dim(label="column_index", size=cols, stride=rows * cols),
+             dim(label="row_index", size=rows, stride=rows)],
+        data_offset=0,
+    )  # fmt: skip
+    array = types["std_msgs/msg/Float32MultiArray"]
+    data = [array(layout=layout, data=np.zeros(rows * cols, np.float32)),
+            array(layout=layout, data=buffer.ravel(order="F").astype(np.float32))]  # fmt: skip
+    pose = types["geometry_msgs/msg/Pose"](
+        position=types["geometry_msgs/msg/Point"](x=centre[0], y=centre[1], z=0.0),
+        orientation=types["geometry_msgs/msg/Quaternion"](x=0.0, y=0.0, z=0.0, w=1.0),
+    )
+    info = {"resolution": GRID_RES, "length_x": rows * GRID_RES, "length_y": cols * GRID_RES,
+            "pose": pose}  # fmt: skip
+    common = {"layers": ["variance", "elevation"], "basic_layers": ["elevation"], "data": data,
+              "outer_start_index": GRID_START[0], "inner_start_index": GRID_START[1]}  # fmt: skip
+    info_t, map_t = types["grid_map_msgs/msg/GridMapInfo"], types["grid_map_msgs/msg/GridMap"]
+    if ros1:
+        return map_t(info=info_t(header=_header(ts, ns, frame), **info), **common)
+    return map_t(header=_header(ts, ns, frame), info=info_t(**info), **common)
+
+
+@pytest.mark.parametrize("kind", ["ros1", "mcap"])
+def test_gridmaps_in_a_bag_become_the_payloads_elevation_maps(
+    kind: str, sim: Any, scans: dict, tmp_path: Path
+) -> None:
+    """One GridMap per node: ROS 1 in the map frame (heights of a known surface), ROS 2 in
+    the base frame (known arrays). Each payload gets the one of its stamp, in its base frame:
+    placed with the payload's pose it is the surface, or the very array published."""
+    vertices = sorted(open_mission(sim.mission_dir).graph.vertices.values(), key=lambda v: v.stamp)
+    n = round(GRID_SIDE / GRID_RES)
+    centres = -GRID_SIDE / 2 + (np.arange(n) + 0.5) * GRID_RES
+    published: dict[int, np.ndarray] = {}
+
+    def gridmaps(ts: Any, ros1: bool) -> list[Any]:
+        out = []
+        for v in vertices:
+            if ros1:  # in the map frame, around the node (cell edges on the 0.5 m lattice)
+                centre = np.round(v.pose[:2, 3] / GRID_RES) * GRID_RES
+                x, y = np.meshgrid(centre[0] + centres, centre[1] + centres)
+                heights, frame = _slope(x, y).astype(np.float32), "map"
+            else:  # in the base frame, a known array (not symmetric)
+                centre = np.array([0.5, -0.25])
+                heights = np.arange(n * n, dtype=np.float32).reshape(n, n) + v.id * 1e3
+                frame = "base_link"
+            published[v.stamp.ns] = heights
+            msg = _gridmap(ts, v.stamp.ns, frame, heights, centre, ros1)
+            out.append(("/elevation_map", "grid_map_msgs/msg/GridMap", v.stamp.ns, msg))
+        return out
+
+    bag = write_bag(kind, tmp_path / ("m.bag" if kind == "ros1" else "m"), sim, scans, gridmaps)
+    xyz = np.array([v.pose[:3, 3] for v in vertices])
+    spacing = 0.9 * float(np.linalg.norm(np.diff(xyz, axis=0), axis=1).min())
+    report = bag_to_mission([bag], tmp_path / "2024-05-14-wytham-anymal-coyote",
+                            node_distance=spacing)  # fmt: skip
+    got = open_mission(report.output)
+    assert report.topics["grid_map"] == "/elevation_map" and report.grid_maps == len(vertices)
+    assert report.elevation_maps == len(got.payloads) > 1
+    for payload in got.payloads:
+        emap = got.load_elevation_map(payload)
+        assert emap.heights.shape == (n, n) and emap.resolution == GRID_RES
+        if kind == "ros1":
+            pts = emap.cell_points() @ got.pose_of(payload)[:3, :3].T + got.pose_of(payload)[:3, 3]
+            np.testing.assert_allclose(pts[:, 2], _slope(pts[:, 0], pts[:, 1]), atol=1e-4)
+        else:
+            np.testing.assert_array_equal(emap.heights, published[payload.stamp.ns])
+            assert emap.origin == (-GRID_SIDE / 2, -GRID_SIDE / 2)
+            np.testing.assert_allclose(emap.pose[:3, 3], [0.5, -0.25, 0.0], atol=1e-9)
+
+
+def test_a_gridmap_without_the_layer_is_a_bag_format_error(
+    sim: Any, scans: dict, tmp_path: Path
+) -> None:
+    stamp = min(v.stamp.ns for v in open_mission(sim.mission_dir).graph.vertices.values())
+
+    def one(ts: Any, ros1: bool) -> list[Any]:
+        msg = _gridmap(ts, stamp, "base_link", np.zeros((4, 4), np.float32), (0, 0), ros1)
+        return [("/elevation_map", "grid_map_msgs/msg/GridMap", stamp, msg)]
+
+    bag = write_bag("mcap", tmp_path / "bag", sim, scans, one)
+    with pytest.raises(BagFormatError, match="no GridMap layer 'height'"):
+        bag_to_mission([bag], tmp_path / "m", elevation_layer="height")

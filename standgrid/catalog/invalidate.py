@@ -5,7 +5,8 @@ mission re-ingested, added, or moved to another epoch) they describe points that
 :func:`invalidate_epochs`, called by the tiler inside its transaction, removes exactly what
 was derived from the re-tiled epochs, so a reader never sees old numbers next to new tiles:
 
-- ``rasters/<epoch>/*`` (DTM, CHM, density and their styles) and
+- ``rasters/<epoch>/*`` (DTM, CHM, density and their styles; not the elevation-map
+  mosaic, which tiling itself remakes) and
   ``tables/tree_list_<epoch>.{csv,parquet}``;
 - the epoch's rows of ``tables/stand_metrics.{csv,parquet}`` and of the ``stand_metrics``
   and ``trees`` layers of ``index.gpkg``;
@@ -86,7 +87,9 @@ def invalidate_epochs(
         return done.setdefault(epoch, {"files": [], "rows": {}, "comparisons": []})
 
     for epoch in sorted(epochs):
+        tiled = paths.tiled_rasters(epoch)  # tiling's own (the elevation-map mosaic)
         rels = _files_under(catalog.root, paths.rasters_folder(epoch))
+        rels = [rel for rel in rels if rel not in tiled]
         rels += [
             rel
             for rel in (paths.tree_list(epoch, ext) for ext in paths.TABLE_FORMATS)

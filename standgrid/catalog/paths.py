@@ -8,6 +8,8 @@
     tiles_<epoch>.vpc                         vpc(epoch)
     tiles/<epoch>/<cell_id>.{laz,las}         tile(epoch, cell_id, laz=)
     rasters/<epoch>/<name>.{tif,qml}          raster(epoch, name), raster_style(epoch, name)
+    rasters/<epoch>/elevation_map.{tif,qml}   raster(epoch, ELEVATION_MAP): payloads' maps
+    maps/<epoch>/<mission>.elevation.tif      mission_elevation_map(epoch, mission)
     tables/stand_metrics.{csv,parquet}        stand_metrics(ext)
     tables/tree_list_<epoch>.{csv,parquet}    tree_list(epoch, ext)
     compare/<from>__<to>/<file>               comparison(epoch_from, epoch_to, file)
@@ -57,6 +59,28 @@ def raster(epoch: str, name: str) -> str:
 def raster_style(epoch: str, name: str) -> str:
     """The QGIS style sidecar of :func:`raster` (QGIS loads it with the raster)."""
     return f"{rasters_folder(epoch)}/{name}.qml"
+
+
+#: The raster name of an epoch's mosaic of its payloads' elevation maps (tiled, not enriched).
+ELEVATION_MAP = "elevation_map"
+#: The folder of the missions' placed elevation maps (the mosaic is made of them).
+MAPS = "maps"
+
+
+def tiled_rasters(epoch: str) -> tuple[str, str]:
+    """The rasters of ``rasters/<epoch>/`` that tiling writes (the elevation-map mosaic and
+    its style), not enrichment: re-tiling remakes them, invalidation leaves them."""
+    return raster(epoch, ELEVATION_MAP), raster_style(epoch, ELEVATION_MAP)
+
+
+def maps_folder(epoch: str) -> str:
+    """The folder of one epoch's per-mission placed elevation maps."""
+    return f"{MAPS}/{epoch}"
+
+
+def mission_elevation_map(epoch: str, mission: str) -> str:
+    """One mission's payload elevation maps placed on the raster lattice (their mean)."""
+    return f"{maps_folder(epoch)}/{mission}.elevation.tif"
 
 
 def stand_metrics(ext: str) -> str:

@@ -21,6 +21,10 @@ from standgrid.cli.options import emit, json_option, overwrite_option, quiet_opt
 @click.option("--clouds", "cloud_topic", help="PointCloud2 topic (default: the only one).")
 @click.option("--odom", "odom_topic", help="Odometry topic (default: the only one; else /tf).")
 @click.option("--gnss", "gnss_topic", help="NavSatFix topic (default: the only one).")
+@click.option("--grid-map", "grid_map_topic",
+              help="grid_map_msgs/GridMap topic (default: the only one): payload elevation maps.")
+@click.option("--elevation-layer", default="elevation", show_default=True,
+              help="The GridMap layer holding the heights.")
 @click.option("--base-frame", help="Robot base frame (default: the odometry child frame).")
 @click.option("--map-frame", help="Map frame for /tf poses (default: the root of the tf tree).")
 @click.option(
@@ -47,6 +51,8 @@ def bag(
     cloud_topic: str | None,
     odom_topic: str | None,
     gnss_topic: str | None,
+    grid_map_topic: str | None,
+    elevation_layer: str,
     base_frame: str | None,
     map_frame: str | None,
     node_distance: float,
@@ -81,6 +87,8 @@ def bag(
         distance=distance,
         area=area,
         overwrite=overwrite,
+        grid_map_topic=grid_map_topic,
+        elevation_layer=elevation_layer,
     )
     emit(
         report.to_dict(),
@@ -89,6 +97,7 @@ def bag(
             f"{r['nodes']} nodes from {r['scans']} scans ({r['scans_between_nodes']} skipped, "
             f"{r['scans_without_pose']} without a pose), {r['payloads']} payloads, "
             f"{r['points']:,} points ({r['nan_points_dropped']} NaN dropped), "
-            f"{r['gnss_fixes']} GNSS fixes -> {r['output']}"
+            f"{r['gnss_fixes']} GNSS fixes, {r['elevation_maps']} elevation maps "
+            f"(of {r['grid_maps']} GridMaps) -> {r['output']}"
         ),
     )

@@ -13,6 +13,12 @@ from typing import Literal
 
 from standgrid.clouds import CLOUD_EXTENSIONS as CLOUD_SUFFIXES
 from standgrid.errors import MissionNotFoundError
+from standgrid.mission.derived_maps import (
+    ELEVATION_EXTENSIONS,
+    ELEVATION_FOLDER,
+    VOLUMETRIC_EXTENSIONS,
+    VOLUMETRIC_FOLDER,
+)
 from standgrid.stamps import Stamp, stamp_from_filename
 
 Frame = Literal["base", "map", "utm"]
@@ -82,6 +88,10 @@ class MissionLayout:
     gnss_log: Path | None = None
     gnss_payloads: tuple[StampedFile, ...] = ()
     imu_payloads: tuple[StampedFile, ...] = ()
+    #: Elevation and volumetric maps of payloads (``payloads/elevation``, ``payloads/volumetric``;
+    #: a PNG elevation map's JSON sidecar is not listed: it goes with its PNG).
+    elevation_maps: tuple[StampedFile, ...] = ()
+    volumetric_maps: tuple[StampedFile, ...] = ()
     #: camera name -> its stamped images (``payloads/cameras/<cam>`` or ``images_rectified/<cam>``).
     cameras: dict[str, tuple[StampedFile, ...]] = field(default_factory=dict)
     #: Files in cloud/sensor folders whose names do not carry a stamp.
@@ -204,6 +214,13 @@ def discover_layout(path: str | Path) -> MissionLayout:
     gnss_payloads = _stamped_files(gnss_dir, text, unrecognised) if gnss_dir.is_dir() else ()
     imu_payloads = _stamped_files(imu_dir, text, unrecognised) if imu_dir.is_dir() else ()
 
+    maps: dict[str, tuple[StampedFile, ...]] = {}
+    for folder, exts in ((ELEVATION_FOLDER, ELEVATION_EXTENSIONS),
+                         (VOLUMETRIC_FOLDER, VOLUMETRIC_EXTENSIONS)):  # fmt: skip
+        if (root / folder).is_dir():
+            found = _stamped_files(root / folder, exts | {"json"}, unrecognised)
+            maps[folder] = tuple(f for f in found if f.path.suffix.lower() != ".json")
+
     cameras: dict[str, tuple[StampedFile, ...]] = {}
     for cam_root in (root / "payloads" / "cameras", root / "images_rectified"):
         if not cam_root.is_dir():
@@ -230,6 +247,8 @@ def discover_layout(path: str | Path) -> MissionLayout:
         gnss_log=gnss_log if gnss_log.is_file() else None,
         gnss_payloads=gnss_payloads,
         imu_payloads=imu_payloads,
+        elevation_maps=maps.get(ELEVATION_FOLDER, ()),
+        volumetric_maps=maps.get(VOLUMETRIC_FOLDER, ()),
         cameras=cameras,
         unrecognised=tuple(unrecognised),
     )

@@ -28,6 +28,7 @@ from standgrid.errors import (
     StandgridError,
 )
 from standgrid.geometry import Matrix4, invert_pose
+from standgrid.mission.derived_maps import ElevationMap, OctreeMap, VoxelGrid
 from standgrid.mission.layout import CloudFolder, Frame, MissionLayout, discover_layout, layer_name
 from standgrid.mission.metadata import MissionMetadata, metadata_from_folder_name, read_metadata
 from standgrid.mission.posegraph import PoseGraph, Vertex
@@ -82,6 +83,10 @@ class Payload:
     time_offset: float = field(default=0.0, hash=False, compare=False)
     #: ... and a week (604,800 s) more for a file time below this (after the rollover).
     time_wrap: float | None = field(default=None, hash=False, compare=False)
+    #: The elevation map and the volumetric map computed on board for this payload, if any
+    #: (:mod:`standgrid.mission.derived_maps`; read by :meth:`Mission.load_elevation_map`).
+    elevation_map: Path | None = field(default=None, hash=False, compare=False)
+    volumetric_map: Path | None = field(default=None, hash=False, compare=False)
 
     def __post_init__(self) -> None:
         if self.crs is not None:  # the text a file or record gives: the value
@@ -289,6 +294,24 @@ class Mission:
                 continue
             yield payload, self.load_payload(payload, frame, layer)
 
+    # --- derived maps ----------------------------------------------------------------------
+
+    def load_elevation_map(self, payload: Payload) -> ElevationMap:
+        """The payload's elevation map (its grid placed in the base frame by its ``pose``)."""
+        from standgrid.mission.derived_maps import read_elevation_map
+
+        if payload.elevation_map is None:
+            raise MissionConsistencyError("payload has no elevation map", path=payload.path)
+        return read_elevation_map(payload.elevation_map)
+
+    def load_volumetric_map(self, payload: Payload) -> VoxelGrid | OctreeMap:
+        """The payload's volumetric map (a voxel grid, or an OctoMap read with octomap-python)."""
+        from standgrid.mission.derived_maps import read_voxel_grid
+
+        if payload.volumetric_map is None:
+            raise MissionConsistencyError("payload has no volumetric map", path=payload.path)
+        return read_voxel_grid(payload.volumetric_map)
+
     def _layer_path(self, payload: Payload, layer: str) -> Path:
         try:
             return payload.layers[layer]
@@ -366,7 +389,7 @@ class Mission:
         extent = None
         if len(positions):
             extent = {"min": positions.min(axis=0).tolist(), "max": positions.max(axis=0).tolist()}
-        return {
+        summary = {
             "name": self.name,
             "path": str(self.path),
             "metadata": None if self.metadata is None else _metadata_dict(self.metadata),
@@ -399,6 +422,11 @@ class Mission:
             "problems": problems,
             "warnings": list(self.warnings),
         }
+        elevation = sum(p.elevation_map is not None for p in self.payloads)
+        volumetric = sum(p.volumetric_map is not None for p in self.payloads)
+        if elevation or volumetric:  # said only when there are some (summaries stay as they were)
+            summary["elevation_maps"], summary["volumetric_maps"] = elevation, volumetric
+        return summary
 
 
 def _counted_points(items: list[Payload], problems: list[str], strict: bool) -> tuple[int, int]:
@@ -560,6 +588,36 @@ def _attach(
     return out
 
 
+def _with_derived_maps(
+    payloads: list[Payload], layout: MissionLayout, strict: bool, problems: list[str]
+) -> list[Payload]:
+    """Each payload with its elevation and volumetric map of the same stamp (a map matching
+    no payload is reported as an orphan; two maps of one stamp as duplicates)."""
+    if not (layout.elevation_maps or layout.volumetric_maps):
+        return payloads
+    index = {p.stamp: k for k, p in enumerate(payloads)}
+    out = list(payloads)
+    for files, key in ((layout.elevation_maps, "elevation_map"),
+                       (layout.volumetric_maps, "volumetric_map")):  # fmt: skip
+        seen: dict[Stamp, Path] = {}
+        for f in files:
+            if f.stamp in seen:
+                msg = f"two maps share the stamp {f.stamp}: {seen[f.stamp].name}, {f.path.name}"
+                _report(DuplicateStampError(msg, path=f.path.parent), strict, problems)
+                continue
+            seen[f.stamp] = f.path
+            k = index.get(f.stamp)
+            if k is None:
+                msg = f"map matches no payload stamp {f.stamp}"
+                _report(OrphanPayloadError(msg, path=f.path), strict, problems)
+                continue
+            if key == "elevation_map":
+                out[k] = replace(out[k], elevation_map=f.path)
+            else:
+                out[k] = replace(out[k], volumetric_map=f.path)
+    return out
+
+
 def _check_duplicates(items: list[Payload], strict: bool, problems: list[str]) -> list[Payload]:
     """Two files of one folder with the same stamp (e.g. ``.pcd`` and ``.ply``)."""
     seen: dict[Stamp, Payload] = {}
@@ -644,6 +702,7 @@ def open_mission(
         strict,
         problems,
     )
+    payloads = _with_derived_maps(payloads, layout, strict, problems)
     attached = {p.stamp for p in payloads} | {p.stamp for p in scans}
     for folder in layout.layer_folders:
         for f in folder.files:

@@ -6,6 +6,8 @@ the last node. Poses come from ``nav_msgs/Odometry`` (interpolated at the scan s
 without odometry, from ``/tf`` (map -> base chain). ``sensor_msgs/NavSatFix`` gives GNSS
 fixes with their covariance. The scans are then accumulated into payloads by
 :func:`standgrid.mission.build.build_payloads`, exactly as ``payloads build`` does.
+``grid_map_msgs/GridMap`` messages (:mod:`standgrid.mission.gridmap`) give each payload the
+elevation map nearest its stamp, in its base frame (``payloads/elevation/``).
 """
 
 from __future__ import annotations
@@ -23,6 +25,12 @@ from numpy.typing import NDArray
 from standgrid._atomic import temporary_sibling
 from standgrid.errors import OVERWRITE_HINT, BagFormatError, MissionNameError, OutputExistsError
 from standgrid.geometry import Matrix4, invert_pose, pose_matrix, relative_pose
+from standgrid.mission.gridmap import (
+    GRIDMAP_TYPE,
+    gridmap_header,
+    gridmap_layer,
+    register_gridmap_types,
+)
 from standgrid.mission.sensors import GnssFixes
 from standgrid.pointcloud import PointCloud
 from standgrid.stamps import Stamp
@@ -33,6 +41,8 @@ GNSS_TYPE = "sensor_msgs/msg/NavSatFix"
 TF_TYPE = "tf2_msgs/msg/TFMessage"
 #: The VILENS logger's node spacing (real graphs: every step 1.0-1.4 m).
 NODE_DISTANCE = 1.0
+#: Largest time (s) between a payload and the GridMap message taken as its elevation map.
+MAX_MAP_GAP_S = 5.0
 #: PointField datatype -> numpy type code.
 _FIELD_TYPES = {1: "i1", 2: "u1", 3: "i2", 4: "u2", 5: "i4", 6: "u4", 7: "f4", 8: "f8"}
 #: NavSatStatus -> NMEA GGA quality (-1 no fix: 0, fix: 1, SBAS: 2 (DGPS), GBAS: 4 (RTK)).
@@ -54,6 +64,8 @@ class BagReport:
     gnss_fixes: int = 0
     gnss_without_position: int = 0
     payloads: int = 0
+    grid_maps: int = 0
+    elevation_maps: int = 0
     notes: list[str] = field(default_factory=list)
 
     def to_dict(self) -> dict[str, Any]:
@@ -237,8 +249,15 @@ def bag_to_mission(
     distance: float = 20.0,
     area: float | None = None,
     overwrite: bool = False,
+    grid_map_topic: str | None = None,
+    elevation_layer: str = "elevation",
+    max_map_gap: float = MAX_MAP_GAP_S,
 ) -> BagReport:
     """Read ``bags`` (ROS 1 files, or one ROS 2 folder) and write a canonical mission.
+
+    A ``grid_map_msgs/GridMap`` topic (``grid_map_topic``, or the only one) gives each
+    payload the ``elevation_layer`` of the message nearest its stamp (within
+    ``max_map_gap`` seconds), written as its elevation map.
 
     Raises :class:`BagFormatError` (naming the bag) when a bag cannot be read or lacks
     clouds or poses.
@@ -260,7 +279,9 @@ def bag_to_mission(
         raise ValueError(f"node_distance must be >= 0, got {node_distance}")
     report = BagReport(out_path, topics={})
     try:
-        reader = AnyReader(paths, default_typestore=get_typestore(Stores.LATEST))
+        typestore = get_typestore(Stores.LATEST)
+        register_gridmap_types(typestore)
+        reader = AnyReader(paths, default_typestore=typestore)
         reader.open()
     except Exception as exc:  # rosbags raises its own, ValueError, KeyError... on bad files
         raise BagFormatError(f"not a readable ROS bag: {exc}", path=paths[0]) from exc
@@ -273,12 +294,15 @@ def bag_to_mission(
         clouds = _pick(paths, by_type, CLOUD_TYPE, cloud_topic)
         odom = _pick(paths, by_type, ODOM_TYPE, odom_topic)
         gnss = _pick(paths, by_type, GNSS_TYPE, gnss_topic)
+        grid_map = _pick(paths, by_type, GRIDMAP_TYPE, grid_map_topic)
         report.topics = {
             "clouds": clouds,
             "odometry": odom,
             "gnss": gnss,
             "tf": "/tf" if TF_TYPE in by_type else None,
         }
+        if grid_map is not None:
+            report.topics["grid_map"] = grid_map
         if clouds is None:
             raise _fail(paths, f"no {CLOUD_TYPE} topic (topics: {sorted(by_type)})")
         tf = TfTree()
@@ -401,6 +425,16 @@ def bag_to_mission(
             except MissionNameError:
                 report.notes.append(f"{out_path.name}: not a conventional name, no metadata.yaml")
             build_payloads(tmp, out_path, distance=distance, area=area, overwrite=overwrite)
+            if grid_map is not None:
+
+                def frame_pose(frame: str, ns: int) -> Matrix4 | None:
+                    """T_map_frame of a GridMap's frame at its stamp."""
+                    if frame == map_name:
+                        return np.eye(4)
+                    return pose_at(ns) if frame == base else tf.lookup(map_name, frame, ns)
+
+                maps = _GridMaps(grid_map, elevation_layer, max_map_gap, frame_pose)
+                maps.write(reader, out_path, paths, report)
         finally:
             shutil.rmtree(tmp, ignore_errors=True)
     finally:
@@ -409,6 +443,66 @@ def bag_to_mission(
 
     report.payloads = len(open_mission(out_path).payloads)
     return report
+
+
+@dataclass
+class _GridMaps:
+    """The GridMap topic's messages into the payloads' elevation maps."""
+
+    topic: str
+    layer: str
+    max_gap_s: float
+    frame_pose: Any  # (frame, ns) -> T_map_frame or None
+
+    def write(
+        self, reader: Any, mission_dir: Path, paths: Sequence[Path], report: BagReport
+    ) -> None:
+        """Each payload of the written mission gets the layer of the message nearest its
+        stamp (within ``max_gap_s``), in its base frame (``pose``: T_base_grid)."""
+        from standgrid.mission.derived_maps import (
+            ELEVATION_FOLDER,
+            ELEVATION_PREFIX,
+            write_elevation_npz,
+        )
+        from standgrid.mission.model import open_mission
+
+        mission = open_mission(mission_dir)
+        stamps = np.array([p.stamp.ns for p in mission.payloads], np.int64)
+        best: dict[int, tuple[int, Any]] = {}  # payload index -> (gap ns, message)
+        conns = [c for c in reader.connections if c.topic == self.topic]
+        for conn, _, raw in reader.messages(connections=conns):
+            msg = _decode(reader, raw, conn, paths)
+            report.grid_maps += 1
+            ns = _stamp_ns(gridmap_header(msg))
+            if self.layer not in msg.layers:  # a wrong layer name: said at once
+                where = f"{self.topic} at {Stamp.from_ns(ns)}"
+                raise BagFormatError(f"{where}: no GridMap layer {self.layer!r} "
+                                     f"(layers: {list(msg.layers)})", path=paths[0])  # fmt: skip
+            if not len(stamps):
+                continue
+            k = int(np.argmin(np.abs(stamps - ns)))
+            gap = abs(int(stamps[k]) - ns)
+            if gap <= self.max_gap_s * 1e9 and (k not in best or gap < best[k][0]):
+                best[k] = (gap, msg)
+        for k, (_, msg) in sorted(best.items()):
+            payload = mission.payloads[k]
+            header = gridmap_header(msg)
+            ns, frame = _stamp_ns(header), header.frame_id.lstrip("/")
+            where = f"{self.topic} at {Stamp.from_ns(ns)}"
+            try:
+                heights, res, corner, centre = gridmap_layer(msg, self.layer, where)
+            except BagFormatError as exc:  # said of the bag
+                raise BagFormatError(exc.message, path=paths[0]) from exc
+            to_map = self.frame_pose(frame, ns)
+            if to_map is None:
+                report.notes.append(f"{where}: no pose of frame {frame!r}: map left out")
+                continue
+            at_centre = np.eye(4)
+            at_centre[:2, 3] = centre
+            pose = invert_pose(mission.pose_of(payload)) @ to_map @ at_centre
+            name = payload.stamp.filename(ELEVATION_PREFIX, "npz")
+            write_elevation_npz(mission_dir / ELEVATION_FOLDER / name, heights, res, corner, pose)
+            report.elevation_maps += 1
 
 
 def _decode(reader: Any, raw: bytes, conn: Any, paths: Sequence[Path]) -> Any:

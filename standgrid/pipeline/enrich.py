@@ -202,8 +202,9 @@ def _enrich_epoch(
         txn, paths.raster(epoch, "density"), arrays["density"], grid, "points per square metre",
     )  # fmt: skip
     write_coverage(txn, paths.raster(epoch, "observed"), coverage)
+    against_dtm = _elevation_map_vs_dtm(txn, epoch, arrays["dtm"], grid)
     observed_m2 = float(sum(s.observed_m2 for s in samples))  # each cell's, clipped to it
-    summary = {
+    summary: dict[str, Any] = {
         "cells": len(polygons),
         "cells_without_ground": sum(s.no_ground for s in samples),
         "chunks": applied.chunks,
@@ -211,7 +212,24 @@ def _enrich_epoch(
         "observed_m2": observed_m2,
         "observed_fraction": observed_m2 / float(sum(p.area for p in polygons)),
     }
+    if against_dtm is not None:  # said only for an epoch whose payloads carry elevation maps
+        summary["elevation_map_minus_dtm"] = against_dtm
     return _EpochResult(samples, applied.stands, trees, summary)
+
+
+def _elevation_map_vs_dtm(
+    txn: Transaction, epoch: str, dtm: Any, grid: Any
+) -> dict[str, Any] | None:
+    """The epoch's elevation-map mosaic (tiled from its payloads' maps) minus its DTM from
+    points, where both hold a value (None: the epoch has no mosaic)."""
+    from standgrid.geotiff import read_raster
+    from standgrid.tiling.elevation import difference
+
+    current = txn.current(paths.raster(epoch, paths.ELEVATION_MAP))
+    if current is None:
+        return None
+    mosaic = read_raster(current)
+    return difference(mosaic.array, mosaic.grid, dtm, grid)
 
 
 def _tree_uids(catalog: Catalog, trees: dict[str, pd.DataFrame]) -> dict[str, Any]:

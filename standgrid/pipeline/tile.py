@@ -241,6 +241,7 @@ def _ingest(
     """Tile the prepared missions into a catalog opened for writing, in one transaction
     (``execution.executor``: open)."""
     from standgrid.catalog.invalidate import invalidate_epochs, retile_reason
+    from standgrid.tiling.elevation import stage_epoch_mosaic
     from standgrid.tiling.vpcs import stage_epoch_vpc
 
     executor, progress = execution.executor, execution.progress
@@ -278,6 +279,7 @@ def _ingest(
         known = catalog.mission_records
         left = {known[i.mission.name].epoch for i in ingests if i.mission.name in known}
         reasons = {}
+        maps_staged: set[str] = set()
         for epoch in sorted({i.epoch for i in ingests} | left):
             group = [i for i in ingests if i.epoch == epoch]
             names = ", ".join(i.mission.name for i in group) or "missions that moved out"
@@ -287,6 +289,7 @@ def _ingest(
             )
             report.epochs[epoch] = done.report
             report.missions.update(done.missions)
+            maps_staged |= done.maps_staged
             stage_epoch_vpc(txn, epoch, done.tiles, catalog.crs)
             moved = [
                 i.mission.name
@@ -301,6 +304,11 @@ def _ingest(
         cells = len(index.read("cells"))
         # the re-tiled epochs' enrichment and comparisons describe points that are gone
         removed_by_epoch = invalidate_epochs(catalog, txn, reasons, status=progress.status)
+        # the epochs' elevation-map mosaics, of their missions' maps (kept and new)
+        for epoch in sorted({*report.epochs, *removed_by_epoch}):
+            mosaic = stage_epoch_mosaic(catalog, txn, epoch, maps_staged)
+            if mosaic is not None and epoch in report.epochs:
+                report.epochs[epoch]["elevation_map"] = mosaic
         for epoch, removed in removed_by_epoch.items():
             if epoch in report.epochs:
                 report.epochs[epoch]["invalidated"] = removed

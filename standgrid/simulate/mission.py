@@ -24,6 +24,7 @@ from standgrid.mission.sensors import GnssFixes
 from standgrid.pointcloud import PointCloud
 from standgrid.simulate.canopy import generate_mixed_forest
 from standgrid.simulate.chain import FrameChain
+from standgrid.simulate.elevation import ElevationMapModel, elevation_grid
 from standgrid.simulate.forest import Shrubs, Trees, generate_forest, grow_forest
 from standgrid.simulate.gnss import (
     GnssModel,
@@ -123,6 +124,9 @@ class SimulationConfig:
     scanner_kind: str = "surface"
     #: Largest spacing (m) of the serpentine lanes (under-canopy surveys: ~15 m).
     lane_spacing: float = 32.0
+    #: Write an elevation map per payload (``payloads/elevation``): the terrain truth plus
+    #: the model's known error (stated in truth.json); None: none.
+    elevation_maps: ElevationMapModel | None = None
 
     def __post_init__(self) -> None:
         if self.forest not in FORESTS:
@@ -371,11 +375,12 @@ def _metadata(sim: SimulatedMission, spec: EpochSpec) -> Any:
 
 
 def write_mission_folder(sim: SimulatedMission, folder: Path, config: SimulationConfig) -> int:
-    """Write the canonical mission layout of ``sim`` into an existing empty ``folder``.
+    """Write the canonical mission layout of ``sim`` into an existing empty ``folder`` (and,
+    with ``config.elevation_maps``, an elevation map per payload).
 
     Returns the number of points written.
     """
-    return write_canonical_parts(
+    n_points = write_canonical_parts(
         folder,
         metadata=_metadata(sim, EPOCHS[sim.epoch]),
         graph=sim.graph,
@@ -387,6 +392,28 @@ def write_mission_folder(sim: SimulatedMission, folder: Path, config: Simulation
         rng=_rng(sim.seed, 1000 + sim.epoch),
         imu_rate_hz=config.imu_rate_hz,
     )
+    if config.elevation_maps is not None:
+        write_elevation_maps(sim, folder, config.elevation_maps)
+    return n_points
+
+
+def write_elevation_maps(sim: SimulatedMission, folder: Path, model: ElevationMapModel) -> None:
+    """One elevation map per payload (``payloads/elevation/elevation_<stamp>.npz``), in its
+    base frame at the true pose (as its cloud), each from its own random stream."""
+    from standgrid.mission.derived_maps import (
+        ELEVATION_FOLDER,
+        ELEVATION_PREFIX,
+        write_elevation_npz,
+    )
+
+    for k, span in enumerate(sim.spans):
+        rng = np.random.default_rng([sim.seed, sim.epoch, 5000 + k])
+        heights, origin = elevation_grid(
+            model, sim.world.terrain, sim.chain, sim.true_poses[span.centre], rng
+        )
+        stamp = Stamp.from_ns(int(sim.stamps_ns[span.centre]))
+        target = folder / ELEVATION_FOLDER / stamp.filename(ELEVATION_PREFIX, "npz")
+        write_elevation_npz(target, heights, model.resolution, origin)
 
 
 def write_canonical_parts(
@@ -480,6 +507,8 @@ def write_truth_folder(sim: SimulatedMission, folder: Path, config: SimulationCo
     if (config.forest, config.scanner_kind, config.lane_spacing) != ("plantation", "surface",
                                                                      32.0):  # fmt: skip
         info.update(_opt_in_truth(config))
+    if config.elevation_maps is not None:
+        info["elevation_maps"] = config.elevation_maps.truth()
     if config.gnss != GnssModel():
         info["gnss_model"] = {k: v for k, v in vars(config.gnss).items()}
     write_truth_json(info, folder / "truth.json")

@@ -8,7 +8,8 @@
 - :mod:`.retile`: the points an epoch keeps from its existing tiles;
 - :mod:`.placement_policy`: a mission keeps its placement under a tolerance;
 - :mod:`.mission_rows`: what the index records about an ingested mission;
-- :mod:`.vpcs`: one virtual point cloud per epoch.
+- :mod:`.vpcs`: one virtual point cloud per epoch;
+- :mod:`.elevation`: payloads' derived maps placed (elevation maps into a mosaic per epoch).
 
 Stage order: after ``catalog`` and ``export`` (file writers), before ``enrich``. The entry
 point is :func:`standgrid.pipeline.tile.tile_missions`. Nothing heavy is imported here.

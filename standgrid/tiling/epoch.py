@@ -10,6 +10,7 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Any
 
+from standgrid.catalog import paths
 from standgrid.engine import MemoryBudget, Progress
 from standgrid.tiling.cells import Cells, EpochWork, write_cells
 
@@ -22,6 +23,7 @@ if TYPE_CHECKING:
     from standgrid.mission.model import Mission
     from standgrid.partition.chunks import PayloadTask
     from standgrid.partition.protocol import Partition
+    from standgrid.tiling.elevation import PlacedMaps
     from standgrid.tiling.increment import Increment
     from standgrid.tiling.placement_policy import PlacementChoice
 
@@ -57,6 +59,9 @@ class EpochResult:
     tiles: list[tuple[str, TileInfo]] = field(default_factory=list)
     #: False when every point stayed where it was (a re-tile of unchanged missions)
     changed: bool = True
+    #: the missions' placed elevation maps staged (``maps/<epoch>/``): the epoch's mosaic
+    #: is made of them and those kept (:func:`~standgrid.tiling.elevation.stage_epoch_mosaic`)
+    maps_staged: set[str] = field(default_factory=set)
 
 
 def tile_epoch(
@@ -83,8 +88,11 @@ def tile_epoch(
     for name in before.missions if before else ():
         if name not in plan.names:
             txn.set_mission_tiles(name, tiles.tiles_of.get(name, ()))
-    _record_missions(catalog, txn, index, epoch, group, plan, tiles)
+    maps = _place_maps(catalog, txn, epoch, group, plan)
+    _record_missions(catalog, txn, index, epoch, group, plan, tiles, maps)
     result = tiles.result
+    result.maps_staged = {paths.mission_elevation_map(epoch, n) for n, m in maps.items()
+                          if m.heights is not None}  # fmt: skip
     result.changed = plan.increment is None or bool(plan.read or plan.rewrite)
     settled = txn.settle_epoch(epoch, settings.tiling, changed=result.changed)
     if not result.changed and settled and before and settled.date != before.date:
@@ -332,6 +340,26 @@ def _check_conservation(catalog: Catalog, epoch: str, written: _Written) -> int:
     return fed
 
 
+def _place_maps(
+    catalog: Catalog, txn: Transaction, epoch: str, group: list[Ingest], plan: _EpochPlan
+) -> dict[str, PlacedMaps]:
+    """The derived maps of the group's missions placed into the catalog CRS (missions that
+    carry some), their elevation maps staged into ``maps/<epoch>/`` (earlier ones gone)."""
+    from standgrid.tiling.elevation import has_maps, place_mission_maps, stage_mission_maps
+
+    origin, _ = plan.partition.raster_alignment()
+    out = {}
+    for ingest in group:
+        mission = ingest.mission
+        placed = None
+        if has_maps(mission):
+            assert ingest.to_catalog is not None
+            placed = place_mission_maps(mission, ingest.to_catalog, catalog.crs, origin)
+            out[mission.name] = placed
+        stage_mission_maps(catalog, txn, epoch, mission.name, placed)
+    return out
+
+
 def _record_missions(
     catalog: Catalog,
     txn: Transaction,
@@ -340,6 +368,7 @@ def _record_missions(
     group: list[Ingest],
     plan: _EpochPlan,
     tiles: _Tiles,
+    maps: dict[str, PlacedMaps],
 ) -> None:
     """Each mission of ``group`` recorded in the catalog state and the report; the epoch's
     cells, payloads and the missions' trajectories, GNSS fixes and rows into the index."""
@@ -358,12 +387,14 @@ def _record_missions(
     for ingest in group:
         mission = ingest.mission
         mine_rows = [r for r in rows if r["mission"] == mission.name]
+        placed = maps.get(mission.name)
+        extra = {} if placed is None else {"derived_maps": placed.record()}
         record = txn.record_mission(
             mission.name, epoch=epoch, date=ingest.date, path=str(mission.path.resolve()),
             georeference=ingest.placement.record(), placement=_note(ingest),
             payload_count=len(cloud_payloads(mission)),
             point_count=sum(r["point_count"] for r in mine_rows),
-            tiles=sorted(tiles_of.get(mission.name, ())), **metadata_extra(mission),
+            tiles=sorted(tiles_of.get(mission.name, ())), **metadata_extra(mission), **extra,
         )  # fmt: skip
         tiles.result.missions[mission.name] = {
             "number": record["number"],
@@ -375,6 +406,7 @@ def _record_missions(
             "georeference": ingest.placement.summary(),
             "placement": _note(ingest),
             "warnings": list(mission.warnings),
+            **extra,
         }
         assert ingest.to_catalog is not None
         trajectories += trajectory_rows(mission, ingest.to_catalog, epoch)

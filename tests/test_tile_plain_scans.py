@@ -239,7 +239,6 @@ def test_segments_cut_the_travel_evenly() -> None:
 def _scan_of_mission(root: Path, name: str) -> Path:
     """A commercial scanner's export of a simulated mission: its points at their true CRS
     coordinates, one LAZ with the CRS (as a georeferenced handheld scan is delivered)."""
-    import pyproj
 
     from standgrid.mission.model import open_mission
     from standgrid.simulate import load_truth
@@ -250,7 +249,7 @@ def _scan_of_mission(root: Path, name: str) -> Path:
     header = laspy.LasHeader(point_format=6, version="1.4")
     header.scales = [0.001] * 3
     header.offsets = np.floor(xyz.min(axis=0))
-    header.add_crs(pyproj.CRS.from_user_input(chain.crs))
+    header.add_crs(chain.crs.pyproj_crs)
     las = laspy.LasData(header)
     las.x, las.y, las.z = xyz.T
     scan = root / "handheld_scan.laz"

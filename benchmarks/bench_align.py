@@ -42,8 +42,10 @@ print(json.dumps({"wall": wall, "cpu": cpu, "peak_mb": peak, "points": report.po
 def _run(missions: list[Path], out: Path, align: bool) -> dict[str, float]:
     done = subprocess.run(
         [sys.executable, "-c", CHILD, json.dumps([[str(m) for m in missions], str(out), align])],
-        check=True, capture_output=True, text=True,
-    )  # fmt: skip
+        check=True,
+        capture_output=True,
+        text=True,
+    )
     return json.loads(done.stdout.strip().splitlines()[-1])
 
 
@@ -64,10 +66,17 @@ def main() -> None:
         t0 = time.perf_counter()
         for epoch in (1, 3):
             simulate_mission(
-                root, seed=7, epoch=epoch, overwrite=True, area=args.area, forest="mixed",
-                scanner_kind="handheld", lane_spacing=15.0,
-                points_per_payload=args.points_per_payload, gnss=GnssModel.under_canopy(),
-            )  # fmt: skip
+                root,
+                seed=7,
+                epoch=epoch,
+                overwrite=True,
+                area=args.area,
+                forest="mixed",
+                scanner_kind="handheld",
+                lane_spacing=15.0,
+                points_per_payload=args.points_per_payload,
+                gnss=GnssModel.under_canopy(),
+            )
         print(f"simulated in {time.perf_counter() - t0:.0f} s")
     missions = sorted(missions_dir.iterdir())
     runs: dict[bool, list[dict[str, float]]] = {False: [], True: []}
@@ -82,16 +91,19 @@ def main() -> None:
     for align, label in ((False, "GNSS only (--no-align)"), (True, "aligned")):
         r = min(runs[align], key=lambda x: x["wall"])
         best[align] = r
-        print(f"{label:24s} wall {r['wall']:6.1f} s  cpu {r['cpu']:6.1f} s  "
-              f"peak {r['peak_mb']:6.0f} MB  ({points / r['wall'] / 1e6:.2f} M pts/s)")  # fmt: skip
+        print(
+            f"{label:24s} wall {r['wall']:6.1f} s  cpu {r['cpu']:6.1f} s  "
+            f"peak {r['peak_mb']:6.0f} MB  ({points / r['wall'] / 1e6:.2f} M pts/s)"
+        )
     a, b = best[True], best[False]
     added = a["wall"] - b["wall"]
-    print(f"aligned / GNSS only: wall {a['wall'] / b['wall']:.2f}x (+{added:.1f} s), "
-          f"cpu {a['cpu'] / b['cpu']:.2f}x, peak {a['peak_mb'] / b['peak_mb']:.2f}x "
-          f"(+{a['peak_mb'] - b['peak_mb']:.0f} MB)")  # fmt: skip
+    print(
+        f"aligned / GNSS only: wall {a['wall'] / b['wall']:.2f}x (+{added:.1f} s), "
+        f"cpu {a['cpu'] / b['cpu']:.2f}x, peak {a['peak_mb'] / b['peak_mb']:.2f}x "
+        f"(+{a['peak_mb'] - b['peak_mb']:.0f} MB)"
+    )
     own = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
     print(f"this process's peak: {own:.0f} MB")
-
 
 
 if __name__ == "__main__":

@@ -52,8 +52,12 @@ def run_measured(argv: list[str], env: dict[str, str]) -> dict[str, float]:
     proc.returncode = code = os.waitstatus_to_exitcode(status)
     if code:
         raise SystemExit(f"{' '.join(argv[:4])} ... failed ({code}):\n{err[-3000:]}")
-    return {"cpu": usage.ru_utime + usage.ru_stime, "user": usage.ru_utime,
-            "sys": usage.ru_stime, "wall": wall}  # fmt: skip
+    return {
+        "cpu": usage.ru_utime + usage.ru_stime,
+        "user": usage.ru_utime,
+        "sys": usage.ru_stime,
+        "wall": wall,
+    }
 
 
 class Load:
@@ -77,8 +81,9 @@ class Load:
         self.procs.clear()
 
 
-def enrich_once(tiled: Path, work: Path, name: str, env: dict[str, str], extra: list[str]
-                ) -> dict[str, float]:  # fmt: skip
+def enrich_once(
+    tiled: Path, work: Path, name: str, env: dict[str, str], extra: list[str]
+) -> dict[str, float]:
     copy = work / f"catalog_{name}"
     shutil.rmtree(copy, ignore_errors=True)
     shutil.copytree(tiled, copy, symlinks=True)
@@ -111,8 +116,17 @@ def main() -> None:
         tiled = work / "tiled"
         if not (tiled / "catalog.json").is_file():
             missions = sorted(p for p in args.missions.iterdir() if p.is_dir())
-            argv = [sys.executable, "-c", CLI, "tile", *map(str, missions), "-o", str(tiled),
-                    "-q", "--overwrite"]  # fmt: skip
+            argv = [
+                sys.executable,
+                "-c",
+                CLI,
+                "tile",
+                *map(str, missions),
+                "-o",
+                str(tiled),
+                "-q",
+                "--overwrite",
+            ]
             subprocess.run(argv, check=True, env=dict(os.environ))
         results: dict[str, dict[str, Any]] = {}
         for _ in range(max(1, args.repeat)):
@@ -125,8 +139,9 @@ def main() -> None:
         print(f"enrich of {tiled.name} ({os.cpu_count()} cores); env: {' '.join(args.env) or '-'}")
         print(f"{'condition':<22} {'CPU s':>8} {'user s':>8} {'sys s':>7} {'wall s':>8}")
         for name, r in results.items():
-            print(f"{name:<22} {r['cpu']:>8.2f} {r['user']:>8.2f} {r['sys']:>7.2f} "
-                  f"{r['wall']:>8.2f}")  # fmt: skip
+            print(
+                f"{name:<22} {r['cpu']:>8.2f} {r['user']:>8.2f} {r['sys']:>7.2f} {r['wall']:>8.2f}"
+            )
         idle_cpu, load_cpu = (r["cpu"] for r in results.values())
         ratio = load_cpu / idle_cpu
         verdict = "ok" if ratio <= TARGET_RATIO else f"above the {TARGET_RATIO} target"

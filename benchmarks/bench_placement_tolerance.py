@@ -57,8 +57,12 @@ def stream(source: Path, folder: Path, batch: int, tolerance: float | None) -> d
         until = payloads[start + batch].stamp.ns - 1 if start + batch < len(payloads) else 1 << 62
         live.set_graph(graph_until(source, until))
         for payload in chunk:
-            live.add_payload(payload.stamp, payload.path.read_bytes(),
-                             payload.path.suffix, mission.pose_of(payload))  # fmt: skip
+            live.add_payload(
+                payload.stamp,
+                payload.path.read_bytes(),
+                payload.path.suffix,
+                mission.pose_of(payload),
+            )
         live.add_gnss(fixes_until(source, until))
         t0 = time.perf_counter()
         try:
@@ -95,8 +99,12 @@ def same_catalogs(a: Path, b: Path) -> None:
 
     def points(path: Path) -> np.ndarray:
         cloud = read_tile(path, include_withheld=True)
-        table = np.column_stack([np.round(cloud.xyz * 1000).astype(np.int64),
-                                 cloud.fields["payload_id"].astype(np.int64)])  # fmt: skip
+        table = np.column_stack(
+            [
+                np.round(cloud.xyz * 1000).astype(np.int64),
+                cloud.fields["payload_id"].astype(np.int64),
+            ]
+        )
         return table[np.lexsort(table.T[::-1])]
 
     ca, cb = Catalog.open(a), Catalog.open(b)
@@ -125,8 +133,14 @@ def main() -> None:
         same_catalogs(runs["exact"]["catalog"], runs["tolerance"]["catalog"])
         for label, run in runs.items():
             offsets = run["offsets"]
-            extra = (f", {run['kept']} kept the placement (offset <= {max(offsets):.3f} m), "
-                     f"exact settle {run['settle_s']:.2f} s") if offsets else ""  # fmt: skip
+            extra = (
+                (
+                    f", {run['kept']} kept the placement (offset <= {max(offsets):.3f} m), "
+                    f"exact settle {run['settle_s']:.2f} s"
+                )
+                if offsets
+                else ""
+            )
             print(
                 f"{label:9}: {run['tiles']} tiles in {run['tiling_s']:7.2f} s, "
                 f"{run['whole']} whole re-tiles{extra}"

@@ -99,14 +99,20 @@ def main() -> None:
         f"cli([ 'tile', {str(scan)!r}, '-o', {str(catalog)!r}, '--memory', "
         f"'{args.budget_mb}', '-q', '--json'], standalone_mode=False)"
     )
-    print(f"{args.points:,} points, LAZ {scan.stat().st_size / 1e6:.0f} MB, budget "
-          f"{args.budget_mb} MB")  # fmt: skip
+    print(
+        f"{args.points:,} points, LAZ {scan.stat().st_size / 1e6:.0f} MB, budget "
+        f"{args.budget_mb} MB"
+    )
     for name, m in (("laspy read + write (baseline)", base), ("standgrid tile", tiled)):
-        print(f"{name:32s} wall {m['wall_s']:6.1f} s  CPU {m['cpu_s']:6.1f} s  "
-              f"peak RSS {m['peak_mb']:6.0f} MB")  # fmt: skip
-    print(f"ratio tile / baseline: CPU {tiled['cpu_s'] / base['cpu_s']:.2f}x, "
-          f"peak RSS {tiled['peak_mb'] / base['peak_mb']:.2f}x; "
-          f"peak / budget {tiled['peak_mb'] / args.budget_mb:.2f}")  # fmt: skip
+        print(
+            f"{name:32s} wall {m['wall_s']:6.1f} s  CPU {m['cpu_s']:6.1f} s  "
+            f"peak RSS {m['peak_mb']:6.0f} MB"
+        )
+    print(
+        f"ratio tile / baseline: CPU {tiled['cpu_s'] / base['cpu_s']:.2f}x, "
+        f"peak RSS {tiled['peak_mb'] / base['peak_mb']:.2f}x; "
+        f"peak / budget {tiled['peak_mb'] / args.budget_mb:.2f}"
+    )
 
 
 if __name__ == "__main__":

@@ -67,8 +67,18 @@ def build_catalog(folder: Path) -> Path:
 
 
 def start_server(catalog: Path, token_file: Path) -> tuple[subprocess.Popen[str], str]:
-    command = [sys.executable, "-c", "from standgrid.cli import main; main()", "serve",
-               str(catalog), "--port", "0", "--json", "--token-file", str(token_file)]  # fmt: skip
+    command = [
+        sys.executable,
+        "-c",
+        "from standgrid.cli import main; main()",
+        "serve",
+        str(catalog),
+        "--port",
+        "0",
+        "--json",
+        "--token-file",
+        str(token_file),
+    ]
     proc = subprocess.Popen(command, cwd=REPO, stdout=subprocess.PIPE, text=True)
     assert proc.stdout is not None
     line = proc.stdout.readline()
@@ -78,8 +88,9 @@ def start_server(catalog: Path, token_file: Path) -> tuple[subprocess.Popen[str]
     return proc, json.loads(line)["service"].rstrip("/")
 
 
-def run(readers: int, seconds: float, request: Callable[[httpx.Client, random.Random], bool],
-        base: str) -> tuple[list[float], int]:  # fmt: skip
+def run(
+    readers: int, seconds: float, request: Callable[[httpx.Client, random.Random], bool], base: str
+) -> tuple[list[float], int]:
     """``readers`` threads sending ``request`` for ``seconds``. The clients are made before
     the clock starts: making one (its SSL context) holds this process's GIL for tens of ms,
     which the first requests of the other threads would count as the server's latency."""
@@ -126,24 +137,42 @@ def robot_requests() -> list[tuple[str, str, dict[str, Any]]]:
     mission = open_mission(SOURCE, strict=False)
     url = f"/missions/{STREAMED}"
     requests: list[tuple[str, str, dict[str, Any]]] = [
-        ("POST", "/missions", {"json": {
-            "name": STREAMED, "date": "2024-05-15", "place": meta["place"],
-            "robot": meta["robot"], "sensors": meta["sensors"]}}),
+        (
+            "POST",
+            "/missions",
+            {
+                "json": {
+                    "name": STREAMED,
+                    "date": "2024-05-15",
+                    "place": meta["place"],
+                    "robot": meta["robot"],
+                    "sensors": meta["sensors"],
+                }
+            },
+        ),
         ("PUT", f"{url}/graph", {"content": (SOURCE / "slam_pose_graph.g2o").read_bytes()}),
-    ]  # fmt: skip
+    ]
     lines = (SOURCE / "gnss" / "fixes.txt").read_text().splitlines()
     chunk = max(1, (len(lines) - 1) // len(mission.payloads))
     for k, payload in enumerate(mission.payloads):
         t, q = translation_quat(mission.pose_of(payload))
-        requests.append(("POST", f"{url}/payloads", {
-            "content": payload.path.read_bytes(),
-            "params": {"stamp": f"{payload.stamp.sec}_{payload.stamp.nsec:09d}",
-                       "pose": ",".join(repr(float(v)) for v in (*t, *q))}}))  # fmt: skip
+        requests.append(
+            (
+                "POST",
+                f"{url}/payloads",
+                {
+                    "content": payload.path.read_bytes(),
+                    "params": {
+                        "stamp": f"{payload.stamp.sec}_{payload.stamp.nsec:09d}",
+                        "pose": ",".join(repr(float(v)) for v in (*t, *q)),
+                    },
+                },
+            )
+        )
         rows = lines[1 + k * chunk : 1 + (k + 1) * chunk]
         if k == len(mission.payloads) - 1:
             rows = lines[1 + k * chunk :]
-        requests.append(("POST", f"{url}/gnss",
-                         {"content": "\n".join([lines[0], *rows]) + "\n"}))  # fmt: skip
+        requests.append(("POST", f"{url}/gnss", {"content": "\n".join([lines[0], *rows]) + "\n"}))
     return requests
 
 
@@ -174,13 +203,16 @@ def cpu_seconds(pid: int) -> float:
     return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
 
 
-def report(name: str, latencies: list[float], errors: int, seconds: float,
-           server_cpu: float) -> float:  # fmt: skip
+def report(
+    name: str, latencies: list[float], errors: int, seconds: float, server_cpu: float
+) -> float:
     ms = np.asarray(latencies) * 1000.0
     p50, p95 = np.percentile(ms, [50, 95])
-    print(f"{name:7} {len(ms) / seconds:8.1f} req/s  p50 {p50:7.1f} ms  p95 {p95:7.1f} ms  "
-          f"max {ms.max():7.1f} ms  errors {errors}/{len(ms)}  "
-          f"server CPU {server_cpu * 1000 / len(ms):5.2f} ms/req")  # fmt: skip
+    print(
+        f"{name:7} {len(ms) / seconds:8.1f} req/s  p50 {p50:7.1f} ms  p95 {p95:7.1f} ms  "
+        f"max {ms.max():7.1f} ms  errors {errors}/{len(ms)}  "
+        f"server CPU {server_cpu * 1000 / len(ms):5.2f} ms/req"
+    )
     return float(p50)
 
 
@@ -189,8 +221,9 @@ def main() -> None:
     parser.add_argument("--catalog", type=Path, help="catalog to serve (default: build one)")
     parser.add_argument("--readers", type=int, default=8)
     parser.add_argument("--seconds", type=float, default=5.0)
-    parser.add_argument("--stream", action="store_true",
-                        help="one robot streams a mission meanwhile")
+    parser.add_argument(
+        "--stream", action="store_true", help="one robot streams a mission meanwhile"
+    )
     args = parser.parse_args()
 
     from standgrid.catalog import Catalog
@@ -209,7 +242,8 @@ def main() -> None:
         counts = {n: index.items(layers[n], Query(limit=1)).number_matched for n in LAYERS}
         xmin, ymin, xmax, ymax = layers["cells"].bounds or (0, 0, 0, 0)
         crs_uri = "http://www.opengis.net/def/crs/EPSG/0/" + str(
-            __import__("pyproj").CRS(opened.crs).to_epsg())
+            __import__("pyproj").CRS(opened.crs).to_epsg()
+        )
 
         def page_params(rng: random.Random) -> tuple[str, int]:
             layer = rng.choice(LAYERS)
@@ -217,15 +251,18 @@ def main() -> None:
 
         def items(client: httpx.Client, rng: random.Random) -> bool:
             layer, offset = page_params(rng)
-            r = client.get(f"/ogc/collections/{layer}/items",
-                           params={"limit": 100, "offset": offset})  # fmt: skip
+            r = client.get(
+                f"/ogc/collections/{layer}/items", params={"limit": 100, "offset": offset}
+            )
             body = r.json()
             return r.status_code == 200 and body["numberReturned"] == len(body["features"])
 
         def bbox(client: httpx.Client, rng: random.Random) -> bool:
             x, y = rng.uniform(xmin, xmax - 30), rng.uniform(ymin, ymax - 30)
-            r = client.get("/ogc/collections/trees/items", params={
-                "bbox": f"{x},{y},{x + 30},{y + 30}", "bbox-crs": crs_uri, "limit": 100})
+            r = client.get(
+                "/ogc/collections/trees/items",
+                params={"bbox": f"{x},{y},{x + 30},{y + 30}", "bbox-crs": crs_uri, "limit": 100},
+            )
             body = r.json()
             return r.status_code == 200 and body["numberReturned"] == len(body["features"])
 
@@ -243,7 +280,8 @@ def main() -> None:
                 return (first, last, len(r.content)) == (start, end, end - start + 1)
             # a tile a commit removed or shrank meanwhile: 404, or 416 naming its new size
             replaced = r.status_code == 404 or (
-                r.status_code == 416 and r.headers["content-range"] != f"bytes */{size}")
+                r.status_code == 416 and r.headers["content-range"] != f"bytes */{size}"
+            )
             if not (args.stream and replaced):
                 failures.append(f"{r.status_code} {rel} {start}-{end}: {r.text[:120]}")
             return args.stream and replaced
@@ -261,9 +299,11 @@ def main() -> None:
             local.append(time.perf_counter() - t0)
         index.close()
         local_p50 = float(np.percentile(local, 50) * 1000)
-        print(f"catalog {catalog}: {len(tiles)} tiles, {counts} features; "
-              f"{args.readers} readers x {args.seconds:.0f} s per workload"
-              f"{'; one robot streaming a mission' if args.stream else ''}")
+        print(
+            f"catalog {catalog}: {len(tiles)} tiles, {counts} features; "
+            f"{args.readers} readers x {args.seconds:.0f} s per workload"
+            f"{'; one robot streaming a mission' if args.stream else ''}"
+        )
         print(f"local   page of 100 read straight from the GeoPackage: p50 {local_p50:.2f} ms")
 
         proc, base = start_server(catalog, token_file)
@@ -272,8 +312,12 @@ def main() -> None:
         writer = threading.Thread(target=stream_mission, args=(base, sent, robot))
         try:
             p50 = {}
-            for name, request in (("ping", ping), ("items", items), ("bbox", bbox),
-                                  ("range", range_read)):  # fmt: skip
+            for name, request in (
+                ("ping", ping),
+                ("items", items),
+                ("bbox", bbox),
+                ("range", range_read),
+            ):
                 if args.stream and name == "items":
                     writer.start()
                 before = cpu_seconds(proc.pid)
@@ -287,14 +331,18 @@ def main() -> None:
             proc.wait(timeout=60)
         for failure in failures[:5]:
             print(f"  range error: {failure}")
-        print(f"ratios (p50): items/ping {p50['items'] / p50['ping']:.1f}, "
-              f"items/local page {p50['items'] / local_p50:.1f}, "
-              f"range/ping {p50['range'] / p50['ping']:.1f}")
+        print(
+            f"ratios (p50): items/ping {p50['items'] / p50['ping']:.1f}, "
+            f"items/local page {p50['items'] / local_p50:.1f}, "
+            f"range/ping {p50['range'] / p50['ping']:.1f}"
+        )
         if args.stream:
             lost = robot.get("payloads_sent", -1) - robot.get("payloads_in_catalog", -2)
-            print(f"robot   {robot.get('payloads_sent', 0):.0f} payloads sent in "
-                  f"{robot.get('sent_s', float('nan')):.1f} s, tiled after "
-                  f"{robot.get('tiled_s', float('nan')):.1f} s; payloads lost: {lost:.0f}")
+            print(
+                f"robot   {robot.get('payloads_sent', 0):.0f} payloads sent in "
+                f"{robot.get('sent_s', float('nan')):.1f} s, tiled after "
+                f"{robot.get('tiled_s', float('nan')):.1f} s; payloads lost: {lost:.0f}"
+            )
 
 
 if __name__ == "__main__":

@@ -228,8 +228,10 @@ def measure_floor(mission: Path, catalog: Path, out: Path) -> dict[str, Any]:
                 (words[0], words[1:]) for words in (row.split() for row in head.splitlines())
             )
             names = [n.decode() for n in fields[b"FIELDS"]]
-            kinds = [f"<{t.decode().lower()}{s.decode()}" for t, s in
-                     zip(fields[b"TYPE"], fields[b"SIZE"], strict=True)]  # fmt: skip
+            kinds = [
+                f"<{t.decode().lower()}{s.decode()}"
+                for t, s in zip(fields[b"TYPE"], fields[b"SIZE"], strict=True)
+            ]
             data = np.fromfile(stream, dtype=list(zip(names, kinds, strict=True)))
         xyz = np.stack([data[a] for a in "xyz"], axis=1).astype(np.float64)
         xyz = xyz @ pose[:3, :3].T + (pose[:3, 3] + shift)
@@ -328,13 +330,15 @@ def main() -> None:
     parser.add_argument("--workers", default=None, help="also tile on LocalClusters: 1,2")
     parser.add_argument("--no-copy", action="store_true", help="skip tile vs copy")
     parser.add_argument(
-        "--warm", action="store_true",
+        "--warm",
+        action="store_true",
         help="time tile in a process that has tiled the bundled demo mission first",
-    )  # fmt: skip
+    )
     parser.add_argument(
-        "--fixed-cost", action="store_true",
+        "--fixed-cost",
+        action="store_true",
         help="only the fixed cost of a small job: tile a tiny mission vs interpreter start",
-    )  # fmt: skip
+    )
     parser.add_argument("--tiny-points", type=int, default=5000)
     parser.add_argument("--child", nargs=argparse.REMAINDER, help=argparse.SUPPRESS)
     args = parser.parse_args()
@@ -472,8 +476,12 @@ def fixed_cost(args: Any) -> None:
         if not missions:
             from standgrid.simulate import simulate_mission
 
-            simulate_mission(work / "sim", seed=SEED, area=40.0,
-                             points_per_payload=max(50, args.tiny_points // 8))  # fmt: skip
+            simulate_mission(
+                work / "sim",
+                seed=SEED,
+                area=40.0,
+                points_per_payload=max(50, args.tiny_points // 8),
+            )
             missions = sorted((work / "sim" / "missions").glob("*"))
         mission = missions[0]
         code = _TILE_CODE.format(heavy=HEAVY_MODULES)
@@ -499,12 +507,15 @@ def fixed_cost(args: Any) -> None:
                     best[name] = r
         import laspy
 
-        points = sum(laspy.read(p).header.point_count
-                     for p in (work / "catalog_0").glob("tiles/*/*.la[sz]"))  # fmt: skip
+        points = sum(
+            laspy.read(p).header.point_count for p in (work / "catalog_0").glob("tiles/*/*.la[sz]")
+        )
         print(f"tiny mission: {mission.name}, {points:,} points tiled")
         base = best["python -c pass"]["cpu"]
-        print(f"{'run (best of ' + str(max(3, args.repeat)) + ')':<24} {'CPU s':>7} {'wall s':>7} "
-              f"{'x start':>8}")  # fmt: skip
+        print(
+            f"{'run (best of ' + str(max(3, args.repeat)) + ')':<24} {'CPU s':>7} {'wall s':>7} "
+            f"{'x start':>8}"
+        )
         for name, r in best.items():
             print(f"{name:<24} {r['cpu']:>7.3f} {r['wall']:>7.3f} {r['cpu'] / base:>8.1f}")
         tile = best["standgrid tile (tiny)"]

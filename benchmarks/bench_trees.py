@@ -160,11 +160,15 @@ def main() -> None:
             for column, value in compare(old, result).items():
                 worst[column] = max(worst.get(column, 0.0), value)
         n_points += len(xyz)
-    print(f"{len(chunks)} chunks, {n_points:,} points; trees: baseline {trees['old']}, "
-          f"this tree {trees['new']}")  # fmt: skip
+    print(
+        f"{len(chunks)} chunks, {n_points:,} points; trees: baseline {trees['old']}, "
+        f"this tree {trees['new']}"
+    )
     if args.same:
-        print("same segmentation; largest difference per float column:",
-              {k: f"{v:.1e}" for k, v in worst.items()})  # fmt: skip
+        print(
+            "same segmentation; largest difference per float column:",
+            {k: f"{v:.1e}" for k, v in worst.items()},
+        )
     for label, seconds in (("wall", wall), ("CPU", cpu)):
         print(
             f"{label}: baseline {seconds['old']:.2f} s, this tree {seconds['new']:.2f} s, "

@@ -27,9 +27,17 @@ from pathlib import Path
 import httpx
 import pyogrio
 
-ARGS = ["--headless", "--no-sandbox", "--disable-gpu", "--disable-background-networking",
-        "--disable-component-update", "--disable-sync", "--no-first-run",
-        "--use-angle=swiftshader", "--enable-unsafe-swiftshader"]  # fmt: skip
+ARGS = [
+    "--headless",
+    "--no-sandbox",
+    "--disable-gpu",
+    "--disable-background-networking",
+    "--disable-component-update",
+    "--disable-sync",
+    "--no-first-run",
+    "--use-angle=swiftshader",
+    "--enable-unsafe-swiftshader",
+]
 
 
 def main() -> None:
@@ -46,8 +54,7 @@ def main() -> None:
     from standgrid.serve import create_app
     from standgrid.serve.server import running
 
-    cells = pyogrio.read_dataframe(args.catalog / "index.gpkg", layer="cells",
-                                   read_geometry=False)  # fmt: skip
+    cells = pyogrio.read_dataframe(args.catalog / "index.gpkg", layer="cells", read_geometry=False)
     epoch = sorted(cells["epoch"].unique())[0]
     print(f"catalog: {len(cells)} cell tiles, {int(cells['point_count'].sum()):,} points")
     with running(create_app(args.catalog)) as server, sync_playwright() as p:
@@ -77,8 +84,9 @@ def main() -> None:
             page.screenshot(path=str(args.screenshot.with_stem(args.screenshot.stem + "-map")))
 
         picks = cells[cells["epoch"] == epoch].sort_values("point_count")
-        picks = picks.iloc[[round(k * (len(picks) - 1) / max(1, args.cells - 1))
-                            for k in range(args.cells)]]  # fmt: skip
+        picks = picks.iloc[
+            [round(k * (len(picks) - 1) / max(1, args.cells - 1)) for k in range(args.cells)]
+        ]
         in_page, fetched, streamed = [], [], []
         copc = page.evaluate("() => window.standgrid.state.streamCopc")
         open_cell = (
@@ -121,11 +129,16 @@ def main() -> None:
         if args.screenshot:
             page.screenshot(path=str(args.screenshot.with_stem(args.screenshot.stem + "-3d")))
 
-        payloads = pyogrio.read_dataframe(args.catalog / "index.gpkg", layer="payloads",
-                                          read_geometry=False)  # fmt: skip
+        payloads = pyogrio.read_dataframe(
+            args.catalog / "index.gpkg", layer="payloads", read_geometry=False
+        )
         payloads = payloads[payloads["epoch"] == epoch].sort_values("payload_id")
-        picks = payloads.iloc[[round(k * (len(payloads) - 1) / max(1, args.payloads - 1))
-                               for k in range(min(args.payloads, len(payloads)))]]  # fmt: skip
+        picks = payloads.iloc[
+            [
+                round(k * (len(payloads) - 1) / max(1, args.payloads - 1))
+                for k in range(min(args.payloads, len(payloads)))
+            ]
+        ]
         in_page, fetched = [], []
         for _, row in picks.iterrows():
             ident = int(row["payload_id"])
@@ -134,8 +147,9 @@ def main() -> None:
             fetched.append(1000 * (time.perf_counter() - t0))
             length = int.from_bytes(answer.content[:4], "little")
             tiles = json.loads(answer.content[4 : 4 + length])["meta"]["payload"]["tiles"]
-            view = page.evaluate("i => window.standgrid.openPayload(i).then(v => [v.count, v.ms])",
-                                 ident)  # fmt: skip
+            view = page.evaluate(
+                "i => window.standgrid.openPayload(i).then(v => [v.count, v.ms])", ident
+            )
             assert view[0] == row["point_count"], (ident, view[0], row["point_count"])
             in_page.append(view[1])
             print(

@@ -47,11 +47,16 @@ def main() -> None:
     with tempfile.TemporaryDirectory(prefix="standgrid-coverage-") as work:
         started = time.monotonic()
         scenario = run_scenario(
-            Path(work), seed=opts.seed, area=opts.area, points_per_payload=opts.points,
+            Path(work),
+            seed=opts.seed,
+            area=opts.area,
+            points_per_payload=opts.points,
             harvest=not opts.no_harvest,
-        )  # fmt: skip
-        print(f"built in {time.monotonic() - started:.0f} s; harvested stand: "
-              f"{scenario.harvest_stand}")  # fmt: skip
+        )
+        print(
+            f"built in {time.monotonic() - started:.0f} s; harvested stand: "
+            f"{scenario.harvest_stand}"
+        )
         catalog = scenario.catalog
         state = json.loads((catalog / "catalog.json").read_text())
         grid = StandGrid.from_dict(state["grid"])

@@ -48,9 +48,15 @@ A_SRC = BUNDLED / "2024-05-14-wytham-anymal-coyote"
 B_SRC = BUNDLED / "2028-05-20-wytham-frontier-v15"
 CLI = "from standgrid.cli import main; main()"
 TXN_POINTS = [
-    "staged", "journal", "rename-0", "rename-1", "rename-7", "rename-20",
-    "before-catalog-json", "applied",
-]  # fmt: skip
+    "staged",
+    "journal",
+    "rename-0",
+    "rename-1",
+    "rename-7",
+    "rename-20",
+    "before-catalog-json",
+    "applied",
+]
 PUBLISH_POINTS = ["publish", "exchanged"]
 
 
@@ -73,8 +79,12 @@ def command(args: list[str], crash_at: str | None = None) -> subprocess.Popen[st
         env["STANDGRID_CRASH_AT"] = crash_at
     return subprocess.Popen(
         [sys.executable, "-c", CLI, *args, "-q", "--lock-timeout", "600"],
-        env=env, cwd=REPO, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True,
-    )  # fmt: skip
+        env=env,
+        cwd=REPO,
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.PIPE,
+        text=True,
+    )
 
 
 def run(args: list[str]) -> None:
@@ -170,8 +180,15 @@ def trial(scenario: Scenario, work: Path, crash_at: str | None, kill_after: floa
     return "ok" if killed else "no-kill"
 
 
-def concurrent_trial(base: Path, work: Path, b: Path, c: Path, rng: random.Random,
-                     crash_at: str | None, seconds: float) -> str:  # fmt: skip
+def concurrent_trial(
+    base: Path,
+    work: Path,
+    b: Path,
+    c: Path,
+    rng: random.Random,
+    crash_at: str | None,
+    seconds: float,
+) -> str:
     """Two writers add B and C at once; one is killed (at a point or at random)."""
     catalog = prepare(Scenario("", base, []), work)
     first = rng.random() < 0.5
@@ -240,21 +257,55 @@ def main() -> None:
         shutil.copytree(cat_a, cat_ac)
         run(["tile", str(c), "-o", str(cat_ac)])
         scenarios = [
-            Scenario("tile (new epoch)", cat_a, ["tile", str(b), "-o", "{cat}"],
-                     observe(cat_a), observe(cat_ab), t_tile),
-            Scenario("tile (merge into an epoch)", cat_a, ["tile", str(c), "-o", "{cat}"],
-                     observe(cat_a), observe(cat_ac), t_tile),
-            Scenario("tile --overwrite", cat_a, ["tile", str(b), "-o", "{cat}", "--overwrite"],
-                     observe(cat_a), observe(cat_b), t_tile),
-            Scenario("tile (new catalog)", None, ["tile", str(a), "-o", "{cat}"],
-                     None, observe(cat_a), t_tile),
-            Scenario("enrich", cat_ab, ["enrich", "{cat}"],
-                     observe(cat_ab), observe(cat_abe), t_enrich),
-            Scenario("compare", cat_abe, ["compare", "{cat}"],
-                     observe(cat_abe), observe(cat_abec), t_compare),
-        ]  # fmt: skip
-        print(f"setup {time.monotonic() - started:.0f} s; tile {t_tile:.1f} s, enrich "
-              f"{t_enrich:.1f} s, compare {t_compare:.1f} s per run", flush=True)  # fmt: skip
+            Scenario(
+                "tile (new epoch)",
+                cat_a,
+                ["tile", str(b), "-o", "{cat}"],
+                observe(cat_a),
+                observe(cat_ab),
+                t_tile,
+            ),
+            Scenario(
+                "tile (merge into an epoch)",
+                cat_a,
+                ["tile", str(c), "-o", "{cat}"],
+                observe(cat_a),
+                observe(cat_ac),
+                t_tile,
+            ),
+            Scenario(
+                "tile --overwrite",
+                cat_a,
+                ["tile", str(b), "-o", "{cat}", "--overwrite"],
+                observe(cat_a),
+                observe(cat_b),
+                t_tile,
+            ),
+            Scenario(
+                "tile (new catalog)",
+                None,
+                ["tile", str(a), "-o", "{cat}"],
+                None,
+                observe(cat_a),
+                t_tile,
+            ),
+            Scenario(
+                "enrich", cat_ab, ["enrich", "{cat}"], observe(cat_ab), observe(cat_abe), t_enrich
+            ),
+            Scenario(
+                "compare",
+                cat_abe,
+                ["compare", "{cat}"],
+                observe(cat_abe),
+                observe(cat_abec),
+                t_compare,
+            ),
+        ]
+        print(
+            f"setup {time.monotonic() - started:.0f} s; tile {t_tile:.1f} s, enrich "
+            f"{t_enrich:.1f} s, compare {t_compare:.1f} s per run",
+            flush=True,
+        )
         tally: Counter[str] = Counter()
         failures: list[str] = []
         work = root / "work"
@@ -277,17 +328,23 @@ def main() -> None:
                 PUBLISH_POINTS if scenario.base is None or "--overwrite" in scenario.args else []
             )
             for point in [*points, *extra]:
-                record(f"{scenario.name} @ {point}",
-                       lambda s=scenario, p=point: trial(s, work, p, None))  # fmt: skip
+                record(
+                    f"{scenario.name} @ {point}",
+                    lambda s=scenario, p=point: trial(s, work, p, None),
+                )
             for _ in range(opts.random):
                 after = rng.uniform(0.1, 1.1) * scenario.seconds
-                record(f"{scenario.name} @ {after:.2f} s",
-                       lambda s=scenario, t=after: trial(s, work, None, t))  # fmt: skip
+                record(
+                    f"{scenario.name} @ {after:.2f} s",
+                    lambda s=scenario, t=after: trial(s, work, None, t),
+                )
         print("concurrent writers (tile B and tile C into one catalog, one killed):", flush=True)
         for k in range(opts.concurrent):
             point = rng.choice(points) if k % 2 else None
-            record(f"concurrent @ {point or 'random'}",
-                   lambda p=point: concurrent_trial(cat_a, work, b, c, rng, p, t_tile))  # fmt: skip
+            record(
+                f"concurrent @ {point or 'random'}",
+                lambda p=point: concurrent_trial(cat_a, work, b, c, rng, p, t_tile),
+            )
         total = sum(tally.values())
         summary = {
             "trials": total,

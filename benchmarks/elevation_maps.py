@@ -48,8 +48,9 @@ def main() -> None:
     args = parser.parse_args()
     work = args.workdir or Path(tempfile.mkdtemp(prefix="elevation-maps-"))
     model = ElevationMapModel()
-    config = SimulationConfig(area=args.area, points_per_payload=args.points_per_payload,
-                              elevation_maps=model)  # fmt: skip
+    config = SimulationConfig(
+        area=args.area, points_per_payload=args.points_per_payload, elevation_maps=model
+    )
     sim = simulate_mission(work / "sim", seed=args.seed, epoch=1, overwrite=True, config=config)
     catalog = work / "catalog"
     shutil.rmtree(catalog, ignore_errors=True)

@@ -307,8 +307,11 @@ def short_of_room_error(
             return full
     target = Path(written)
     size = 0
-    for candidate in (target, target.with_name(target.name + "-journal"),
-                      target.with_name(target.name + "-wal")):  # fmt: skip
+    for candidate in (
+        target,
+        target.with_name(target.name + "-journal"),
+        target.with_name(target.name + "-wal"),
+    ):
         try:
             size = max(size, candidate.stat().st_size)
         except OSError:

@@ -14,12 +14,25 @@ NS_PER_S = 1_000_000_000
 GPS_EPOCH_UNIX = 315_964_800
 #: UTC dates from which GPS - UTC grew by one more leap second (IERS Bulletin C).
 GPS_LEAP_SECOND_DATES = (
-    date(1981, 7, 1), date(1982, 7, 1), date(1983, 7, 1), date(1985, 7, 1),
-    date(1988, 1, 1), date(1990, 1, 1), date(1991, 1, 1), date(1992, 7, 1),
-    date(1993, 7, 1), date(1994, 7, 1), date(1996, 1, 1), date(1997, 7, 1),
-    date(1999, 1, 1), date(2006, 1, 1), date(2009, 1, 1), date(2012, 7, 1),
-    date(2015, 7, 1), date(2017, 1, 1),
-)  # fmt: skip
+    date(1981, 7, 1),
+    date(1982, 7, 1),
+    date(1983, 7, 1),
+    date(1985, 7, 1),
+    date(1988, 1, 1),
+    date(1990, 1, 1),
+    date(1991, 1, 1),
+    date(1992, 7, 1),
+    date(1993, 7, 1),
+    date(1994, 7, 1),
+    date(1996, 1, 1),
+    date(1997, 7, 1),
+    date(1999, 1, 1),
+    date(2006, 1, 1),
+    date(2009, 1, 1),
+    date(2012, 7, 1),
+    date(2015, 7, 1),
+    date(2017, 1, 1),
+)
 #: Those dates in UNIX seconds (ascending).
 _LEAP_UNIX = np.array(
     [int(datetime(d.year, d.month, d.day, tzinfo=UTC).timestamp()) for d in GPS_LEAP_SECOND_DATES],

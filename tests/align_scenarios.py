@@ -23,18 +23,30 @@ POINTS_PER_PAYLOAD = 120_000
 EPOCHS = (1, 3, 2)
 
 
-def simulate(root: Path, seed: int, *, harvest: float = 0.0, exact: bool = False,
-             epochs: tuple[int, ...] = EPOCHS) -> list[Any]:  # fmt: skip
+def simulate(
+    root: Path,
+    seed: int,
+    *,
+    harvest: float = 0.0,
+    exact: bool = False,
+    epochs: tuple[int, ...] = EPOCHS,
+) -> list[Any]:
     """The missions under ``root/missions`` and their truth; ``exact``: the pose graphs also
     carry the true georeference (placement exact, the same data otherwise)."""
     from standgrid.simulate import simulate_mission
     from standgrid.simulate.gnss import GnssModel
 
     settings = dict(
-        area=AREA_M, forest="mixed", scanner_kind="handheld", lane_spacing=15.0,
-        points_per_payload=POINTS_PER_PAYLOAD, gnss=GnssModel.under_canopy(),
-        harvest_fraction=harvest, new_trees=3 if harvest > 0 else 0, write_georef=exact,
-    )  # fmt: skip
+        area=AREA_M,
+        forest="mixed",
+        scanner_kind="handheld",
+        lane_spacing=15.0,
+        points_per_payload=POINTS_PER_PAYLOAD,
+        gnss=GnssModel.under_canopy(),
+        harvest_fraction=harvest,
+        new_trees=3 if harvest > 0 else 0,
+        write_georef=exact,
+    )
     return [simulate_mission(root, seed=seed, epoch=e, overwrite=True, **settings) for e in epochs]
 
 
@@ -68,8 +80,10 @@ class Placements:
                 f" / {self.coverage(name):.2f}"
             )
         for (a, b), d in self.apart.items():
-            lines.append(f"{a} ~ {b}: {len(d)} co-located nodes, apart median "
-                         f"{np.median(d):.4f} m, max {d.max():.4f} m")  # fmt: skip
+            lines.append(
+                f"{a} ~ {b}: {len(d)} co-located nodes, apart median "
+                f"{np.median(d):.4f} m, max {d.max():.4f} m"
+            )
         return "\n".join(lines)
 
 
@@ -88,8 +102,9 @@ def placements(root: Path, catalog: Path) -> Placements:
     error, motion = {}, {}
     for name, record in sorted(state["missions"].items()):
         geo = record["georeference"]
-        fit = GeoreferenceFit.without_fixes(tuple(geo["lla_ref"]),
-                                            np.array(geo["T_enu_map"]), geo["method"])  # fmt: skip
+        fit = GeoreferenceFit.without_fixes(
+            tuple(geo["lla_ref"]), np.array(geo["T_enu_map"]), geo["method"]
+        )
         projector[name] = MapProjector(fit, crs)
         chain[name] = load_truth(root / "truth" / name).chain()
         nodes = open_mission(root / "missions" / name).trajectory()[1]
@@ -116,8 +131,10 @@ def _rigid(a: np.ndarray, b: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Rotation and shift taking ``a`` onto ``b`` (2-D Procrustes)."""
     ca, cb = a.mean(axis=0), b.mean(axis=0)
     u, v = a - ca, b - cb
-    yaw = math.atan2(float(np.sum(u[:, 0] * v[:, 1] - u[:, 1] * v[:, 0])),
-                     float(np.sum(u[:, 0] * v[:, 0] + u[:, 1] * v[:, 1])))  # fmt: skip
+    yaw = math.atan2(
+        float(np.sum(u[:, 0] * v[:, 1] - u[:, 1] * v[:, 0])),
+        float(np.sum(u[:, 0] * v[:, 0] + u[:, 1] * v[:, 1])),
+    )
     rot = np.array([[math.cos(yaw), -math.sin(yaw)], [math.sin(yaw), math.cos(yaw)]])
     return rot, cb - rot @ ca
 

@@ -80,9 +80,13 @@ def run_scenario(
     enrich_catalog(catalog, enrich_options or EnrichOptions())
     compare_epochs(catalog)
     return Scenario(
-        root, catalog, missions, [s.truth_dir for s in sims], bounds,
+        root,
+        catalog,
+        missions,
+        [s.truth_dir for s in sims],
+        bounds,
         str(stand) if stand is not None else None,
-    )  # fmt: skip
+    )
 
 
 def observed_mask(catalog: Path, epoch: str) -> Any:

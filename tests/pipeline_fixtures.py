@@ -195,15 +195,24 @@ def build_small_catalog(root: Path) -> Path:
                 )
                 info = write_tile(txn.stage(rel), cloud, crs=CRS, core_bounds=grid.polygon(cell))
                 row = cell_row(
-                    str(cell), info, level=0, cell_size=20.0, epoch=epoch,
-                    missions=[mission], tile_path=rel,
-                )  # fmt: skip
+                    str(cell),
+                    info,
+                    level=0,
+                    cell_size=20.0,
+                    epoch=epoch,
+                    missions=[mission],
+                    tile_path=rel,
+                )
                 rows.append(row)
                 rels.append(rel)
             txn.record_mission(
-                mission, epoch=epoch, date=SMALL_DATES[epoch], tiles=rels,
-                point_count=0, payload_count=0,
-            )  # fmt: skip
+                mission,
+                epoch=epoch,
+                date=SMALL_DATES[epoch],
+                tiles=rels,
+                point_count=0,
+                payload_count=0,
+            )
         write_index(txn.stage("index.gpkg"), crs=CRS, cells=rows)
     return root
 
@@ -237,11 +246,13 @@ def tile_points(path: Path) -> np.ndarray:
     from standgrid.export.las import read_tile
 
     cloud = read_tile(path, include_withheld=True)
-    table = np.column_stack([
-        np.round(cloud.xyz * 1000).astype(np.int64),
-        cloud.fields["payload_id"].astype(np.int64),
-        cloud.fields["gps_time"].view(np.int64),
-    ])  # fmt: skip
+    table = np.column_stack(
+        [
+            np.round(cloud.xyz * 1000).astype(np.int64),
+            cloud.fields["payload_id"].astype(np.int64),
+            cloud.fields["gps_time"].view(np.int64),
+        ]
+    )
     return table[np.lexsort(table.T[::-1])]
 
 

@@ -28,8 +28,12 @@ def main(base: str, names: list[str]) -> dict[str, object]:
             entry["fields"] = [f.name() for f in layer.fields()]
             entry["crs"] = layer.crs().authid()
             extent = layer.extent()
-            entry["extent"] = [extent.xMinimum(), extent.yMinimum(), extent.xMaximum(),
-                               extent.yMaximum()]  # fmt: skip
+            entry["extent"] = [
+                extent.xMinimum(),
+                extent.yMinimum(),
+                extent.xMaximum(),
+                extent.yMaximum(),
+            ]
         out[name] = entry
         del layer  # before exitQgis: a provider outliving the application crashes it
     out["messages"] = messages

@@ -70,8 +70,14 @@ def test_a_regular_plantation_is_ambiguous() -> None:
     """Stems on an exact 3 m lattice: every 3 m shift matches as well; refused, not guessed."""
     g = np.arange(0.0, 60.0, 3.0)
     xx, yy = np.meshgrid(g, g)
-    stems = np.column_stack([xx.ravel() + 500_000, yy.ravel() + 5_700_000,
-                             np.full(xx.size, 100.0), np.full(xx.size, 0.3)])  # fmt: skip
+    stems = np.column_stack(
+        [
+            xx.ravel() + 500_000,
+            yy.ravel() + 5_700_000,
+            np.full(xx.size, 100.0),
+            np.full(xx.size, 0.3),
+        ]
+    )
     moving = stems.copy()
     moving[:, :2] += (1.2, 0.4)
     reg = register(_placed("m", moving), _placed("f", stems), RegisterOptions(gicp=False))

@@ -84,25 +84,32 @@ def test_two_robots_on_one_day_count_each_tree_once(campaigns: Path, tmp_path: P
     table = truth_table(truth.trees)
     inside = inset_of(truth.bounds, 5.0)
     got = {}
-    for label, missions, align in (("one", [a], True), ("both", [a, b], True),
-                                   ("both_gnss", [a, b], False)):  # fmt: skip
+    for label, missions, align in (
+        ("one", [a], True),
+        ("both", [a, b], True),
+        ("both_gnss", [a, b], False),
+    ):
         catalog = tmp_path / label
         run_pipeline(missions, catalog, TileOptions(align=align))
         stems = _stems_ha(catalog, "2024")
         assert len(stems) >= 1
         cell = str(stems.index[0])
-        _, true_ha, _ = stand_truth(table, catalog / "rasters/2024/observed.tif",
-                                    _cell_bounds(cell))  # fmt: skip
+        _, true_ha, _ = stand_truth(
+            table, catalog / "rasters/2024/observed.tif", _cell_bounds(cell)
+        )
         found = pd.read_parquet(catalog / "tables/tree_list_2024.parquet")
         # the truth where this map put robot A's ground (its absolute placement error)
         where = placements(campaigns, catalog)
         stem_xy = where.placed(a.name, table[["x", "y"]].to_numpy())
         crown_xy = where.placed(a.name, table[["cx", "cy"]].to_numpy())
-        placed = table.assign(x=stem_xy[:, 0], y=stem_xy[:, 1], cx=crown_xy[:, 0],
-                              cy=crown_xy[:, 1])  # fmt: skip
+        placed = table.assign(
+            x=stem_xy[:, 0], y=stem_xy[:, 1], cx=crown_xy[:, 0], cy=crown_xy[:, 1]
+        )
         got[label] = (float(stems.iloc[0]) / true_ha, scores(found, placed, inside))
-    print("\nstems/ha / truth, precision: " + ", ".join(
-        f"{k} {r:.3f}, {s.precision:.3f}" for k, (r, s) in got.items()))  # fmt: skip
+    print(
+        "\nstems/ha / truth, precision: "
+        + ", ".join(f"{k} {r:.3f}, {s.precision:.3f}" for k, (r, s) in got.items())
+    )
     one, both, gnss = got["one"], got["both"], got["both_gnss"]
     assert both[0] <= 1.05 and gnss[0] > 1.15  # the same trees twice without alignment
     assert both[1].precision >= one[1].precision - 0.02

@@ -39,9 +39,16 @@ def ingest(catalog: Catalog, name: str, epoch: str, tiles: dict[str, bytes]) -> 
         number = txn.mission_number(name)
         for rel, data in tiles.items():
             txn.stage(rel).write_bytes(data)
-        txn.record_mission(name, epoch=epoch, date=epoch, path=f"/missions/{name}",
-                           georeference={"method": "yaw2d", "rmse_m": 0.05}, payload_count=3,
-                           point_count=100, tiles=list(tiles))  # fmt: skip
+        txn.record_mission(
+            name,
+            epoch=epoch,
+            date=epoch,
+            path=f"/missions/{name}",
+            georeference={"method": "yaw2d", "rmse_m": 0.05},
+            payload_count=3,
+            point_count=100,
+            tiles=list(tiles),
+        )
     return number
 
 
@@ -321,9 +328,12 @@ def test_a_second_writer_times_out_with_a_typed_error(tmp_path: Path) -> None:
     )
     env = {**os.environ, "PYTHONPATH": str(REPO)}
     holder = subprocess.Popen(
-        [sys.executable, "-c", hold, str(catalog.root)], env=env, cwd=REPO,
-        stdout=subprocess.PIPE, text=True,
-    )  # fmt: skip
+        [sys.executable, "-c", hold, str(catalog.root)],
+        env=env,
+        cwd=REPO,
+        stdout=subprocess.PIPE,
+        text=True,
+    )
     try:
         assert holder.stdout is not None and holder.stdout.readline().strip() == "held"
         started = time.monotonic()
@@ -490,14 +500,33 @@ def test_tiles_index_and_vpc_in_one_transaction(tmp_path: Path) -> None:
             xyz = rng.uniform(lo, hi, (100, 3))
             cloud = PointCloud(xyz, {"point_source_id": np.full(100, number, np.uint16)})
             info = write_tile(txn.stage(rel), cloud, crs=catalog.crs, core_bounds=cell)
-            rows.append(cell_row(f"L0_{i}_0", info, level=0, cell_size=20.0, epoch="e1",
-                                 missions=["m-a"], tile_path=rel))  # fmt: skip
+            rows.append(
+                cell_row(
+                    f"L0_{i}_0",
+                    info,
+                    level=0,
+                    cell_size=20.0,
+                    epoch="e1",
+                    missions=["m-a"],
+                    tile_path=rel,
+                )
+            )
             entries.append((rel, info.file_bounds, catalog.crs, info.point_count, None))
             tiles.append(rel)
-        traj = [{"mission": "m-a", "epoch": "e1",
-                 "geometry": LineString([(500_000, 6_000_000), (500_040, 6_000_010)])}]  # fmt: skip
-        write_index(txn.stage("index.gpkg"), crs=catalog.crs, cells=rows, trajectories=traj,
-                    base=txn.current("index.gpkg"))  # fmt: skip
+        traj = [
+            {
+                "mission": "m-a",
+                "epoch": "e1",
+                "geometry": LineString([(500_000, 6_000_000), (500_040, 6_000_010)]),
+            }
+        ]
+        write_index(
+            txn.stage("index.gpkg"),
+            crs=catalog.crs,
+            cells=rows,
+            trajectories=traj,
+            base=txn.current("index.gpkg"),
+        )
         write_vpc(txn.stage("index.vpc"), entries)
         txn.record_mission("m-a", epoch="e1", date="2024-05-01", tiles=tiles, point_count=200)
         assert not (catalog.root / "index.gpkg").exists()  # nothing visible before commit

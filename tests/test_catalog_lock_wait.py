@@ -43,9 +43,11 @@ def tiled(tmp_path_factory: pytest.TempPathFactory) -> Path:
 def reader_process(tiled: Path) -> Iterator[subprocess.Popen[str]]:
     """Another process inside ``Catalog.reading(tiled)`` until the test ends."""
     proc = subprocess.Popen(
-        [sys.executable, "-c", HOLD, str(tiled)], cwd=REPO_ROOT, stdout=subprocess.PIPE,
+        [sys.executable, "-c", HOLD, str(tiled)],
+        cwd=REPO_ROOT,
+        stdout=subprocess.PIPE,
         text=True,
-    )  # fmt: skip
+    )
     assert proc.stdout is not None and proc.stdout.readline().strip() == "held"
     yield proc
     proc.kill()

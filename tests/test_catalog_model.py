@@ -79,9 +79,17 @@ def test_records_are_frozen_views_of_catalog_json() -> None:
 
     mission = MissionRecord.from_json(
         "m1",
-        {"number": 3, "epoch": "2024", "date": "2024-05-14", "tiles": ["tiles/2024/a.laz"],
-         "point_count": 12, "payload_count": 2, "sensors": ["lidar"], "simulator": {"seed": 1}},
-    )  # fmt: skip
+        {
+            "number": 3,
+            "epoch": "2024",
+            "date": "2024-05-14",
+            "tiles": ["tiles/2024/a.laz"],
+            "point_count": 12,
+            "payload_count": 2,
+            "sensors": ["lidar"],
+            "simulator": {"seed": 1},
+        },
+    )
     assert (mission.number, mission.epoch, mission.point_count) == (3, "2024", 12)
     assert mission.tiles == ("tiles/2024/a.laz",) and mission.sensors == ("lidar",)
     assert mission.extra == {"simulator": {"seed": 1}}

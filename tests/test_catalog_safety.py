@@ -74,17 +74,26 @@ def cli(*args: str | Path, crash_at: str | None = None, fsize: int | None = None
 
     return subprocess.run(
         [sys.executable, "-c", CLI, *map(str, args)],
-        env=env, cwd=REPO_ROOT, capture_output=True, text=True, timeout=300, preexec_fn=limit,
-    )  # fmt: skip
+        env=env,
+        cwd=REPO_ROOT,
+        capture_output=True,
+        text=True,
+        timeout=300,
+        preexec_fn=limit,
+    )
 
 
 def spawn(*args: str | Path) -> subprocess.Popen[str]:
     env = {**os.environ, "PYTHONPATH": str(REPO_ROOT)}
     env.pop("STANDGRID_CRASH_AT", None)
     return subprocess.Popen(
-        [sys.executable, "-c", CLI, *map(str, args)], env=env, cwd=REPO_ROOT, text=True,
-        stdout=subprocess.PIPE, stderr=subprocess.PIPE,
-    )  # fmt: skip
+        [sys.executable, "-c", CLI, *map(str, args)],
+        env=env,
+        cwd=REPO_ROOT,
+        text=True,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+    )
 
 
 def renamed_copy(mission: Path, root: Path, name: str) -> Path:
@@ -287,8 +296,12 @@ def test_7_minus_o_dot_in_an_empty_folder_makes_the_catalog_there(tmp_path: Path
     env = {**os.environ, "PYTHONPATH": str(REPO_ROOT)}
     done = subprocess.run(
         [sys.executable, "-c", CLI, "tile", str(M1), "-o", ".", "-q"],
-        cwd=here, env=env, capture_output=True, text=True, timeout=300,
-    )  # fmt: skip
+        cwd=here,
+        env=env,
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
     assert done.returncode == 0, done.stderr
     assert sorted(missions_everywhere(here)) == [M1.name]
 

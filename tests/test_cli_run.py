@@ -210,8 +210,11 @@ def test_compare_help_example_with_another_catalog_runs_verbatim(
     import shlex
 
     help_text = CliRunner().invoke(cli, ["compare", "--help"]).output
-    example = next(line.strip() for line in help_text.splitlines() if "--other" in line
-                   and line.strip().startswith("standgrid compare"))  # fmt: skip
+    example = next(
+        line.strip()
+        for line in help_text.splitlines()
+        if "--other" in line and line.strip().startswith("standgrid compare")
+    )
     words = shlex.split(example)[1:]
     runner = CliRunner()
     monkeypatch.chdir(tmp_path)

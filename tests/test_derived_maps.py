@@ -123,8 +123,9 @@ def test_unreadable_files_give_typed_errors(tmp_path: Path) -> None:
     for name in ("garbage.npz", "garbage.tif", "garbage.png"):
         (tmp_path / name).write_bytes(b"not a map at all")
         if name.endswith(".png"):
-            (tmp_path / "garbage.json").write_text('{"resolution": 1, "origin": [0, 0], '
-                                                   '"scale": 1}')  # fmt: skip
+            (tmp_path / "garbage.json").write_text(
+                '{"resolution": 1, "origin": [0, 0], "scale": 1}'
+            )
         with pytest.raises(DerivedMapFormatError) as err:
             read_elevation_map(tmp_path / name)
         assert err.value.path == tmp_path / name
@@ -144,8 +145,9 @@ def test_voxel_grid_round_trip_corners_and_occupied_voxels(tmp_path: Path) -> No
     np.testing.assert_allclose(corners.min(axis=0), [10.0, 0.0, -1.0])
     np.testing.assert_allclose(corners.max(axis=0), [12.0, 1.5, 0.0])
     np.testing.assert_allclose(grid.occupied_points(), [[10.75, 1.25, -0.25]])
-    np.savez(tmp_path / "both.npz", occupancy=occupancy, tsdf=occupancy, voxel_size=1.0,
-             origin=[0, 0, 0])  # fmt: skip
+    np.savez(
+        tmp_path / "both.npz", occupancy=occupancy, tsdf=occupancy, voxel_size=1.0, origin=[0, 0, 0]
+    )
     with pytest.raises(DerivedMapFormatError, match="exactly one"):
         read_voxel_grid(tmp_path / "both.npz")
 
@@ -165,8 +167,9 @@ def test_resample_averages_fine_cells_and_interpolates_coarse_ones() -> None:
     assert (grid.x0, grid.y0, grid.ncols, grid.nrows) == (100.0, 200.0, 4, 2)
     np.testing.assert_allclose(values, [[0.5, 1.5, 2.5, 3.5]] * 2)
     # 2 m cells: the pixels between cell centres are linear between them
-    coarse = np.array([[101.0, 201.0, 1.0], [103.0, 201.0, 3.0], [101.0, 203.0, 1.0],
-                       [103.0, 203.0, 3.0]])  # fmt: skip
+    coarse = np.array(
+        [[101.0, 201.0, 1.0], [103.0, 201.0, 3.0], [101.0, 203.0, 1.0], [103.0, 203.0, 3.0]]
+    )
     grid, values = resample(coarse, 2.0, (0.0, 0.0), crs)
     row = values[grid.nrows - 1 - 1]  # y 201.5
     np.testing.assert_allclose(row[~np.isnan(row)], [1.5, 2.5], atol=1e-12)
@@ -175,8 +178,9 @@ def test_resample_averages_fine_cells_and_interpolates_coarse_ones() -> None:
     b = (RasterGrid(1.0, 0.0, 1.0, 2, 1, crs), np.array([[5.0, 7.0]]))
     grid, mosaic = mean_mosaic([a, b], (0.0, 0.0), crs)
     np.testing.assert_allclose(mosaic, [[1.0, 4.0, 7.0]])
-    stats = difference(mosaic, grid, np.array([[0.0, 4.0, 6.0, 9.0]]),
-                       RasterGrid(0.0, 0.0, 1.0, 4, 1, crs))  # fmt: skip
+    stats = difference(
+        mosaic, grid, np.array([[0.0, 4.0, 6.0, 9.0]]), RasterGrid(0.0, 0.0, 1.0, 4, 1, crs)
+    )
     # [1, 4, 7] - [0, 4, 6]: differences 1, 0, 1 (the fourth reference pixel has no mosaic)
     assert (stats["pixels"], stats["median_m"], stats["mad_m"]) == (3, 1.0, 0.0)
     assert (stats["mean_m"], stats["rmse_m"]) == (0.6667, 0.8165)
@@ -307,8 +311,12 @@ def test_voxel_grids_are_placed_and_maps_leave_with_their_mission(
     shutil.copytree(sim_maps.mission_dir, folder)
     stamps = [p.stamp for p in open_mission(folder).payloads]
     volumetric = folder / "payloads" / "volumetric"
-    write_voxel_npz(volumetric / stamps[0].filename("voxels", "npz"),
-                    np.zeros((4, 4, 4)), 0.5, (-1.0, -1.0, -1.0))  # fmt: skip
+    write_voxel_npz(
+        volumetric / stamps[0].filename("voxels", "npz"),
+        np.zeros((4, 4, 4)),
+        0.5,
+        (-1.0, -1.0, -1.0),
+    )
     bt = volumetric / stamps[1].filename("voxels", "bt")
     try:  # a real OctoMap where octomap-python is installed, else one it would not read
         import octomap
@@ -359,8 +367,9 @@ def test_octomaps_read_with_octomap_python(tmp_path: Path) -> None:
         octree = read_voxel_grid(tmp_path / name)
         assert octree.kind == "octomap" and octree.voxel_size == pytest.approx(0.2)
         occupied = octree.occupied_points()
-        np.testing.assert_allclose(sorted(occupied.tolist()),
-                                   [[5.1, 0.1, 0.1], [6.1, 0.5, 0.3]], atol=1e-6)  # fmt: skip
+        np.testing.assert_allclose(
+            sorted(occupied.tolist()), [[5.1, 0.1, 0.1], [6.1, 0.5, 0.3]], atol=1e-6
+        )
         np.testing.assert_allclose(octree.corners().min(axis=0), [5.0, 0.0, 0.0], atol=1e-6)
     (tmp_path / "bad.bt").write_bytes(b"garbage")
     with pytest.raises(DerivedMapFormatError, match="OctoMap binary"):

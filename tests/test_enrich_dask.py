@@ -72,8 +72,12 @@ def scheduler() -> Iterator[str]:
     address = f"tcp://127.0.0.1:{port}"
     path = os.pathsep.join(filter(None, [str(REPO_ROOT), os.environ.get("PYTHONPATH")]))
     env = dict(os.environ, PYTHONPATH=path)
-    quiet = {"env": env, "stdout": subprocess.DEVNULL, "stderr": subprocess.DEVNULL,
-             "start_new_session": True}  # fmt: skip
+    quiet = {
+        "env": env,
+        "stdout": subprocess.DEVNULL,
+        "stderr": subprocess.DEVNULL,
+        "start_new_session": True,
+    }
     scheduler_cmd = [sys.executable, "-m", "distributed.cli.dask_scheduler"]
     worker_cmd = [sys.executable, "-m", "distributed.cli.dask_worker", address]
     procs = [
@@ -294,9 +298,12 @@ def test_ctrl_c_on_a_local_cluster_prints_one_line_and_no_worker_traceback(
         before = (out / "catalog.json").read_bytes()
         proc = subprocess.Popen(
             [sys.executable, "-c", code, "enrich", str(out), "--workers", "2", "--memory", memory],
-            cwd=REPO_ROOT, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+            cwd=REPO_ROOT,
+            stdout=subprocess.PIPE,
+            stderr=subprocess.PIPE,
+            text=True,
             start_new_session=True,  # its own process group, as a terminal's foreground job
-        )  # fmt: skip
+        )
         assert proc.stderr is not None
         seen = []
         for line in proc.stderr:  # the cluster is up and its chunks are running

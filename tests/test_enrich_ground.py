@@ -150,8 +150,10 @@ def test_terrain_from_the_lowest_returns_finds_the_ground_of_the_real_steep_scan
     assert wrong < 0.005
     # the producer's ground lies on our terrain model
     residual = np.abs(terrain.heights[file_ground])
-    print(f"|producer ground - terrain| median {np.median(residual):.3f} m, "
-          f"p95 {np.percentile(residual, 95):.3f} m")
+    print(
+        f"|producer ground - terrain| median {np.median(residual):.3f} m, "
+        f"p95 {np.percentile(residual, 95):.3f} m"
+    )
     assert np.median(residual) < 0.1 and np.percentile(residual, 95) < 0.5
 
 

@@ -43,11 +43,16 @@ def test_tree_uids_follow_trees_across_three_surveys() -> None:
     s2 = survey(rng, truth, ~missed & ~harvested)
     grown = truth.assign(height_m=truth["height_m"] + 1.5)
     ingrowth = pd.DataFrame(
-        {"x": rng.uniform(0, 100, 8), "y": rng.uniform(0, 100, 8),
-         "height_m": rng.uniform(3, 5, 8), "truth": n + np.arange(8)}
-    )  # fmt: skip
-    s3 = survey(rng, pd.concat([grown, ingrowth], ignore_index=True),
-                np.r_[~harvested, np.ones(8, bool)])  # fmt: skip
+        {
+            "x": rng.uniform(0, 100, 8),
+            "y": rng.uniform(0, 100, 8),
+            "height_m": rng.uniform(3, 5, 8),
+            "truth": n + np.arange(8),
+        }
+    )
+    s3 = survey(
+        rng, pd.concat([grown, ingrowth], ignore_index=True), np.r_[~harvested, np.ones(8, bool)]
+    )
     dates = {"2020": "2020-06-01", "2024": "2024-06-01", "2028": "2028-06-01"}
     uids = assign_tree_uids({"2020": s1, "2024": s2, "2028": s3}, dates, {})
     assert np.array_equal(uids["2020"], np.arange(1, n + 1))  # first survey: 1..n

@@ -49,9 +49,13 @@ def stem_points(
 
 
 def crown_points(
-    rng: np.random.Generator, centre: tuple[float, float], base: float, top: float, radius: float,
+    rng: np.random.Generator,
+    centre: tuple[float, float],
+    base: float,
+    top: float,
+    radius: float,
     n: int,
-) -> np.ndarray:  # fmt: skip
+) -> np.ndarray:
     """A porous ellipsoid crown: points throughout its volume, denser near the surface,
     with its apex."""
     u = rng.normal(size=(n, 3))
@@ -59,17 +63,19 @@ def crown_points(
     r = rng.uniform(0.5, 1.0, n) ** 0.5
     half = (top - base) / 2
     pts = np.column_stack(
-        [centre[0] + radius * r * u[:, 0], centre[1] + radius * r * u[:, 1],
-         base + half + half * r * u[:, 2]]
-    )  # fmt: skip
+        [
+            centre[0] + radius * r * u[:, 0],
+            centre[1] + radius * r * u[:, 1],
+            base + half + half * r * u[:, 2],
+        ]
+    )
     return np.vstack([pts, [centre[0], centre[1], top]])
 
 
 def ground_points(rng: np.random.Generator, span: float, n: int = 20_000) -> np.ndarray:
     return np.column_stack(
-        [X0 + rng.uniform(-span, span, n), Y0 + rng.uniform(-span, span, n),
-         rng.normal(0, 0.02, n)]
-    )  # fmt: skip
+        [X0 + rng.uniform(-span, span, n), Y0 + rng.uniform(-span, span, n), rng.normal(0, 0.02, n)]
+    )
 
 
 @pytest.mark.parametrize("lean_deg", [0.0, 6.0, 14.0])
@@ -167,9 +173,15 @@ def test_two_stems_at_a_metre_are_two_trees_and_a_shrub_ring_is_none() -> None:
 
 def _sample(stand_id: str, heights: np.ndarray, trees: pd.DataFrame) -> StandSample:
     return StandSample(
-        stand_id=stand_id, level=0, cell_size=20.0, area_m2=400.0, observed_m2=400.0,
-        n_points=len(heights), heights=heights.astype(np.float32), trees=trees,
-    )  # fmt: skip
+        stand_id=stand_id,
+        level=0,
+        cell_size=20.0,
+        area_m2=400.0,
+        observed_m2=400.0,
+        n_points=len(heights),
+        heights=heights.astype(np.float32),
+        trees=trees,
+    )
 
 
 def test_a_stand_says_what_canopy_tops_miss_and_is_never_zero_under_a_canopy() -> None:

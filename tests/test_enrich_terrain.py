@@ -34,8 +34,9 @@ def test_lowest_is_every_point_at_its_squares_minimum() -> None:
     low: dict[tuple[int, int], float] = {}
     for square, z in zip(squares, xyz[:, 2], strict=True):
         low[square] = min(z, low.get(square, np.inf))
-    expected = [k for k, (square, z) in enumerate(zip(squares, xyz[:, 2], strict=True))
-                if z == low[square]]  # fmt: skip
+    expected = [
+        k for k, (square, z) in enumerate(zip(squares, xyz[:, 2], strict=True)) if z == low[square]
+    ]
     assert lowest_in_squares(xyz, 0.25, LATTICE).tolist() == expected
 
 

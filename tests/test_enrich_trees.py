@@ -244,8 +244,10 @@ def single_linkage(xy: np.ndarray, distance: float) -> tuple[int, np.ndarray]:
 @pytest.mark.parametrize("distance", [0.2, 0.05, 0.5])
 def test_link_clusters_is_single_linkage(distance: float) -> None:
     rng = np.random.default_rng(3)
-    stems = [arc_points(rng, X0 + rng.uniform(0, 8), Y0 + rng.uniform(0, 8), 0.2, 360, 300,
-                        0.01) for _ in range(12)]  # fmt: skip
+    stems = [
+        arc_points(rng, X0 + rng.uniform(0, 8), Y0 + rng.uniform(0, 8), 0.2, 360, 300, 0.01)
+        for _ in range(12)
+    ]
     scatter = np.column_stack([X0 + rng.uniform(0, 8, 800), Y0 + rng.uniform(0, 8, 800)])
     # a chain of points just within ``distance`` of the next, and one just beyond its end
     step = np.arange(7) * 0.999 * distance
@@ -256,16 +258,26 @@ def test_link_clusters_is_single_linkage(distance: float) -> None:
     count, comp = link_clusters(xy, distance)
     want_count, want = single_linkage(xy, distance)
     assert count == want_count and np.array_equal(comp, want)
-    assert np.array_equal(np.unique(comp, return_index=True)[1], np.sort(
-        np.unique(comp, return_index=True)[1]))  # fmt: skip
+    assert np.array_equal(
+        np.unique(comp, return_index=True)[1], np.sort(np.unique(comp, return_index=True)[1])
+    )
     assert link_clusters(xy[:0], distance)[0] == 0
 
 
 def test_fit_circles_fits_each_set_as_fit_circle() -> None:
     rng = np.random.default_rng(5)
-    sets = [arc_points(rng, rng.uniform(-5, 5), rng.uniform(-5, 5), rng.uniform(0.05, 0.4),
-                       rng.uniform(60, 360), int(rng.integers(3, 400)), 0.005)
-            for _ in range(30)]  # fmt: skip
+    sets = [
+        arc_points(
+            rng,
+            rng.uniform(-5, 5),
+            rng.uniform(-5, 5),
+            rng.uniform(0.05, 0.4),
+            rng.uniform(60, 360),
+            int(rng.integers(3, 400)),
+            0.005,
+        )
+        for _ in range(30)
+    ]
     sets.insert(3, sets[0][:2])  # too few points: None
     sets.insert(7, np.zeros((5, 2)))  # degenerate: singular normal equations
     together = fit_circles(sets)

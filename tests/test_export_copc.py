@@ -34,9 +34,13 @@ def forest_cloud(n: int, seed: int = 0, *, colour: bool = False, source: int = 3
     stems = rng.uniform(1, 19, (10, 2))
     which = rng.integers(0, 10, n_stem)
     angle = rng.uniform(0, 2 * np.pi, n_stem)
-    stem = np.column_stack([stems[which, 0] + 0.2 * np.cos(angle),
-                            stems[which, 1] + 0.2 * np.sin(angle),
-                            rng.uniform(0, 14, n_stem)])  # fmt: skip
+    stem = np.column_stack(
+        [
+            stems[which, 0] + 0.2 * np.cos(angle),
+            stems[which, 1] + 0.2 * np.sin(angle),
+            rng.uniform(0, 14, n_stem),
+        ]
+    )
     which_c = rng.integers(0, 10, n_crown)
     d = rng.normal(size=(n_crown, 3))
     d /= np.linalg.norm(d, axis=1, keepdims=True)
@@ -72,9 +76,15 @@ def _rows(cloud: PointCloud) -> np.ndarray:
 
 def _record_rows(points: laspy.ScaleAwarePointRecord) -> np.ndarray:
     """Sorted (X, Y, Z, payload_id, withheld) of a laspy point record."""
-    table = np.column_stack([np.asarray(points.X), np.asarray(points.Y), np.asarray(points.Z),
-                             np.asarray(points["payload_id"]),
-                             np.asarray(points.withheld)]).astype(np.int64)  # fmt: skip
+    table = np.column_stack(
+        [
+            np.asarray(points.X),
+            np.asarray(points.Y),
+            np.asarray(points.Z),
+            np.asarray(points["payload_id"]),
+            np.asarray(points.withheld),
+        ]
+    ).astype(np.int64)
     return table[np.lexsort(table.T[::-1])]
 
 
@@ -102,8 +112,10 @@ def test_octree_puts_every_point_in_one_node_inside_its_voxel() -> None:
     d, xyz = keys[node, 0], keys[node, 1:]
     lo, hi = (xyz * edge) >> d[:, None], ((xyz + 1) * edge) >> d[:, None]
     last = xyz == (1 << d[:, None]) - 1
-    assert np.all((ijk * (1 << d[:, None]) >= xyz * edge)
-                  & ((ijk * (1 << d[:, None]) < (xyz + 1) * edge) | last))  # fmt: skip
+    assert np.all(
+        (ijk * (1 << d[:, None]) >= xyz * edge)
+        & ((ijk * (1 << d[:, None]) < (xyz + 1) * edge) | last)
+    )
     assert np.all((lo <= ijk) & (ijk <= hi))
     key_set = {tuple(k) for k in keys}
     for depth, x, y, z in keys[keys[:, 0] > 0]:  # every node's parent exists
@@ -148,10 +160,14 @@ def test_copc_file_is_laz_14_with_the_plain_tiles_vlrs_and_dims(
         ref.header.point_format.extra_dimension_names
     )
     for uid, rid in (("standgrid", 1), ("LASF_Projection", 2112)):
-        mine = [bytes(v.record_data_bytes()) for v in h.vlrs
-                if v.user_id == uid and v.record_id == rid]  # fmt: skip
-        theirs = [bytes(v.record_data_bytes()) for v in ref.header.vlrs
-                  if v.user_id == uid and v.record_id == rid]  # fmt: skip
+        mine = [
+            bytes(v.record_data_bytes()) for v in h.vlrs if v.user_id == uid and v.record_id == rid
+        ]
+        theirs = [
+            bytes(v.record_data_bytes())
+            for v in ref.header.vlrs
+            if v.user_id == uid and v.record_id == rid
+        ]
         assert mine == theirs and len(mine) == 1, uid
     np.testing.assert_allclose(h.mins, ref.header.mins)
     np.testing.assert_allclose(h.maxs, ref.header.maxs)
@@ -182,10 +198,12 @@ def test_copclib_validates_the_hierarchy_and_every_point_is_in_one_node(
         assert sum(n.point_count for n in nodes) == len(core) + len(buffer)
         keys = {(n.key.d, n.key.x, n.key.y, n.key.z) for n in nodes}
         assert all((d - 1, x // 2, y // 2, z // 2) in keys for d, x, y, z in keys if d)
-        xyz = np.concatenate([
-            np.column_stack([np.asarray(p.x), np.asarray(p.y), np.asarray(p.z)])
-            for p in (reader.GetPoints(n) for n in nodes)
-        ])  # fmt: skip
+        xyz = np.concatenate(
+            [
+                np.column_stack([np.asarray(p.x), np.asarray(p.y), np.asarray(p.z)])
+                for p in (reader.GetPoints(n) for n in nodes)
+            ]
+        )
         # a small box reads a few nodes
         box = copclib.Box(X0 + 2, Y0 + 2, Z0 - 1, X0 + 4, Y0 + 4, Z0 + 1)
         assert len(reader.GetNodesIntersectBox(box)) < len(nodes) / 4
@@ -199,11 +217,13 @@ def test_copclib_validates_the_hierarchy_and_every_point_is_in_one_node(
 
 @pytest.mark.parametrize(
     "lo, hi",
-    [((X0 + 3.25, Y0 + 11.5), (X0 + 9.0, Y0 + 14.0)),  # 2D
-     ((X0, Y0, Z0 + 2.0), (X0 + 20.0, Y0 + 20.0, Z0 + 14.5)),  # a slab
-     ((X0 + 10.0, Y0 + 0.0, Z0 - 5.0), (X0 + 10.0, Y0 + 20.0, Z0 + 30.0)),  # a node face
-     ((X0 - 50, Y0 - 50), (X0 - 10, Y0 - 10))],  # outside
-)  # fmt: skip
+    [
+        ((X0 + 3.25, Y0 + 11.5), (X0 + 9.0, Y0 + 14.0)),  # 2D
+        ((X0, Y0, Z0 + 2.0), (X0 + 20.0, Y0 + 20.0, Z0 + 14.5)),  # a slab
+        ((X0 + 10.0, Y0 + 0.0, Z0 - 5.0), (X0 + 10.0, Y0 + 20.0, Z0 + 30.0)),  # a node face
+        ((X0 - 50, Y0 - 50), (X0 - 10, Y0 - 10)),
+    ],  # outside
+)
 def test_copc_reader_bounds_query_returns_exactly_the_points_inside(
     tile: tuple[Path, PointCloud, PointCloud], lo: tuple[float, ...], hi: tuple[float, ...]
 ) -> None:
@@ -285,8 +305,9 @@ def test_errors_are_typed_and_leave_nothing(tmp_path: Path) -> None:
 
 
 def test_empty_and_single_point_tiles(tmp_path: Path) -> None:
-    one = PointCloud(np.array([[X0 + 1.0, Y0 + 2.0, Z0 + 3.0]]),
-                     {"payload_id": np.array([7], np.uint32)})  # fmt: skip
+    one = PointCloud(
+        np.array([[X0 + 1.0, Y0 + 2.0, Z0 + 3.0]]), {"payload_id": np.array([7], np.uint32)}
+    )
     path = tmp_path / "one.copc.laz"
     write_copc_tile(path, one, crs=CRS)
     back = read_tile(path)
@@ -333,8 +354,9 @@ def served(tmp_path_factory: pytest.TempPathFactory) -> Iterator[tuple[str, Path
     rel = max(Catalog.open(folder).tiles("2024"), key=lambda r: (folder / r).stat().st_size)
     las = laspy.read(folder / rel)
     cloud = read_tile(folder / rel, include_withheld=True)
-    write_copc_tile(folder / rel, cloud, crs=las.header.parse_crs().to_wkt(),
-                    resolution=8, leaf_points=200)  # fmt: skip
+    write_copc_tile(
+        folder / rel, cloud, crs=las.header.parse_crs().to_wkt(), resolution=8, leaf_points=200
+    )
     app = BytesSent(create_app(folder))
     with running(app) as server:
         assert server.base_url is not None

@@ -40,21 +40,37 @@ def cells_rows(tmp_path: Path) -> list[dict]:
         tile = tmp_path / "cat" / "tiles" / "2024-05-01" / f"c{i}.laz"
         info = write_tile(tile, PointCloud(xyz), crs=CRS, core_bounds=cell)
         rows.append(
-            cell_row(f"L0_{i}_0", info, level=0, cell_size=20.0, epoch="2024-05-01",
-                     catalog_root=tmp_path / "cat", missions=["m2", "m1", "m2"])
-        )  # fmt: skip
+            cell_row(
+                f"L0_{i}_0",
+                info,
+                level=0,
+                cell_size=20.0,
+                epoch="2024-05-01",
+                catalog_root=tmp_path / "cat",
+                missions=["m2", "m1", "m2"],
+            )
+        )
     return rows
 
 
 def other_layers() -> dict[str, list[dict]]:
     payloads = [
-        {"payload_id": i, "mission": "m1", "stamp_sec": 1_700_000_000 + i, "stamp_nsec": 5,
-         "time": f"2023-11-14T22:13:{20 + i:02d}.000000005Z", "node_id": 10 + i,
-         "point_count": 1000,
-         "x": X0 + 5 * i, "y": Y0 + 5, "z": 101.0, "yaw": 0.1 * i,
-         "geometry": Point(X0 + 5 * i, Y0 + 5).buffer(10)}
+        {
+            "payload_id": i,
+            "mission": "m1",
+            "stamp_sec": 1_700_000_000 + i,
+            "stamp_nsec": 5,
+            "time": f"2023-11-14T22:13:{20 + i:02d}.000000005Z",
+            "node_id": 10 + i,
+            "point_count": 1000,
+            "x": X0 + 5 * i,
+            "y": Y0 + 5,
+            "z": 101.0,
+            "yaw": 0.1 * i,
+            "geometry": Point(X0 + 5 * i, Y0 + 5).buffer(10),
+        }
         for i in range(4)
-    ]  # fmt: skip
+    ]
     trajectories = [
         {
             "mission": "m1",
@@ -68,18 +84,38 @@ def other_layers() -> dict[str, list[dict]]:
         },
     ]
     fixes = [
-        {"mission": "m1", "stamp_sec": 1_700_000_000 + i, "stamp_nsec": 0, "quality": 4,
-         "residual_e": 0.01 * i, "residual_n": -0.02, "residual_u": 0.05, "residual_h": 0.03,
-         "inlier": i != 2, "geometry": Point(X0 + i, Y0 + i)}
+        {
+            "mission": "m1",
+            "stamp_sec": 1_700_000_000 + i,
+            "stamp_nsec": 0,
+            "quality": 4,
+            "residual_e": 0.01 * i,
+            "residual_n": -0.02,
+            "residual_u": 0.05,
+            "residual_h": 0.03,
+            "inlier": i != 2,
+            "geometry": Point(X0 + i, Y0 + i),
+        }
         for i in range(5)
-    ]  # fmt: skip
+    ]
     missions = [
-        {"mission": "2024-05-01-wytham-anymal", "number": 1, "epoch": "2024-05-01",
-         "date": "2024-05-01", "robot": "anymal", "place": "wytham", "unit": "",
-         "sensors": "lidar,gnss",
-         "fit_method": "yaw2d", "rmse_m": 0.04, "n_used": 120, "n_rejected": 3,
-         "grid_fingerprint": "abc123", "crs": CRS}
-    ]  # fmt: skip
+        {
+            "mission": "2024-05-01-wytham-anymal",
+            "number": 1,
+            "epoch": "2024-05-01",
+            "date": "2024-05-01",
+            "robot": "anymal",
+            "place": "wytham",
+            "unit": "",
+            "sensors": "lidar,gnss",
+            "fit_method": "yaw2d",
+            "rmse_m": 0.04,
+            "n_used": 120,
+            "n_rejected": 3,
+            "grid_fingerprint": "abc123",
+            "crs": CRS,
+        }
+    ]
     return {
         "payloads": payloads,
         "trajectories": trajectories,

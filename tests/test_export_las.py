@@ -249,8 +249,9 @@ def test_rewrite_tile_equals_writing_the_cloud_with_the_new_fields(
         return PointCloud(cloud.xyz, cloud.fields | {k: v[rows] for k, v in new.items()})
 
     expected = tmp_path / f"expected{suffix}"
-    write_tile(expected, with_new(core, slice(0, 1500)), crs=CRS,
-               buffer=with_new(buffer, slice(1500, n)))  # fmt: skip
+    write_tile(
+        expected, with_new(core, slice(0, 1500)), crs=CRS, buffer=with_new(buffer, slice(1500, n))
+    )
     got, want = (
         read_tile(rewritten, include_withheld=True),
         read_tile(expected, include_withheld=True),
@@ -274,11 +275,16 @@ def test_rewrite_tile_refuses_wrong_lengths_and_foreign_files(tmp_path: Path) ->
     write_tile(source, make_cloud(100), crs=CRS)
     record = read_tile_record(source)
     with pytest.raises(PointCloudFormatError, match="99"):
-        rewrite_tile(record, tmp_path / "out.laz", {"tree_id": np.zeros(99, np.uint32)},
-                     source=source)  # fmt: skip
+        rewrite_tile(
+            record, tmp_path / "out.laz", {"tree_id": np.zeros(99, np.uint32)}, source=source
+        )
     with pytest.raises(PointCloudFormatError, match="outside the LAS range"):
-        rewrite_tile(record, tmp_path / "out.laz", {"classification": np.full(100, 300, np.uint16)},
-                     source=source)  # fmt: skip
+        rewrite_tile(
+            record,
+            tmp_path / "out.laz",
+            {"classification": np.full(100, 300, np.uint16)},
+            source=source,
+        )
     with pytest.raises(PointCloudFormatError, match="cannot be rewritten"):
         rewrite_tile(record, tmp_path / "out.laz", {"x": np.zeros(100)}, source=source)
     foreign = tmp_path / "foreign.las"
@@ -670,8 +676,10 @@ def test_a_bad_value_of_the_fields_own_dtype_names_the_payload(
     from standgrid.pipeline.tile import tile_missions
 
     def fields(k: int, n: int) -> dict[str, np.ndarray]:
-        good = {key: np.ones(n, v.dtype) * (1e9 if key == "gps_time" else 1)
-                for key, v in fields_of_bad(n).items()}  # fmt: skip
+        good = {
+            key: np.ones(n, v.dtype) * (1e9 if key == "gps_time" else 1)
+            for key, v in fields_of_bad(n).items()
+        }
         return fields_of_bad(n) if k == 1 else good
 
     mission, payloads = _mission_with_fields(tmp_path, fields)

@@ -183,8 +183,11 @@ def test_styles_are_the_catalogs_own(pair: EnrichedPair) -> None:
     rules = renderer.findall("rules/rule")
     assert rules[-1].get("filter") == "ELSE" and rules[-1].get("label") == "no value"
     assert all('"basal_area_m2_ha_delta"' in r.get("filter", "") for r in rules[:-1])
-    bounds = [float(b) for r in rules[:-1] for b in re.findall(r"[<>]=? (-?[0-9.e+-]+)",
-                                                               r.get("filter", ""))]  # fmt: skip
+    bounds = [
+        float(b)
+        for r in rules[:-1]
+        for b in re.findall(r"[<>]=? (-?[0-9.e+-]+)", r.get("filter", ""))
+    ]
     assert min(bounds) == pytest.approx(-max(bounds))  # diverging: symmetric around 0
     trees = [m for m in layers.values() if "layername=trees" in m.findtext("datasource", "")]
     for layer in trees:  # crowns by height, labelled with DBH in cm
@@ -197,8 +200,9 @@ def test_styles_are_the_catalogs_own(pair: EnrichedPair) -> None:
 def test_writer_refuses_a_layer_without_geometry_type(tmp_path: Path) -> None:
     layer = ProjectLayer("x", "index.gpkg", "<qgis/>", table="cells")
     with pytest.raises(ValueError, match="geometry"):
-        write_qgis_project(tmp_path / "p.qgz", [ProjectGroup("g", (layer,))], crs=CRS,
-                           extent=(0, 0, 1, 1))  # fmt: skip
+        write_qgis_project(
+            tmp_path / "p.qgz", [ProjectGroup("g", (layer,))], crs=CRS, extent=(0, 0, 1, 1)
+        )
     assert not (tmp_path / "p.qgz").exists()
 
 
@@ -238,10 +242,14 @@ def test_qgis_opens_and_renders_the_project(
             path, options = split_source(info["source"].replace(str(pair.path), "."))
             assert path == "./index.gpkg"  # the relative path resolved beside the project
             where = info["subset"]
-            expected = len(pyogrio.read_dataframe(
-                pair.path / "index.gpkg", layer=options["layername"], where=where,
-                read_geometry=False,
-            ))  # fmt: skip
+            expected = len(
+                pyogrio.read_dataframe(
+                    pair.path / "index.gpkg",
+                    layer=options["layername"],
+                    where=where,
+                    read_geometry=False,
+                )
+            )
             assert info["features"] == expected > 0, name
     image = result["image"]
     assert isinstance(image, dict)
@@ -256,9 +264,11 @@ def test_the_qgis_check_sees_a_broken_layer(pair: EnrichedPair, tmp_path: Path) 
     style = (pair.path / "rasters/2024/chm.qml").read_text("utf-8")
     layer = ProjectLayer("CHM (m)", "rasters/2024/gone.tif", style, provider="gdal")
     project = write_qgis_project(
-        tmp_path / "broken.qgz", [ProjectGroup("2024", (layer,))], crs=CRS,
+        tmp_path / "broken.qgz",
+        [ProjectGroup("2024", (layer,))],
+        crs=CRS,
         extent=(614680.0, 5737100.0, 614800.0, 5737200.0),
-    )  # fmt: skip
+    )
     result = run_qgis(project, tmp_path / "broken.png")
     assert result["bad_layers"] == ["CHM (m)"]
     assert any("gone.tif" in m for m in result["messages"])  # the log hook hears QGIS
@@ -268,12 +278,21 @@ def test_the_qgis_check_sees_a_broken_layer(pair: EnrichedPair, tmp_path: Path) 
 def test_writer_escapes_names_and_filters(tmp_path: Path) -> None:
     """A quote or ampersand in a name or filter survives the XML (read back with ElementTree)."""
     subset = "\"mission\" IN ('a&b', 'it''s')"
-    layer = ProjectLayer("GNSS <fixes> & more", "index.gpkg", "<qgis/>", table="gnss_fixes",
-                         geometry="point", subset=subset, visible=False)  # fmt: skip
+    layer = ProjectLayer(
+        "GNSS <fixes> & more",
+        "index.gpkg",
+        "<qgis/>",
+        table="gnss_fixes",
+        geometry="point",
+        subset=subset,
+        visible=False,
+    )
     out = write_qgis_project(
-        tmp_path / "p.qgz", [ProjectGroup("it's", (layer,), visible=False)], crs=CRS,
+        tmp_path / "p.qgz",
+        [ProjectGroup("it's", (layer,), visible=False)],
+        crs=CRS,
         extent=(0.0, 0.0, 10.0, 20.0),
-    )  # fmt: skip
+    )
     with zipfile.ZipFile(out) as archive:
         project = ET.fromstring(archive.read("p.qgs").decode("utf-8").split("\n", 1)[1])
     (group,) = project.findall("layer-tree-group/layer-tree-group")
@@ -360,8 +379,13 @@ def rendered(pair: EnrichedPair) -> dict[str, object]:
     if not _qgis_available():
         pytest.skip("no PyQGIS (apt-get install python3-qgis)")
     env = {**os.environ, "QT_QPA_PLATFORM": "offscreen", "PYTHONPATH": ""}
-    done = subprocess.run([QGIS_PYTHON, "-c", QGIS_RENDERED, str(pair.path / "catalog.qgz")],
-                          capture_output=True, text=True, env=env, timeout=120)  # fmt: skip
+    done = subprocess.run(
+        [QGIS_PYTHON, "-c", QGIS_RENDERED, str(pair.path / "catalog.qgz")],
+        capture_output=True,
+        text=True,
+        env=env,
+        timeout=120,
+    )
     assert done.returncode == 0, done.stderr
     result: dict[str, object] = json.loads(done.stdout.strip().splitlines()[-1])
     return result
@@ -370,8 +394,9 @@ def rendered(pair: EnrichedPair) -> dict[str, object]:
 def test_qgis_draws_cells_without_a_value_grey(pair: EnrichedPair, rendered: dict) -> None:
     """As the web viewer: a cell whose basal area is NULL is drawn, grey, and the legend
     says "no value"; every valued cell is drawn as before."""
-    metrics = pyogrio.read_dataframe(pair.path / "index.gpkg", layer="stand_metrics",
-                                     where='"level" = 0', read_geometry=False)  # fmt: skip
+    metrics = pyogrio.read_dataframe(
+        pair.path / "index.gpkg", layer="stand_metrics", where='"level" = 0', read_geometry=False
+    )
     layers = rendered["layers"]
     assert set(layers) == {"2024", "2028"}
     for epoch, drawn in layers.items():

@@ -23,8 +23,11 @@ CRS = "EPSG:32632"
 
 
 def make_gpkg(path: Path) -> Path:
-    cells = gpd.GeoDataFrame({"cell_id": ["a", "b"], "density": [1.0, 9.0]},
-                             geometry=[box(0, 0, 1, 1), box(1, 0, 2, 1)], crs=CRS)  # fmt: skip
+    cells = gpd.GeoDataFrame(
+        {"cell_id": ["a", "b"], "density": [1.0, 9.0]},
+        geometry=[box(0, 0, 1, 1), box(1, 0, 2, 1)],
+        crs=CRS,
+    )
     cells.to_file(path, layer="cells", engine="pyogrio")
     pts = gpd.GeoDataFrame({"inlier": [True, False]}, geometry=[Point(0, 0), Point(1, 1)], crs=CRS)
     pts.to_file(path, layer="gnss_fixes", engine="pyogrio")
@@ -158,11 +161,15 @@ def _rule_matches(rule_filter: str, value: float | None) -> bool:
     return all(ops[op](float(value), float(bound)) for op, bound in terms)
 
 
-@pytest.mark.parametrize("graduated", [
-    styles.graduated_style("ba", 10.0, 35.0, ramp=styles.YLGN, alpha=190, precision=1,
-                           unit="m²/ha"),
-    styles.diverging_style("ba_delta", -4.0, 2.5, alpha=170),
-])  # fmt: skip
+@pytest.mark.parametrize(
+    "graduated",
+    [
+        styles.graduated_style(
+            "ba", 10.0, 35.0, ramp=styles.YLGN, alpha=190, precision=1, unit="m²/ha"
+        ),
+        styles.diverging_style("ba_delta", -4.0, 2.5, alpha=170),
+    ],
+)
 def test_no_value_rule_draws_null_cells_grey_like_the_viewer(graduated: str) -> None:
     """QGIS's graduated renderer draws nothing for NULL; the same classes as rules plus an
     ELSE rule draw such a cell grey (the viewer's #c8c8c8), labelled "no value"."""
@@ -201,9 +208,15 @@ def test_no_value_rule_draws_null_cells_grey_like_the_viewer(graduated: str) -> 
     field = source.get("attr", "")
     if field == "ba":
         direct = styles.graduated_style(
-            field, 10.0, 35.0, ramp=styles.YLGN, alpha=190, precision=1, unit="m²/ha",
+            field,
+            10.0,
+            35.0,
+            ramp=styles.YLGN,
+            alpha=190,
+            precision=1,
+            unit="m²/ha",
             no_value=styles.NO_VALUE,
-        )  # fmt: skip
+        )
         assert direct == qml
     assert styles.with_no_value(styles.load_qml("cells")) == styles.load_qml("cells")
     assert styles.with_no_value(qml) == qml
@@ -215,10 +228,17 @@ def test_no_value_rule_draws_null_cells_grey_like_the_viewer(graduated: str) -> 
 def _raster(path: Path, data: np.ndarray, nodata: float = -9999.0) -> Path:
     """A real GeoTIFF (rasterio) of ``data`` at 1 m pixels."""
     with rasterio.open(
-        path, "w", driver="GTiff", width=data.shape[1], height=data.shape[0], count=1,
-        dtype=data.dtype, crs=CRS, transform=Affine(1.0, 0, 500_000.0, 0, -1.0, 6_700_000.0),
+        path,
+        "w",
+        driver="GTiff",
+        width=data.shape[1],
+        height=data.shape[0],
+        count=1,
+        dtype=data.dtype,
+        crs=CRS,
+        transform=Affine(1.0, 0, 500_000.0, 0, -1.0, 6_700_000.0),
         nodata=nodata,
-    ) as dst:  # fmt: skip
+    ) as dst:
         dst.write(data, 1)
     return path
 

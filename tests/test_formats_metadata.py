@@ -165,19 +165,40 @@ def test_metadata_path_that_is_a_folder_is_a_typed_error(tmp_path: Path) -> None
         ("2023-05-01-14-01-05", "2023-05-01", "14:01:05", None, None, None, None),
         # ROS 2 VILENS / Frontier: date_time_recNNN_site
         ("2024-03-26_13-47-27_rec004_site", "2024-03-26", "13:47:27", "site", None, None, "rec004"),
-        ("2024-03-26_13-47-27_rec012_stein_am_rhein", "2024-03-26", "13:47:27", "stein-am-rhein",
-         None, None, "rec012"),
+        (
+            "2024-03-26_13-47-27_rec012_stein_am_rhein",
+            "2024-03-26",
+            "13:47:27",
+            "stein-am-rhein",
+            None,
+            None,
+            "rec012",
+        ),
         ("2024-03-26_13-47-27_site", "2024-03-26", "13:47:27", "site", None, None, None),
         # the convention YYYY-MM-DD-<place>-<robot>[-<unit>]
         ("2023-01-13-wytham-anymal-coyote", "2023-01-13", None, "wytham", "anymal", "coyote", None),
         ("2024-06-01-bcts-anymal-coyote", "2024-06-01", None, "bcts", "anymal", "coyote", None),
-        ("2023-04-21-stein-am-rhein-frontier-v15", "2023-04-21", None, "stein-am-rhein",
-         "frontier", "v15", None),
+        (
+            "2023-04-21-stein-am-rhein-frontier-v15",
+            "2023-04-21",
+            None,
+            "stein-am-rhein",
+            "frontier",
+            "v15",
+            None,
+        ),
         # a folder named like its rosbag: RobotID-Date-Time-AdditionalTag
-        ("coyote-2023-01-13-10-33-05-lidar", "2023-01-13", "10:33:05", None, "coyote", None,
-         "lidar"),
+        (
+            "coyote-2023-01-13-10-33-05-lidar",
+            "2023-01-13",
+            "10:33:05",
+            None,
+            "coyote",
+            None,
+            "lidar",
+        ),
     ],
-)  # fmt: skip
+)
 def test_every_documented_name_form_parses(
     name: str,
     date: str,

@@ -171,9 +171,13 @@ def test_the_readme_python_snippet_runs_as_a_script(tmp_path: Path) -> None:
     (tmp_path / "data").symlink_to(REPO_ROOT / "data")  # the paths it names, not a copy
     env = {**os.environ, "PYTHONPATH": str(REPO_ROOT)}
     done = subprocess.run(
-        [sys.executable, str(script)], cwd=tmp_path, env=env, capture_output=True, text=True,
+        [sys.executable, str(script)],
+        cwd=tmp_path,
+        env=env,
+        capture_output=True,
+        text=True,
         timeout=300,
-    )  # fmt: skip
+    )
     assert done.returncode == 0, done.stderr[-3000:]
     assert "2024 2024-05-14 enriched" in done.stdout and "tiles" in done.stdout
     assert (tmp_path / "catalog" / "tables" / "tree_list_2024.parquet").is_file()

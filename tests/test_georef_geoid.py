@@ -21,8 +21,13 @@ from standgrid.georeference.geoid import (
 
 #: lon, lat: the bundled Wytham Woods missions (UK), Oregon (FVS's PN variant), Kansas,
 #: the Gulf of Guinea, and a point on a grid node
-POINTS = [(-1.33694, 51.77374), (-122.6765, 45.5231), (-98.4842, 39.0119), (0.0, 0.0),
-          (10.25, 47.5)]  # fmt: skip
+POINTS = [
+    (-1.33694, 51.77374),
+    (-122.6765, 45.5231),
+    (-98.4842, 39.0119),
+    (0.0, 0.0),
+    (10.25, 47.5),
+]
 
 
 def _debian_grid() -> Path:

@@ -18,8 +18,9 @@ from standgrid.simulate import SimulationConfig, run_simulation
 def _fit(sim, keep: np.ndarray | None = None) -> GeoreferenceFit:  # type: ignore[no-untyped-def]
     g = sim.gnss.fixes
     k = np.ones(len(g), dtype=bool) if keep is None else keep
-    kept = GnssFixes(g.stamps_ns[k], g.lat[k], g.lon[k], g.alt[k], g.quality[k], g.h_std[k],
-                     g.v_std[k])  # fmt: skip
+    kept = GnssFixes(
+        g.stamps_ns[k], g.lat[k], g.lon[k], g.alt[k], g.quality[k], g.h_std[k], g.v_std[k]
+    )
     return fit_georeference(kept, sim.graph.stamps_ns, sim.graph.positions)
 
 
@@ -43,8 +44,10 @@ def test_sigma_is_the_size_of_the_true_error_across_seeds() -> None:
             for sim in map(lambda s: run_simulation(s, 1, config), range(10))
         ]
     )
-    print(f"\nz = error / sigma (yaw, E, N, U): RMS {np.sqrt((z**2).mean(axis=0)).round(2)}, "
-          f"max |z| {np.abs(z).max(axis=0).round(2)}")  # fmt: skip
+    print(
+        f"\nz = error / sigma (yaw, E, N, U): RMS {np.sqrt((z**2).mean(axis=0)).round(2)}, "
+        f"max |z| {np.abs(z).max(axis=0).round(2)}"
+    )
     # every true yaw and horizontal translation error within 3 sigma, height within 4 sigma
     assert np.all(np.abs(z[:, :3]) < 3.0) and np.all(np.abs(z[:, 3]) < 4.0)
     # and sigma is not inflated either: the errors' RMS in sigmas is near 1

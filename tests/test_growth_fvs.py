@@ -310,8 +310,11 @@ def _projected_copy(source: Path, target: Path, geoid: Any) -> Path:
         lon, lat = to_lonlat.transform(xyz[:, 0], xyz[:, 1])
         xyz[:, 2] = geoid.orthometric_height(lon, lat, xyz[:, 2])
         name = payload.stamp.filename("cloud", "las")
-        write_cloud(PointCloud(xyz, {"intensity_raw": cloud.fields["intensity"]}),
-                    target / "payload_clouds" / name, crs="EPSG:32630")  # fmt: skip
+        write_cloud(
+            PointCloud(xyz, {"intensity_raw": cloud.fields["intensity"]}),
+            target / "payload_clouds" / name,
+            crs="EPSG:32630",
+        )
     return target
 
 
@@ -361,8 +364,9 @@ def test_projected_clouds_elev_ft_is_null_unless_the_user_says_above_sea_level(
     assert "--heights-above-sea-level" in reason and report.elevation_reference == {}
 
     db = tmp_path / "asl.db"
-    report = export_fvs(projected, db, level=0, species="DF", geoid_dirs=[grid.parent],
-                        heights_above_sea_level=True)  # fmt: skip
+    report = export_fvs(
+        projected, db, level=0, species="DF", geoid_dirs=[grid.parent], heights_above_sea_level=True
+    )
     assert report.elev_ft_null_reason == {} and report.elev_ft_null_stands == {}
     assert "--heights-above-sea-level" in report.elevation_reference["2024"]
     stands, _ = _tables(db)
@@ -371,8 +375,14 @@ def test_projected_clouds_elev_ft_is_null_unless_the_user_says_above_sea_level(
         stands["ElevFt"], _dtm_means(projected, stands) / M_PER_FT, atol=0.01
     )
     # the same ground, GNSS-fitted (ellipsoidal heights - N): the same elevation
-    export_fvs(catalog, tmp_path / "gnss.db", level=0, epochs=["2024"], species="DF",
-               geoid_dirs=[grid.parent])  # fmt: skip
+    export_fvs(
+        catalog,
+        tmp_path / "gnss.db",
+        level=0,
+        epochs=["2024"],
+        species="DF",
+        geoid_dirs=[grid.parent],
+    )
     gnss = _tables(tmp_path / "gnss.db")[0][["Stand_ID", "ElevFt"]]
     both = stands.merge(gnss, on="Stand_ID", suffixes=("", "_gnss"))
     assert len(both) >= 0.9 * len(stands)
@@ -407,8 +417,9 @@ def test_an_epoch_mixing_gnss_and_projected_missions_has_null_elev_ft(
     mixed, grid = projected_catalogs["mixed"], projected_catalogs["grid"]
     for flag in (False, True):
         db = tmp_path / f"{flag}.db"
-        report = export_fvs(mixed, db, level=0, species="DF", geoid_dirs=[grid.parent],
-                            heights_above_sea_level=flag)  # fmt: skip
+        report = export_fvs(
+            mixed, db, level=0, species="DF", geoid_dirs=[grid.parent], heights_above_sea_level=flag
+        )
         stands, _ = _tables(db)
         assert len(stands) >= 5 and stands["ElevFt"].isna().all()
         (reason,) = report.elev_ft_null_reason.values()
@@ -441,9 +452,18 @@ def test_a_stand_outside_the_geoid_grid_has_null_elev_ft_with_a_reason(
     model = GeoidModel("EGM96", regional, "EPSG:10084", "EPSG:5773", 1.0)
     assert model.undulation(5.0, 5.0) == pytest.approx(float(values[row0 + 20, col0 + 20]))
     with Catalog.reading(catalog) as cat:
-        report = _export_fvs(cat, tmp_path / "s.db", level=1, epochs=None, variant="PN",
-                             species="DF", species_by_stand=None, increments=False,
-                             overwrite=False, geoid=model)  # fmt: skip
+        report = _export_fvs(
+            cat,
+            tmp_path / "s.db",
+            level=1,
+            epochs=None,
+            variant="PN",
+            species="DF",
+            species_by_stand=None,
+            increments=False,
+            overwrite=False,
+            geoid=model,
+        )
     stands, _ = _tables(tmp_path / "s.db")
     assert len(stands) >= 2 and stands["ElevFt"].isna().all()
     assert set(report.elev_ft_null_stands) == set(stands["Stand_ID"])
@@ -479,8 +499,9 @@ def test_an_epoch_without_a_date_exports_with_its_label_year_or_is_refused_by_na
     for name, epoch in (("plot_a", "2020"), ("plot_b", "plotB")):
         mission = _undated_mission(source, tmp_path / name)
         anchor = ["--anchor", "47.0", "8.0", "500", "0"]
-        result = runner.invoke(cli, ["tile", str(mission), "-o", str(catalog), *anchor,
-                                     "--epoch", epoch])  # fmt: skip
+        result = runner.invoke(
+            cli, ["tile", str(mission), "-o", str(catalog), *anchor, "--epoch", epoch]
+        )
         assert result.exit_code == 0, result.output
         assert f"epoch {epoch} (no date):" in result.output
     assert runner.invoke(cli, ["enrich", str(catalog)]).exit_code == 0

@@ -87,12 +87,20 @@ def test_swapped_mission_outside_the_catalog_crs_gets_the_swap_hint(tmp_path: Pa
     from standgrid.georeference.placement import Placement
     from standgrid.tiling.setup import check_area_of_use
 
-    catalog = Catalog.create(tmp_path / "catalog", {"scheme": "voronoi", "crs": CRS}, CRS,
-                             "voronoi")  # fmt: skip
+    catalog = Catalog.create(
+        tmp_path / "catalog", {"scheme": "voronoi", "crs": CRS}, CRS, "voronoi"
+    )
     here = fit_from_anchor(51.7732, -1.3374, 150.0, 0.0)
     with catalog.transaction() as txn:
-        txn.record_mission(MISSION, epoch="2024", date="2024-05-14", tiles=[], point_count=0,
-                           payload_count=0, georeference=here.to_dict())  # fmt: skip
+        txn.record_mission(
+            MISSION,
+            epoch="2024",
+            date="2024-05-14",
+            tiles=[],
+            point_count=0,
+            payload_count=0,
+            georeference=here.to_dict(),
+        )
     catalog = Catalog.open(catalog.root)
     swapped = Placement(fit_from_anchor(-1.3374, 51.7732, 150.0, 0.0))
     with pytest.raises(CRSError, match=r"outside the area of use.*\(swapped\).*swapped"):
@@ -185,8 +193,11 @@ def test_file_size_limit_while_enriching_is_one_line_and_keeps_the_catalog(
     before = _digest(catalog)
     done = subprocess.run(
         [sys.executable, "-c", _LIMITED_CLI, "24000", "enrich", str(catalog), "--quiet"],
-        capture_output=True, text=True, timeout=60, cwd=REPO_ROOT,
-    )  # fmt: skip
+        capture_output=True,
+        text=True,
+        timeout=60,
+        cwd=REPO_ROOT,
+    )
     assert done.returncode == 1, done.stderr
     lines = done.stderr.strip().splitlines()
     assert len(lines) == 1 and lines[0].startswith("Error: OutOfSpaceError: "), done.stderr
@@ -248,8 +259,11 @@ def test_full_disk_while_writing_geopackage_and_laz(tmp_path: Path) -> None:
         pytest.skip(f"no private mount namespace here: {probe.stderr.decode().strip()}")
     done = subprocess.run(
         ["unshare", "-rm", sys.executable, "-c", _SMALL_DISK, str(mount), CRS],
-        capture_output=True, text=True, timeout=60, cwd=REPO_ROOT,
-    )  # fmt: skip
+        capture_output=True,
+        text=True,
+        timeout=60,
+        cwd=REPO_ROOT,
+    )
     if done.returncode != 0 and "CalledProcessError" in done.stderr and "mount" in done.stderr:
         pytest.skip("cannot mount a tmpfs here")
     assert done.returncode == 0, done.stderr
@@ -281,8 +295,13 @@ def test_lazrs_errors_keep_the_errno_of_the_failed_write(tmp_path: Path) -> None
         """
     )
     out = tmp_path / "t.laz"
-    done = subprocess.run([sys.executable, "-c", script, str(out)], capture_output=True,
-                          text=True, timeout=60, cwd=REPO_ROOT)  # fmt: skip
+    done = subprocess.run(
+        [sys.executable, "-c", script, str(out)],
+        capture_output=True,
+        text=True,
+        timeout=60,
+        cwd=REPO_ROOT,
+    )
     assert done.stdout.strip() == f"full {out}", done.stderr
     assert list(tmp_path.iterdir()) == []
 
@@ -341,8 +360,9 @@ def test_raster_pixel_that_does_not_fit_is_explained(small_enriched: Path, tmp_p
     from standgrid.enrichment.options import EnrichOptions
     from standgrid.pipeline.enrich import check_pixel_size, enrich_catalog
 
-    voronoi = Catalog.create(tmp_path / "voronoi", {"scheme": "voronoi", "crs": CRS}, CRS,
-                             "voronoi")  # fmt: skip
+    voronoi = Catalog.create(
+        tmp_path / "voronoi", {"scheme": "voronoi", "crs": CRS}, CRS, "voronoi"
+    )
     with pytest.raises(EnrichError, match=r"3 m does not divide the 10 m lattice a Voronoi"):
         check_pixel_size(voronoi, 3.0)
     check_pixel_size(voronoi, 2.5)

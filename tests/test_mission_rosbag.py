@@ -369,21 +369,34 @@ def _gridmap(ts: Any, ns: int, frame: str, heights: np.ndarray, centre: Any, ros
     buffer = np.roll(matrix, GRID_START, axis=(0, 1))
     dim = types["std_msgs/msg/MultiArrayDimension"]
     layout = types["std_msgs/msg/MultiArrayLayout"](
-        dim=[dim(label="column_index", size=cols, stride=rows * cols),
-             dim(label="row_index", size=rows, stride=rows)],
+        dim=[
+            dim(label="column_index", size=cols, stride=rows * cols),
+            dim(label="row_index", size=rows, stride=rows),
+        ],
         data_offset=0,
-    )  # fmt: skip
+    )
     array = types["std_msgs/msg/Float32MultiArray"]
-    data = [array(layout=layout, data=np.zeros(rows * cols, np.float32)),
-            array(layout=layout, data=buffer.ravel(order="F").astype(np.float32))]  # fmt: skip
+    data = [
+        array(layout=layout, data=np.zeros(rows * cols, np.float32)),
+        array(layout=layout, data=buffer.ravel(order="F").astype(np.float32)),
+    ]
     pose = types["geometry_msgs/msg/Pose"](
         position=types["geometry_msgs/msg/Point"](x=centre[0], y=centre[1], z=0.0),
         orientation=types["geometry_msgs/msg/Quaternion"](x=0.0, y=0.0, z=0.0, w=1.0),
     )
-    info = {"resolution": GRID_RES, "length_x": rows * GRID_RES, "length_y": cols * GRID_RES,
-            "pose": pose}  # fmt: skip
-    common = {"layers": ["variance", "elevation"], "basic_layers": ["elevation"], "data": data,
-              "outer_start_index": GRID_START[0], "inner_start_index": GRID_START[1]}  # fmt: skip
+    info = {
+        "resolution": GRID_RES,
+        "length_x": rows * GRID_RES,
+        "length_y": cols * GRID_RES,
+        "pose": pose,
+    }
+    common = {
+        "layers": ["variance", "elevation"],
+        "basic_layers": ["elevation"],
+        "data": data,
+        "outer_start_index": GRID_START[0],
+        "inner_start_index": GRID_START[1],
+    }
     info_t, map_t = types["grid_map_msgs/msg/GridMapInfo"], types["grid_map_msgs/msg/GridMap"]
     if ros1:
         return map_t(info=info_t(header=_header(ts, ns, frame), **info), **common)
@@ -421,8 +434,9 @@ def test_gridmaps_in_a_bag_become_the_payloads_elevation_maps(
     bag = write_bag(kind, tmp_path / ("m.bag" if kind == "ros1" else "m"), sim, scans, gridmaps)
     xyz = np.array([v.pose[:3, 3] for v in vertices])
     spacing = 0.9 * float(np.linalg.norm(np.diff(xyz, axis=0), axis=1).min())
-    report = bag_to_mission([bag], tmp_path / "2024-05-14-wytham-anymal-coyote",
-                            node_distance=spacing)  # fmt: skip
+    report = bag_to_mission(
+        [bag], tmp_path / "2024-05-14-wytham-anymal-coyote", node_distance=spacing
+    )
     got = open_mission(report.output)
     assert report.topics["grid_map"] == "/elevation_map" and report.grid_maps == len(vertices)
     assert report.elevation_maps == len(got.payloads) > 1

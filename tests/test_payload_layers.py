@@ -173,8 +173,9 @@ def test_by_gnss_gives_the_same_layers_and_asks_only_for_named_ones(pair: Enrich
     np.testing.assert_array_equal(mine[a], tiles["keys"][b])
     np.testing.assert_array_equal(layered.fields["classification"][a], tiles["classification"][b])
     with pytest.raises(OptionError, match="unknown layer 'crowns'"):
-        standgrid.retrieve_payload_by_type(mission, "point_cloud", catalog=pair.path,
-                                           layers="ground,crowns")  # fmt: skip
+        standgrid.retrieve_payload_by_type(
+            mission, "point_cloud", catalog=pair.path, layers="ground,crowns"
+        )
 
 
 def test_cli_writes_the_layered_payload(pair: EnrichedPair, tmp_path: Path) -> None:
@@ -252,8 +253,9 @@ def test_never_stale_after_retiling_or_re_enriching(pair: EnrichedPair, tmp_path
         assert stale.status_code == 409 and "re-tiled" in stale.json()["detail"]
         with pytest.raises(StaleLayersError, match="re-tiled"):
             standgrid.retrieve_payload_by_type(mission, "point_cloud", catalog=root)
-        enrich_catalog(root, EnrichOptions(epochs=("2028",), cloth_resolution=1.0,
-                                           tree_min_height=5.0))  # fmt: skip
+        enrich_catalog(
+            root, EnrichOptions(epochs=("2028",), cloth_resolution=1.0, tree_min_height=5.0)
+        )
         after = client.get(url, params={"layers": "all"})
         assert after.status_code == 200
         assert after.headers["x-standgrid-enrichment"] != before.headers["x-standgrid-enrichment"]

@@ -95,8 +95,13 @@ def retiled(pair: EnrichedPair, tmp_path_factory: pytest.TempPathFactory) -> dic
         root,
         execution=Execution(progress=CallbackProgress(on_status=messages.append)),
     )
-    return {"root": root, "before": before, "counts": counts, "report": report.to_dict(),
-            "messages": messages}  # fmt: skip
+    return {
+        "root": root,
+        "before": before,
+        "counts": counts,
+        "report": report.to_dict(),
+        "messages": messages,
+    }
 
 
 def test_retile_removes_the_epochs_files_and_comparison(retiled: dict[str, Any]) -> None:
@@ -126,15 +131,21 @@ def test_retile_rewrites_the_qgis_project(retiled: dict[str, Any]) -> None:
         assert (root / path).is_file(), path
         if "subset" in options:
             rows = pyogrio.read_dataframe(
-                root / path, layer=options["layername"], where=options["subset"],
+                root / path,
+                layer=options["layername"],
+                where=options["subset"],
                 read_geometry=False,
-            )  # fmt: skip
+            )
             assert len(rows) > 0, layer.findtext("layername")
     groups = tree_groups(project)
     assert list(groups) == ["2028", "2024"]
     names = [n.get("name") for n in groups["2028"].findall("layer-tree-layer")]
-    assert names == ["Trajectories", "GNSS fixes", "Payload footprints",
-                     "Tiles (20 m cells, points)"]  # fmt: skip
+    assert names == [
+        "Trajectories",
+        "GNSS fixes",
+        "Payload footprints",
+        "Tiles (20 m cells, points)",
+    ]
     tiles = groups["2028"].find("layer-tree-layer[@name='Tiles (20 m cells, points)']")
     assert tiles is not None and tiles.get("checked") == "Qt::Checked"  # not enriched: on
     assert len(groups["2024"].findall("layer-tree-layer")) == 11
@@ -235,9 +246,9 @@ def test_compare_refuses_the_stale_epoch(retiled: dict[str, Any]) -> None:
 
 def test_export_says_the_epoch_is_stale(retiled: dict[str, Any], tmp_path: Path) -> None:
     result = CliRunner().invoke(
-        cli, ["export", "trees", str(retiled["root"]), "-o", str(tmp_path / "t.csv"),
-              "--epoch", "2028"],
-    )  # fmt: skip
+        cli,
+        ["export", "trees", str(retiled["root"]), "-o", str(tmp_path / "t.csv"), "--epoch", "2028"],
+    )
     assert result.exit_code != 0
     assert "is stale" in result.output and "re-run `standgrid enrich`" in result.output
     assert "not enriched" not in result.output

@@ -80,8 +80,14 @@ def stream(tmp_path_factory: pytest.TempPathFactory) -> dict:
         live.add_gnss(fixes)
         before = tile_files(catalog) if catalog.exists() else {}
         report = tile_missions([live.path], catalog, options).to_dict()
-        steps.append({"report": report, "before": before, "after": tile_files(catalog),
-                      "tiled_before": BATCH * len(steps)})  # fmt: skip
+        steps.append(
+            {
+                "report": report,
+                "before": before,
+                "after": tile_files(catalog),
+                "tiled_before": BATCH * len(steps),
+            }
+        )
     streamed = {
         "record": json.loads((catalog / "catalog.json").read_text())["missions"][NAME],
         "missions_layer": pyogrio.read_dataframe(catalog / "index.gpkg", layer="missions"),
@@ -90,8 +96,14 @@ def stream(tmp_path_factory: pytest.TempPathFactory) -> dict:
     settle = tile_missions([live.path], catalog, TileOptions(cell_size=20.0, crs=CRS))
     batch = folder / "batch"
     tile_missions([live.path], batch, TileOptions(cell_size=20.0, crs=CRS))
-    return {"steps": steps, "streamed": streamed, "settle": settle.to_dict(),
-            "catalog": catalog, "batch": batch, "folder": live.path}  # fmt: skip
+    return {
+        "steps": steps,
+        "streamed": streamed,
+        "settle": settle.to_dict(),
+        "catalog": catalog,
+        "batch": batch,
+        "folder": live.path,
+    }
 
 
 def _placement(step: dict) -> dict:
@@ -143,8 +155,9 @@ def test_the_kept_placement_is_within_its_offset_of_the_fresh_fit_for_every_poin
     fresh = MapProjector(place_mission(mission).fit, CRS)
     kept = MapProjector(GeoreferenceFit.from_dict(record["georeference"]), CRS)
     truth = load_truth(TRUTH_ROOT / NAME)  # the simulator's true map -> ENU
-    true = MapProjector(GeoreferenceFit.without_fixes(
-        truth.lla_ref, np.linalg.inv(truth.T_map_enu), "truth"), CRS)  # fmt: skip
+    true = MapProjector(
+        GeoreferenceFit.without_fixes(truth.lla_ref, np.linalg.inv(truth.T_map_enu), "truth"), CRS
+    )
     largest, kept_error, fresh_error = 0.0, 0.0, 0.0
     for payload in mission.payloads:
         xyz = mission.load_base(payload).xyz
@@ -242,12 +255,15 @@ def test_a_served_stream_keeps_its_placement_then_settles_exactly(tmp_path: Path
     auth = {"Authorization": f"Bearer {token}"}
     catalog = tmp_path / "catalog"
     Catalog.create(catalog, StandGrid(CRS, 20.0).to_dict(), CRS, "grid")
-    app = create_app(catalog, token=token, missions=tmp_path / "inbox",
-                     placement_tolerance=TOLERANCE)  # fmt: skip
+    app = create_app(
+        catalog, token=token, missions=tmp_path / "inbox", placement_tolerance=TOLERANCE
+    )
     meta = read_metadata(SOURCE / "metadata.yaml")
     reports = []
-    with running(app) as server, httpx.Client(base_url=str(server.base_url), headers=auth,
-                                              timeout=300) as client:  # fmt: skip
+    with (
+        running(app) as server,
+        httpx.Client(base_url=str(server.base_url), headers=auth, timeout=300) as client,
+    ):
         r = client.post("/missions", json={"name": NAME, "date": meta.date.isoformat()})
         assert r.status_code == 201, r.text
         sent = batches()
@@ -255,8 +271,10 @@ def test_a_served_stream_keeps_its_placement_then_settles_exactly(tmp_path: Path
             assert client.put(f"/missions/{NAME}/graph", content=graph).status_code == 200
             for stamp, data, pose in payloads:
                 t, q = translation_quat(pose)
-                params = {"stamp": f"{stamp.sec}_{stamp.nsec:09d}",
-                          "pose": ",".join(repr(float(v)) for v in (*t, *q))}  # fmt: skip
+                params = {
+                    "stamp": f"{stamp.sec}_{stamp.nsec:09d}",
+                    "pose": ",".join(repr(float(v)) for v in (*t, *q)),
+                }
                 r = client.post(f"/missions/{NAME}/payloads", params=params, content=data)
                 assert r.status_code == 201, r.text
             assert client.post(f"/missions/{NAME}/gnss", content=fixes).status_code == 200
@@ -272,8 +290,13 @@ def test_a_served_stream_keeps_its_placement_then_settles_exactly(tmp_path: Path
     assert [p["tolerance_m"] for p in reports] == [TOLERANCE] * 3
     assert reports[-1]["used"] == "kept" and 0 < reports[-1]["offset_m"] < TOLERANCE
     assert summary["placement"] == reports[-1]  # the forester sees it in the summary
-    assert settled == {"used": "fresh", "tolerance_m": None, "offset_m": 0.0,
-                       "moved_m": None, "fresh_fit": None}  # fmt: skip
+    assert settled == {
+        "used": "fresh",
+        "tolerance_m": None,
+        "offset_m": 0.0,
+        "moved_m": None,
+        "fresh_fit": None,
+    }
     assert after["placement"] == settled
     reference = tmp_path / "reference"
     tile_missions([tmp_path / "inbox" / NAME], reference, TileOptions(cell_size=20.0, crs=CRS))

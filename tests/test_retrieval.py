@@ -156,9 +156,14 @@ def _fixed_mission(tmp_path: Path):  # type: ignore[no-untyped-def]
     k = len(syn.stamps)
     lat, lon, alt = enu_to_lla(enu[:, 0], enu[:, 1], enu[:, 2], lla_ref)
     fixes = GnssFixes(
-        np.array([s.ns for s in syn.stamps], dtype=np.int64), lat, lon, alt,
-        np.full(k, 4, np.int8), np.full(k, 0.02), np.full(k, 0.05),
-    )  # fmt: skip
+        np.array([s.ns for s in syn.stamps], dtype=np.int64),
+        lat,
+        lon,
+        alt,
+        np.full(k, 4, np.int8),
+        np.full(k, 0.02),
+        np.full(k, 0.05),
+    )
     (syn.path / "gnss").mkdir()
     write_gnss(fixes, syn.path / "gnss" / "fixes.txt")
     return syn, enu, lla_ref

@@ -33,9 +33,12 @@ AUTH = {"Authorization": f"Bearer {TOKEN}"}
 COYOTE = MISSIONS["2024"]
 #: The body of the `POST /missions` example of docs/SERVICE.md (Robot integration).
 README_BODY = {
-    "name": "2024-05-14-wytham-anymal-coyote", "date": "2024-05-14", "place": "wytham",
-    "robot": "anymal", "sensors": ["velodyne-vlp16", "gnss"],
-}  # fmt: skip
+    "name": "2024-05-14-wytham-anymal-coyote",
+    "date": "2024-05-14",
+    "place": "wytham",
+    "robot": "anymal",
+    "sensors": ["velodyne-vlp16", "gnss"],
+}
 #: The write time limit of the write server: a payload that still hangs is refused by then.
 WRITE_LIMIT_S = 8.0
 
@@ -104,8 +107,10 @@ def test_a_hostile_payload_blocks_no_other_write(writes: tuple[str, Path, Path])
         answers["a"] = httpx.post(
             f"{base}/missions/{mission_a['name']}/payloads",
             params={"stamp": "1715679272_145665588", "format": "las"},
-            content=hostile_las(), headers=AUTH, timeout=WRITE_LIMIT_S + 20,
-        )  # fmt: skip
+            content=hostile_las(),
+            headers=AUTH,
+            timeout=WRITE_LIMIT_S + 20,
+        )
 
     sender = threading.Thread(target=send_hostile)
     sender.start()
@@ -137,8 +142,9 @@ def test_the_watchdog_kills_a_call_over_its_limit() -> None:
     from standgrid.serve.workers import WorkerProcess
 
     async def scenario() -> None:
-        worker = WorkerProcess("test", processes=2, time_limit=0.5, limit_status=400,
-                               memory_limit=1 << 30)  # fmt: skip
+        worker = WorkerProcess(
+            "test", processes=2, time_limit=0.5, limit_status=400, memory_limit=1 << 30
+        )
         try:
             # both processes started, this module imported in each (no limit for that)
             warm = [worker.call(_sleep, 0.2, time_limit=None) for _ in range(2)]
@@ -192,9 +198,11 @@ def _children(pid: int) -> dict[int, str]:
 
 
 def _ascii_pcd(points: int) -> bytes:
-    header = (f"# .PCD v0.7\nVERSION 0.7\nFIELDS x y z\nSIZE 4 4 4\nTYPE F F F\nCOUNT 1 1 1\n"
-              f"WIDTH {points}\nHEIGHT 1\nVIEWPOINT 0 0 0 1 0 0 0\nPOINTS {points}\n"
-              "DATA ascii\n")  # fmt: skip
+    header = (
+        f"# .PCD v0.7\nVERSION 0.7\nFIELDS x y z\nSIZE 4 4 4\nTYPE F F F\nCOUNT 1 1 1\n"
+        f"WIDTH {points}\nHEIGHT 1\nVIEWPOINT 0 0 0 1 0 0 0\nPOINTS {points}\n"
+        "DATA ascii\n"
+    )
     return header.encode() + b"1.250 -2.500 0.750\n" * points
 
 
@@ -204,10 +212,19 @@ def test_ctrl_c_ends_the_workers_of_standgrid_serve(tmp_path: Path) -> None:
     """SIGINT while a writer parses a large payload: the server stops and leaves no worker."""
     catalog = _empty_catalog(tmp_path)
     env = {**os.environ, "STANDGRID_TOKEN": TOKEN}
-    command = [sys.executable, "-c", "from standgrid.cli import main; main()", "serve",
-               str(catalog), "--port", "0", "--json"]  # fmt: skip
-    proc = subprocess.Popen(command, cwd=REPO_ROOT, env=env, stdout=subprocess.PIPE,
-                            stderr=subprocess.PIPE, text=True)  # fmt: skip
+    command = [
+        sys.executable,
+        "-c",
+        "from standgrid.cli import main; main()",
+        "serve",
+        str(catalog),
+        "--port",
+        "0",
+        "--json",
+    ]
+    proc = subprocess.Popen(
+        command, cwd=REPO_ROOT, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True
+    )
     sender = None
     try:
         assert proc.stdout is not None
@@ -219,8 +236,13 @@ def test_ctrl_c_ends_the_workers_of_standgrid_serve(tmp_path: Path) -> None:
 
         def send() -> None:
             with contextlib.suppress(httpx.HTTPError):  # answered, or closed unanswered
-                httpx.post(f"{base}/missions/{name}/payloads", params={"stamp": "1_000000000"},
-                           content=body, headers=AUTH, timeout=30)  # fmt: skip
+                httpx.post(
+                    f"{base}/missions/{name}/payloads",
+                    params={"stamp": "1_000000000"},
+                    content=body,
+                    headers=AUTH,
+                    timeout=30,
+                )
 
         deadline = time.monotonic() + 10
         while set(_children(proc.pid).values()) != {"S"}:  # every worker started and idle
@@ -252,9 +274,15 @@ def test_the_readme_announcement_sent_again_is_unchanged(writes: tuple[str, Path
     again = httpx.post(f"{base}/missions", json=README_BODY, headers=AUTH)
     assert again.status_code == 200 and again.json()["outcome"] == "unchanged", again.text
     # a time of day, a GNSS origin and an explicit unit compare equal once stored too
-    full = {**README_BODY, "name": "2024-05-14-wytham-anymal-d4", "time": "10:33:05.250",
-            "unit": "d4", "tags": ["retry"], "notes": "x",
-            "gnss": {"latitude": 51.77, "longitude": -1.34, "altitude": 120.5}}  # fmt: skip
+    full = {
+        **README_BODY,
+        "name": "2024-05-14-wytham-anymal-d4",
+        "time": "10:33:05.250",
+        "unit": "d4",
+        "tags": ["retry"],
+        "notes": "x",
+        "gnss": {"latitude": 51.77, "longitude": -1.34, "altitude": 120.5},
+    }
     assert httpx.post(f"{base}/missions", json=full, headers=AUTH).status_code == 201
     assert httpx.post(f"{base}/missions", json=full, headers=AUTH).status_code == 200
     other = httpx.post(f"{base}/missions", json={**README_BODY, "robot": "spot"}, headers=AUTH)
@@ -273,25 +301,28 @@ def test_a_name_the_catalog_holds_from_another_folder_is_refused_at_creation(
 # --- 3. numbers at the edge -----------------------------------------------------------------
 
 
-@pytest.mark.parametrize(("url", "status"), [
-    ("/ogc/collections/cells/items?offset=100000000000000000000", 400),
-    ("/ogc/collections/cells/items?bbox=-1,-100,1,100", 400),
-    ("/ogc/collections/cells/items?bbox=-181,0,1,1", 400),
-    ("/ogc/collections/cells/items/9999999999999999999999999999999999999999", 404),
-    ("/ogc/collections/cells/items/-99999999999999999999", 404),
-    ("/ogc/collections/cells/items?point_count=99999999999999999999999", 400),
-    ("/ogc/collections/stand_metrics/items?level=nan", 400),
-    ("/ogc/collections/gnss_fixes/items?datetime=1111-01-01T00:00:00Z/..", 200),
-    ("/ogc/collections/gnss_fixes/items?datetime=0001-01-01T00:00:00%2B05:00/9999-12-31", 200),
-    ("/ogc/collections/cells/items?datetime=0001-01-01T00:00:00%2B05:00/9999-12-31", 200),
-    (f"/missions/{COYOTE}/payloads/by-pose?x=inf&y=0", 400),
-    (f"/missions/{COYOTE}/payloads/by-pose?x=0&y=nan", 400),
-    (f"/missions/{COYOTE}/payloads/by-gnss?lat=51&lon=-1&alt=inf", 400),
-    ("/viewer/points?payload=999999999999999999999999999999", 400),
-    ("/viewer/points?payload=-1", 400),
-    ("/viewer/points/2024/x?tree=99999999999999999999", 400),
-    (f"/missions/{COYOTE}/payloads?type=bogus", 400),
-])  # fmt: skip
+@pytest.mark.parametrize(
+    ("url", "status"),
+    [
+        ("/ogc/collections/cells/items?offset=100000000000000000000", 400),
+        ("/ogc/collections/cells/items?bbox=-1,-100,1,100", 400),
+        ("/ogc/collections/cells/items?bbox=-181,0,1,1", 400),
+        ("/ogc/collections/cells/items/9999999999999999999999999999999999999999", 404),
+        ("/ogc/collections/cells/items/-99999999999999999999", 404),
+        ("/ogc/collections/cells/items?point_count=99999999999999999999999", 400),
+        ("/ogc/collections/stand_metrics/items?level=nan", 400),
+        ("/ogc/collections/gnss_fixes/items?datetime=1111-01-01T00:00:00Z/..", 200),
+        ("/ogc/collections/gnss_fixes/items?datetime=0001-01-01T00:00:00%2B05:00/9999-12-31", 200),
+        ("/ogc/collections/cells/items?datetime=0001-01-01T00:00:00%2B05:00/9999-12-31", 200),
+        (f"/missions/{COYOTE}/payloads/by-pose?x=inf&y=0", 400),
+        (f"/missions/{COYOTE}/payloads/by-pose?x=0&y=nan", 400),
+        (f"/missions/{COYOTE}/payloads/by-gnss?lat=51&lon=-1&alt=inf", 400),
+        ("/viewer/points?payload=999999999999999999999999999999", 400),
+        ("/viewer/points?payload=-1", 400),
+        ("/viewer/points/2024/x?tree=99999999999999999999", 400),
+        (f"/missions/{COYOTE}/payloads?type=bogus", 400),
+    ],
+)
 def test_numbers_are_checked_at_the_edge(reads: str, url: str, status: int) -> None:
     r = httpx.get(reads + url, timeout=30)
     assert r.status_code == status, r.text
@@ -307,8 +338,12 @@ def test_both_openapi_documents_are_valid(reads: str) -> None:
 
     service = httpx.get(f"{reads}/openapi.json").json()
     validate(service)
-    ids = [op["operationId"] for item in service["paths"].values() for op in item.values()
-           if isinstance(op, dict) and "operationId" in op]  # fmt: skip
+    ids = [
+        op["operationId"]
+        for item in service["paths"].values()
+        for op in item.values()
+        if isinstance(op, dict) and "operationId" in op
+    ]
     assert len(ids) == len(set(ids))
     assert {"get", "head"} <= set(service["paths"]["/files/{relative}"])
     validate(httpx.get(f"{reads}/ogc/api").json())
@@ -317,16 +352,19 @@ def test_both_openapi_documents_are_valid(reads: str) -> None:
 # --- 5. bounded announcements, no server paths, a busy port ---------------------------------
 
 
-@pytest.mark.parametrize("change", [
-    {"sensors": [f"lidar-{k}" for k in range(100_000)]},
-    {"tags": ["t"] * 65},
-    {"sensors": ["x" * 129]},
-    {"place": "p" * 129},
-    {"notes": "n" * 100_000},
-    {"name": "m" * 100_000},
-    {"gnss": {"latitude": 91, "longitude": 0}},
-    {"gnss": {"latitude": 0, "longitude": 0, "altitude": 1e300}},
-])  # fmt: skip
+@pytest.mark.parametrize(
+    "change",
+    [
+        {"sensors": [f"lidar-{k}" for k in range(100_000)]},
+        {"tags": ["t"] * 65},
+        {"sensors": ["x" * 129]},
+        {"place": "p" * 129},
+        {"notes": "n" * 100_000},
+        {"name": "m" * 100_000},
+        {"gnss": {"latitude": 91, "longitude": 0}},
+        {"gnss": {"latitude": 0, "longitude": 0, "altitude": 1e300}},
+    ],
+)
 def test_announcements_are_bounded(writes: tuple[str, Path, Path], change: dict) -> None:
     base, _, missions = writes
     body = {**README_BODY, "name": "2024-05-14-bounded-anymal-e5", **change}

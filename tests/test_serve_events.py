@@ -61,8 +61,9 @@ class Listener:
     def _run(self) -> None:
         headers = {"Last-Event-ID": self.last_event_id} if self.last_event_id else {}
         try:
-            with httpx.stream("GET", f"{self.base}/events", headers=headers,
-                              timeout=httpx.Timeout(5, read=None)) as answer:  # fmt: skip
+            with httpx.stream(
+                "GET", f"{self.base}/events", headers=headers, timeout=httpx.Timeout(5, read=None)
+            ) as answer:
                 assert answer.headers["content-type"].startswith("text/event-stream")
                 fields: dict[str, str] = {}
                 for line in answer.iter_lines():
@@ -139,8 +140,11 @@ def _payload_requests() -> list[tuple[dict[str, str], bytes]]:
     for payload in mission.payloads:
         pose = mission.pose_of(payload)
         _, q = translation_quat(pose)
-        params = {"stamp": f"{payload.stamp.sec}_{payload.stamp.nsec:09d}", "format": "pcd",
-                  "pose": ",".join(repr(float(v)) for v in (*pose[:3, 3], *q))}  # fmt: skip
+        params = {
+            "stamp": f"{payload.stamp.sec}_{payload.stamp.nsec:09d}",
+            "format": "pcd",
+            "pose": ",".join(repr(float(v)) for v in (*pose[:3, 3], *q)),
+        }
         sent.append((params, payload.path.read_bytes()))
     return sent
 
@@ -179,8 +183,13 @@ def test_a_streamed_mission_is_announced_payload_by_payload(
     announced = []
     for params, body in _payload_requests():
         sent = time.monotonic()
-        r = httpx.post(f"{base}/missions/{NAME}/payloads", params=params, content=body,
-                       headers=AUTH, timeout=60)  # fmt: skip
+        r = httpx.post(
+            f"{base}/missions/{NAME}/payloads",
+            params=params,
+            content=body,
+            headers=AUTH,
+            timeout=60,
+        )
         assert r.status_code == 201, r.text
         got = listener.next_of("payload", timeout=10)
         # this payload, stored before it was announced, announced while its POST was open
@@ -190,8 +199,9 @@ def test_a_streamed_mission_is_announced_payload_by_payload(
         announced.append(got)
     # sent again: stored once, announced once; ids in the order of publication
     params, body = _payload_requests()[0]
-    again = httpx.post(f"{base}/missions/{NAME}/payloads", params=params, content=body,
-                       headers=AUTH)  # fmt: skip
+    again = httpx.post(
+        f"{base}/missions/{NAME}/payloads", params=params, content=body, headers=AUTH
+    )
     assert again.json()["outcome"] == "unchanged"
     assert [g.type for g in listener.drain()] == []
     numbers = [int(g.id.rpartition("-")[2]) for g in announced if g.id]
@@ -209,8 +219,9 @@ def test_a_streamed_mission_is_announced_payload_by_payload(
 
     # the coordinates announced are those the catalog's payloads layer holds
     rows = pyogrio.read_dataframe(catalog / "index.gpkg", layer="payloads")
-    rows["stamp"] = [f"{s}_{n:09d}" for s, n in zip(rows["stamp_sec"], rows["stamp_nsec"],
-                                                     strict=True)]  # fmt: skip
+    rows["stamp"] = [
+        f"{s}_{n:09d}" for s, n in zip(rows["stamp_sec"], rows["stamp_nsec"], strict=True)
+    ]
     by_stamp = rows.set_index("stamp")
     to_lonlat = CRSValue.of(CRS).transformer_to("EPSG:4326")
     for got in announced:
@@ -293,8 +304,13 @@ def test_a_client_that_stops_reading_holds_up_nothing(tmp_path: Path) -> None:
         sent = _payload_requests()[:4]
         for params, body in sent:
             t0 = time.monotonic()
-            r = httpx.post(f"{base}/missions/{name}/payloads", params=params, content=body,
-                           headers=AUTH, timeout=30)  # fmt: skip
+            r = httpx.post(
+                f"{base}/missions/{name}/payloads",
+                params=params,
+                content=body,
+                headers=AUTH,
+                timeout=30,
+            )
             took.append(time.monotonic() - t0)
             assert r.status_code == 201, r.text
         # pose-graph updates (a loop closure moving the last node): a trajectory event each,
@@ -312,8 +328,10 @@ def test_a_client_that_stops_reading_holds_up_nothing(tmp_path: Path) -> None:
             r = httpx.put(f"{base}/missions/{name}/graph", content=graph, headers=AUTH)
             took.append(time.monotonic() - t0)
             assert r.json()["outcome"] == "stored"
-        print(f"\nsilent client: overflowed after {updates} graph updates; writes took "
-              f"{max(took):.2f} s at most")  # fmt: skip
+        print(
+            f"\nsilent client: overflowed after {updates} graph updates; writes took "
+            f"{max(took):.2f} s at most"
+        )
         got = fast.drain(1.0)
         assert [g.data["payload"] for g in got if g.type == "payload"] == [
             p["stamp"] for p, _ in sent
@@ -348,10 +366,24 @@ def test_ctrl_c_ends_the_streams_at_once(tmp_path: Path) -> None:
 
     catalog = tmp_path / "catalog"
     Catalog.create(catalog, StandGrid(CRS, 20.0).to_dict(), CRS, "grid")
-    command = [sys.executable, "-c", "from standgrid.cli import main; main()", "serve",
-               str(catalog), "--port", "0", "--json"]  # fmt: skip
-    proc = subprocess.Popen(command, cwd=REPO_ROOT, env=dict(os.environ), text=True,
-                            stdout=subprocess.PIPE, stderr=subprocess.PIPE)  # fmt: skip
+    command = [
+        sys.executable,
+        "-c",
+        "from standgrid.cli import main; main()",
+        "serve",
+        str(catalog),
+        "--port",
+        "0",
+        "--json",
+    ]
+    proc = subprocess.Popen(
+        command,
+        cwd=REPO_ROOT,
+        env=dict(os.environ),
+        text=True,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+    )
     try:
         assert proc.stdout is not None
         base = json.loads(proc.stdout.readline())["service"].rstrip("/")

@@ -23,17 +23,72 @@ TOKEN = "fuzz-token-0123456789abcdef"
 AUTH = {"Authorization": f"Bearer {TOKEN}"}
 #: Texts that broke, or could break, a parser of numbers, dates, boxes, names or paths.
 HOSTILE = [
-    "", " ", "0", "-0", "-1", "1.5", "1e309", "-1e309", "inf", "-inf", "Infinity", "nan",
-    "NaN", "1" * 400, "9" * 4400, "18446744073709551616", "-9223372036854775809",
-    "100000000000000000000", "9999999999999999999999999999999999999999", "0x10", "1_000",
-    "\u0663", "\uff11\uff12", "+1", "1,2", "-1,-100,1,100", "-181,-91,181,91", "1,2,3",
-    "nan,nan,nan,nan", "inf,0,1,1", "1e308,-1e308,1e308,1e308", "1,1,0,0", "0,0,1,1,1,1",
-    "true", "false", "null", "[]", "{}", "'", '"', "' OR 1=1 --", "\x00", "%00", "\n",
-    "../../etc/passwd", "..", ".", "/", "\\", "~", "*", "\u00e9t\u00e9", "\U0001f332" * 40,
-    "x" * 2000, "2024-13-45", "2024-02-30T25:61:00Z", "../..", "9999-12-31/0001-01-01",
-    "1_000000001", "99999999999999_000000000", "1_1", "0,0,0,0,0,0,2",
-    "http://www.opengis.net/def/crs/EPSG/0/999999", "EPSG:4326", "<>",
-]  # fmt: skip
+    "",
+    " ",
+    "0",
+    "-0",
+    "-1",
+    "1.5",
+    "1e309",
+    "-1e309",
+    "inf",
+    "-inf",
+    "Infinity",
+    "nan",
+    "NaN",
+    "1" * 400,
+    "9" * 4400,
+    "18446744073709551616",
+    "-9223372036854775809",
+    "100000000000000000000",
+    "9999999999999999999999999999999999999999",
+    "0x10",
+    "1_000",
+    "\u0663",
+    "\uff11\uff12",
+    "+1",
+    "1,2",
+    "-1,-100,1,100",
+    "-181,-91,181,91",
+    "1,2,3",
+    "nan,nan,nan,nan",
+    "inf,0,1,1",
+    "1e308,-1e308,1e308,1e308",
+    "1,1,0,0",
+    "0,0,1,1,1,1",
+    "true",
+    "false",
+    "null",
+    "[]",
+    "{}",
+    "'",
+    '"',
+    "' OR 1=1 --",
+    "\x00",
+    "%00",
+    "\n",
+    "../../etc/passwd",
+    "..",
+    ".",
+    "/",
+    "\\",
+    "~",
+    "*",
+    "\u00e9t\u00e9",
+    "\U0001f332" * 40,
+    "x" * 2000,
+    "2024-13-45",
+    "2024-02-30T25:61:00Z",
+    "../..",
+    "9999-12-31/0001-01-01",
+    "1_000000001",
+    "99999999999999_000000000",
+    "1_1",
+    "0,0,0,0,0,0,2",
+    "http://www.opengis.net/def/crs/EPSG/0/999999",
+    "EPSG:4326",
+    "<>",
+]
 #: The default run's sweep: the kinds of value that answered 500 (a huge integer, an
 #: infinity, a latitude out of range) and a negative; every parameter of every route gets
 #: each of them (the random cases draw from all of :data:`HOSTILE`, the slow run sweeps it).
@@ -69,11 +124,15 @@ def _routes(document: dict[str, Any], base: str) -> list[Route]:
                 continue  # an endless stream (tests/test_serve_events.py)
             params = operation.get("parameters", [])
             body = b"x" if "requestBody" in operation else None
-            found.append(Route(
-                method.upper(), base + template,
-                tuple(p["name"] for p in params if p["in"] == "path"),
-                tuple(p["name"] for p in params if p["in"] == "query"), body,
-            ))  # fmt: skip
+            found.append(
+                Route(
+                    method.upper(),
+                    base + template,
+                    tuple(p["name"] for p in params if p["in"] == "path"),
+                    tuple(p["name"] for p in params if p["in"] == "query"),
+                    body,
+                )
+            )
     return found
 
 
@@ -108,16 +167,32 @@ def _real_values(client: httpx.Client, base: str) -> dict[str, list[str]]:
     cells = client.get(f"{base}/ogc/collections/cells/items", params={"limit": 3}).json()
     files = [f["path"] for f in client.get(f"{base}/files").json()["files"][:5]]
     return {
-        "collection_id": collections, "collectionId": collections, "name": names,
-        "epoch": epochs, "stamp": stamps, "relative": files,
+        "collection_id": collections,
+        "collectionId": collections,
+        "name": names,
+        "epoch": epochs,
+        "stamp": stamps,
+        "relative": files,
         "cell_id": [str(f["properties"].get("cell_id")) for f in cells["features"]],
-        "feature_id": ["1", "2"], "featureId": ["1", "2"], "payload": ["1", "65536"],
-        "tree": ["1"], "type": ["point_cloud", "gnss"], "frame": ["crs", "map", "base"],
-        "x": ["0", "5.5"], "y": ["0", "-3"], "lat": ["51.77"], "lon": ["-1.34"],
-        "bbox": ["-1.4,51.7,-1.3,51.8"], "datetime": ["2024-05-14", "2024-01-01/.."],
-        "limit": ["2"], "offset": ["1"], "k": ["2"], "exact": ["false"], "format": ["pcd"],
+        "feature_id": ["1", "2"],
+        "featureId": ["1", "2"],
+        "payload": ["1", "65536"],
+        "tree": ["1"],
+        "type": ["point_cloud", "gnss"],
+        "frame": ["crs", "map", "base"],
+        "x": ["0", "5.5"],
+        "y": ["0", "-3"],
+        "lat": ["51.77"],
+        "lon": ["-1.34"],
+        "bbox": ["-1.4,51.7,-1.3,51.8"],
+        "datetime": ["2024-05-14", "2024-01-01/.."],
+        "limit": ["2"],
+        "offset": ["1"],
+        "k": ["2"],
+        "exact": ["false"],
+        "format": ["pcd"],
         "crs": ["http://www.opengis.net/def/crs/OGC/1.3/CRS84"],
-    }  # fmt: skip
+    }
 
 
 def _hostile() -> st.SearchStrategy[str]:
@@ -152,8 +227,13 @@ def _fuzz(client: httpx.Client, route: Route, real: dict[str, list[str]], exampl
     sent = 0
     names = [*route.path_params, *route.query_params]
 
-    @settings(max_examples=examples, deadline=None, database=None, derandomize=True,
-              suppress_health_check=list(HealthCheck))  # fmt: skip
+    @settings(
+        max_examples=examples,
+        deadline=None,
+        database=None,
+        derandomize=True,
+        suppress_health_check=list(HealthCheck),
+    )
     @given(data=st.data())
     def case(data: st.DataObject) -> None:
         nonlocal sent

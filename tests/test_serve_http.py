@@ -59,9 +59,11 @@ def test_range_requests_return_exactly_the_bytes_asked(base: str, catalog: Path)
     assert whole.status_code == 200 and whole.content == data
     assert whole.headers["accept-ranges"] == "bytes"
     for spec, (lo, hi) in {
-        "bytes=0-99": (0, 100), "bytes=100-": (100, size), "bytes=-50": (size - 50, size),
+        "bytes=0-99": (0, 100),
+        "bytes=100-": (100, size),
+        "bytes=-50": (size - 50, size),
         f"bytes=10-{size + 500}": (10, size),
-    }.items():  # fmt: skip
+    }.items():
         r = httpx.get(url, headers={"Range": spec})
         assert r.status_code == 206, spec
         assert r.content == data[lo:hi], spec
@@ -84,9 +86,15 @@ def test_range_requests_return_exactly_the_bytes_asked(base: str, catalog: Path)
 
 @pytest.mark.parametrize(
     "path",
-    ["catalog.json", "tiles/2024/nope.laz", "%2e%2e/%2e%2e/etc/passwd", "..%2fcatalog.json",
-     "tiles/2024/../../catalog.json", "/etc/passwd"],
-)  # fmt: skip
+    [
+        "catalog.json",
+        "tiles/2024/nope.laz",
+        "%2e%2e/%2e%2e/etc/passwd",
+        "..%2fcatalog.json",
+        "tiles/2024/../../catalog.json",
+        "/etc/passwd",
+    ],
+)
 def test_only_published_files_are_served(base: str, path: str) -> None:
     r = httpx.get(f"{base}/files/{path}")
     assert r.status_code == 404
@@ -224,8 +232,7 @@ def test_payload_cloud_as_laz(base: str, catalog: Path) -> None:
     assert len(tiled_xyz) == len(served)
     distance, _ = cKDTree(tiled_xyz).query(served)
     assert distance.max() < 0.0015  # both on a 1 mm lattice
-    assert httpx.get(f"{base}/missions/{COYOTE}/payloads/1_000000001/cloud.laz").status_code \
-        == 404  # fmt: skip
+    assert httpx.get(f"{base}/missions/{COYOTE}/payloads/1_000000001/cloud.laz").status_code == 404
     assert httpx.get(f"{base}/missions/{COYOTE}/payloads/x/cloud.laz").status_code == 400
 
 
@@ -238,8 +245,12 @@ def _state(catalog: Path) -> dict[str, int]:
 
 def test_writes_need_the_token_and_change_nothing(base: str, catalog: Path) -> None:
     before = _state(catalog)
-    for headers in ({}, {"Authorization": "Bearer wrong"}, {"Authorization": f"Basic {TOKEN}"},
-                    {"Authorization": f"Bearer {TOKEN}x"}):  # fmt: skip
+    for headers in (
+        {},
+        {"Authorization": "Bearer wrong"},
+        {"Authorization": f"Basic {TOKEN}"},
+        {"Authorization": f"Bearer {TOKEN}x"},
+    ):
         for method in ("POST", "PUT", "DELETE", "PATCH"):
             r = httpx.request(method, f"{base}/missions", headers=headers, content=b"{}")
             assert r.status_code == 401, (method, headers)
@@ -261,8 +272,12 @@ def test_bodies_over_the_limit_are_refused(base: str) -> None:
         for _ in range(8):
             yield b"y" * 1024
 
-    streamed = httpx.post(f"{base}/missions/{COYOTE}/payloads", params={"stamp": "1_000000001"},
-                          headers=auth, content=chunks())  # fmt: skip
+    streamed = httpx.post(
+        f"{base}/missions/{COYOTE}/payloads",
+        params={"stamp": "1_000000001"},
+        headers=auth,
+        content=chunks(),
+    )
     assert streamed.status_code == 413
 
 
@@ -287,10 +302,19 @@ def test_token_sources(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
 
 def test_serve_command_prints_urls_and_stops_on_ctrl_c(catalog: Path) -> None:
     env = {k: v for k, v in os.environ.items() if k != "STANDGRID_TOKEN"}
-    command = [sys.executable, "-c", "from standgrid.cli import main; main()", "serve",
-               str(catalog), "--port", "0", "--json"]  # fmt: skip
-    proc = subprocess.Popen(command, cwd=REPO_ROOT, env=env, stdout=subprocess.PIPE,
-                            stderr=subprocess.PIPE, text=True)  # fmt: skip
+    command = [
+        sys.executable,
+        "-c",
+        "from standgrid.cli import main; main()",
+        "serve",
+        str(catalog),
+        "--port",
+        "0",
+        "--json",
+    ]
+    proc = subprocess.Popen(
+        command, cwd=REPO_ROOT, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True
+    )
     try:
         assert proc.stdout is not None
         urls = json.loads(proc.stdout.readline())
@@ -313,8 +337,14 @@ def test_a_reused_catalog_is_given_again_only_until_a_commit(tmp_path: Path) -> 
     with Catalog.reading(root, reuse=first) as again:
         assert again is first
     with Catalog.writing(root) as catalog, catalog.transaction() as txn:
-        txn.record_mission("2030-01-01-test-robot-r9", epoch="2030", date="2030-01-01",
-                           tiles=[], point_count=0, payload_count=0)  # fmt: skip
+        txn.record_mission(
+            "2030-01-01-test-robot-r9",
+            epoch="2030",
+            date="2030-01-01",
+            tiles=[],
+            point_count=0,
+            payload_count=0,
+        )
     with Catalog.reading(root, reuse=first) as after:
         assert after is not first
         assert "2030-01-01-test-robot-r9" in after.mission_records

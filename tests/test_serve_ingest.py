@@ -42,10 +42,16 @@ def served(tmp_path_factory: pytest.TempPathFactory) -> Iterator[tuple[str, Path
 def _metadata() -> dict:
     meta = yaml.safe_load((SOURCE / "metadata.yaml").read_text())
     return {
-        "name": NAME, "date": str(meta["date"]), "time": meta["time"], "place": meta["place"],
-        "robot": meta["robot"], "unit": meta["unit"], "sensors": meta["sensors"],
-        "tags": meta["tags"], "gnss": meta["gnss"],
-    }  # fmt: skip
+        "name": NAME,
+        "date": str(meta["date"]),
+        "time": meta["time"],
+        "place": meta["place"],
+        "robot": meta["robot"],
+        "unit": meta["unit"],
+        "sensors": meta["sensors"],
+        "tags": meta["tags"],
+        "gnss": meta["gnss"],
+    }
 
 
 def _tiles(catalog: Path) -> dict[str, laspy.LasData]:
@@ -77,8 +83,10 @@ def test_streamed_mission_tiles_like_the_folder(
     graph = (SOURCE / "slam_pose_graph.g2o").read_bytes()
     r = httpx.put(f"{url}/{NAME}/graph", content=graph, headers=AUTH)
     assert r.status_code == 200 and r.json()["outcome"] == "stored"
-    assert httpx.put(f"{url}/{NAME}/graph", content=graph, headers=AUTH).json()["outcome"] \
-        == "unchanged"  # fmt: skip
+    assert (
+        httpx.put(f"{url}/{NAME}/graph", content=graph, headers=AUTH).json()["outcome"]
+        == "unchanged"
+    )
 
     mission = open_mission(SOURCE, strict=False)
     for payload in mission.payloads:
@@ -86,22 +94,35 @@ def test_streamed_mission_tiles_like_the_folder(
         from standgrid.geometry import translation_quat
 
         _, q = translation_quat(mission.pose_of(payload))
-        params = {"stamp": f"{payload.stamp.sec}_{payload.stamp.nsec:09d}", "format": "pcd",
-                  "pose": ",".join(repr(float(v)) for v in (x, y, z, *q))}  # fmt: skip
-        r = httpx.post(f"{url}/{NAME}/payloads", params=params,
-                       content=payload.path.read_bytes(), headers=AUTH)  # fmt: skip
+        params = {
+            "stamp": f"{payload.stamp.sec}_{payload.stamp.nsec:09d}",
+            "format": "pcd",
+            "pose": ",".join(repr(float(v)) for v in (x, y, z, *q)),
+        }
+        r = httpx.post(
+            f"{url}/{NAME}/payloads", params=params, content=payload.path.read_bytes(), headers=AUTH
+        )
         assert r.status_code == 201, r.text
     # a payload re-sent after a dropped connection is stored once; another cloud is refused
     first = mission.payloads[0]
     params = {"stamp": f"{first.stamp.sec}_{first.stamp.nsec:09d}"}
-    again = httpx.post(f"{url}/{NAME}/payloads", params=params,
-                       content=first.path.read_bytes(), headers=AUTH)  # fmt: skip
+    again = httpx.post(
+        f"{url}/{NAME}/payloads", params=params, content=first.path.read_bytes(), headers=AUTH
+    )
     assert again.status_code == 200 and again.json()["outcome"] == "unchanged"
-    changed = httpx.post(f"{url}/{NAME}/payloads", params=params,
-                         content=mission.payloads[1].path.read_bytes(), headers=AUTH)  # fmt: skip
+    changed = httpx.post(
+        f"{url}/{NAME}/payloads",
+        params=params,
+        content=mission.payloads[1].path.read_bytes(),
+        headers=AUTH,
+    )
     assert changed.status_code == 409
-    garbage = httpx.post(f"{url}/{NAME}/payloads", params={"stamp": "1_000000001"},
-                         content=b"not a cloud", headers=AUTH)  # fmt: skip
+    garbage = httpx.post(
+        f"{url}/{NAME}/payloads",
+        params={"stamp": "1_000000001"},
+        content=b"not a cloud",
+        headers=AUTH,
+    )
     assert garbage.status_code == 400 and garbage.json()["detail"]
     stored = sorted(p.name for p in (missions / NAME / "payload_clouds").iterdir())
     assert stored == sorted(p.path.name for p in mission.payloads)
@@ -111,8 +132,9 @@ def test_streamed_mission_tiles_like_the_folder(
     header, rows = lines[0], lines[1:]
     half = len(rows) // 2
     for chunk in (rows[: half + 50], rows[half - 50 :]):
-        r = httpx.post(f"{url}/{NAME}/gnss", content="\n".join([header, *chunk]) + "\n",
-                       headers=AUTH)  # fmt: skip
+        r = httpx.post(
+            f"{url}/{NAME}/gnss", content="\n".join([header, *chunk]) + "\n", headers=AUTH
+        )
         assert r.status_code == 200, r.text
     from standgrid.mission.sensors import read_gnss
 
@@ -137,8 +159,11 @@ def test_streamed_mission_tiles_like_the_folder(
     lines = []
     for line in graph.decode().splitlines():
         parts = line.split()
-        if parts and parts[0] == "VERTEX_SE3:QUAT_TIME" and (int(parts[-2]), int(parts[-1])) \
-                == (moved.stamp.sec, moved.stamp.nsec):  # fmt: skip
+        if (
+            parts
+            and parts[0] == "VERTEX_SE3:QUAT_TIME"
+            and (int(parts[-2]), int(parts[-1])) == (moved.stamp.sec, moved.stamp.nsec)
+        ):
             parts[2] = repr(float(parts[2]) + 2.0)
             line = " ".join(parts)
         lines.append(line)
@@ -167,8 +192,12 @@ def test_write_names_and_bodies_are_checked(served: tuple[str, Path, Path]) -> N
         assert r.headers["content-type"] == "application/problem+json"
     made = list(missions.iterdir()) if missions.exists() else []
     assert not any(p.name.startswith(".") and p.is_dir() for p in made)
-    r = httpx.post(f"{base}/missions/nope/payloads", params={"stamp": "1_000000001"},
-                   content=b"x", headers=AUTH)  # fmt: skip
+    r = httpx.post(
+        f"{base}/missions/nope/payloads",
+        params={"stamp": "1_000000001"},
+        content=b"x",
+        headers=AUTH,
+    )
     assert r.status_code == 404
     assert httpx.post(f"{base}/missions/nope/tile", headers=AUTH).status_code == 404
     r = httpx.post(f"{base}/missions", json={"name": "x"}, headers=AUTH)
@@ -210,11 +239,28 @@ def _start(catalog: Path, missions: Path, token_file: Path, env: dict[str, str])
 
     from tests.conftest import REPO_ROOT
 
-    command = [sys.executable, "-c", "from standgrid.cli import main; main()", "serve",
-               str(catalog), "--port", "0", "--json", "--missions", str(missions),
-               "--token-file", str(token_file)]  # fmt: skip
-    proc = subprocess.Popen(command, cwd=REPO_ROOT, env={**os.environ, **env},
-                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)  # fmt: skip
+    command = [
+        sys.executable,
+        "-c",
+        "from standgrid.cli import main; main()",
+        "serve",
+        str(catalog),
+        "--port",
+        "0",
+        "--json",
+        "--missions",
+        str(missions),
+        "--token-file",
+        str(token_file),
+    ]
+    proc = subprocess.Popen(
+        command,
+        cwd=REPO_ROOT,
+        env={**os.environ, **env},
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+    )
     assert proc.stdout is not None
     return proc, json.loads(proc.stdout.readline())["service"].rstrip("/")
 
@@ -302,8 +348,9 @@ def test_a_tiler_killed_while_committing_then_the_server_restart_consistent(
         points = sum(laspy.read(opened.path(t)).header.point_count for t in record.tiles)
         assert record.tiles and points >= record.point_count > 0
         cells = httpx.get(f"{base}/ogc/collections/cells/items", params={"limit": 1000}).json()
-        assert sorted(f["properties"]["tile_path"] for f in cells["features"]) \
-            == sorted(record.tiles)  # fmt: skip
+        assert sorted(f["properties"]["tile_path"] for f in cells["features"]) == sorted(
+            record.tiles
+        )
     finally:
         proc.send_signal(signal.SIGINT)
         proc.communicate(timeout=30)
@@ -328,9 +375,12 @@ def test_concurrent_senders_are_serialised(tmp_path: Path) -> None:
     assert sorted(outcomes) == ["stored", *["unchanged"] * 7]
     others = source.payloads[1:9]
     with ThreadPoolExecutor(8) as pool:
-        outcomes = list(pool.map(
-            lambda p: live.add_payload(p.stamp, p.path.read_bytes(), "pcd", source.pose_of(p)),
-            others))  # fmt: skip
+        outcomes = list(
+            pool.map(
+                lambda p: live.add_payload(p.stamp, p.path.read_bytes(), "pcd", source.pose_of(p)),
+                others,
+            )
+        )
     assert outcomes == ["stored"] * len(others)
     graph = read_pose_graph(live.path / "slam_pose_graph.g2o")
     assert sorted(v.stamp for v in graph.vertices.values()) == sorted(p.stamp for p in others)
@@ -361,8 +411,9 @@ def test_a_mission_tiling_does_not_hold_up_another_missions_writes(tmp_path: Pat
         assert httpx.post(url, json=_metadata(), headers=AUTH).status_code == 201
         graph = (SOURCE / "slam_pose_graph.g2o").read_bytes()
         assert httpx.put(f"{url}/{NAME}/graph", content=graph, headers=AUTH).status_code == 200
-        r = httpx.post(f"{url}/{NAME}/payloads", params=stamp, content=first.path.read_bytes(),
-                       headers=AUTH)  # fmt: skip
+        r = httpx.post(
+            f"{url}/{NAME}/payloads", params=stamp, content=first.path.read_bytes(), headers=AUTH
+        )
         assert r.status_code == 201, r.text
         early = httpx.post(f"{url}/{NAME}/tile", headers=AUTH, timeout=120)
         assert early.status_code == 409 and "GNSS" in early.json()["detail"]  # not yet
@@ -382,9 +433,13 @@ def test_a_mission_tiling_does_not_hold_up_another_missions_writes(tmp_path: Pat
                     assert time.monotonic() < deadline, "the tiler never took mission A"
                     time.sleep(0.05)
             resent = pool.submit(
-                httpx.post, f"{url}/{NAME}/payloads", params=stamp,
-                content=first.path.read_bytes(), headers=AUTH, timeout=120,
-            )  # fmt: skip
+                httpx.post,
+                f"{url}/{NAME}/payloads",
+                params=stamp,
+                content=first.path.read_bytes(),
+                headers=AUTH,
+                timeout=120,
+            )
             time.sleep(0.5)  # A's write is in first
             other = {**_metadata(), "name": "another-robot-mission"}
             created = httpx.post(url, json=other, headers=AUTH, timeout=15)

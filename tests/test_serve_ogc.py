@@ -57,8 +57,17 @@ def test_owslib_reads_every_collection_as_pyogrio_does(base: str, catalog: Path)
 
     api = Features(f"{base}/ogc")
     layers = _layers(catalog)
-    assert {"cells", "payloads", "trajectories", "gnss_fixes", "missions", "stand_metrics",
-            "trees", "stand_changes", "tree_changes"} <= set(layers)  # fmt: skip
+    assert {
+        "cells",
+        "payloads",
+        "trajectories",
+        "gnss_fixes",
+        "missions",
+        "stand_metrics",
+        "trees",
+        "stand_changes",
+        "tree_changes",
+    } <= set(layers)
     assert sorted(api.feature_collections()) == layers
     conformance = api.conformance()["conformsTo"]
     assert "http://www.opengis.net/spec/ogcapi-features-2/1.0/conf/crs" in conformance
@@ -103,8 +112,9 @@ def test_paging_returns_every_feature_exactly_once(base: str, catalog: Path) -> 
     ids = [f["id"] for f in features]
     assert len(ids) == len(set(ids)) == len(expected)
     assert sorted(ids) == expected
-    second = httpx.get(f"{base}/ogc/collections/gnss_fixes/items",
-                       params={"limit": "100", "offset": "100"}).json()  # fmt: skip
+    second = httpx.get(
+        f"{base}/ogc/collections/gnss_fixes/items", params={"limit": "100", "offset": "100"}
+    ).json()
     rels = {link["rel"]: link["href"] for link in second["links"]}
     assert "offset=0" in rels["prev"] and "offset=200" in rels["next"]
     assert second["numberMatched"] == len(expected)
@@ -121,22 +131,31 @@ def test_bbox_is_answered_from_the_rtree_and_exactly(base: str, catalog: Path) -
         for sql, params in (statements.edges, statements.inside_count, statements.page([1, 2])):
             plan = " | ".join(r[3] for r in conn.execute(f"EXPLAIN QUERY PLAN {sql}", params))
             assert f"SCAN rtree_{name}_geom VIRTUAL TABLE INDEX" in plan, plan
-            assert f"SCAN {name} " not in plan + " " and \
-                f"SEARCH {name} USING INTEGER PRIMARY KEY" in plan, plan  # fmt: skip
+            assert (
+                f"SCAN {name} " not in plan + " "
+                and f"SEARCH {name} USING INTEGER PRIMARY KEY" in plan
+            ), plan
         frame = _frame(catalog, name)
         truth = sorted(frame.index[frame.geometry.intersects(box)].tolist())
         assert 0 < len(truth) < len(frame)
-        got = _all_pages(f"{base}/ogc/collections/{name}/items",
-                         {"bbox": "614720,5737130,614745,5737160", "bbox-crs": UTM,
-                          "limit": "7"})  # fmt: skip
+        got = _all_pages(
+            f"{base}/ogc/collections/{name}/items",
+            {"bbox": "614720,5737130,614745,5737160", "bbox-crs": UTM, "limit": "7"},
+        )
         assert sorted(f["id"] for f in got) == truth, name
     # the same box given in CRS84 (lon/lat): the transformed box, densified
     to84 = pyproj.Transformer.from_crs(CRS, "OGC:CRS84", always_xy=True)
     w, s, e, n = to84.transform_bounds(614720.0, 5737130.0, 614745.0, 5737160.0)
     frame = _frame(catalog, "trees")
     area = shapely.segmentize(shapely.box(w, s, e, n), max(e - w, n - s) / 64)
-    back = shapely.transform(area, lambda c: np.column_stack(
-        pyproj.Transformer.from_crs("OGC:CRS84", CRS, always_xy=True).transform(c[:, 0], c[:, 1])))
+    back = shapely.transform(
+        area,
+        lambda c: np.column_stack(
+            pyproj.Transformer.from_crs("OGC:CRS84", CRS, always_xy=True).transform(
+                c[:, 0], c[:, 1]
+            )
+        ),
+    )
     truth = sorted(frame.index[frame.geometry.intersects(back)].tolist())
     got = _all_pages(f"{base}/ogc/collections/trees/items", {"bbox": f"{w},{s},{e},{n}"})
     assert sorted(f["id"] for f in got) == truth and truth
@@ -182,21 +201,25 @@ def test_bbox_pages_are_exact_for_random_boxes(base: str, catalog: Path) -> None
     area = crs_mod.bbox_polygon([w, s, e, n], crs_mod.CRS84, CRS)
     frame = _frame(catalog, "trees")
     truth = sorted(frame.index[frame.geometry.intersects(area)].tolist())
-    first = httpx.get(f"{base}/ogc/collections/trees/items",
-                      params={"bbox": f"{w},{s},{e},{n}", "limit": "5"}).json()  # fmt: skip
+    first = httpx.get(
+        f"{base}/ogc/collections/trees/items", params={"bbox": f"{w},{s},{e},{n}", "limit": "5"}
+    ).json()
     assert first["numberMatched"] == len(truth) > 5
-    got = _all_pages(f"{base}/ogc/collections/trees/items",
-                     {"bbox": f"{w},{s},{e},{n}", "limit": "5"})  # fmt: skip
+    got = _all_pages(
+        f"{base}/ogc/collections/trees/items", {"bbox": f"{w},{s},{e},{n}", "limit": "5"}
+    )
     assert [f["id"] for f in got] == truth
 
 
 def test_datetime_epoch_and_property_filters(base: str, catalog: Path) -> None:
     url = f"{base}/ogc/collections"
     payloads = _frame(catalog, "payloads")
-    day = httpx.get(f"{url}/payloads/items",
-                    params={"datetime": "2024-05-14", "limit": "1000"}).json()  # fmt: skip
+    day = httpx.get(
+        f"{url}/payloads/items", params={"datetime": "2024-05-14", "limit": "1000"}
+    ).json()
     assert {f["properties"]["mission"] for f in day["features"]} == {
-        "2024-05-14-wytham-anymal-coyote"}
+        "2024-05-14-wytham-anymal-coyote"
+    }
     assert day["numberMatched"] == int((payloads["epoch"] == "2024").sum())
     # an instant interval inside the 2024 mission: the payloads stamped within it
     stamps = payloads["stamp_sec"] + payloads["stamp_nsec"] * 1e-9
@@ -232,8 +255,11 @@ def test_datetime_epoch_and_property_filters(base: str, catalog: Path) -> None:
         ("/ogc/collections/cells/items", {"bbox": "1,2,3"}, 400),
         ("/ogc/collections/cells/items", {"bbox": "3,2,1,4"}, 400),
         ("/ogc/collections/cells/items", {"limit": "0"}, 400),
-        ("/ogc/collections/cells/items", {"crs": "http://www.opengis.net/def/crs/EPSG/0/2180"},
-         400),
+        (
+            "/ogc/collections/cells/items",
+            {"crs": "http://www.opengis.net/def/crs/EPSG/0/2180"},
+            400,
+        ),
         ("/ogc/collections/cells/items", {"datetime": "yesterday"}, 400),
         ("/ogc/collections/cells/items", {"datetime": "2028-01-01/2024-01-01"}, 400),
         ("/ogc/collections/cells/items/999999", {}, 404),
@@ -242,7 +268,7 @@ def test_datetime_epoch_and_property_filters(base: str, catalog: Path) -> None:
         ("/missions/2024-05-14-wytham-anymal-coyote/payloads/by-pose", {"y": "1"}, 400),
         ("/no/such/route", {}, 404),
     ],
-)  # fmt: skip
+)
 def test_every_error_is_a_problem_document(
     base: str, path: str, params: dict[str, str], status: int
 ) -> None:

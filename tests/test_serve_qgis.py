@@ -39,8 +39,12 @@ def test_qgis_loads_every_collection_with_all_its_features(
     env = dict(os.environ, QT_QPA_PLATFORM="offscreen", PYTHONPATH="")
     run = subprocess.run(
         [QGIS_PYTHON, str(CHECKER), f"{base}/ogc", *layers],
-        capture_output=True, text=True, timeout=600, env=env, check=False,
-    )  # fmt: skip
+        capture_output=True,
+        text=True,
+        timeout=600,
+        env=env,
+        check=False,
+    )
     assert run.returncode == 0, run.stderr[-2000:]
     result = json.loads(run.stdout.strip().splitlines()[-1])
     print(json.dumps({k: v for k, v in result.items() if k != "messages"}, indent=1)[:3000])

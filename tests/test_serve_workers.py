@@ -41,8 +41,11 @@ def test_index_connections_are_reused_until_the_index_is_replaced(
     with snapshot(root) as after:
         assert after.provider is not None and after.provider.connection is not conn
         assert after.layers["missions"] is not layer  # nothing kept from the old file
-        assert {r[0] for r in after.provider.connection.execute("SELECT robot FROM missions")} \
-            == {"renamed-robot"} != robots  # fmt: skip
+        assert (
+            {r[0] for r in after.provider.connection.execute("SELECT robot FROM missions")}
+            == {"renamed-robot"}
+            != robots
+        )
     with pytest.raises(sqlite3.ProgrammingError):  # the old file's connections are closed
         conn.execute("SELECT 1")
 

@@ -219,9 +219,10 @@ def test_second_epoch_grown_thinned_reframed(pair: Path) -> None:
     xyz2, _ = _points_in_crs(pair, E2)
     new = b.status == "new"
     clean = [
-        k for k in harvested
+        k
+        for k in harvested
         if not new.any() or np.hypot(b.x[new] - b.x[k], b.y[new] - b.y[k]).min() > 1.5
-    ]  # fmt: skip
+    ]
     assert len(clean) >= 3
 
     def stem_hits(xyz: np.ndarray, k: int) -> int:
@@ -258,8 +259,19 @@ def test_write_georef_flag_and_overwrite(tmp_path: Path) -> None:
 def test_cli_simulate(tmp_path: Path) -> None:
     from standgrid.cli import cli
 
-    args = ["simulate", str(tmp_path), "--seed", "2", "--epochs", "1", "--area", "50",
-            "--points-per-payload", "1000", "--json"]  # fmt: skip
+    args = [
+        "simulate",
+        str(tmp_path),
+        "--seed",
+        "2",
+        "--epochs",
+        "1",
+        "--area",
+        "50",
+        "--points-per-payload",
+        "1000",
+        "--json",
+    ]
     result = CliRunner().invoke(cli, args)
     assert result.exit_code == 0, result.output
     data = json.loads(result.stdout)

@@ -66,12 +66,24 @@ def _trees(terrain: Terrain = FLAT, **cols: Any) -> Trees:
     return Trees(**base)
 
 
-def _cast(trees: Trees, origin: Any, dirs: Any, terrain: Terrain = FLAT, seed: int = 0,
-          noise: float = 0.008) -> Any:  # fmt: skip
+def _cast(
+    trees: Trees,
+    origin: Any,
+    dirs: Any,
+    terrain: Terrain = FLAT,
+    seed: int = 0,
+    noise: float = 0.008,
+) -> Any:
     scene = build_scene(trees, NO_SHRUBS, terrain, BOUNDS)
-    return cast_rays(np.random.default_rng(seed), scene, np.asarray(origin, float),
-                     np.asarray(dirs, float), min_range=0.5, max_range=40.0,
-                     noise_std=noise)  # fmt: skip
+    return cast_rays(
+        np.random.default_rng(seed),
+        scene,
+        np.asarray(origin, float),
+        np.asarray(dirs, float),
+        min_range=0.5,
+        max_range=40.0,
+        noise_std=noise,
+    )
 
 
 def _fan(rng: np.random.Generator, n: int, az_deg: float, el_deg: tuple[float, float]) -> Any:
@@ -118,9 +130,18 @@ def _slope() -> Terrain:
 
 def test_stem_points_lie_on_the_tapered_leaning_stem_and_give_its_dbh() -> None:
     terrain = _slope()
-    trees = _trees(terrain, x=[0.0], y=[0.0], dbh=[0.42], height=[24.0], crown_base=[15.0],
-                   crown_radius=[2.0], foliage_density=[0.5], lean_deg=[12.0],
-                   lean_azimuth_deg=[60.0])  # fmt: skip
+    trees = _trees(
+        terrain,
+        x=[0.0],
+        y=[0.0],
+        dbh=[0.42],
+        height=[24.0],
+        crown_base=[15.0],
+        crown_radius=[2.0],
+        foliage_density=[0.5],
+        lean_deg=[12.0],
+        lean_azimuth_deg=[60.0],
+    )
     u = stem_axes(trees.lean_deg, trees.lean_azimuth_deg)[0]
     base = np.array([0.0, 0.0, trees.z_ground[0]])
     bh = base + 1.3 * u
@@ -129,8 +150,9 @@ def test_stem_points_lie_on_the_tapered_leaning_stem_and_give_its_dbh() -> None:
     for ang in np.radians([20.0, 110.0, 200.0, 290.0]):
         origin = bh + np.array([5.0 * np.cos(ang), 5.0 * np.sin(ang), 0.0])
         origin[2] = terrain.height(origin[0], origin[1]) + 1.2
-        dirs = np.vstack([HANDHELD.directions(rng, 30_000),
-                          _aimed(rng, origin, bh, [0.4, 0.4, 0.12], 6000)])  # fmt: skip
+        dirs = np.vstack(
+            [HANDHELD.directions(rng, 30_000), _aimed(rng, origin, bh, [0.4, 0.4, 0.12], 6000)]
+        )
         hits = _cast(trees, origin, dirs, terrain, seed=int(np.degrees(ang)))
         xyz.append(hits.xyz[hits.label == STEM])
     pts = np.vstack(xyz)
@@ -159,8 +181,15 @@ def test_stem_points_lie_on_the_tapered_leaning_stem_and_give_its_dbh() -> None:
 
 
 def test_a_forked_stem_has_two_leaders_on_their_cones() -> None:
-    trees = _trees(x=[0.0], y=[0.0], dbh=[0.36], height=[22.0], lean_deg=[4.0],
-                   lean_azimuth_deg=[200.0], fork_height_m=[10.0])  # fmt: skip
+    trees = _trees(
+        x=[0.0],
+        y=[0.0],
+        dbh=[0.36],
+        height=[22.0],
+        lean_deg=[4.0],
+        lean_azimuth_deg=[200.0],
+        fork_height_m=[10.0],
+    )
     u = stem_axes(trees.lean_deg, trees.lean_azimuth_deg)[0]
     s_f = 10.0 / u[2]
     fork = s_f * u
@@ -211,15 +240,23 @@ def _truncated_exponential_check(depth: Any, lam: float, length: float, n_rays: 
 def test_crowns_are_porous_with_exponential_hit_depths() -> None:
     n = 20_000
     # A broadleaf (sphere of radius 3 around (10, 0, 13)) crossed 1.5 m off its centre.
-    ball = _trees(x=[10.0], y=[0.0], height=[16.0], crown_base=[10.0], crown_radius=[3.0],
-                  species=["broadleaf"], foliage_density=[0.3])  # fmt: skip
+    ball = _trees(
+        x=[10.0],
+        y=[0.0],
+        height=[16.0],
+        crown_base=[10.0],
+        crown_radius=[3.0],
+        species=["broadleaf"],
+        foliage_density=[0.3],
+    )
     hits = _cast(ball, [0.0, 1.5, 13.0], np.tile([1.0, 0.0, 0.0], (n, 1)), noise=0.0)
     chord = 2.0 * np.sqrt(9.0 - 1.5**2)
     assert set(hits.label.tolist()) == {CROWN}
     _truncated_exponential_check(hits.t - (10.0 - chord / 2), 0.3, chord, n)
     # A conifer (cone from 8 m to its 16 m apex, radius 2) crossed upwards 1 m off its axis.
-    cone = _trees(x=[0.0], y=[0.0], height=[16.0], crown_base=[8.0], crown_radius=[2.0],
-                  foliage_density=[0.5])  # fmt: skip
+    cone = _trees(
+        x=[0.0], y=[0.0], height=[16.0], crown_base=[8.0], crown_radius=[2.0], foliage_density=[0.5]
+    )
     hits = _cast(cone, [1.0, 0.0, 1.0], np.tile([0.0, 0.0, 1.0], (n, 1)), noise=0.0)
     assert set(hits.label.tolist()) == {CROWN}
     _truncated_exponential_check(hits.t - 7.0, 0.5, 8.0 - 1.0 / (2.0 / 8.0), n)
@@ -228,8 +265,9 @@ def test_crowns_are_porous_with_exponential_hit_depths() -> None:
 # --- the whole scanner in a mixed stand -----------------------------------------------------
 
 
-MIXED = SimulationConfig(area=60.0, points_per_payload=20_000, forest="mixed",
-                         scanner_kind="handheld", lane_spacing=15.0)  # fmt: skip
+MIXED = SimulationConfig(
+    area=60.0, points_per_payload=20_000, forest="mixed", scanner_kind="handheld", lane_spacing=15.0
+)
 
 
 @pytest.fixture(scope="module")
@@ -242,8 +280,9 @@ def _highest_crown_gaps(sim: Any, scans: list[Any]) -> dict[int, float]:
     """True top minus the highest crown point, for overstorey trees with >= 30 crown points."""
     xyz = np.vstack([p.xyz for p in scans])
     crown = np.concatenate([p.label for p in scans]) == CROWN
-    ids, inv, count = np.unique(np.concatenate([p.tree_id for p in scans])[crown],
-                                return_inverse=True, return_counts=True)  # fmt: skip
+    ids, inv, count = np.unique(
+        np.concatenate([p.tree_id for p in scans])[crown], return_inverse=True, return_counts=True
+    )
     zmax = np.full(len(ids), -np.inf)
     np.maximum.at(zmax, inv, xyz[crown, 2])
     t = sim.world.trees
@@ -271,8 +310,10 @@ def test_handheld_sees_crowns_from_below_and_understorey_stems(handheld: Any) ->
     s = np.einsum("ij,ij->i", xyz[stem] - np.column_stack([t.x, t.y, t.z_ground])[row], u)
     seen = np.unique(tid[stem][np.abs(s - 1.3) < 0.2])
     under = np.flatnonzero(t.kind == UNDERSTOREY)
-    dist = np.hypot(t.x_bh[under, None] - sim.node_crs[None, :, 0],
-                    t.y_bh[under, None] - sim.node_crs[None, :, 1]).min(axis=1)  # fmt: skip
+    dist = np.hypot(
+        t.x_bh[under, None] - sim.node_crs[None, :, 0],
+        t.y_bh[under, None] - sim.node_crs[None, :, 1],
+    ).min(axis=1)
     near = t.tree_id[under[dist < 5.0]]
     assert len(near) > 30 and np.isin(near, seen).mean() > 0.8
     assert not np.isin(t.tree_id[t.kind == SNAG], tid[labels == CROWN]).any()
@@ -332,8 +373,9 @@ def test_mixed_stand_structure_and_growth() -> None:
     assert set(np.unique(trees.species).tolist()) == {"conifer", "broadleaf"}
     # Understorey under overstorey crowns (horizontally inside one).
     centres = crown_centres(trees)[over]
-    d = np.hypot(trees.x[under, None] - centres[None, :, 0],
-                 trees.y[under, None] - centres[None, :, 1])  # fmt: skip
+    d = np.hypot(
+        trees.x[under, None] - centres[None, :, 0], trees.y[under, None] - centres[None, :, 1]
+    )
     assert (d < trees.crown_radius[over][None, :]).any(axis=1).mean() > 0.6
     # Leaning and forked stems.
     assert np.all((trees.lean_deg > 0) & (trees.lean_deg <= 15.0))
@@ -375,12 +417,28 @@ def test_truth_holds_the_stand_and_old_tree_lists_still_read(tmp_path: Path) -> 
     from standgrid.cli import cli
 
     out = tmp_path / "sim"
-    args = ["simulate", str(out), "--area", "40", "--points-per-payload", "500", "--forest",
-            "mixed", "--scanner", "legged", "--lane-spacing", "12", "-q"]  # fmt: skip
+    args = [
+        "simulate",
+        str(out),
+        "--area",
+        "40",
+        "--points-per-payload",
+        "500",
+        "--forest",
+        "mixed",
+        "--scanner",
+        "legged",
+        "--lane-spacing",
+        "12",
+        "-q",
+    ]
     result = CliRunner().invoke(cli, args)
     assert result.exit_code == 0, result.output
-    sim = run_simulation(0, 2, replace(MIXED, area=40.0, points_per_payload=500,
-                                       scanner_kind="legged", lane_spacing=12.0))  # fmt: skip
+    sim = run_simulation(
+        0,
+        2,
+        replace(MIXED, area=40.0, points_per_payload=500, scanner_kind="legged", lane_spacing=12.0),
+    )
     truth = load_truth(out / "truth" / sim.name)
     assert truth.trees is not None
     assert truth.info["forest"] == "mixed" and truth.info["scanner"]["kind"] == "legged"
@@ -411,20 +469,41 @@ def test_truth_holds_the_stand_and_old_tree_lists_still_read(tmp_path: Path) -> 
 #: Recorded with the simulator before the mixed stand and the ray caster existed
 #: (seed 11, area 50 m, 600 points per payload, everything else default).
 BEFORE = {
-    1: (581, [0, 83, 210, 240, 48], 15481, [614713.4585423403, 5737139.755568268,
-        149.53402377915566], 3690530787.169237, 190.5162898376584, 81, 22.859521133044893,
-        2083.3178594214046, 96),
-    2: (577, [0, 79, 210, 240, 48], 11316, [614723.2916539717, 5737141.327201445,
-        148.8958731941025], 3665123019.1970286, 189.43964244425297, 84, 25.073131158884813,
-        2253.6170752148732, 89),
-}  # fmt: skip
+    1: (
+        581,
+        [0, 83, 210, 240, 48],
+        15481,
+        [614713.4585423403, 5737139.755568268, 149.53402377915566],
+        3690530787.169237,
+        190.5162898376584,
+        81,
+        22.859521133044893,
+        2083.3178594214046,
+        96,
+    ),
+    2: (
+        577,
+        [0, 79, 210, 240, 48],
+        11316,
+        [614723.2916539717, 5737141.327201445, 148.8958731941025],
+        3665123019.1970286,
+        189.43964244425297,
+        84,
+        25.073131158884813,
+        2253.6170752148732,
+        89,
+    ),
+}
 
 
 @pytest.mark.parametrize("epoch", [1, 2])
 def test_the_default_demo_is_unchanged(epoch: int, tmp_path: Path) -> None:
     config = SimulationConfig(area=50.0, points_per_payload=600)
-    assert (config.forest, config.scanner_kind, config.lane_spacing) == ("plantation", "surface",
-                                                                         32.0)  # fmt: skip
+    assert (config.forest, config.scanner_kind, config.lane_spacing) == (
+        "plantation",
+        "surface",
+        32.0,
+    )
     sim = run_simulation(11, epoch, config)
     _, pts = sim.payload(0)
     n, counts, ids, first, total, intensity, n_trees, dbh, height, nodes = BEFORE[epoch]

@@ -89,8 +89,10 @@ def test_copc_and_laz_catalogs_hold_the_same_points_fields_and_metrics(
         pd.testing.assert_frame_equal(
             pd.read_parquet(copc_catalog / "tables" / name),
             pd.read_parquet(laz_catalog / "tables" / name),
-            check_exact=False, rtol=1e-9, atol=1e-12,
-        )  # fmt: skip
+            check_exact=False,
+            rtol=1e-9,
+            atol=1e-12,
+        )
 
 
 @pytest.fixture(scope="module")

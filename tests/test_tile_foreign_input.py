@@ -196,8 +196,10 @@ def test_projected_clouds_tile_where_the_gnss_fit_puts_them(
     horizontal, vertical = max_distance(
         tiled_points(tmp_path / "cat")[made.name], reference[made.name]
     )
-    print(f"\n{fmt}: largest distance to the GNSS-fitted tiling: horizontal "
-          f"{horizontal * 1000:.2f} mm, vertical {vertical * 1000:.2f} mm")  # fmt: skip
+    print(
+        f"\n{fmt}: largest distance to the GNSS-fitted tiling: horizontal "
+        f"{horizontal * 1000:.2f} mm, vertical {vertical * 1000:.2f} mm"
+    )
     # both sides snap to the tiles' 1 mm lattice; the reference projects through a verified
     # affine (within 1 mm of exact); LAS payloads add their own 1 mm scale
     assert horizontal <= 0.003 and vertical <= 0.003
@@ -256,9 +258,11 @@ def test_anchor_from_the_true_start_places_a_mission_without_gnss(sim: Any, tmp_
     horizontal, vertical = max_distance(tiled, truth)
     diff = np.array([tiled[k] - truth[k] for k in truth])
     median_h = float(np.median(np.hypot(diff[:, 0], diff[:, 1])))
-    print(f"\nanchor: horizontal error median {median_h * 100:.2f} cm, max "
-          f"{horizontal * 100:.2f} cm; vertical max {vertical * 100:.2f} cm "
-          "(SLAM drift of the simulated graph included)")  # fmt: skip
+    print(
+        f"\nanchor: horizontal error median {median_h * 100:.2f} cm, max "
+        f"{horizontal * 100:.2f} cm; vertical max {vertical * 100:.2f} cm "
+        "(SLAM drift of the simulated graph included)"
+    )
     assert median_h < 0.05 and horizontal < 0.15 and vertical < 0.10
     # a heading off by one degree moves points by ~1.7 cm per metre from the origin: seen
     result = CliRunner().invoke(

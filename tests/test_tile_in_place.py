@@ -50,8 +50,15 @@ def grown(tmp_path_factory: pytest.TempPathFactory) -> dict[str, object]:
     again = tile_missions([live.path], catalog, options)  # nothing new
     batch = folder / "batch"
     tile_missions([live.path], batch, options)
-    return {"catalog": catalog, "batch": batch, "before": before, "after": after,
-            "report": report.to_dict(), "again": again.to_dict(), "total": total}  # fmt: skip
+    return {
+        "catalog": catalog,
+        "batch": batch,
+        "before": before,
+        "after": after,
+        "report": report.to_dict(),
+        "again": again.to_dict(),
+        "total": total,
+    }
 
 
 def test_only_the_tiles_the_new_payloads_touch_are_rewritten(grown: dict) -> None:
@@ -107,8 +114,15 @@ def test_a_cloud_rewritten_with_its_old_size_and_mtime_is_still_a_change(tmp_pat
     placement = placement_digest({"method": "anchor"})
     cloud = tmp_path / "cloud.pcd"
     cloud.write_bytes(b"A" * 64)
-    source = {"path": cloud, "frame": "base", "file_to_base": None, "pose": np.eye(4),
-              "gps_time": 1.5, "point_source_id": 1, "payload_id": 65536}  # fmt: skip
+    source = {
+        "path": cloud,
+        "frame": "base",
+        "file_to_base": None,
+        "pose": np.eye(4),
+        "gps_time": 1.5,
+        "point_source_id": 1,
+        "payload_id": 65536,
+    }
     before = source_digest(source, placement, {"intensity": np.float32})
     assert source_digest(source, placement, {"intensity": np.float32}) == before
     st = cloud.stat()
@@ -163,11 +177,21 @@ def test_the_source_field_rules_version_is_in_the_digest_of_clouds_with_those_fi
 
     def digests() -> list[str]:
         return [
-            source_digest({"path": path, "frame": "base", "file_to_base": None,
-                           "pose": np.eye(4), "gps_time": 1.5, "point_source_id": 1,
-                           "payload_id": 65536}, placement, {"intensity": np.float32})
+            source_digest(
+                {
+                    "path": path,
+                    "frame": "base",
+                    "file_to_base": None,
+                    "pose": np.eye(4),
+                    "gps_time": 1.5,
+                    "point_source_id": 1,
+                    "payload_id": 65536,
+                },
+                placement,
+                {"intensity": np.float32},
+            )
             for path in (pcd, las_path)
-        ]  # fmt: skip
+        ]
 
     before = digests()
     monkeypatch.setattr(increment, "SOURCE_FIELD_RULES", increment.SOURCE_FIELD_RULES + 1)

@@ -77,10 +77,13 @@ def core(las: Any) -> np.ndarray:
 def records(las: Any, mask: np.ndarray | None = None) -> np.ndarray:
     """(x, y, z, gps_time, point_source_id, payload_id) rows (xyz at 1 mm), sorted."""
     cols = [
-        np.asarray(las.x), np.asarray(las.y), np.asarray(las.z), np.asarray(las.gps_time),
+        np.asarray(las.x),
+        np.asarray(las.y),
+        np.asarray(las.z),
+        np.asarray(las.gps_time),
         np.asarray(las.point_source_id, dtype=np.float64),
         np.asarray(las.payload_id, dtype=np.float64),
-    ]  # fmt: skip
+    ]
     rows = np.column_stack(cols)
     if mask is not None:
         rows = rows[mask]
@@ -520,8 +523,9 @@ def test_voronoi_cells(tmp_path: Path) -> None:
     paths = tile_files(catalog)
     assert paths and {p.stem for p in paths} <= set(site_of)
     ids = list(site_of)
-    tree = cKDTree(np.array([[payloads.set_index("payload_id").loc[site_of[s], c] for c in "xy"]
-                             for s in ids]))  # fmt: skip
+    tree = cKDTree(
+        np.array([[payloads.set_index("payload_id").loc[site_of[s], c] for c in "xy"] for s in ids])
+    )
     total = 0
     for path in paths:
         las = laspy.read(path)

@@ -120,11 +120,16 @@ def test_a_vpc_names_the_tiles(tmp_path: Path) -> None:
     files = sorted(folder.glob("*.laz"))[:2]
     overview = tmp_path / "overview.copc.laz"  # thinned copies: never read
     features = [
-        {"type": "Feature", "properties": {}, "assets": {
-            "data": {"href": str(f), "roles": ["data"]},
-            "overview": {"href": str(overview), "roles": ["overview"]}}}
+        {
+            "type": "Feature",
+            "properties": {},
+            "assets": {
+                "data": {"href": str(f), "roles": ["data"]},
+                "overview": {"href": str(overview), "roles": ["overview"]},
+            },
+        }
         for f in files
-    ]  # fmt: skip
+    ]
     vpc = tmp_path / "two.vpc"
     vpc.write_text(json.dumps({"type": "FeatureCollection", "features": features}))
     report = tile_missions(
@@ -153,8 +158,11 @@ def _walk_scan(tmp_path: Path, standard: bool = True) -> tuple[Path, Path, np.nd
     noon = dt.datetime(2023, 6, 14, 12, tzinfo=dt.UTC).timestamp()
     t0 = float(unix_ns_to_adjusted_gps_time(int(noon) * 10**9))  # adjusted standard GPS
     times = np.arange(0.0, 240.0, 0.1)
-    path = np.where(times[:, None] < 120, [[0.0, 0.0]] + times[:, None] * [[0.5, 0.0]],
-                    [[60.0, 0.0]] + (times[:, None] - 120) * [[0.0, 0.5]])  # fmt: skip
+    path = np.where(
+        times[:, None] < 120,
+        [[0.0, 0.0]] + times[:, None] * [[0.5, 0.0]],
+        [[60.0, 0.0]] + (times[:, None] - 120) * [[0.0, 0.5]],
+    )
     xyz0 = np.array([500_000.0, 5_200_000.0, 300.0])
     traj = np.column_stack([t0 + times, path + xyz0[:2], np.full(len(times), xyz0[2])])
     pt = np.sort(rng.uniform(0, 240, 48_000))
@@ -196,8 +204,13 @@ def test_a_scan_with_its_trajectory_tiles_into_voronoi_cells(tmp_path: Path) -> 
     line = gpd.read_file(tmp_path / "cat" / "index.gpkg", layer="trajectories").geometry[0]
     assert np.allclose(np.asarray(line.coords), traj[:, 1:3], atol=1e-6)
     # every payload's site is on the trajectory and its footprint around that site
-    d = np.min(np.hypot(payloads.x.values[:, None] - traj[None, :, 1],
-                        payloads.y.values[:, None] - traj[None, :, 2]), axis=1)  # fmt: skip
+    d = np.min(
+        np.hypot(
+            payloads.x.values[:, None] - traj[None, :, 1],
+            payloads.y.values[:, None] - traj[None, :, 2],
+        ),
+        axis=1,
+    )
     assert np.all(d < 0.06)
     assert payloads.point_count.sum() == 48_000
     assert all(
@@ -285,12 +298,14 @@ def test_a_robot_mission_aligns_to_a_georeferenced_scan(tmp_path: Path) -> None:
     scan = _scan_of_mission(tmp_path, ref)
     day = dt.date(2024, 5, 14)
     alone = tmp_path / "alone"
-    tile_missions([scan, tmp_path / "missions" / robot], alone,
-                  TileOptions(align=False, scan_date=day))  # fmt: skip
+    tile_missions(
+        [scan, tmp_path / "missions" / robot], alone, TileOptions(align=False, scan_date=day)
+    )
     gnss_error = _placement_error(tmp_path, alone, robot)
     together = tmp_path / "together"
-    report = tile_missions([scan, tmp_path / "missions" / robot], together,
-                           TileOptions(scan_date=day))  # fmt: skip
+    report = tile_missions(
+        [scan, tmp_path / "missions" / robot], together, TileOptions(scan_date=day)
+    )
     assert report.alignment is not None
     assert any(r["accepted"] for r in report.alignment["registrations"])
     aligned = _placement_error(tmp_path, together, robot)
@@ -300,10 +315,12 @@ def test_a_robot_mission_aligns_to_a_georeferenced_scan(tmp_path: Path) -> None:
     tile_missions([scan], later, TileOptions(scan_date=day))
     tile_missions([tmp_path / "missions" / robot], later, TileOptions())
     added = _placement_error(tmp_path, later, robot)
-    print(f"robot's horizontal error: GNSS alone median {np.median(gnss_error):.3f} m "
-          f"(max {gnss_error.max():.3f}); aligned to the scan median {np.median(aligned):.3f} "
-          f"m (max {aligned.max():.3f}), stated 1-sigma {sigma:.3f} m; added later median "
-          f"{np.median(added):.3f} m")  # fmt: skip
+    print(
+        f"robot's horizontal error: GNSS alone median {np.median(gnss_error):.3f} m "
+        f"(max {gnss_error.max():.3f}); aligned to the scan median {np.median(aligned):.3f} "
+        f"m (max {aligned.max():.3f}), stated 1-sigma {sigma:.3f} m; added later median "
+        f"{np.median(added):.3f} m"
+    )
     assert np.median(gnss_error) > 0.5  # the canopy GNSS alone is off
     assert aligned.max() < 0.1 and added.max() < 0.1
     assert sigma is not None and aligned.max() < 3 * sigma + 0.02

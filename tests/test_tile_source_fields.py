@@ -206,8 +206,10 @@ def test_real_als_scan_angles_and_flight_lines_reach_the_tiles(
     )
     assert np.array_equal(np.sort(got["source_point_source_id"]), np.sort(lines))
     print(f"\n{relative}: flight lines {lines.min()}..{lines.max()} kept")
-    print(f"\n{relative}: scan_angle_rank {rank.min()}..{rank.max()} -> scan_angle "
-          f"{got['scan_angle'].min()}..{got['scan_angle'].max()} (0.006 degree units)")  # fmt: skip
+    print(
+        f"\n{relative}: scan_angle_rank {rank.min()}..{rank.max()} -> scan_angle "
+        f"{got['scan_angle'].min()}..{got['scan_angle'].max()} (0.006 degree units)"
+    )
 
 
 def test_tiles_written_with_the_rank_as_extra_bytes_get_scan_angle_when_retiled(

@@ -86,8 +86,10 @@ def test_an_airborne_plot_keeps_its_canopy_tops_and_says_what_they_miss(tmp_path
     xyz = np.column_stack([las.x, las.y, las.z])
     grid = RasterGrid.covering(
         (xyz[:, 0].min(), xyz[:, 1].min(), xyz[:, 0].max(), xyz[:, 1].max()),
-        origin=(0.0, 0.0), cell_size=20.0, pixel_size=1.0,
-    )  # fmt: skip
+        origin=(0.0, 0.0),
+        cell_size=20.0,
+        pixel_size=1.0,
+    )
     heights = height_above_ground(xyz, dtm_from_ground(xyz[classify_ground(xyz)], grid), grid)
     trees = segment_trees(xyz, heights).table
     tops = segment_trees(xyz, heights, stems=False).table

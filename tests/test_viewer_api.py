@@ -35,8 +35,9 @@ def test_root_is_the_viewer_for_browsers_and_json_for_clients(enriched_base: str
     page = httpx.get(f"{enriched_base}/", headers={"Accept": "text/html,application/xhtml+xml"})
     assert page.status_code == 200
     assert page.headers["content-type"].startswith("text/html")
-    script = next(s for s in page.text.split('"') if s.startswith("/viewer/assets/")
-                  and s.endswith(".js"))  # fmt: skip
+    script = next(
+        s for s in page.text.split('"') if s.startswith("/viewer/assets/") and s.endswith(".js")
+    )
     asset = httpx.get(f"{enriched_base}{script}")
     assert asset.status_code == 200
     assert "javascript" in asset.headers["content-type"]
@@ -88,15 +89,15 @@ def test_cell_points_are_the_tiles_core_points(enriched_base: str, enriched_cata
     assert np.abs(back - xyz).max() < 1e-5  # float32 offsets within a 20 m cell
     hag = np.asarray(las["height_above_ground"])[core]
     np.testing.assert_allclose(arrays["height_above_ground"][:, 0], hag, rtol=0, atol=1e-6)
-    np.testing.assert_array_equal(arrays["classification"][:, 0],
-                                  np.asarray(las.classification)[core])  # fmt: skip
+    np.testing.assert_array_equal(
+        arrays["classification"][:, 0], np.asarray(las.classification)[core]
+    )
     tree = np.asarray(las["tree_id"])[core]
     np.testing.assert_array_equal(arrays["tree_key"][:, 0] == 0, tree == 0)
     assert len(np.unique(arrays["tree_key"])) == len(np.unique(tree))
 
 
-@pytest.mark.parametrize("path", ["/viewer/points/1999/20m_E1_N1",
-                                  "/viewer/points/2024/20m_E1_N1"])  # fmt: skip
+@pytest.mark.parametrize("path", ["/viewer/points/1999/20m_E1_N1", "/viewer/points/2024/20m_E1_N1"])
 def test_unknown_cell_or_epoch_is_a_404_problem(enriched_base: str, path: str) -> None:
     answer = httpx.get(f"{enriched_base}{path}")
     assert answer.status_code == 404
@@ -107,8 +108,9 @@ def test_unknown_cell_or_epoch_is_a_404_problem(enriched_base: str, path: str) -
 def test_a_trees_points_are_marked_with_its_exact_id(
     enriched_base: str, enriched_catalog: Path
 ) -> None:
-    trees = pyogrio.read_dataframe(enriched_catalog / "index.gpkg", layer="trees",
-                                   fid_as_index=True)  # fmt: skip
+    trees = pyogrio.read_dataframe(
+        enriched_catalog / "index.gpkg", layer="trees", fid_as_index=True
+    )
     tree = trees.sort_values("n_points").iloc[-1]
     url = f"{enriched_base}/viewer/points/{tree['epoch']}/{tree['cell_id']}"
     header, arrays = _decode(httpx.get(url, params={"tree": int(tree.name)}).content)

@@ -22,10 +22,18 @@ import rasterio
 from PIL import Image
 
 CHROMIUM = shutil.which("chromium") or "/usr/bin/chromium"
-ARGS = ["--headless", "--no-sandbox", "--disable-gpu", "--disable-background-networking",
-        "--disable-component-update", "--disable-sync", "--no-first-run",
-        # WebGL (the CHM layer, the 3-D view) on the CPU: SwiftShader, as --disable-gpu asks
-        "--use-angle=swiftshader", "--enable-unsafe-swiftshader"]  # fmt: skip
+ARGS = [
+    "--headless",
+    "--no-sandbox",
+    "--disable-gpu",
+    "--disable-background-networking",
+    "--disable-component-update",
+    "--disable-sync",
+    "--no-first-run",
+    # WebGL (the CHM layer, the 3-D view) on the CPU: SwiftShader, as --disable-gpu asks
+    "--use-angle=swiftshader",
+    "--enable-unsafe-swiftshader",
+]
 _SHOTS = os.environ.get("STANDGRID_SCREENSHOTS")
 SHOTS = Path(_SHOTS) if _SHOTS else None
 
@@ -51,8 +59,9 @@ class Page:
         self.page.on("console", lambda m: m.type == "error" and self.errors.append(m.text))
         self.page.on("pageerror", lambda e: self.errors.append(str(e)))
         self.page.on("requestfailed", lambda r: self.failed.append(f"{r.url} {r.failure}"))
-        self.page.on("response", lambda r: r.status >= 400 and self.failed.append(
-            f"{r.url} HTTP {r.status}"))  # fmt: skip
+        self.page.on(
+            "response", lambda r: r.status >= 400 and self.failed.append(f"{r.url} HTTP {r.status}")
+        )
         self.base = base
 
     def open(self) -> float:
@@ -123,8 +132,9 @@ def test_viewer_map_epochs_metrics_and_cell_view(
     # in the top class (yellow) and the lowest in the bottom one (purple).
     def fills(epoch: str) -> dict[str, str]:
         ids = level0.loc[level0["epoch"] == epoch, "cell_id"].tolist()
-        return dict(zip(ids, view.js("ids => ids.map(window.standgrid.cellFill)", ids),
-                        strict=True))  # fmt: skip
+        return dict(
+            zip(ids, view.js("ids => ids.map(window.standgrid.cellFill)", ids), strict=True)
+        )
 
     def check_extremes(metric: str) -> None:
         values = level0.dropna(subset=[metric])
@@ -198,7 +208,9 @@ def test_viewer_map_epochs_metrics_and_cell_view(
     view.page.mouse.click(box["x"] + x, box["y"] + y)
     view.page.wait_for_function(
         "c => window.standgrid.state.cellView && window.standgrid.state.cellView.cellId === c",
-        arg=cell_row["cell_id"], timeout=20_000)  # fmt: skip
+        arg=cell_row["cell_id"],
+        timeout=20_000,
+    )
     wall_3d = time.perf_counter() - t0
     assert view.page.get_attribute("#panel-count", "data-tree-count") is None  # a cell
     shown = int(view.page.get_attribute("#panel-count", "data-count") or -1)
@@ -225,8 +237,11 @@ def test_viewer_map_epochs_metrics_and_cell_view(
     view.page.select_option("#view-layout", "overlay")
     other = cells[(cells["epoch"] == epochs[1]) & (cells["cell_id"] == cell_row["cell_id"])]
     expected = f"{epochs[1]}: {int(other['point_count'].iloc[0]):,} points"
-    view.page.wait_for_function("t => document.querySelector('#colour-legend').innerText"
-                                ".includes(t)", arg=expected, timeout=20_000)  # fmt: skip
+    view.page.wait_for_function(
+        "t => document.querySelector('#colour-legend').innerText.includes(t)",
+        arg=expected,
+        timeout=20_000,
+    )
     assert f"{epochs[0]}: {core:,} points" in view.page.inner_text("#colour-legend")
     view.shot("cell-3d-epochs")
     view.page.select_option("#view-layout", "single")
@@ -240,7 +255,8 @@ def test_viewer_map_epochs_metrics_and_cell_view(
     view.page.mouse.click(box["x"] + x, box["y"] + y)
     view.page.wait_for_function(
         "() => document.querySelector('#panel-count').dataset.treeCount !== undefined",
-        timeout=20_000)  # fmt: skip
+        timeout=20_000,
+    )
     assert view.js("() => window.standgrid.state.cellView.treeFid") == int(tree.name)
     tile = laspy.read(catalog / "tiles" / epochs[0] / f"{tree['cell_id']}.laz")
     core = ~np.asarray(tile.withheld, dtype=bool)
@@ -318,7 +334,9 @@ def test_viewer_payload_view_and_epochs_side_by_side(
     view.page.mouse.click(box["x"] + x, box["y"] + y)
     view.page.wait_for_function(
         "i => window.standgrid.state.cellView && window.standgrid.state.cellView.payloadId === i",
-        arg=ident, timeout=20_000)  # fmt: skip
+        arg=ident,
+        timeout=20_000,
+    )
     wall = time.perf_counter() - t0
     shown = int(view.page.get_attribute("#panel-count", "data-count") or -1)
     # The payload's points as the tiles hold them, counted with laspy over every tile of the
@@ -357,7 +375,9 @@ def test_viewer_payload_view_and_epochs_side_by_side(
     view.page.mouse.click(box["x"] + x, box["y"] + y)
     view.page.wait_for_function(
         "c => window.standgrid.state.cellView && window.standgrid.state.cellView.cellId === c",
-        arg=cell["cell_id"], timeout=20_000)  # fmt: skip
+        arg=cell["cell_id"],
+        timeout=20_000,
+    )
     view.page.select_option("#colour-by", "height")
     view.page.select_option("#view-layout", "side")
     view.page.wait_for_function(
@@ -369,8 +389,10 @@ def test_viewer_payload_view_and_epochs_side_by_side(
     for _, tile_row in cells[cells["cell_id"] == cell["cell_id"]].iterrows():
         expected[tile_row["epoch"]] = _core_counts(catalog / tile_row["tile_path"])[0]
         assert expected[tile_row["epoch"]] == int(tile_row["point_count"])
-    got = {labels.nth(k).get_attribute("data-epoch"): int(labels.nth(k).get_attribute("data-count"))
-           for k in range(2)}  # fmt: skip
+    got = {
+        labels.nth(k).get_attribute("data-epoch"): int(labels.nth(k).get_attribute("data-count"))
+        for k in range(2)
+    }
     assert got == expected
     assert labels.nth(0).get_attribute("data-epoch") == epoch  # the clicked epoch first
     for k in range(2):
@@ -443,9 +465,14 @@ def test_viewer_streams_a_copc_cell_from_its_tile(
     requests: list[dict[str, Any]] = []
 
     def record(response: Any) -> None:
-        requests.append({"url": response.url, "status": response.status,
-                         "range": response.request.headers.get("range"),
-                         "length": int(response.headers.get("content-length") or -1)})  # fmt: skip
+        requests.append(
+            {
+                "url": response.url,
+                "status": response.status,
+                "range": response.request.headers.get("range"),
+                "length": int(response.headers.get("content-length") or -1),
+            }
+        )
 
     view.page.on("response", record)
     view.open()
@@ -466,7 +493,9 @@ def test_viewer_streams_a_copc_cell_from_its_tile(
     view.page.mouse.click(box["x"] + x, box["y"] + y)
     view.page.wait_for_function(
         "c => window.standgrid.state.cellView && window.standgrid.state.cellView.cellId === c",
-        arg=cell["cell_id"], timeout=20_000)  # fmt: skip
+        arg=cell["cell_id"],
+        timeout=20_000,
+    )
     wall = time.perf_counter() - t0
 
     # Exactly the cell's core points: the cells layer's count and laspy's non-withheld points.
@@ -504,8 +533,10 @@ def test_viewer_streams_a_copc_cell_from_its_tile(
     assert "streamed from the COPC tile" in source.inner_text()
     assert _canvas_colours(view.page.locator("#view3d canvas")) > 50  # the height ramp
     ms = view.js("() => window.standgrid.state.cellView.ms")
-    print(f"\nCOPC 3-D view of {cell['cell_id']} ({shown} points, first click): {ms:.0f} ms "
-          f"in the page ({wall:.2f} s wall, click to drawn); {source.inner_text()}")  # fmt: skip
+    print(
+        f"\nCOPC 3-D view of {cell['cell_id']} ({shown} points, first click): {ms:.0f} ms "
+        f"in the page ({wall:.2f} s wall, click to drawn); {source.inner_text()}"
+    )
     path = _keep_shot(view, tmp_path, "copc-3d")
     assert path.stat().st_size > 0
 
@@ -514,8 +545,11 @@ def test_viewer_streams_a_copc_cell_from_its_tile(
     before = len(requests)
     view.page.select_option("#view-layout", "overlay")
     expected = f"{other['epoch']}: {int(other['point_count']):,} points"
-    view.page.wait_for_function("t => document.querySelector('#colour-legend').innerText"
-                                ".includes(t)", arg=expected, timeout=20_000)  # fmt: skip
+    view.page.wait_for_function(
+        "t => document.querySelector('#colour-legend').innerText.includes(t)",
+        arg=expected,
+        timeout=20_000,
+    )
     other_las = laspy.read(catalog / other["tile_path"])
     assert int((~np.asarray(other_las.withheld, dtype=bool)).sum()) == int(other["point_count"])
     overlaid = requests[before:]
@@ -534,7 +568,8 @@ def test_viewer_streams_a_copc_cell_from_its_tile(
     view.page.mouse.click(box["x"] + x, box["y"] + y)
     view.page.wait_for_function(
         "() => document.querySelector('#panel-count').dataset.treeCount !== undefined",
-        timeout=20_000)  # fmt: skip
+        timeout=20_000,
+    )
     assert view.js("() => window.standgrid.state.cellView.treeFid") == int(tree.name)
     tree_las = laspy.read(catalog / "tiles" / epoch / f"{tree['cell_id']}.copc.laz")
     tree_core = ~np.asarray(tree_las.withheld, dtype=bool)
@@ -551,8 +586,10 @@ def test_viewer_streams_a_copc_cell_from_its_tile(
     # the 3-D view both ways, alternated on the same page (warm: laz-perf started).
     def open_cell(stream: bool) -> tuple[float, str, int]:
         view.js("s => { window.standgrid.state.streamCopc = s; }", stream)
-        done = view.js("c => window.standgrid.openCell(c).then(v => [v.ms, v.source, v.count])",
-                       cell["cell_id"])  # fmt: skip
+        done = view.js(
+            "c => window.standgrid.openCell(c).then(v => [v.ms, v.source, v.count])",
+            cell["cell_id"],
+        )
         return float(done[0]), str(done[1]), int(done[2])
 
     times: dict[str, list[float]] = {"copc": [], "server": []}
@@ -590,8 +627,14 @@ def deep_copc(copc_catalog: Path, tmp_path_factory: pytest.TempPathFactory) -> I
     cloud = read_tile(tile, include_withheld=True)
     withheld = np.asarray(cloud.fields["withheld"], dtype=bool)
     points = PointCloud(cloud.xyz, {k: v for k, v in cloud.fields.items() if k != "withheld"})
-    write_copc_tile(tile, points.select(~withheld), buffer=points.select(withheld), crs=CRS,
-                    resolution=4, leaf_points=256)  # fmt: skip
+    write_copc_tile(
+        tile,
+        points.select(~withheld),
+        buffer=points.select(withheld),
+        crs=CRS,
+        resolution=4,
+        leaf_points=256,
+    )
     with running(create_app(catalog)) as server:
         yield server.base_url, catalog, row
 
@@ -610,8 +653,11 @@ def test_viewer_streams_only_the_octree_nodes_a_cell_needs(browser: Any, deep_co
     ranged: list[Any] = []
     view.page.on("response", lambda r: r.url.endswith(row["tile_path"]) and ranged.append(r))
     view.open()
-    got = view.js("c => window.standgrid.openCell(c).then(v => ({count: v.count, source: "
-                  "v.source, copc: v.points.header.meta.copc}))", row["cell_id"])  # fmt: skip
+    got = view.js(
+        "c => window.standgrid.openCell(c).then(v => ({count: v.count, source: "
+        "v.source, copc: v.points.header.meta.copc}))",
+        row["cell_id"],
+    )
     las = laspy.read(tile)
     core = int((~np.asarray(las.withheld, dtype=bool)).sum())
     assert got["source"] == "copc"
@@ -853,14 +899,17 @@ def _without_comparisons(catalog: Path) -> None:
 
     with sqlite3.connect(catalog / "index.gpkg") as db:
         for layer in ("stand_changes", "tree_changes"):
-            (geom,) = db.execute("SELECT column_name FROM gpkg_geometry_columns "
-                                 "WHERE table_name = ?", (layer,)).fetchone()  # fmt: skip
+            (geom,) = db.execute(
+                "SELECT column_name FROM gpkg_geometry_columns WHERE table_name = ?", (layer,)
+            ).fetchone()
             db.execute(f'DROP TABLE IF EXISTS "rtree_{layer}_{geom}"')
             db.execute(f'DROP TABLE "{layer}"')
-            for table, column in (("gpkg_contents", "table_name"),
-                                  ("gpkg_geometry_columns", "table_name"),
-                                  ("gpkg_extensions", "table_name"),
-                                  ("layer_styles", "f_table_name")):  # fmt: skip
+            for table, column in (
+                ("gpkg_contents", "table_name"),
+                ("gpkg_geometry_columns", "table_name"),
+                ("gpkg_extensions", "table_name"),
+                ("layer_styles", "f_table_name"),
+            ):
                 db.execute(f"DELETE FROM {table} WHERE {column} = ?", (layer,))
     shutil.rmtree(catalog / "compare")
     state = json.loads((catalog / "catalog.json").read_text())

@@ -41,8 +41,11 @@ def test_bundle_was_built_from_the_sources_in_web() -> None:
     manifest = _manifest(STATIC)
     sources = _hashes(WEB, skip={"node_modules"})
     assert {"index.html", "package.json", "package-lock.json", "vite.config.js"} <= set(sources)
-    changed = sorted(n for n in sources.keys() | manifest["sources"].keys()
-                     if sources.get(n) != manifest["sources"].get(n))  # fmt: skip
+    changed = sorted(
+        n
+        for n in sources.keys() | manifest["sources"].keys()
+        if sources.get(n) != manifest["sources"].get(n)
+    )
     assert changed == [], f"web/ changed since the bundle was built; npm run build: {changed}"
 
 
@@ -78,7 +81,8 @@ def test_npm_ci_and_build_reproduce_the_committed_bundle(tmp_path: Path) -> None
     out = tmp_path / "static"
     env = {**os.environ, "STANDGRID_VIEWER_OUT": str(out)}
     for command in ([npm, "ci", "--no-audit", "--no-fund"], [npm, "run", "build"]):
-        done = subprocess.run(command, cwd=web, env=env, capture_output=True, text=True,
-                              timeout=600)  # fmt: skip
+        done = subprocess.run(
+            command, cwd=web, env=env, capture_output=True, text=True, timeout=600
+        )
         assert done.returncode == 0, done.stdout + done.stderr
     assert _manifest(out) == _manifest(STATIC)

@@ -102,8 +102,12 @@ def test_live_view_shows_each_payload_then_the_cells(
             view.js("id => window.standgrid.liveGeometry(id + '#position')", ident),
         )
         # the trajectory drawn grows with the graph
-        nodes.append(view.js(f"() => window.standgrid.live.source.getFeatureById("
-                             f"'trajectory:{NAME}')?.get('nodes')"))  # fmt: skip
+        nodes.append(
+            view.js(
+                f"() => window.standgrid.live.source.getFeatureById("
+                f"'trajectory:{NAME}')?.get('nodes')"
+            )
+        )
         assert nodes[-1] == graph.count("\nVERTEX_SE3")
         assert f"{k + 1} payload" in view.page.inner_text("#live")
         if k in SHOT_AT:

@@ -56,10 +56,17 @@ def run(root: Path, seed: int, *, harvest: float = 0.12) -> Campaigns:
     from standgrid.tiling.options import TileOptions
 
     simulate_pair(
-        root, seed, overwrite=True, area=AREA_M, forest="mixed", scanner_kind="handheld",
-        lane_spacing=15.0, points_per_payload=POINTS_PER_PAYLOAD, harvest_fraction=harvest,
+        root,
+        seed,
+        overwrite=True,
+        area=AREA_M,
+        forest="mixed",
+        scanner_kind="handheld",
+        lane_spacing=15.0,
+        points_per_payload=POINTS_PER_PAYLOAD,
+        harvest_fraction=harvest,
         new_trees=3 if harvest > 0 else 0,
-    )  # fmt: skip
+    )
     catalog = root / "catalog"
     run_pipeline([root / "missions"], catalog, TileOptions(overwrite=True))
     truths = {t.date[:4]: t for t in map(load_truth, sorted((root / "truth").iterdir()))}
@@ -104,8 +111,9 @@ def run(root: Path, seed: int, *, harvest: float = 0.12) -> Campaigns:
             false_removed = int((back >= 0.5).sum())
     else:
         false_removed = len(removed)
-    return Campaigns(trees, stands, {str(k): int(v) for k, v in counts.items()}, harvested,
-                     found, false_removed)  # fmt: skip
+    return Campaigns(
+        trees, stands, {str(k): int(v) for k, v in counts.items()}, harvested, found, false_removed
+    )
 
 
 def _cell_bounds(cell_id: str) -> tuple[float, float, float, float]:

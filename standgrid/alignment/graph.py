@@ -90,8 +90,9 @@ def correlation_time(stamps_ns: NDArray[np.int64], residuals: FloatArray) -> flo
     return float(below[0] * step) if len(below) else span
 
 
-def gnss_prior(fit: Any, nodes_map: FloatArray, centre_crs: FloatArray,
-               bias_m: float = GNSS_BIAS_M) -> Prior:  # fmt: skip
+def gnss_prior(
+    fit: Any, nodes_map: FloatArray, centre_crs: FloatArray, bias_m: float = GNSS_BIAS_M
+) -> Prior:
     """The prior of a GNSS-fitted placement (module doc); ``nodes_map``: the mission's
     trajectory in its map frame, ``centre_crs``: its centroid in the CRS."""
     centre = (float(centre_crs[0]), float(centre_crs[1]))
@@ -122,8 +123,7 @@ def gnss_prior(fit: Any, nodes_map: FloatArray, centre_crs: FloatArray,
     sigma_xy = math.sqrt(white + bias**2 / 2.0)
     sigma_yaw = math.sqrt(var_yaw)
     sigma_z = math.sqrt(float(cov[3, 3]) * scale + (0.03 if rtk else GNSS_BIAS_VERTICAL_M) ** 2)
-    how = (f"GNSS: {n} fixes, correlation {tau:.0f} s ({n_eff:.1f} independent), "
-           f"bias {bias:.2f} m")  # fmt: skip
+    how = f"GNSS: {n} fixes, correlation {tau:.0f} s ({n_eff:.1f} independent), bias {bias:.2f} m"
     return Prior(centre, sigma_xy, sigma_yaw, sigma_z, how)
 
 
@@ -147,8 +147,13 @@ def unplaced_prior(centre_crs: FloatArray) -> Prior:
 
 
 def held_prior(centre_crs: FloatArray, how: str) -> Prior:
-    return Prior((float(centre_crs[0]), float(centre_crs[1])), HELD_SIGMA_M, HELD_SIGMA_YAW,
-                 HELD_SIGMA_M, how)  # fmt: skip
+    return Prior(
+        (float(centre_crs[0]), float(centre_crs[1])),
+        HELD_SIGMA_M,
+        HELD_SIGMA_YAW,
+        HELD_SIGMA_M,
+        how,
+    )
 
 
 @dataclass(frozen=True)
@@ -208,8 +213,11 @@ def solve(
         j = np.eye(3)
         j[0, 2], j[1, 2] = c[1], -c[0]
         cov = j @ np.diag([p.sigma_xy**2, p.sigma_xy**2, p.sigma_yaw**2]) @ j.T
-        graph.add(gtsam.PriorFactorPose2(key[n], gtsam.Pose2(0, 0, 0),
-                                         gtsam.noiseModel.Gaussian.Covariance(cov)))  # fmt: skip
+        graph.add(
+            gtsam.PriorFactorPose2(
+                key[n], gtsam.Pose2(0, 0, 0), gtsam.noiseModel.Gaussian.Covariance(cov)
+            )
+        )
     accepted = [r for r in registrations if r.accepted]
     measured: dict[tuple[str, str], Any] = {}
     for r in accepted:
@@ -226,8 +234,11 @@ def solve(
             gtsam.noiseModel.mEstimator.Huber.Create(HUBER_K),
             gtsam.noiseModel.Gaussian.Covariance(cov),
         )
-        graph.add(gtsam.BetweenFactorPose2(key[r.fixed], key[r.moving],
-                                           gtsam.Pose2(g[0], g[1], r.yaw), noise))  # fmt: skip
+        graph.add(
+            gtsam.BetweenFactorPose2(
+                key[r.fixed], key[r.moving], gtsam.Pose2(g[0], g[1], r.yaw), noise
+            )
+        )
         measured[(r.fixed, r.moving)] = gtsam.Pose2(g[0], g[1], r.yaw)
     # start from the priors, and missions placed nowhere from what registers them
     start = {n: gtsam.Pose2(0, 0, 0) for n in names if priors[n].sigma_xy < UNPLACED_SIGMA_M}
@@ -256,9 +267,13 @@ def solve(
         world = np.eye(3)
         world[:2, :2] = rot
         corrections[n] = Correction(
-            (float(origin[0]), float(origin[1])), (pose.x(), pose.y()), pose.theta(),
-            float(dz[i]), world @ cov @ world.T, float(sz[i]),
-        )  # fmt: skip
+            (float(origin[0]), float(origin[1])),
+            (pose.x(), pose.y()),
+            pose.theta(),
+            float(dz[i]),
+            world @ cov @ world.T,
+            float(sz[i]),
+        )
     sigma_rel: dict[str, float] = {n: math.nan for n in names}
     for r in accepted:
         joint = marginals.jointMarginalCovariance(gtsam.KeyVector([key[r.moving], key[r.fixed]]))

@@ -210,10 +210,16 @@ def save_landmarks(marks: Landmarks, key: str, path: Path) -> None:
     origin = _origin(marks.nodes)
     with open(path, "wb") as f:
         np.savez(
-            f, key=np.array(key), name=np.array(marks.name), frame=np.array(marks.frame),
-            origin=origin, stems=marks.stems, ground=marks.ground, nodes=marks.nodes,
+            f,
+            key=np.array(key),
+            name=np.array(marks.name),
+            frame=np.array(marks.frame),
+            origin=origin,
+            stems=marks.stems,
+            ground=marks.ground,
+            nodes=marks.nodes,
             points=(marks.points - origin).astype(np.float32),
-        )  # fmt: skip
+        )
 
 
 def load_landmarks(path: Path, key: str) -> Landmarks | None:
@@ -224,8 +230,12 @@ def load_landmarks(path: Path, key: str) -> Landmarks | None:
                 return None
             origin = data["origin"]
             return Landmarks(
-                str(data["name"]), str(data["frame"]), data["stems"], data["ground"],
-                data["points"].astype(np.float64) + origin, data["nodes"],
-            )  # fmt: skip
+                str(data["name"]),
+                str(data["frame"]),
+                data["stems"],
+                data["ground"],
+                data["points"].astype(np.float64) + origin,
+                data["nodes"],
+            )
     except (OSError, KeyError, ValueError, EOFError, zipfile.BadZipFile):
         return None  # a damaged cache is no cache: the landmarks are found again

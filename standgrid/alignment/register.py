@@ -85,18 +85,25 @@ class Registration:
 
     def to_dict(self) -> dict[str, Any]:
         out = {
-            "moving": self.moving, "fixed": self.fixed, "accepted": self.accepted,
+            "moving": self.moving,
+            "fixed": self.fixed,
+            "accepted": self.accepted,
             "reason": self.reason,
-        }  # fmt: skip
+        }
         if self.accepted:
             out.update(
-                t_m=[round(v, 4) for v in self.t], yaw_deg=round(math.degrees(self.yaw), 5),
-                dz_m=round(self.dz, 4), pivot=list(self.pivot),
+                t_m=[round(v, 4) for v in self.t],
+                yaw_deg=round(math.degrees(self.yaw), 5),
+                dz_m=round(self.dz, 4),
+                pivot=list(self.pivot),
                 sigma_m=round(math.sqrt(self.covariance[0][0] + self.covariance[1][1]), 4),
                 sigma_yaw_deg=round(math.degrees(math.sqrt(self.covariance[2][2])), 5),
-                sigma_z_m=round(self.sigma_z, 4), stems_matched=self.stems_matched,
-                rms_m=round(self.rms_m, 4), peak_ratio=round(self.peak_ratio, 3), gicp=self.gicp,
-            )  # fmt: skip
+                sigma_z_m=round(self.sigma_z, 4),
+                stems_matched=self.stems_matched,
+                rms_m=round(self.rms_m, 4),
+                peak_ratio=round(self.peak_ratio, 3),
+                gicp=self.gicp,
+            )
         else:
             out.update(stems_matched=self.stems_matched)
         return out
@@ -111,8 +118,10 @@ def _procrustes(a: FloatArray, b: FloatArray) -> tuple[FloatArray, float, FloatA
     """Yaw and translation taking ``a`` onto ``b`` (2-D): ``b = R (a - ca) + cb``."""
     ca, cb = a.mean(axis=0), b.mean(axis=0)
     u, v = a - ca, b - cb
-    yaw = math.atan2(float(np.sum(u[:, 0] * v[:, 1] - u[:, 1] * v[:, 0])),
-                     float(np.sum(u[:, 0] * v[:, 0] + u[:, 1] * v[:, 1])))  # fmt: skip
+    yaw = math.atan2(
+        float(np.sum(u[:, 0] * v[:, 1] - u[:, 1] * v[:, 0])),
+        float(np.sum(u[:, 0] * v[:, 0] + u[:, 1] * v[:, 1])),
+    )
     return ca, yaw, cb
 
 
@@ -173,9 +182,12 @@ def register(
     ms, fs = moving.stems, fixed.stems
     name, other = moving.name, fixed.name
     if len(ms) < options.min_stems or len(fs) < options.min_stems:
-        return Registration(name, other, False,
-                            f"too few stems: {len(ms)} and {len(fs)} (at least "
-                            f"{options.min_stems} each)")  # fmt: skip
+        return Registration(
+            name,
+            other,
+            False,
+            f"too few stems: {len(ms)} and {len(fs)} (at least {options.min_stems} each)",
+        )
     pivot = ms[:, :2].mean(axis=0)
     best: tuple[float, FloatArray, float, float] | None = None
     for yaw_deg in np.arange(-YAW_SEARCH_DEG, YAW_SEARCH_DEG + 1e-9, YAW_STEP_DEG):
@@ -189,13 +201,22 @@ def register(
     yaw, shift, peak, rival = best
     ratio = rival / peak if peak > 0 else math.inf
     if peak < options.min_stems:
-        return Registration(name, other, False,
-                            f"too little overlap: {peak:.0f} stems agree (at least "
-                            f"{options.min_stems})", peak_ratio=ratio)  # fmt: skip
+        return Registration(
+            name,
+            other,
+            False,
+            f"too little overlap: {peak:.0f} stems agree (at least {options.min_stems})",
+            peak_ratio=ratio,
+        )
     if ratio >= options.max_peak_ratio:
-        return Registration(name, other, False,
-                            f"ambiguous: a second offset gathers {ratio:.0%} of the best one's "
-                            "stems (a repetitive stand?)", peak_ratio=ratio)  # fmt: skip
+        return Registration(
+            name,
+            other,
+            False,
+            f"ambiguous: a second offset gathers {ratio:.0%} of the best one's "
+            "stems (a repetitive stand?)",
+            peak_ratio=ratio,
+        )
     tree = cKDTree(fs[:, :2])
     t = np.asarray(shift, dtype=np.float64)
     rows = cols = np.zeros(0, dtype=np.int64)
@@ -203,17 +224,27 @@ def register(
         moved = (ms[:, :2] - pivot) @ rot2d(yaw).T + pivot + t
         rows, cols = _match(moved, tree, tolerance)
         if len(rows) < max(3, options.min_stems // 2):
-            return Registration(name, other, False,
-                                f"does not converge: {len(rows)} stems within {tolerance} m",
-                                stems_matched=len(rows), peak_ratio=ratio)  # fmt: skip
+            return Registration(
+                name,
+                other,
+                False,
+                f"does not converge: {len(rows)} stems within {tolerance} m",
+                stems_matched=len(rows),
+                peak_ratio=ratio,
+            )
         ca, yaw, cb = _procrustes(ms[rows, :2], fs[cols, :2])
         # b = R (a - ca) + cb  ==  R (a - pivot) + pivot + t
         t = cb - pivot - rot2d(yaw) @ (ca - pivot)
     if len(rows) < options.min_stems:
-        return Registration(name, other, False,
-                            f"too little overlap: {len(rows)} stems matched within "
-                            f"{MATCH_TOLERANCES_M[-1]} m (at least {options.min_stems})",
-                            stems_matched=len(rows), peak_ratio=ratio)  # fmt: skip
+        return Registration(
+            name,
+            other,
+            False,
+            f"too little overlap: {len(rows)} stems matched within "
+            f"{MATCH_TOLERANCES_M[-1]} m (at least {options.min_stems})",
+            stems_matched=len(rows),
+            peak_ratio=ratio,
+        )
     moved = (ms[rows, :2] - pivot) @ rot2d(yaw).T + pivot + t
     resid = moved - fs[cols, :2]
     rms = float(np.sqrt(np.mean(np.sum(resid**2, axis=1)) / 2.0))  # per axis
@@ -249,16 +280,32 @@ def register(
     dz_spread = np.abs(fs[cols, 2] - ms[rows, 2] - dz)
     sigma_z = max(float(np.median(dz_spread)) * 1.4826 / math.sqrt(n), 0.01) * MODEL_FACTOR
     return Registration(
-        name, other, True, "", (float(pivot[0]), float(pivot[1])), (float(t[0]), float(t[1])),
-        float(yaw), float(dz), tuple(tuple(float(v) for v in row) for row in cov), sigma_z, n,
-        rms, ratio, gicp_note,
-    )  # fmt: skip
+        name,
+        other,
+        True,
+        "",
+        (float(pivot[0]), float(pivot[1])),
+        (float(t[0]), float(t[1])),
+        float(yaw),
+        float(dz),
+        tuple(tuple(float(v) for v in row) for row in cov),
+        sigma_z,
+        n,
+        rms,
+        ratio,
+        gicp_note,
+    )
 
 
 def _gicp(
-    moving: Any, fixed: Any, pivot: FloatArray, yaw: float, t: FloatArray, dz: float,
+    moving: Any,
+    fixed: Any,
+    pivot: FloatArray,
+    yaw: float,
+    t: FloatArray,
+    dz: float,
     options: RegisterOptions,
-) -> tuple[float, FloatArray, float] | str:  # fmt: skip
+) -> tuple[float, FloatArray, float] | str:
     """small_gicp's GICP of the kept points, started from the stems' solution."""
     try:
         import small_gicp
@@ -283,10 +330,15 @@ def _gicp(
     init[2, 3] = dz
     try:
         result = small_gicp.align(
-            dst, src, init_T_target_source=init, registration_type="GICP",
-            downsampling_resolution=0.05, max_correspondence_distance=0.3,
-            num_threads=options.gicp_threads, max_iterations=30,
-        )  # fmt: skip
+            dst,
+            src,
+            init_T_target_source=init,
+            registration_type="GICP",
+            downsampling_resolution=0.05,
+            max_correspondence_distance=0.3,
+            num_threads=options.gicp_threads,
+            max_iterations=30,
+        )
     except Exception as exc:
         return f"left out: small_gicp failed ({exc})"
     if not result.converged:
@@ -344,13 +396,16 @@ def global_guess(
     hi = np.searchsorted(fl, ml + PAIR_TOLERANCE_M)
     count = hi - lo
     a = np.repeat(np.arange(len(ml)), count)
-    b = np.concatenate([np.arange(s, e) for s, e in zip(lo, hi, strict=True)]) if len(a) \
-        else np.zeros(0, dtype=np.int64)  # fmt: skip
+    b = (
+        np.concatenate([np.arange(s, e) for s, e in zip(lo, hi, strict=True)])
+        if len(a)
+        else np.zeros(0, dtype=np.int64)
+    )
     if not len(a):
         return None
-    like = (np.abs(ms[mi[a], 3] - fs[fi[b], 3]) <= 0.3 * np.maximum(ms[mi[a], 3], fs[fi[b], 3])
-            + 0.03) & (np.abs(ms[mj[a], 3] - fs[fj[b], 3]) <= 0.3 * np.maximum(
-                ms[mj[a], 3], fs[fj[b], 3]) + 0.03)  # fmt: skip
+    like = (
+        np.abs(ms[mi[a], 3] - fs[fi[b], 3]) <= 0.3 * np.maximum(ms[mi[a], 3], fs[fi[b], 3]) + 0.03
+    ) & (np.abs(ms[mj[a], 3] - fs[fj[b], 3]) <= 0.3 * np.maximum(ms[mj[a], 3], fs[fj[b], 3]) + 0.03)
     a, b = a[like], b[like]
     if not len(a):
         return None
@@ -393,29 +448,44 @@ def register_global(
 
     ms, fs = moving.stems, fixed.stems
     if len(ms) < options.min_stems or len(fs) < options.min_stems:
-        return Registration(moving.name, fixed.name, False,
-                            f"too few stems: {len(ms)} and {len(fs)} (at least "
-                            f"{options.min_stems} each)")  # fmt: skip
+        return Registration(
+            moving.name,
+            fixed.name,
+            False,
+            f"too few stems: {len(ms)} and {len(fs)} (at least {options.min_stems} each)",
+        )
     # the other side's stems near where the metadata put this mission (its extent plus
     # GLOBAL_REACH_M): the stoutest of a large catalog would lie mostly elsewhere
     centre0 = ms[:, :2].mean(axis=0)
     extent = float(np.max(np.hypot(*(ms[:, :2] - centre0).T)))
     near = np.hypot(*(fs[:, :2] - centre0).T) <= extent + GLOBAL_REACH_M
     if near.sum() < options.min_stems:
-        return Registration(moving.name, fixed.name, False,
-                            f"no overlap: {int(near.sum())} stems within "
-                            f"{GLOBAL_REACH_M:.0f} m of where its metadata puts it")  # fmt: skip
+        return Registration(
+            moving.name,
+            fixed.name,
+            False,
+            f"no overlap: {int(near.sum())} stems within "
+            f"{GLOBAL_REACH_M:.0f} m of where its metadata puts it",
+        )
     centre = ms[:, :2].mean(axis=0)
     guess = global_guess(ms, fs[near], centre)
     if guess is None:
-        return Registration(moving.name, fixed.name, False,
-                            "no stems alike: the global search found no pair of stems")  # fmt: skip
+        return Registration(
+            moving.name,
+            fixed.name,
+            False,
+            "no stems alike: the global search found no pair of stems",
+        )
     yaw0, t0, votes, rival = guess
     if rival >= options.max_peak_ratio * votes:
-        return Registration(moving.name, fixed.name, False,
-                            f"ambiguous: the global search's second placement gathers "
-                            f"{rival / votes:.0%} of the best one's votes",
-                            peak_ratio=rival / votes)  # fmt: skip
+        return Registration(
+            moving.name,
+            fixed.name,
+            False,
+            f"ambiguous: the global search's second placement gathers "
+            f"{rival / votes:.0%} of the best one's votes",
+            peak_ratio=rival / votes,
+        )
     rot0 = rot2d(yaw0)
 
     def first(p: FloatArray) -> FloatArray:
@@ -423,8 +493,12 @@ def register_global(
         out[:, :2] = (p[:, :2] - centre) @ rot0.T + centre + t0
         return out
 
-    start = type(moving)(moving.name, first(ms), first(moving.points) if len(moving.points)
-                         else moving.points, first(moving.nodes))  # fmt: skip
+    start = type(moving)(
+        moving.name,
+        first(ms),
+        first(moving.points) if len(moving.points) else moving.points,
+        first(moving.nodes),
+    )
     fine = register(start, fixed, replace(options, search_radius=3.0))
     if not fine.accepted:
         return replace(fine, reason=f"global search ({votes:.0f} votes) then {fine.reason}")
@@ -439,7 +513,10 @@ def register_global(
     j[:2, 2] = np.array([[0.0, -1.0], [1.0, 0.0]]) @ rot1 @ lever
     cov = j @ np.asarray(fine.covariance) @ j.T
     return replace(
-        fine, pivot=(float(centre[0]), float(centre[1])), t=(float(t[0]), float(t[1])),
-        yaw=yaw, covariance=tuple(tuple(float(v) for v in row) for row in cov),
+        fine,
+        pivot=(float(centre[0]), float(centre[1])),
+        t=(float(t[0]), float(t[1])),
+        yaw=yaw,
+        covariance=tuple(tuple(float(v) for v in row) for row in cov),
         details={**fine.details, "global_votes": votes},
-    )  # fmt: skip
+    )

@@ -122,8 +122,11 @@ def _to_crs(placement: Placement, crs: str, name: str) -> Any:
 def place_landmarks(marks: Landmarks, placement: Placement, crs: str) -> PlacedLandmarks:
     """``marks`` (in the mission's frame) in the catalog CRS under ``placement``."""
     to = _to_crs(placement, crs, marks.name)
-    stems = np.column_stack([to(marks.stems[:, :3]), marks.stems[:, 3]]) if len(marks.stems) \
-        else np.zeros((0, 4))  # fmt: skip
+    stems = (
+        np.column_stack([to(marks.stems[:, :3]), marks.stems[:, 3]])
+        if len(marks.stems)
+        else np.zeros((0, 4))
+    )
     return PlacedLandmarks(marks.name, stems, to(marks.points), to(marks.nodes))
 
 
@@ -194,8 +197,9 @@ def align_missions(
         elif mission.name in options.hold:
             priors[mission.name] = held_prior(centre, "held as the reference")
         else:
-            priors[mission.name] = gnss_prior(placement.fit, found[mission.name].nodes,
-                                              centre, options.gnss_bias_m)  # fmt: skip
+            priors[mission.name] = gnss_prior(
+                placement.fit, found[mission.name].nodes, centre, options.gnss_bias_m
+            )
     solution = solve(names, priors, registrations)
     linked = {n for r in registrations if r.accepted for n in (r.moving, r.fixed)}
     result = AlignResult({}, registrations, {})
@@ -204,8 +208,11 @@ def align_missions(
         n = mission.name
         corr = solution.corrections[n]
         nodes = placed[n].nodes
-        partners = {r.fixed if r.moving == n else r.moving for r in registrations
-                    if r.accepted and n in (r.moving, r.fixed)}  # fmt: skip
+        partners = {
+            r.fixed if r.moving == n else r.moving
+            for r in registrations
+            if r.accepted and n in (r.moving, r.fixed)
+        }
         sigma_h = float(corr.sigma_at(nodes[:, :2]).max()) if len(nodes) else math.nan
         # placed against held missions: their own absolute uncertainty comes along
         refs = [known[r] for r in partners if r in known]
@@ -244,8 +251,9 @@ def align_missions(
     return result
 
 
-def _corrected(mission: Mission, placement: Placement, crs: str, corr: Any,
-               info: dict[str, Any]) -> Placement:  # fmt: skip
+def _corrected(
+    mission: Mission, placement: Placement, crs: str, corr: Any, info: dict[str, Any]
+) -> Placement:
     """The placement whose map -> ENU transform puts the trajectory where ``corr`` moves it."""
     from standgrid.georeference.fit import GeoreferenceFit, solve_yaw2d
     from standgrid.georeference.placement import Placement, held_placement

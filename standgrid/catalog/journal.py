@@ -85,8 +85,9 @@ def _journal_targets(
         try:
             rel = relative_path(item)
         except CatalogError as exc:
-            raise CatalogError(f"journal path escapes the catalog: {item!r}",
-                               path=journal_path) from exc  # fmt: skip
+            raise CatalogError(
+                f"journal path escapes the catalog: {item!r}", path=journal_path
+            ) from exc
         refuse_symlinks(root, rel)
         checked.append(rel)
     return checked[: len(renames)], checked[len(renames) :]

@@ -53,9 +53,12 @@ def lock_holders(path: Path) -> list[str]:
         return []
     key = f"{os.major(st.st_dev):02x}:{os.minor(st.st_dev):02x}:{st.st_ino}"
     pids = sorted(
-        {int(f[4]) for f in (line.split() for line in lines)
-         if len(f) > 5 and f[1] == "FLOCK" and f[5] == key and f[4].isdigit()}
-    )  # fmt: skip
+        {
+            int(f[4])
+            for f in (line.split() for line in lines)
+            if len(f) > 5 and f[1] == "FLOCK" and f[5] == key and f[4].isdigit()
+        }
+    )
     holders = []
     for pid in pids:
         if pid == os.getpid():
@@ -99,8 +102,9 @@ class FileLock:
             self.path.parent.mkdir(parents=True, exist_ok=True)
             fd = os.open(self.path, os.O_RDWR | os.O_CREAT, 0o644)
         except OSError as exc:
-            raise OutputNotWritableError(f"cannot open the lock file: {exc.strerror}",
-                                         path=self.path) from exc  # fmt: skip
+            raise OutputNotWritableError(
+                f"cannot open the lock file: {exc.strerror}", path=self.path
+            ) from exc
         mode = fcntl.LOCK_SH if self.shared else fcntl.LOCK_EX
         start = time.monotonic()
         deadline = None if timeout is None else start + max(0.0, timeout)
@@ -128,10 +132,12 @@ class FileLock:
                     holders = lock_holders(self.path)
                     limit = "" if timeout is None else f", up to {timeout:g} s"
                     _log.info(
-                        "%s: waiting for %s%s%s", _catalog_of(self.path),
+                        "%s: waiting for %s%s%s",
+                        _catalog_of(self.path),
                         "readers to finish" if what == "reading" else f"another process {what} it",
-                        f" ({'; '.join(holders)})" if holders else "", limit,
-                    )  # fmt: skip
+                        f" ({'; '.join(holders)})" if holders else "",
+                        limit,
+                    )
                 time.sleep(delay)
                 delay = min(delay * 2, 0.2)
         self._fd = fd

@@ -90,8 +90,10 @@ def remove_stale_builds(final: str | os.PathLike[str]) -> list[str]:
             siblings.append((match[1] or "", sibling))
     complete = (path / CATALOG_FILE).is_file()
     if not complete:
-        olds = sorted((s for kind, s in siblings if kind == "old" and (s / CATALOG_FILE).is_file()),
-                      key=lambda s: s.stat().st_mtime)  # fmt: skip
+        olds = sorted(
+            (s for kind, s in siblings if kind == "old" and (s / CATALOG_FILE).is_file()),
+            key=lambda s: s.stat().st_mtime,
+        )
         if olds:
             if path.exists():
                 with contextlib.suppress(OSError):

@@ -22,9 +22,20 @@ NOT_ENRICHED = "not enriched"
 
 #: Keys of a mission entry that :class:`MissionRecord` names; any other key is in ``extra``.
 _MISSION_KEYS = (
-    "number", "epoch", "date", "path", "georeference", "payload_count", "point_count",
-    "tiles", "ingested", "robot", "place", "unit", "sensors",
-)  # fmt: skip
+    "number",
+    "epoch",
+    "date",
+    "path",
+    "georeference",
+    "payload_count",
+    "point_count",
+    "tiles",
+    "ingested",
+    "robot",
+    "place",
+    "unit",
+    "sensors",
+)
 
 
 @dataclass(frozen=True)

@@ -24,8 +24,17 @@ FORMAT_VERSION = 1
 SCHEMES = ("grid", "voronoi")
 MAX_MISSION_NUMBER = 65535  # LAS point_source_id is uint16; 0 means "unknown"
 #: Keys every catalog.json has.
-REQUIRED_KEYS = ("format", "version", "crs", "scheme", "grid", "fingerprint", "missions",
-                 "epochs", "next_mission_number")  # fmt: skip
+REQUIRED_KEYS = (
+    "format",
+    "version",
+    "crs",
+    "scheme",
+    "grid",
+    "fingerprint",
+    "missions",
+    "epochs",
+    "next_mission_number",
+)
 
 
 def utc_now() -> str:

@@ -273,9 +273,12 @@ class Catalog:
 
     @classmethod
     def open_or_create(
-        cls, path: str | os.PathLike[str], grid_definition: Mapping[str, Any] | Any, crs: str,
+        cls,
+        path: str | os.PathLike[str],
+        grid_definition: Mapping[str, Any] | Any,
+        crs: str,
         scheme: str = "grid",
-    ) -> Catalog:  # fmt: skip
+    ) -> Catalog:
         """Open the catalog at ``path`` and check its grid, or create it when there is none."""
         root = Path(path)
         if (root / CATALOG_FILE).is_file():

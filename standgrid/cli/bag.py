@@ -21,10 +21,17 @@ from standgrid.cli.options import emit, json_option, overwrite_option, quiet_opt
 @click.option("--clouds", "cloud_topic", help="PointCloud2 topic (default: the only one).")
 @click.option("--odom", "odom_topic", help="Odometry topic (default: the only one; else /tf).")
 @click.option("--gnss", "gnss_topic", help="NavSatFix topic (default: the only one).")
-@click.option("--grid-map", "grid_map_topic",
-              help="grid_map_msgs/GridMap topic (default: the only one): payload elevation maps.")
-@click.option("--elevation-layer", default="elevation", show_default=True,
-              help="The GridMap layer holding the heights.")
+@click.option(
+    "--grid-map",
+    "grid_map_topic",
+    help="grid_map_msgs/GridMap topic (default: the only one): payload elevation maps.",
+)
+@click.option(
+    "--elevation-layer",
+    default="elevation",
+    show_default=True,
+    help="The GridMap layer holding the heights.",
+)
 @click.option("--base-frame", help="Robot base frame (default: the odometry child frame).")
 @click.option("--map-frame", help="Map frame for /tf poses (default: the root of the tf tree).")
 @click.option(

@@ -16,9 +16,12 @@ epoch_option = click.option(
     "--epoch", "epochs", multiple=True, help="Only this epoch (repeatable; default: all enriched)."
 )
 level_option = click.option(
-    "--level", type=click.IntRange(0, 1), default=1, show_default=True,
+    "--level",
+    type=click.IntRange(0, 1),
+    default=1,
+    show_default=True,
     help="Stand level: 1 = the 1 ha stands, 0 = the tile cells.",
-)  # fmt: skip
+)
 
 
 @click.group(name="export")
@@ -47,19 +50,36 @@ def _species_table(path: Path | None) -> dict[str, str]:
 
 @export.command(name="fvs")
 @catalog_argument
-@click.option("-o", "--output", required=True, type=click.Path(dir_okay=False, path_type=Path),
-              help="SQLite database to write (FVS_StandInit, FVS_TreeInit).")  # fmt: skip
+@click.option(
+    "-o",
+    "--output",
+    required=True,
+    type=click.Path(dir_okay=False, path_type=Path),
+    help="SQLite database to write (FVS_StandInit, FVS_TreeInit).",
+)
 @click.option("--variant", default="PN", show_default=True, help="FVS variant code.")
 @click.option("--species", help="FVS species code of every tree (default DF, a placeholder).")
-@click.option("--species-table", type=click.Path(exists=True, dir_okay=False, path_type=Path),
-              help="CSV stand_id,species: a code per stand (others get --species).")  # fmt: skip
-@click.option("--no-increments", is_flag=True,
-              help="Leave DG/HTG empty even when an earlier campaign was compared.")  # fmt: skip
-@click.option("--keywords", type=click.Path(dir_okay=False, path_type=Path),
-              help="Also write an FVS keyword file running every exported stand.")  # fmt: skip
-@click.option("--heights-above-sea-level", is_flag=True,
-              help="Already-projected clouds carry heights above sea level: ElevFt is their "
-              "DTM height (else NULL: their vertical datum is unknown).")  # fmt: skip
+@click.option(
+    "--species-table",
+    type=click.Path(exists=True, dir_okay=False, path_type=Path),
+    help="CSV stand_id,species: a code per stand (others get --species).",
+)
+@click.option(
+    "--no-increments",
+    is_flag=True,
+    help="Leave DG/HTG empty even when an earlier campaign was compared.",
+)
+@click.option(
+    "--keywords",
+    type=click.Path(dir_okay=False, path_type=Path),
+    help="Also write an FVS keyword file running every exported stand.",
+)
+@click.option(
+    "--heights-above-sea-level",
+    is_flag=True,
+    help="Already-projected clouds carry heights above sea level: ElevFt is their "
+    "DTM height (else NULL: their vertical datum is unknown).",
+)
 @level_option
 @epoch_option
 @overwrite_option
@@ -104,10 +124,17 @@ def fvs(
         raise click.ClickException(f"{keywords} exists (--overwrite replaces it)")
     status(f"exporting FVS stands from {catalog} ...", quiet or as_json)
     report = export_fvs(
-        catalog, output, level=level, epochs=epochs or None, variant=variant, species=species,
-        species_by_stand=_species_table(species_table), increments=not no_increments,
-        overwrite=overwrite, heights_above_sea_level=heights_above_sea_level,
-    )  # fmt: skip
+        catalog,
+        output,
+        level=level,
+        epochs=epochs or None,
+        variant=variant,
+        species=species,
+        species_by_stand=_species_table(species_table),
+        increments=not no_increments,
+        overwrite=overwrite,
+        heights_above_sea_level=heights_above_sea_level,
+    )
     result: dict[str, Any] = report.to_dict()
     if keywords is not None:
         conn = sqlite3.connect(output)
@@ -122,8 +149,11 @@ def fvs(
     for epoch, reason in report.elev_ft_null_reason.items():
         status(f"warning: epoch {epoch}: {reason}", quiet)
     if report.elev_ft_null_stands:
-        status(f"warning: ElevFt is NULL for {len(report.elev_ft_null_stands)} stand(s) "
-               "(elev_ft_null_stands in --json says why)", quiet)  # fmt: skip
+        status(
+            f"warning: ElevFt is NULL for {len(report.elev_ft_null_stands)} stand(s) "
+            "(elev_ft_null_stands in --json says why)",
+            quiet,
+        )
     for note in report.notes:
         status(f"note: {note}", quiet)
     emit(result, as_json, _fvs_human)
@@ -140,10 +170,19 @@ def _fvs_human(r: dict[str, Any]) -> str:
 
 @export.command(name="trees")
 @catalog_argument
-@click.option("-o", "--output", required=True, type=click.Path(dir_okay=False, path_type=Path),
-              help="Tree list: .csv, .parquet, .gpkg or .sqlite/.db (table trees).")  # fmt: skip
-@click.option("--format", "fmt", type=click.Choice(["csv", "parquet", "gpkg", "sqlite"]),
-              help="Format, when the suffix does not say.")  # fmt: skip
+@click.option(
+    "-o",
+    "--output",
+    required=True,
+    type=click.Path(dir_okay=False, path_type=Path),
+    help="Tree list: .csv, .parquet, .gpkg or .sqlite/.db (table trees).",
+)
+@click.option(
+    "--format",
+    "fmt",
+    type=click.Choice(["csv", "parquet", "gpkg", "sqlite"]),
+    help="Format, when the suffix does not say.",
+)
 @level_option
 @epoch_option
 @overwrite_option

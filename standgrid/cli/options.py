@@ -221,11 +221,32 @@ REGISTRY: dict[str, Option] = {
 # fmt: on
 
 #: The options of each stage, in the order ``--help`` lists them.
-TILE = ("cell_size", "levels", "voronoi", "crs", "anchor", "buffer", "las", "copc", "method",
-        "epoch", "scan_date", "trajectory", "replace_missions", "no_align",
-        "accept_poor_georeference")  # fmt: skip
-ENRICH = ("epochs", "pixel_size", "halo", "height_break", "rigidness", "min_observed_fraction",
-          "min_density_pts_m2")  # fmt: skip
+TILE = (
+    "cell_size",
+    "levels",
+    "voronoi",
+    "crs",
+    "anchor",
+    "buffer",
+    "las",
+    "copc",
+    "method",
+    "epoch",
+    "scan_date",
+    "trajectory",
+    "replace_missions",
+    "no_align",
+    "accept_poor_georeference",
+)
+ENRICH = (
+    "epochs",
+    "pixel_size",
+    "halo",
+    "height_break",
+    "rigidness",
+    "min_observed_fraction",
+    "min_density_pts_m2",
+)
 COMPARE = ("epoch_from", "epoch_to", "other_catalog", "max_distance", "min_observed_fraction")
 CLUSTER = ("workers", "scheduler", "memory_mb", "lock_timeout")
 

@@ -67,26 +67,37 @@ def _layer_options(command: F) -> F:
     ``--out``, ``--frame``."""
     decorators = [
         click.option(
-            "--layers", "catalog", metavar="CATALOG",
+            "--layers",
+            "catalog",
+            metavar="CATALOG",
             type=click.Path(exists=True, file_okay=False, path_type=Path),
             help="Each payload with its layers from this catalog: per-point ground class, "
             "height above ground and tree id, its trees and its terrain.",
         ),
         click.option(
-            "--which", default="all", show_default=True, metavar="LAYERS", callback=_layer_names,
+            "--which",
+            default="all",
+            show_default=True,
+            metavar="LAYERS",
+            callback=_layer_names,
             help="The layers, comma separated: ground, height, trees, terrain (or all).",
         ),
         click.option(
-            "--out", type=click.Path(path_type=Path), metavar="PATH",
+            "--out",
+            type=click.Path(path_type=Path),
+            metavar="PATH",
             help="With --layers: write each payload's points with its per-point layers as "
             "LAS/LAZ: a .laz/.las file for one payload, else a folder of <stamp>.laz.",
         ),
         click.option(
-            "--frame", type=click.Choice(["crs", "payload"]), default="crs", show_default=True,
+            "--frame",
+            type=click.Choice(["crs", "payload"]),
+            default="crs",
+            show_default=True,
             help="Coordinates of --out: the catalog CRS (as the tiles store them) or the "
             "payload frame.",
         ),
-    ]  # fmt: skip
+    ]
     for decorate in reversed(decorators):
         command = decorate(command)
     return command
@@ -215,10 +226,13 @@ def by_pose(
 @click.argument("alt", type=float, required=False)
 @click.option("-k", "k", type=int, default=1, show_default=True, help="Number of nearest payloads.")
 @click.option(
-    "--max-distance", type=click.FloatRange(0, min_open=True), default=1000.0,
-    show_default=True, metavar="METRES",
+    "--max-distance",
+    type=click.FloatRange(0, min_open=True),
+    default=1000.0,
+    show_default=True,
+    metavar="METRES",
     help="Refuse when the nearest payload is farther (LAT and LON swapped, another place).",
-)  # fmt: skip
+)
 @_layer_options
 @json_option
 def by_gnss(

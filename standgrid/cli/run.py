@@ -65,9 +65,11 @@ def _human(r: dict[str, Any]) -> str:
 
 @click.command("run")
 @click.argument(
-    "paths", nargs=-1, required=True,
+    "paths",
+    nargs=-1,
+    required=True,
     type=click.Path(exists=True, path_type=Path),
-)  # fmt: skip
+)
 @output_option(help="Catalog folder.")
 @options(*RUN_OPTIONS)
 @json_option

@@ -76,9 +76,18 @@ from standgrid.cli.options import json_option
     "(the catalog keeps its last commit); 0: no limit.",
 )
 @json_option
-def serve(catalog: Path, host: str, port: int, token_file: Path | None,
-          missions_folder: Path | None, max_body: int, placement_tolerance: float,
-          write_time_limit: float, tile_time_limit: float, as_json: bool) -> None:  # fmt: skip
+def serve(
+    catalog: Path,
+    host: str,
+    port: int,
+    token_file: Path | None,
+    missions_folder: Path | None,
+    max_body: int,
+    placement_tolerance: float,
+    write_time_limit: float,
+    tile_time_limit: float,
+    as_json: bool,
+) -> None:
     """Serve CATALOG over HTTP until Ctrl-C.
 
     \b
@@ -102,16 +111,20 @@ def serve(catalog: Path, host: str, port: int, token_file: Path | None,
 
     check_port_free(host, port)  # one clear line, not uvicorn's, and before the app loads
     token = load_token(token_file)
-    app = create_app(catalog, token=token, max_body=max_body, missions=missions_folder,
-                     placement_tolerance=placement_tolerance or None,
-                     write_time_limit=write_time_limit,
-                     tile_time_limit=tile_time_limit or None)  # fmt: skip
+    app = create_app(
+        catalog,
+        token=token,
+        max_body=max_body,
+        missions=missions_folder,
+        placement_tolerance=placement_tolerance or None,
+        write_time_limit=write_time_limit,
+        tile_time_limit=tile_time_limit or None,
+    )
 
     def started(base: str) -> None:
         urls = service_urls(base)
         if as_json:
-            click.echo(json.dumps({"catalog": str(catalog), "writes": token is not None,
-                                   **urls}))  # fmt: skip
+            click.echo(json.dumps({"catalog": str(catalog), "writes": token is not None, **urls}))
         else:
             click.echo(f"serving {catalog} ({'read-write' if token else 'read-only'})")
             for name, url in urls.items():

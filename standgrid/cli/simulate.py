@@ -26,38 +26,75 @@ def _human(results: list[dict[str, Any]]) -> str:
 @click.option(
     "--seed", type=int, default=0, show_default=True, help="Random seed (same seed, same bytes)."
 )
-@click.option("--epochs", type=click.IntRange(1, 2), default=2, show_default=True,
-              help="1: the 2024 mission only; 2: both campaigns (2024 and 2028).")  # fmt: skip
-@click.option("--area", type=click.FloatRange(min=40.0), default=120.0, show_default=True,
-              help="Side of the square stand, metres.")  # fmt: skip
-@click.option("--points-per-payload", type=click.IntRange(min=100), default=30_000,
-              show_default=True, help="Points per ~20 m payload (density knob).")  # fmt: skip
-@click.option("--write-georef", is_flag=True,
-              help="Also write the true GNSS_LLA_REF / GNSS_LLA_TO_MAP.")  # fmt: skip
-@click.option("--forest", type=click.Choice(["plantation", "mixed"]), default="plantation",
-              show_default=True,
-              help="plantation: evenly spaced vertical trees; mixed: overstorey, understorey, "
-                   "snags, leaning and forked stems, shrubs (scan it with a ray-casting "
-                   "--scanner).")  # fmt: skip
-@click.option("--scanner", type=click.Choice(["surface", "handheld", "legged", "airborne"]),
-              default="surface", show_default=True,
-              help="surface: points on the true surfaces (no occlusion); handheld, legged, "
-                   "airborne: ray casting with occlusion and porous crowns.")  # fmt: skip
-@click.option("--lane-spacing", type=click.FloatRange(min=2.0), default=32.0, show_default=True,
-              help="Largest spacing of the robot's serpentine lanes, metres.")  # fmt: skip
-@click.option("--gnss", "gnss", type=click.Choice(["demo", "canopy"]), default="demo",
-              show_default=True,
-              help="demo: canopy noise with RTK windows, honest stated accuracies; canopy: "
-                   "as under a forest canopy (a 1 m bias per recording, a 2 m Gauss-Markov "
-                   "walk over 120 s, 0.3 m noise, RTK float or single fixes stating 0.5 m).",
-              )  # fmt: skip
-@click.option("--second-robot", is_flag=True,
-              help="Also a second robot's mission over the same stand on the first "
-                   "campaign's day.")  # fmt: skip
-@click.option("--elevation-maps", is_flag=True,
-              help="Also an elevation map per payload (payloads/elevation/): the terrain "
-                   "truth plus a known error (5 cm bias, 3 cm noise; stated in truth.json).",
-              )  # fmt: skip
+@click.option(
+    "--epochs",
+    type=click.IntRange(1, 2),
+    default=2,
+    show_default=True,
+    help="1: the 2024 mission only; 2: both campaigns (2024 and 2028).",
+)
+@click.option(
+    "--area",
+    type=click.FloatRange(min=40.0),
+    default=120.0,
+    show_default=True,
+    help="Side of the square stand, metres.",
+)
+@click.option(
+    "--points-per-payload",
+    type=click.IntRange(min=100),
+    default=30_000,
+    show_default=True,
+    help="Points per ~20 m payload (density knob).",
+)
+@click.option(
+    "--write-georef", is_flag=True, help="Also write the true GNSS_LLA_REF / GNSS_LLA_TO_MAP."
+)
+@click.option(
+    "--forest",
+    type=click.Choice(["plantation", "mixed"]),
+    default="plantation",
+    show_default=True,
+    help="plantation: evenly spaced vertical trees; mixed: overstorey, understorey, "
+    "snags, leaning and forked stems, shrubs (scan it with a ray-casting "
+    "--scanner).",
+)
+@click.option(
+    "--scanner",
+    type=click.Choice(["surface", "handheld", "legged", "airborne"]),
+    default="surface",
+    show_default=True,
+    help="surface: points on the true surfaces (no occlusion); handheld, legged, "
+    "airborne: ray casting with occlusion and porous crowns.",
+)
+@click.option(
+    "--lane-spacing",
+    type=click.FloatRange(min=2.0),
+    default=32.0,
+    show_default=True,
+    help="Largest spacing of the robot's serpentine lanes, metres.",
+)
+@click.option(
+    "--gnss",
+    "gnss",
+    type=click.Choice(["demo", "canopy"]),
+    default="demo",
+    show_default=True,
+    help="demo: canopy noise with RTK windows, honest stated accuracies; canopy: "
+    "as under a forest canopy (a 1 m bias per recording, a 2 m Gauss-Markov "
+    "walk over 120 s, 0.3 m noise, RTK float or single fixes stating 0.5 m).",
+)
+@click.option(
+    "--second-robot",
+    is_flag=True,
+    help="Also a second robot's mission over the same stand on the first campaign's day.",
+)
+@click.option(
+    "--elevation-maps",
+    is_flag=True,
+    help="Also an elevation map per payload (payloads/elevation/): the terrain "
+    "truth plus a known error (5 cm bias, 3 cm noise; stated in truth.json).",
+)
 @overwrite_option
 @json_option
 @quiet_option
@@ -97,11 +134,15 @@ def simulate(
 
     try:
         config = SimulationConfig(
-            area=area, points_per_payload=points_per_payload, write_georef=write_georef,
-            forest=forest, scanner_kind=scanner, lane_spacing=lane_spacing,
+            area=area,
+            points_per_payload=points_per_payload,
+            write_georef=write_georef,
+            forest=forest,
+            scanner_kind=scanner,
+            lane_spacing=lane_spacing,
             gnss=gnss_model(gnss),
             elevation_maps=ElevationMapModel() if elevation_maps else None,
-        )  # fmt: skip
+        )
     except ValueError as exc:
         raise click.UsageError(str(exc)) from exc
     results = []

@@ -67,18 +67,27 @@ def check_las_header(path: Path, *, points: bool = True) -> LasHeaderFacts:
             (header_size, offset, n_vlrs, fmt_byte, record) = struct.unpack_from("<HIIBH", head, 94)
             need = HEADER_SIZES[minor]
             if header_size < need or header_size > size or len(head) < min(need, 375):
-                raise _bad(path, f"header size {header_size} (LAS 1.{minor}: at least {need}, "
-                           f"file of {size} bytes)")  # fmt: skip
+                raise _bad(
+                    path,
+                    f"header size {header_size} (LAS 1.{minor}: at least {need}, "
+                    f"file of {size} bytes)",
+                )
             if not header_size <= offset <= size:
-                raise _bad(path, f"offset to point data {offset} outside the header's end "
-                           f"{header_size} and the file's {size} bytes")  # fmt: skip
+                raise _bad(
+                    path,
+                    f"offset to point data {offset} outside the header's end "
+                    f"{header_size} and the file's {size} bytes",
+                )
             point_format = fmt_byte & 0x3F
             compressed = bool(fmt_byte & 0xC0)
             if point_format not in POINT_RECORD_SIZES:
                 raise _bad(path, f"point data format {point_format} (0 to 10 exist)")
             if record < POINT_RECORD_SIZES[point_format]:
-                raise _bad(path, f"point record length {record} below format {point_format}'s "
-                           f"{POINT_RECORD_SIZES[point_format]} bytes")  # fmt: skip
+                raise _bad(
+                    path,
+                    f"point record length {record} below format {point_format}'s "
+                    f"{POINT_RECORD_SIZES[point_format]} bytes",
+                )
             scales = struct.unpack_from("<3d", head, 131)
             offsets = struct.unpack_from("<3d", head, 155)
             if not all(math.isfinite(s) and s != 0.0 for s in scales):
@@ -88,8 +97,11 @@ def check_las_header(path: Path, *, points: bool = True) -> LasHeaderFacts:
             room = offset - header_size
             if n_vlrs > MAX_VLRS or n_vlrs * VLR_HEADER > room:
                 most = min(room // VLR_HEADER, MAX_VLRS)
-                raise _bad(path, f"{n_vlrs} VLRs announced, {room} bytes between the header "
-                           f"and the points hold at most {most}")  # fmt: skip
+                raise _bad(
+                    path,
+                    f"{n_vlrs} VLRs announced, {room} bytes between the header "
+                    f"and the points hold at most {most}",
+                )
             at = header_size
             for i in range(n_vlrs):
                 fp.seek(at)
@@ -99,8 +111,9 @@ def check_las_header(path: Path, *, points: bool = True) -> LasHeaderFacts:
                 (length,) = struct.unpack_from("<H", vlr, 20)
                 at += VLR_HEADER + length
                 if at > offset:
-                    raise _bad(path, f"VLR {i} ends at byte {at}, past the point data's "
-                               f"offset {offset}")  # fmt: skip
+                    raise _bad(
+                        path, f"VLR {i} ends at byte {at}, past the point data's offset {offset}"
+                    )
             count = int(struct.unpack_from("<I", head, 107)[0])
             n_evlrs = 0
             if minor >= 4:
@@ -108,20 +121,21 @@ def check_las_header(path: Path, *, points: bool = True) -> LasHeaderFacts:
                 count = int(count64) or count
                 if n_evlrs:
                     if n_evlrs > MAX_VLRS or not offset <= evlr_start <= size:
-                        raise _bad(path, f"{n_evlrs} EVLRs at byte {evlr_start} (file of "
-                                   f"{size} bytes)")  # fmt: skip
+                        raise _bad(
+                            path, f"{n_evlrs} EVLRs at byte {evlr_start} (file of {size} bytes)"
+                        )
                     at = evlr_start
                     for i in range(n_evlrs):
                         fp.seek(at)
                         evlr = fp.read(EVLR_HEADER)
                         if len(evlr) < EVLR_HEADER:
-                            raise _bad(path, f"EVLR {i} at byte {at} runs past the end of "
-                                       "the file")  # fmt: skip
+                            raise _bad(path, f"EVLR {i} at byte {at} runs past the end of the file")
                         (length,) = struct.unpack_from("<Q", evlr, 20)
                         at += EVLR_HEADER + int(length)
                         if at > size:
-                            raise _bad(path, f"EVLR {i} ends at byte {at}, past the file's "
-                                       f"{size} bytes")  # fmt: skip
+                            raise _bad(
+                                path, f"EVLR {i} ends at byte {at}, past the file's {size} bytes"
+                            )
             end = evlr_start if minor >= 4 and n_evlrs else size
             if points and not compressed and count * record > end - offset:
                 raise PointCloudFormatError(
@@ -134,7 +148,14 @@ def check_las_header(path: Path, *, points: bool = True) -> LasHeaderFacts:
     except OSError as exc:
         raise PointCloudFormatError(f"cannot read the LAS/LAZ header ({exc})", path=path) from exc
     return LasHeaderFacts(
-        version=(major, minor), header_size=header_size, offset_to_points=offset, vlrs=n_vlrs,
-        point_format=point_format, compressed=compressed, record_length=record,
-        point_count=count, evlrs=n_evlrs, file_size=size,
-    )  # fmt: skip
+        version=(major, minor),
+        header_size=header_size,
+        offset_to_points=offset,
+        vlrs=n_vlrs,
+        point_format=point_format,
+        compressed=compressed,
+        record_length=record,
+        point_count=count,
+        evlrs=n_evlrs,
+        file_size=size,
+    )

@@ -106,9 +106,11 @@ def stand_change(
             [trees[trees["status"].isin(["grown", "removed"])]["dbh_m_from"], either]
         )
         after = pd.concat(
-            [trees[trees["status"].isin(["grown", "new"])]["dbh_m_to"],
-             missed["dbh_m_to"].fillna(missed["dbh_m_from"])]
-        )  # fmt: skip
+            [
+                trees[trees["status"].isin(["grown", "new"])]["dbh_m_to"],
+                missed["dbh_m_to"].fillna(missed["dbh_m_from"]),
+            ]
+        )
         sides = {"from": _per_ha(before, area), "to": _per_ha(after, area)}
         for metric in CO_OBSERVED_METRICS:
             a, b = sides["from"][metric], sides["to"][metric]

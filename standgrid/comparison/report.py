@@ -159,9 +159,16 @@ def write_change_outputs(
     from standgrid.export.gpkg import IndexWriter
 
     outputs, layers = change_layers(
-        out_dir, stand_changes, tree_changes, epoch_from=epoch_from, epoch_to=epoch_to,
-        cells=cells, crs=crs, style_field=style_field, overwrite=overwrite,
-    )  # fmt: skip
+        out_dir,
+        stand_changes,
+        tree_changes,
+        epoch_from=epoch_from,
+        epoch_to=epoch_to,
+        cells=cells,
+        crs=crs,
+        style_field=style_field,
+        overwrite=overwrite,
+    )
     layer_crs = crs or layers[0].frame.crs.to_wkt()
     with IndexWriter(gpkg_path, layer_crs) as index:
         for layer in layers:

@@ -233,9 +233,14 @@ def match_trees(
         match_a, match_b = _same_uid(a, b)
     else:
         match_a, match_b = pair_trees(
-            xy_a, h_a, xy_b, h_b, max_distance=max_distance,
-            max_height_loss=max_height_loss, max_height_gain=max_height_gain,
-        )  # fmt: skip
+            xy_a,
+            h_a,
+            xy_b,
+            h_b,
+            max_distance=max_distance,
+            max_height_loss=max_height_loss,
+            max_height_gain=max_height_gain,
+        )
 
     unmatched_a = np.setdiff1d(np.arange(len(a)), match_a)
     unmatched_b = np.setdiff1d(np.arange(len(b)), match_b)

@@ -191,8 +191,9 @@ def open_executor(
     wait_passively()
     environ = "distributed.nanny.pre-spawn-environ"
     waiting = {f"{environ}.{name}": os.environ[name] for name in WAIT_POLICY if name in os.environ}
-    with dask.config.set({f"{environ}.MALLOC_TRIM_THRESHOLD_": None,
-                          f"{environ}.RAYON_NUM_THREADS": 1, **waiting}):  # fmt: skip
+    with dask.config.set(
+        {f"{environ}.MALLOC_TRIM_THRESHOLD_": None, f"{environ}.RAYON_NUM_THREADS": 1, **waiting}
+    ):
         cluster = LocalCluster(
             n_workers=workers,
             threads_per_worker=1,

@@ -107,9 +107,11 @@ class VoxelGraph:
         reached = np.flatnonzero(voxel_tree >= 0)
         if len(lost) and len(reached) and self.options.bridge > 0:
             voxel_tree[lost] = _nearest_tree(
-                self.centres[lost], self.centres[reached], voxel_tree[reached],
+                self.centres[lost],
+                self.centres[reached],
+                voxel_tree[reached],
                 self.options.bridge,
-            )  # fmt: skip
+            )
         label = np.full(self.n_points, -1, dtype=np.int64)
         label[self.rows] = voxel_tree[self.voxel_of]
         return label
@@ -154,8 +156,9 @@ def _lattice_graph(keys: NDArray[np.int64], o: CrownOptions) -> Any:
     grid = np.arange(-r, r + 1)
     offsets = np.stack(np.meshgrid(grid, grid, grid, indexing="ij"), -1).reshape(-1, 3)
     offsets = offsets[(offsets**2).sum(axis=1) <= reach * reach + 1e-9]
-    positive = (offsets[:, 0] > 0) | ((offsets[:, 0] == 0) & (
-        (offsets[:, 1] > 0) | ((offsets[:, 1] == 0) & (offsets[:, 2] > 0))))  # fmt: skip
+    positive = (offsets[:, 0] > 0) | (
+        (offsets[:, 0] == 0) & ((offsets[:, 1] > 0) | ((offsets[:, 1] == 0) & (offsets[:, 2] > 0)))
+    )
     offsets = offsets[positive]
     across = np.hypot(offsets[:, 0], offsets[:, 1])
     rise = offsets[:, 2].astype(np.float64)
@@ -212,7 +215,10 @@ def _voxels(
     del cell
     unique, voxel_of = np.unique(packed, return_inverse=True)
     keys = np.column_stack(
-        [unique // (span[1] * span[2]) + low[0], unique // span[2] % span[1] + low[1],
-         unique % span[2] + low[2]]
-    )  # fmt: skip
+        [
+            unique // (span[1] * span[2]) + low[0],
+            unique // span[2] % span[1] + low[1],
+            unique % span[2] + low[2],
+        ]
+    )
     return keys, voxel_of.ravel()

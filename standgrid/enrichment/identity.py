@@ -64,9 +64,13 @@ def pair_trees(
     doc): the paired rows of each."""
     rows, cols, distance = candidate_pairs(xy_a, xy_b, max_distance)
     cost, allowed = pair_costs(
-        h_a[rows], h_b[cols], distance, max_distance=max_distance,
-        max_height_loss=max_height_loss, max_height_gain=max_height_gain,
-    )  # fmt: skip
+        h_a[rows],
+        h_b[cols],
+        distance,
+        max_distance=max_distance,
+        max_height_loss=max_height_loss,
+        max_height_gain=max_height_gain,
+    )
     return solve_pairs(len(xy_a), len(xy_b), rows[allowed], cols[allowed], cost[allowed])
 
 

@@ -125,9 +125,7 @@ def write_layers(
     )
     column = "zq95" if "zq95" in stands.columns else "zmax"
     lo, hi = _range(_kept_and_new(index, "stand_metrics", epochs, stands, column))
-    index.replace(
-        "stand_metrics", stands, epochs=epochs, style=stand_metric_style("zq95", lo, hi)
-    )
+    index.replace("stand_metrics", stands, epochs=epochs, style=stand_metric_style("zq95", lo, hi))
     tree_rows = [t for t in tree_tables.values() if len(t)]
     if tree_rows or "trees" in index.layers():
         table = pd.concat(tree_rows, ignore_index=True) if tree_rows else None

@@ -60,9 +60,21 @@ POINT_FIELDS = {"ground": "classification", "height": "height_above_ground", "tr
 FILL = {"classification": 0, "height_above_ground": np.nan, "tree_id": 0}
 #: Columns of :attr:`PayloadLayers.trees`.
 PAYLOAD_TREE_COLUMNS = (
-    "tree_id", "tree_uid", "x", "y", "z", "x_payload", "y_payload", "z_payload", "height_m",
-    "dbh_m", "dbh_source", "detected_by", "payload_points", "in_footprint",
-)  # fmt: skip
+    "tree_id",
+    "tree_uid",
+    "x",
+    "y",
+    "z",
+    "x_payload",
+    "y_payload",
+    "z_payload",
+    "height_m",
+    "dbh_m",
+    "dbh_source",
+    "detected_by",
+    "payload_points",
+    "in_footprint",
+)
 #: Core points of tiles one retrieval keeps decoded for its other payloads (~40 bytes each).
 CACHED_TILE_POINTS = 4_000_000
 
@@ -267,10 +279,13 @@ class _Reader:
         from standgrid.tiling.mission_rows import payload_id
 
         index = next(
-            (k for k, p in enumerate(self.clouds) if p.stamp == payload.stamp
-             and p.path == payload.path),
+            (
+                k
+                for k, p in enumerate(self.clouds)
+                if p.stamp == payload.stamp and p.path == payload.path
+            ),
             None,
-        )  # fmt: skip
+        )
         if index is None:
             raise PayloadNotTiledError(
                 f"{payload.path.name} ({payload.stamp}) is not a point-cloud payload of "
@@ -415,9 +430,12 @@ class _Reader:
         selection = laspy.DecompressionSelection
         las = read_tile_record(
             path,
-            decompression_selection=selection.XY_RETURNS_CHANNEL | selection.Z
-            | selection.CLASSIFICATION | selection.FLAGS | selection.ALL_EXTRA_BYTES,
-        )  # fmt: skip
+            decompression_selection=selection.XY_RETURNS_CHANNEL
+            | selection.Z
+            | selection.CLASSIFICATION
+            | selection.FLAGS
+            | selection.ALL_EXTRA_BYTES,
+        )
         names = list(POINT_FIELDS.values())
         present = set(las.point_format.dimension_names)
         missing = [n for n in (*names, "payload_id") if n not in present]
@@ -427,8 +445,10 @@ class _Reader:
             )
         core = ~np.asarray(las.withheld, dtype=bool)
         xyz = np.column_stack([np.asarray(las.x), np.asarray(las.y), np.asarray(las.z)])[core]
-        tile = {"keys": _lattice_keys(xyz, self.origin),
-                "payload_id": np.asarray(las["payload_id"])[core]}  # fmt: skip
+        tile = {
+            "keys": _lattice_keys(xyz, self.origin),
+            "payload_id": np.asarray(las["payload_id"])[core],
+        }
         for name in names:
             tile[name] = np.asarray(las[name])[core]
         self._tiles[rel] = tile
@@ -458,9 +478,12 @@ class _Reader:
         keep = (points > 0) | inside
         chosen = table[keep]
         position = np.column_stack(
-            [chosen["x"].to_numpy(np.float64), chosen["y"].to_numpy(np.float64),
-             chosen["z_ground"].to_numpy(np.float64)]
-        )  # fmt: skip
+            [
+                chosen["x"].to_numpy(np.float64),
+                chosen["y"].to_numpy(np.float64),
+                chosen["z_ground"].to_numpy(np.float64),
+            ]
+        )
         local = self._to_payload(payload, position)
         out = pd.DataFrame(
             {
@@ -535,9 +558,11 @@ class _Reader:
             from pyproj.enums import TransformDirection
 
             x, y = transformer.transform(
-                xyz_crs[:, 0], xyz_crs[:, 1], direction=TransformDirection.INVERSE,
+                xyz_crs[:, 0],
+                xyz_crs[:, 1],
+                direction=TransformDirection.INVERSE,
                 errcheck=True,
-            )  # fmt: skip
+            )
             return np.column_stack([np.asarray(x), np.asarray(y), xyz_crs[:, 2]])
         xyz_map = to_catalog.projector.to_map(xyz_crs)
         return transform_points(invert_pose(self.mission.pose_of(payload)), xyz_map)

@@ -220,16 +220,18 @@ def segment_trees(
     stem_top = _tops_of_stems(found.table, tops, xyz, h, graph, stem_reach, trunk_top)
     top_tree = np.full(len(tops.seeds), -1, dtype=np.int64)
     top_tree[stem_top[stem_top >= 0]] = np.flatnonzero(stem_top >= 0)
-    top_only = np.flatnonzero((top_tree < 0) & ~_secondary_tops(tops, xyz, h, graph,
-                                                                stem_reach, stem_top))  # fmt: skip
+    top_only = np.flatnonzero(
+        (top_tree < 0) & ~_secondary_tops(tops, xyz, h, graph, stem_reach, stem_top)
+    )
     top_tree[top_only] = n_stems + np.arange(len(top_only))
     # a stem carrying no canopy top may have one the CHM smoothed away (a sparse apex)
     lone = np.flatnonzero(stem_top < 0)
     apex = _apexes_over_stems(found.table.iloc[lone], tops, xyz, h, finite, min_height, window)
     has_apex = apex >= 0
     seeded = top_tree >= 0  # a secondary top is its tree's crown, no seed
-    sources = np.concatenate([stem_voxels, graph.voxels(tops.top_rows[seeded]),
-                              graph.voxels(apex[has_apex])])  # fmt: skip
+    sources = np.concatenate(
+        [stem_voxels, graph.voxels(tops.top_rows[seeded]), graph.voxels(apex[has_apex])]
+    )
     source_trees = np.concatenate([stem_of, top_tree[seeded], lone[has_apex]])
     label = graph.labels(graph.reach(sources, source_trees)[0])
     label[~(finite & (h >= point_min_height))] = -1
@@ -262,8 +264,9 @@ def segment_trees(
     table = _table(xyz, h, found, carries_top, top_row, kept, labels, keep_bounds)
     owned = np.flatnonzero(table["owned"].to_numpy(dtype=bool))
     crowns: list[object] = [None] * len(table)
-    for k, (polygon, area) in _footprints(xyz, h, labels, table, owned, pixel_size,
-                                          crown_fraction).items():  # fmt: skip
+    for k, (polygon, area) in _footprints(
+        xyz, h, labels, table, owned, pixel_size, crown_fraction
+    ).items():
         crowns[k] = polygon
         table.loc[k, "crown_area_m2"] = area
     table["crown"] = crowns
@@ -527,10 +530,13 @@ def _apexes_over_stems(
     margin = float((APEX_REACH_M + lean_reach).max()) + float(window(np.array([np.inf]))[0])
     x, y = xyz[:, 0], xyz[:, 1]
     canopy = np.flatnonzero(
-        finite & (h >= min_height)
-        & (x >= sx.min() - margin) & (x <= sx.max() + margin)
-        & (y >= sy.min() - margin) & (y <= sy.max() + margin)
-    )  # fmt: skip
+        finite
+        & (h >= min_height)
+        & (x >= sx.min() - margin)
+        & (x <= sx.max() + margin)
+        & (y >= sy.min() - margin)
+        & (y <= sy.max() + margin)
+    )
     if len(canopy):
         dist, _ = cKDTree(np.column_stack([sx, sy])).query(
             xyz[canopy, :2], distance_upper_bound=margin
@@ -604,8 +610,17 @@ def _table(
     detected = np.full(n, TOP, dtype=object)
     detected[is_stem] = np.where(has_top[stem_rows], BOTH, STEM)
     table["detected_by"] = pd.array(detected, dtype="string")
-    for column in ("dbh_m", "dbh_se_m", "stem_x", "stem_y", "dbh_rmse_m", "dbh_arc_deg",
-                   "lean_deg", "stem_low_m", "stem_high_m"):  # fmt: skip
+    for column in (
+        "dbh_m",
+        "dbh_se_m",
+        "stem_x",
+        "stem_y",
+        "dbh_rmse_m",
+        "dbh_arc_deg",
+        "lean_deg",
+        "stem_low_m",
+        "stem_high_m",
+    ):
         values = np.full(n, np.nan)
         values[is_stem] = stems[column].to_numpy(dtype=np.float64)[stem_rows]
         table[column] = values
@@ -693,8 +708,9 @@ def _footprints(
         mask[row.max() + 1 - row, col - c0] = True  # rows from the north
         mask = ndimage.binary_closing(mask, structure=np.ones((3, 3), bool), border_value=0)
         mask |= ndimage.binary_fill_holes(mask)
-        transform = RasterGrid(c0 * pixel_size, r0 * pixel_size, pixel_size,
-                               mask.shape[1], mask.shape[0]).transform  # fmt: skip
+        transform = RasterGrid(
+            c0 * pixel_size, r0 * pixel_size, pixel_size, mask.shape[1], mask.shape[0]
+        ).transform
         shapes = features.shapes(mask.astype(np.uint8), mask=mask, transform=transform)
         polygon = unary_union([shape(g) for g, _ in shapes])
         out[k] = (polygon, float(mask.sum()) * pixel_size**2)

@@ -74,8 +74,13 @@ _MORTON_BITS = 21  # per axis: three fit in a uint64
 def _spread(v: NDArray[np.uint64]) -> NDArray[np.uint64]:
     """Bits ``b`` of 21-bit integers moved to ``3 * b`` (Morton interleaving)."""
     v = v & np.uint64(0x1FFFFF)
-    for shift, mask in ((32, 0x1F00000000FFFF), (16, 0x1F0000FF0000FF), (8, 0x100F00F00F00F00F),
-                        (4, 0x10C30C30C30C30C3), (2, 0x1249249249249249)):  # fmt: skip
+    for shift, mask in (
+        (32, 0x1F00000000FFFF),
+        (16, 0x1F0000FF0000FF),
+        (8, 0x100F00F00F00F00F),
+        (4, 0x10C30C30C30C30C3),
+        (2, 0x1249249249249249),
+    ):
         v = (v | (v << np.uint64(shift))) & np.uint64(mask)
     return v
 
@@ -83,8 +88,13 @@ def _spread(v: NDArray[np.uint64]) -> NDArray[np.uint64]:
 def _compact(v: NDArray[np.uint64]) -> NDArray[np.uint64]:
     """The inverse of :func:`_spread`."""
     v = v & np.uint64(0x1249249249249249)
-    for shift, mask in ((2, 0x10C30C30C30C30C3), (4, 0x100F00F00F00F00F), (8, 0x1F0000FF0000FF),
-                        (16, 0x1F00000000FFFF), (32, 0x1FFFFF)):  # fmt: skip
+    for shift, mask in (
+        (2, 0x10C30C30C30C30C3),
+        (4, 0x100F00F00F00F00F),
+        (8, 0x1F0000FF0000FF),
+        (16, 0x1F00000000FFFF),
+        (32, 0x1FFFFF),
+    ):
         v = (v | (v >> np.uint64(shift))) & np.uint64(mask)
     return v
 
@@ -421,9 +431,19 @@ def _relocate(raw: Path, target: Path, own_vlrs: list[bytes], *, info: tuple[flo
     # COPC info: cube, spacing, root hierarchy page offset and size, GPS time range.
     cx, cy, cz, half, spacing, gps_min, gps_max = info
     struct.pack_into(
-        "<5dQQdd", info_vlr, _VLR_HEADER, cx, cy, cz, half, spacing,
-        new_evlr + _EVLR_HEADER, len(entries), gps_min, gps_max,
-    )  # fmt: skip
+        "<5dQQdd",
+        info_vlr,
+        _VLR_HEADER,
+        cx,
+        cy,
+        cz,
+        half,
+        spacing,
+        new_evlr + _EVLR_HEADER,
+        len(entries),
+        gps_min,
+        gps_max,
+    )
     block = b"".join([bytes(info_vlr), *own_vlrs, _vlr_bytes(lazvlr[0])])
     struct.pack_into("<II", header, 96, new_points, 2 + len(own_vlrs))
     struct.pack_into("<QI", header, 235, new_evlr, 1)

@@ -46,23 +46,61 @@ if TYPE_CHECKING:
 
 LAYER_COLUMNS: dict[str, tuple[str, ...]] = {
     "cells": (
-        "cell_id", "level", "cell_size", "epoch", "point_count", "density", "z_min", "z_max",
-        "z_mean", "z_p95", "tile_path", "missions",
+        "cell_id",
+        "level",
+        "cell_size",
+        "epoch",
+        "point_count",
+        "density",
+        "z_min",
+        "z_max",
+        "z_mean",
+        "z_p95",
+        "tile_path",
+        "missions",
     ),
     "payloads": (
-        "payload_id", "mission", "stamp_sec", "stamp_nsec", "time", "node_id", "point_count",
-        "x", "y", "z", "yaw",
+        "payload_id",
+        "mission",
+        "stamp_sec",
+        "stamp_nsec",
+        "time",
+        "node_id",
+        "point_count",
+        "x",
+        "y",
+        "z",
+        "yaw",
     ),
     "trajectories": ("mission", "epoch"),
     "gnss_fixes": (
-        "mission", "stamp_sec", "stamp_nsec", "quality", "residual_e", "residual_n",
-        "residual_u", "residual_h", "inlier",
+        "mission",
+        "stamp_sec",
+        "stamp_nsec",
+        "quality",
+        "residual_e",
+        "residual_n",
+        "residual_u",
+        "residual_h",
+        "inlier",
     ),
     "missions": (
-        "mission", "number", "epoch", "date", "robot", "place", "unit", "sensors", "fit_method",
-        "rmse_m", "n_used", "n_rejected", "grid_fingerprint", "crs",
+        "mission",
+        "number",
+        "epoch",
+        "date",
+        "robot",
+        "place",
+        "unit",
+        "sensors",
+        "fit_method",
+        "rmse_m",
+        "n_used",
+        "n_rejected",
+        "grid_fingerprint",
+        "crs",
     ),
-}  # fmt: skip
+}
 #: GeoPackage version of new index files (the widest-read one with everything we use).
 GPKG_VERSION = "1.2"
 #: Layers that must carry a geometry.
@@ -93,8 +131,9 @@ def read_index_layer(path: str | os.PathLike[str], layer: str) -> Any:
     try:
         return pyogrio.read_dataframe(path, layer=layer)
     except Exception as exc:
-        raise CatalogError(f"unreadable layer {layer!r} of the GeoPackage index ({exc})",
-                           path=path) from exc  # fmt: skip
+        raise CatalogError(
+            f"unreadable layer {layer!r} of the GeoPackage index ({exc})", path=path
+        ) from exc
 
 
 def cell_row(
@@ -283,9 +322,13 @@ class IndexWriter:
         """Add a QGIS style to a layer of the index being written."""
         try:
             styles.add_layer_style(
-                self.working_path, layer, qml, style_name=style_name, default=default,
+                self.working_path,
+                layer,
+                qml,
+                style_name=style_name,
+                default=default,
                 description=description,
-            )  # fmt: skip
+            )
         except CatalogError as exc:  # SQLite's error, maybe "database or disk is full"
             self._refuse_when_full(exc)
             raise
@@ -314,8 +357,13 @@ def write_index(
 
     Layers not given are kept from ``base`` / the existing index. One atomic replace.
     """
-    given = {"cells": cells, "payloads": payloads, "trajectories": trajectories,
-             "gnss_fixes": gnss_fixes, "missions": missions}  # fmt: skip
+    given = {
+        "cells": cells,
+        "payloads": payloads,
+        "trajectories": trajectories,
+        "gnss_fixes": gnss_fixes,
+        "missions": missions,
+    }
     with IndexWriter(gpkg_path, crs, base=base) as writer:
         for name, rows in given.items():
             if rows is not None:
@@ -331,16 +379,19 @@ def write_standard_layer(writer: IndexWriter, name: str, rows: Any) -> None:
         density = frame["density"].dropna()
         if len(density):
             writer.add_style(
-                "cells", styles.density_style(float(density.min()), float(density.max())),
-                style_name="cells by density", default=False,
+                "cells",
+                styles.density_style(float(density.min()), float(density.max())),
+                style_name="cells by density",
+                default=False,
                 description="points per square metre",
-            )  # fmt: skip
+            )
     elif name == "trajectories":
         names = sorted(str(m) for m in frame["mission"].unique())
         writer.write_layer(
-            "trajectories", frame,
+            "trajectories",
+            frame,
             style=styles.categorized_style("mission", names, geometry="line"),
-        )  # fmt: skip
+        )
     elif name in ("payloads", "gnss_fixes"):
         writer.write_layer(name, frame, style=styles.load_qml(name))
     else:

@@ -198,8 +198,10 @@ def project_document(
     )
     view = ET.SubElement(root, "ProjectViewSettings", UseProjectScales="0", rotation="0")
     ET.SubElement(view, "Scales")
-    bounds = {k: repr(v) for k, v in zip(("xmin", "ymin", "xmax", "ymax"),
-                                         (xmin, ymin, xmax, ymax), strict=True)}  # fmt: skip
+    bounds = {
+        k: repr(v)
+        for k, v in zip(("xmin", "ymin", "xmax", "ymax"), (xmin, ymin, xmax, ymax), strict=True)
+    }
     for tag in ("DefaultViewExtent", "PresetFullExtent"):  # QGIS >= 3.18 reads the second
         ET.SubElement(view, tag, bounds).append(_crs_element(crs))
     root.append(layers)

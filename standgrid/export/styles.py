@@ -44,9 +44,18 @@ STYLE_TABLE = "layer_styles"
 
 #: ColorBrewer RdBu (11 classes), red = negative (loss), blue = positive (gain).
 RDBU = (
-    "#67001f", "#b2182b", "#d6604d", "#f4a582", "#fddbc7", "#f7f7f7",
-    "#d1e5f0", "#92c5de", "#4393c3", "#2166ac", "#053061",
-)  # fmt: skip
+    "#67001f",
+    "#b2182b",
+    "#d6604d",
+    "#f4a582",
+    "#fddbc7",
+    "#f7f7f7",
+    "#d1e5f0",
+    "#92c5de",
+    "#4393c3",
+    "#2166ac",
+    "#053061",
+)
 #: viridis, 5 stops (canopy height and other stand metrics).
 VIRIDIS = ("#440154", "#3b528b", "#21918c", "#5ec962", "#fde725")
 #: ColorBrewer YlGn (5 classes), for stocking (basal area) of the cells.
@@ -57,9 +66,20 @@ YLORRD = ("#ffffb2", "#fecc5c", "#fd8d3c", "#f03b20", "#bd0026")
 TERRAIN = ("#1a9850", "#91cf60", "#d9ef8b", "#fee08b", "#d8b365", "#8c510a", "#f5f5f5")
 #: ColorBrewer Set1 + Dark2: distinct colours for categories (cycled).
 CATEGORY_COLOURS = (
-    "#e41a1c", "#377eb8", "#4daf4a", "#984ea3", "#ff7f00", "#a65628", "#f781bf",
-    "#1b9e77", "#d95f02", "#7570b3", "#e7298a", "#66a61e", "#e6ab02",
-)  # fmt: skip
+    "#e41a1c",
+    "#377eb8",
+    "#4daf4a",
+    "#984ea3",
+    "#ff7f00",
+    "#a65628",
+    "#f781bf",
+    "#1b9e77",
+    "#d95f02",
+    "#7570b3",
+    "#e7298a",
+    "#66a61e",
+    "#e6ab02",
+)
 
 #: Features without a value (NULL) in a class style: the web viewer's grey, and its legend.
 NO_VALUE = "#c8c8c8"
@@ -86,10 +106,20 @@ CREATE TABLE IF NOT EXISTS "{STYLE_TABLE}" (
 )"""
 
 STYLE_COLUMNS = (
-    "id", "f_table_catalog", "f_table_schema", "f_table_name", "f_geometry_column",
-    "styleName", "styleQML", "styleSLD", "useAsDefault", "description", "owner", "ui",
+    "id",
+    "f_table_catalog",
+    "f_table_schema",
+    "f_table_name",
+    "f_geometry_column",
+    "styleName",
+    "styleQML",
+    "styleSLD",
+    "useAsDefault",
+    "description",
+    "owner",
+    "ui",
     "update_time",
-)  # fmt: skip
+)
 
 
 # --- the layer_styles table --------------------------------------------------------------
@@ -182,33 +212,62 @@ def _options(parent: ET.Element, **values: str) -> None:
 
 
 def _symbol(
-    geometry: str, colour: str, *, name: str, alpha: int = 255, outline: str = "#232323",
-    no_fill: bool = False, width: float = 0.26, size: float = 2.0,
-) -> ET.Element:  # fmt: skip
+    geometry: str,
+    colour: str,
+    *,
+    name: str,
+    alpha: int = 255,
+    outline: str = "#232323",
+    no_fill: bool = False,
+    width: float = 0.26,
+    size: float = 2.0,
+) -> ET.Element:
     symbol = ET.Element(
-        "symbol", type=_SYMBOL_TYPE[geometry], name=name, alpha="1", clip_to_extent="1",
-        force_rhr="0", frame_rate="10", is_animated="0",
-    )  # fmt: skip
+        "symbol",
+        type=_SYMBOL_TYPE[geometry],
+        name=name,
+        alpha="1",
+        clip_to_extent="1",
+        force_rhr="0",
+        frame_rate="10",
+        is_animated="0",
+    )
     if geometry == "polygon":
         layer = ET.SubElement(symbol, "layer", {"class": "SimpleFill"}, enabled="1", pass_="0")
         _options(
-            layer, color=_rgba(colour, alpha), outline_color=_rgba(outline),
-            outline_style="solid", outline_width=f"{width:g}", outline_width_unit="MM",
-            style="no" if no_fill else "solid", joinstyle="bevel",
-        )  # fmt: skip
+            layer,
+            color=_rgba(colour, alpha),
+            outline_color=_rgba(outline),
+            outline_style="solid",
+            outline_width=f"{width:g}",
+            outline_width_unit="MM",
+            style="no" if no_fill else "solid",
+            joinstyle="bevel",
+        )
     elif geometry == "line":
         layer = ET.SubElement(symbol, "layer", {"class": "SimpleLine"}, enabled="1", pass_="0")
         _options(
-            layer, line_color=_rgba(colour, alpha), line_style="solid",
-            line_width=f"{width:g}", line_width_unit="MM", capstyle="round", joinstyle="round",
-        )  # fmt: skip
+            layer,
+            line_color=_rgba(colour, alpha),
+            line_style="solid",
+            line_width=f"{width:g}",
+            line_width_unit="MM",
+            capstyle="round",
+            joinstyle="round",
+        )
     else:
         layer = ET.SubElement(symbol, "layer", {"class": "SimpleMarker"}, enabled="1", pass_="0")
         _options(
-            layer, color=_rgba(colour, alpha), name="circle", outline_color=_rgba(outline),
-            outline_style="solid", outline_width="0.1", outline_width_unit="MM",
-            size=f"{size:g}", size_unit="MM",
-        )  # fmt: skip
+            layer,
+            color=_rgba(colour, alpha),
+            name="circle",
+            outline_color=_rgba(outline),
+            outline_style="solid",
+            outline_width="0.1",
+            outline_width_unit="MM",
+            size=f"{size:g}",
+            size_unit="MM",
+        )
     for el in symbol.iter("layer"):  # "pass" is a Python keyword
         el.set("pass", el.attrib.pop("pass_"))
         el.set("locked", "0")
@@ -217,9 +276,11 @@ def _symbol(
 
 def _document(renderer: ET.Element, geometry: str, label: ET.Element | None = None) -> str:
     root = ET.Element(
-        "qgis", version=QGIS_VERSION, styleCategories="AllStyleCategories",
+        "qgis",
+        version=QGIS_VERSION,
+        styleCategories="AllStyleCategories",
         labelsEnabled="1" if label is not None else "0",
-    )  # fmt: skip
+    )
     root.append(renderer)
     if label is not None:
         root.append(label)
@@ -233,8 +294,13 @@ def _document(renderer: ET.Element, geometry: str, label: ET.Element | None = No
 
 
 def _renderer(kind: str, **attrs: str) -> ET.Element:
-    base = {"type": kind, "symbollevels": "0", "enableorderby": "0", "forceraster": "0",
-            "referencescale": "-1"}  # fmt: skip
+    base = {
+        "type": kind,
+        "symbollevels": "0",
+        "enableorderby": "0",
+        "forceraster": "0",
+        "referencescale": "-1",
+    }
     return ET.Element("renderer-v2", {**base, **attrs})
 
 
@@ -244,21 +310,40 @@ def _labeling(
     labeling = ET.Element("labeling", type="simple")
     settings = ET.SubElement(labeling, "settings", calloutType="simple")
     ET.SubElement(
-        settings, "text-style", fieldName=field, isExpression="1" if expression else "0",
+        settings,
+        "text-style",
+        fieldName=field,
+        isExpression="1" if expression else "0",
         fontFamily="Sans Serif",
-        fontSize=f"{size:g}", fontSizeUnit="Point", textColor="0,0,0,255", textOpacity="1",
-        fontWeight="50", fontItalic="0", namedStyle="Regular",
-    )  # fmt: skip
+        fontSize=f"{size:g}",
+        fontSizeUnit="Point",
+        textColor="0,0,0,255",
+        textOpacity="1",
+        fontWeight="50",
+        fontItalic="0",
+        namedStyle="Regular",
+    )
     ET.SubElement(
-        settings, "text-buffer", bufferDraw="1", bufferSize="0.8", bufferSizeUnits="MM",
-        bufferColor="255,255,255,255", bufferOpacity="0.8", bufferJoinStyle="128",
-    )  # fmt: skip
+        settings,
+        "text-buffer",
+        bufferDraw="1",
+        bufferSize="0.8",
+        bufferSizeUnits="MM",
+        bufferColor="255,255,255,255",
+        bufferOpacity="0.8",
+        bufferJoinStyle="128",
+    )
     placement = {"polygon": "1", "line": "2", "point": "0"}[geometry]
     ET.SubElement(settings, "placement", placement=placement, dist="0", priority=str(priority))
     ET.SubElement(
-        settings, "rendering", obstacle="1", scaleVisibility="0", fontLimitPixelSize="0",
-        displayAll="0", labelPerPart="0",
-    )  # fmt: skip
+        settings,
+        "rendering",
+        obstacle="1",
+        scaleVisibility="0",
+        fontLimitPixelSize="0",
+        displayAll="0",
+        labelPerPart="0",
+    )
     return labeling
 
 
@@ -279,9 +364,15 @@ def with_labels(
 
 
 def single_style(
-    geometry: str, colour: str, *, alpha: int = 255, no_fill: bool = False,
-    outline: str = "#232323", width: float = 0.26, label_field: str | None = None,
-) -> str:  # fmt: skip
+    geometry: str,
+    colour: str,
+    *,
+    alpha: int = 255,
+    no_fill: bool = False,
+    outline: str = "#232323",
+    width: float = 0.26,
+    label_field: str | None = None,
+) -> str:
     """One symbol for every feature, optionally labelled with ``label_field``."""
     renderer = _renderer("singleSymbol")
     symbols = ET.SubElement(renderer, "symbols")
@@ -335,9 +426,13 @@ def _colour_ramp(ramp: Sequence[str]) -> ET.Element:
         f"{i / (len(ramp) - 1):.4f};{_rgba(c)}" for i, c in enumerate(ramp[1:-1], start=1)
     )
     _options(
-        element, color1=_rgba(ramp[0]), color2=_rgba(ramp[-1]), discrete="0",
-        rampType="gradient", stops=stops,
-    )  # fmt: skip
+        element,
+        color1=_rgba(ramp[0]),
+        color2=_rgba(ramp[-1]),
+        discrete="0",
+        rampType="gradient",
+        stops=stops,
+    )
     return element
 
 
@@ -376,13 +471,27 @@ def graduated_style(
         upper = 1e300 if i == classes - 1 else edges[i + 1]
         label = f"{edges[i]:.{precision}f} - {edges[i + 1]:.{precision}f} {unit}".rstrip()
         ET.SubElement(
-            ranges, "range", lower=f"{lower:.15g}", upper=f"{upper:.15g}", symbol=str(i),
-            label=label, render="true", uuid=f"range-{i}",
-        )  # fmt: skip
+            ranges,
+            "range",
+            lower=f"{lower:.15g}",
+            upper=f"{upper:.15g}",
+            symbol=str(i),
+            label=label,
+            render="true",
+            uuid=f"range-{i}",
+        )
         colour = _interpolate(ramp, (i + 0.5) / classes)
-        symbols.append(_symbol(geometry, colour, name=str(i), alpha=alpha,
-                               outline=colour if outline_only else outline,
-                               no_fill=outline_only, width=width))  # fmt: skip
+        symbols.append(
+            _symbol(
+                geometry,
+                colour,
+                name=str(i),
+                alpha=alpha,
+                outline=colour if outline_only else outline,
+                no_fill=outline_only,
+                width=width,
+            )
+        )
     source = ET.SubElement(renderer, "source-symbol")
     source.append(_symbol(geometry, ramp[0], name="0", alpha=alpha))
     renderer.append(_colour_ramp(ramp))
@@ -414,15 +523,24 @@ def diverging_style(
     half = max(abs(vmin - centre), abs(vmax - centre)) or 1.0
     classes = classes if classes % 2 else classes + 1
     return graduated_style(
-        field, centre - half, centre + half, classes=classes, geometry=geometry, ramp=ramp,
-        alpha=alpha, precision=precision, unit=unit, no_value=no_value,
-    )  # fmt: skip
+        field,
+        centre - half,
+        centre + half,
+        classes=classes,
+        geometry=geometry,
+        ramp=ramp,
+        alpha=alpha,
+        precision=precision,
+        unit=unit,
+        no_value=no_value,
+    )
 
 
 def stand_metric_style(field: str, vmin: float, vmax: float, *, classes: int = 5) -> str:
     """Stand metric polygons (e.g. canopy height) on viridis; cells without a value grey."""
-    return graduated_style(field, vmin, vmax, classes=classes, geometry="polygon", ramp=VIRIDIS,
-                           no_value=NO_VALUE)  # fmt: skip
+    return graduated_style(
+        field, vmin, vmax, classes=classes, geometry="polygon", ramp=VIRIDIS, no_value=NO_VALUE
+    )
 
 
 def _field_expression(attr: str) -> str:
@@ -485,9 +603,13 @@ def with_no_value(qml: str, colour: str = NO_VALUE, label: str = NO_VALUE_LABEL)
             terms.append(f"{value} <= {upper:.15g}")
         condition = " AND ".join(terms) or f"{value} IS NOT NULL"
         ET.SubElement(
-            rules, "rule", key=f"class-{i}", filter=condition, symbol=str(i),
+            rules,
+            "rule",
+            key=f"class-{i}",
+            filter=condition,
+            symbol=str(i),
             label=element.get("label", ""),
-        )  # fmt: skip
+        )
         symbol = copy.deepcopy(symbols[element.get("symbol", "")])
         symbol.set("name", str(i))
         out_symbols.append(symbol)
@@ -512,15 +634,18 @@ def density_style(vmin: float, vmax: float, *, field: str = "density") -> str:
 def _builtin_styles() -> dict[str, str]:
     """The fixed styles as shipped in ``styles/*.qml`` (see :func:`write_builtin_styles`)."""
     return {
-        "cells": single_style("polygon", "#ffffff", no_fill=True, outline="#303030", width=0.4,
-                              label_field="cell_id"),
+        "cells": single_style(
+            "polygon", "#ffffff", no_fill=True, outline="#303030", width=0.4, label_field="cell_id"
+        ),
         "payloads": single_style("polygon", "#4393c3", alpha=60, outline="#2166ac", width=0.2),
         # an expression, so the style works whether OGR reads ``inlier`` as bool or integer
         "gnss_fixes": categorized_style(
-            "if(\"inlier\", 'inlier', 'rejected')", ["inlier", "rejected"], geometry="point",
+            "if(\"inlier\", 'inlier', 'rejected')",
+            ["inlier", "rejected"],
+            geometry="point",
             colours=["#1a9641", "#d7191c"],
         ),
-    }  # fmt: skip
+    }
 
 
 def write_builtin_styles(folder: Path | None = None) -> None:
@@ -578,23 +703,38 @@ def raster_style_path(tif_path: str | os.PathLike[str]) -> Path:
 def _raster_document(renderer: ET.Element, opacity: float = 1.0) -> str:
     """A QGIS 3 raster layer style: the renderer in a pipe with the default filters."""
     root = ET.Element(
-        "qgis", version=QGIS_VERSION, styleCategories="AllStyleCategories",
-        hasScaleBasedVisibilityFlag="0", minScale="1e+08", maxScale="0",
-    )  # fmt: skip
+        "qgis",
+        version=QGIS_VERSION,
+        styleCategories="AllStyleCategories",
+        hasScaleBasedVisibilityFlag="0",
+        minScale="1e+08",
+        maxScale="0",
+    )
     pipe = ET.SubElement(root, "pipe")
     provider = ET.SubElement(pipe, "provider")
     ET.SubElement(
-        provider, "resampling", enabled="false", maxOversampling="2",
-        zoomedInResamplingMethod="nearestNeighbour", zoomedOutResamplingMethod="nearestNeighbour",
-    )  # fmt: skip
+        provider,
+        "resampling",
+        enabled="false",
+        maxOversampling="2",
+        zoomedInResamplingMethod="nearestNeighbour",
+        zoomedOutResamplingMethod="nearestNeighbour",
+    )
     renderer.set("opacity", f"{opacity:g}")
     pipe.append(renderer)
     ET.SubElement(pipe, "brightnesscontrast", brightness="0", contrast="0", gamma="1")
     ET.SubElement(
-        pipe, "huesaturation", saturation="0", grayscaleMode="0", invertColors="0",
-        colorizeOn="0", colorizeRed="255", colorizeGreen="128", colorizeBlue="128",
+        pipe,
+        "huesaturation",
+        saturation="0",
+        grayscaleMode="0",
+        invertColors="0",
+        colorizeOn="0",
+        colorizeRed="255",
+        colorizeGreen="128",
+        colorizeBlue="128",
         colorizeStrength="100",
-    )  # fmt: skip
+    )
     ET.SubElement(pipe, "rasterresampler", maxOversampling="2")
     ET.SubElement(pipe, "resamplingStage").text = "resamplingFilter"
     ET.SubElement(root, "blendMode").text = "0"
@@ -609,9 +749,13 @@ def _raster_renderer(kind: str, **attrs: str) -> ET.Element:
     ET.SubElement(renderer, "rasterTransparency")
     origin = ET.SubElement(renderer, "minMaxOrigin")
     for tag, text in (
-        ("limits", "None"), ("extent", "WholeRaster"), ("statAccuracy", "Estimated"),
-        ("cumulativeCutLower", "0.02"), ("cumulativeCutUpper", "0.98"), ("stdDevFactor", "2"),
-    ):  # fmt: skip
+        ("limits", "None"),
+        ("extent", "WholeRaster"),
+        ("statAccuracy", "Estimated"),
+        ("cumulativeCutLower", "0.02"),
+        ("cumulativeCutUpper", "0.98"),
+        ("stdDevFactor", "2"),
+    ):
         ET.SubElement(origin, tag).text = text
     return renderer
 
@@ -647,22 +791,37 @@ def pseudocolor_raster_style(
     )
     shader = ET.SubElement(ET.SubElement(renderer, "rastershader"), "colorrampshader")
     shader.attrib.update(
-        colorRampType="INTERPOLATED", classificationMode="1", clip="0",
-        minimumValue=f"{vmin:.10g}", maximumValue=f"{vmax:.10g}", labelPrecision=str(precision),
-    )  # fmt: skip
+        colorRampType="INTERPOLATED",
+        classificationMode="1",
+        clip="0",
+        minimumValue=f"{vmin:.10g}",
+        maximumValue=f"{vmax:.10g}",
+        labelPrecision=str(precision),
+    )
     shader.append(_colour_ramp(ramp))
     # the legend lists the labelled stops ("12.0 m"), not a bare continuous bar
     ET.SubElement(
-        shader, "rampLegendSettings", useContinuousLegend="0", minimumLabel="",
-        maximumLabel="", prefix="", suffix="", direction="0", orientation="2",
-    )  # fmt: skip
+        shader,
+        "rampLegendSettings",
+        useContinuousLegend="0",
+        minimumLabel="",
+        maximumLabel="",
+        prefix="",
+        suffix="",
+        direction="0",
+        orientation="2",
+    )
     for i, colour in enumerate(ramp):
         t = i / (len(ramp) - 1)
         value = vmin * (1 - t) + vmax * t  # exact ends, and exactly 0 mid-way on -h..h
         ET.SubElement(
-            shader, "item", alpha="255", value=f"{value:.10g}", color=colour,
+            shader,
+            "item",
+            alpha="255",
+            value=f"{value:.10g}",
+            color=colour,
             label=_value_label(value, unit, precision, signed),
-        )  # fmt: skip
+        )
     return _raster_document(renderer, opacity)
 
 

@@ -80,9 +80,13 @@ def fit_circles(
     for j, k in enumerate(fitted):
         if np.isfinite(fits.radius[j]):
             out[k] = CircleFit(
-                float(fits.x[j]), float(fits.y[j]), float(fits.radius[j]),
-                float(fits.rmse[j]), int(fits.n_inliers[j]), float(fits.arc_deg[j]),
-            )  # fmt: skip
+                float(fits.x[j]),
+                float(fits.y[j]),
+                float(fits.radius[j]),
+                float(fits.rmse[j]),
+                int(fits.n_inliers[j]),
+                float(fits.arc_deg[j]),
+            )
     return out
 
 
@@ -159,8 +163,9 @@ def fit_packed(
     arc = 10.0 * np.bincount(seen // 36, minlength=n).astype(np.float64)
     bad = ~np.isfinite(best).all(axis=1)  # degenerate: all points on one spot or one line
     best[bad] = np.nan
-    return CircleFits(best[:, 0] + means[:, 0], best[:, 1] + means[:, 1], best[:, 2], rmse,
-                      n_in, arc)  # fmt: skip
+    return CircleFits(
+        best[:, 0] + means[:, 0], best[:, 1] + means[:, 1], best[:, 2], rmse, n_in, arc
+    )
 
 
 def kasa_circles(
@@ -182,9 +187,9 @@ def kasa_circles(
 
     suu, suv, svv, su, sv = total(u * u), total(u * v), total(v * v), total(u), total(v)
     normal = np.stack(
-        [np.stack([suu, suv, su], -1), np.stack([suv, svv, sv], -1),
-         np.stack([su, sv, count], -1)], 1,
-    )  # fmt: skip
+        [np.stack([suu, suv, su], -1), np.stack([suv, svv, sv], -1), np.stack([su, sv, count], -1)],
+        1,
+    )
     rhs = np.stack([total(u * w), total(v * w), total(w)], -1)
     small = count < 3
     normal[small] = np.eye(3)  # solvable placeholders, answered NaN below

@@ -147,8 +147,7 @@ def find_stems(
     xy = xyz[band_rows, :2]
     origin = xy.min(axis=0)
     spread = float((xy.max(axis=0) - origin).max()) + 10.0
-    _, comp = link_clusters(xy - origin + np.outer(band * spread, [1.0, 0.0]),
-                            o.link_distance)  # fmt: skip
+    _, comp = link_clusters(xy - origin + np.outer(band * spread, [1.0, 0.0]), o.link_distance)
     order = np.lexsort((xy[:, 1], xy[:, 0], comp))
     comp, xy, band = comp[order], xy[order], band[order]
     starts = np.flatnonzero(np.r_[True, comp[1:] != comp[:-1]])
@@ -177,8 +176,17 @@ def find_stems(
     for k in np.flatnonzero(np.isfinite(fits.radius)).tolist():
         reason = _rejection(fits, k, int(sizes[k]), o)
         if reason is None:
-            accepted.append((cluster_band[k], cx[k], cy[k], fits.radius[k], fits.rmse[k],
-                             fits.n_inliers[k], fits.arc_deg[k]))  # fmt: skip
+            accepted.append(
+                (
+                    cluster_band[k],
+                    cx[k],
+                    cy[k],
+                    fits.radius[k],
+                    fits.rmse[k],
+                    fits.n_inliers[k],
+                    fits.arc_deg[k],
+                )
+            )
         elif abs(centres[cluster_band[k]] - o.breast_height) < 1e-9:
             rejected.append((cx[k], cy[k], reason))
     rejected_table = pd.DataFrame(rejected, columns=["x", "y", "reason"])
@@ -306,10 +314,14 @@ def _join(
             zj = e[j, 0] - o.breast_height
             zi = e[i, 1] - o.breast_height
             # each chain's axis carried to the other's nearest end
-            d_up = math.hypot(e[i, 2] + e[i, 3] * zj - circles[chains[j][0], 1],
-                              e[i, 4] + e[i, 5] * zj - circles[chains[j][0], 2])  # fmt: skip
-            d_down = math.hypot(e[j, 2] + e[j, 3] * zi - circles[chains[i][-1], 1],
-                                e[j, 4] + e[j, 5] * zi - circles[chains[i][-1], 2])  # fmt: skip
+            d_up = math.hypot(
+                e[i, 2] + e[i, 3] * zj - circles[chains[j][0], 1],
+                e[i, 4] + e[i, 5] * zj - circles[chains[j][0], 2],
+            )
+            d_down = math.hypot(
+                e[j, 2] + e[j, 3] * zi - circles[chains[i][-1], 1],
+                e[j, 4] + e[j, 5] * zi - circles[chains[i][-1], 2],
+            )
             r = max(e[i, 6], e[j, 6])
             if min(d_up, d_down) > 0.05 + 0.15 * r:
                 continue
@@ -412,11 +424,23 @@ def _stem(
     azimuth = math.degrees(math.atan2(ay, ax)) % 360.0 if lean > 0 else 0.0
     half = o.band_half_width
     return [
-        x0, y0, dbh, se, rmse, n_in, float(np.median(used[:, 6])), lean, azimuth,
+        x0,
+        y0,
+        dbh,
+        se,
+        rmse,
+        n_in,
+        float(np.median(used[:, 6])),
+        lean,
+        azimuth,
         low + o.breast_height - half,
         high + o.breast_height + half,
-        int(keep.sum()), ax, ay, r0, taper,
-    ]  # fmt: skip
+        int(keep.sum()),
+        ax,
+        ay,
+        r0,
+        taper,
+    ]
 
 
 def _line(
@@ -489,8 +513,9 @@ def stem_points(
         point = np.repeat(part, k)[found]
         stem = live[near.ravel()[found]]
         dz = h[point] - breast_height
-        dist = np.hypot(xyz[point, 0] - (sx[stem] + ax[stem] * dz),
-                        xyz[point, 1] - (sy[stem] + ay[stem] * dz))  # fmt: skip
+        dist = np.hypot(
+            xyz[point, 0] - (sx[stem] + ax[stem] * dz), xyz[point, 1] - (sy[stem] + ay[stem] * dz)
+        )
         radius = np.maximum(r0[stem] + taper[stem] * dz, 0.01)
         on = dist <= radius + np.maximum(0.03, 0.3 * radius) + widen
         on &= (h[point] >= lo[stem]) & (h[point] <= cap[stem])

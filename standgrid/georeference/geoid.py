@@ -91,9 +91,10 @@ class GeoidModel:
         """``height`` (m, WGS 84 ellipsoidal) at ``lon``/``lat`` (degrees) as height above
         the geoid H = h - N (m); NaN where the grid has no value."""
         lon_, lat_, h = np.broadcast_arrays(
-            np.asarray(lon, np.float64), np.asarray(lat, np.float64),
+            np.asarray(lon, np.float64),
+            np.asarray(lat, np.float64),
             np.asarray(height, np.float64),
-        )  # fmt: skip
+        )
         # the EPSG operation's source is EPSG:4979, latitude first (its pipeline swaps)
         _, _, out = self._transformer.transform(lat_.ravel(), lon_.ravel(), h.ravel())
         result = np.asarray(out, np.float64).reshape(h.shape)
@@ -156,11 +157,12 @@ def find_geoid(search_dirs: Sequence[str | Path] | None = None) -> GeoidModel | 
                 if problem is None:
                     target = CoordinateOperation.from_epsg(candidate.operation).to_json_dict()
                     return GeoidModel(
-                        name=candidate.model, file=path,
+                        name=candidate.model,
+                        file=path,
                         operation=f"EPSG:{candidate.operation}",
                         vertical_crs=_id(target["target_crs"]),
                         accuracy_m=float(target.get("accuracy", "nan")),
-                    )  # fmt: skip
+                    )
                 problems.append(f"{path}: {problem}")
     return NoGeoidModel(dirs, tuple(problems))
 

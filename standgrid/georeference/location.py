@@ -23,15 +23,16 @@ if TYPE_CHECKING:
 MAX_METADATA_DISTANCE_M = 10_000.0
 
 
-def geodesic_m(lat: float, lon: float, lats: NDArray[np.float64], lons: NDArray[np.float64]) -> (
-    NDArray[np.float64]
-):  # fmt: skip
+def geodesic_m(
+    lat: float, lon: float, lats: NDArray[np.float64], lons: NDArray[np.float64]
+) -> NDArray[np.float64]:
     """WGS 84 geodesic distances (m) from ``(lat, lon)`` to each of ``(lats, lons)``."""
     from pyproj import Geod
 
     lats, lons = np.asarray(lats, dtype=np.float64), np.asarray(lons, dtype=np.float64)
-    _, _, metres = Geod(ellps="WGS84").inv(np.full_like(lons, lon), np.full_like(lats, lat),
-                                           lons, lats)  # fmt: skip
+    _, _, metres = Geod(ellps="WGS84").inv(
+        np.full_like(lons, lon), np.full_like(lats, lat), lons, lats
+    )
     return np.asarray(metres, dtype=np.float64)
 
 
@@ -88,10 +89,14 @@ def check_location(
 
     named = f" ({metadata})" if metadata is not None else ""
     hint = swap_hint(
-        lat, lon, from_expected, max_distance,
-        what="the mission would lie", advice="the GNSS log has latitude and longitude "
+        lat,
+        lon,
+        from_expected,
+        max_distance,
+        what="the mission would lie",
+        advice="the GNSS log has latitude and longitude "
         "swapped (columns: sec, nsec, latitude, longitude, ...)",
-    )  # fmt: skip
+    )
     raise MisplacedMissionError(
         f"the georeference ({fit.method}) puts the mission at latitude {lat}, longitude {lon}, "
         f"{distances[nearest] / 1000:,.1f} km from the location its metadata{named} gives "

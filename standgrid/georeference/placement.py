@@ -57,8 +57,11 @@ class Placement:
         """What the catalog stores about how the mission was placed."""
         out: dict[str, Any]
         if self.fit is None:
-            out = {"format": "standgrid.georeference/1", "method": "projected",
-                   "source_crs": _text(self.source_crs)}  # fmt: skip
+            out = {
+                "format": "standgrid.georeference/1",
+                "method": "projected",
+                "source_crs": _text(self.source_crs),
+            }
         else:
             out = self.fit.to_dict()
         if self.alignment is not None:
@@ -69,9 +72,14 @@ class Placement:
         """The headline figures of the placement (the tile report's ``georeference``)."""
         out: dict[str, Any]
         if self.fit is None:
-            out = {"method": "projected", "source_crs": _text(self.source_crs), "fixes_used": 0,
-                   "fixes_rejected": 0, "rmse_horizontal_m": None,
-                   "uncertainty": None}  # fmt: skip
+            out = {
+                "method": "projected",
+                "source_crs": _text(self.source_crs),
+                "fixes_used": 0,
+                "fixes_rejected": 0,
+                "rmse_horizontal_m": None,
+                "uncertainty": None,
+            }
         else:
             out = fit_summary(self.fit)
         if self.alignment is not None:
@@ -213,13 +221,19 @@ def held_placement(mission: Mission, record: dict[str, Any]) -> Placement:
         lat, lon, alt = (float(v) for v in record["lla_ref"])
         method = str(record["method"])
     except (KeyError, TypeError, ValueError) as exc:
-        raise CatalogError(f"malformed georeference record of mission {mission.name!r}: {exc!r}",
-                           path=mission.path) from exc  # fmt: skip
+        raise CatalogError(
+            f"malformed georeference record of mission {mission.name!r}: {exc!r}", path=mission.path
+        ) from exc
     graph, gnss = mission.graph, mission.gnss
     if graph is None or len(graph) == 0 or gnss is None or len(gnss) == 0:
         return Placement(GeoreferenceFit.without_fixes((lat, lon, alt), transform, method))
     fit = evaluate_georeference(
-        transform, (lat, lon, alt), method, gnss, graph.stamps_ns, graph.positions,
+        transform,
+        (lat, lon, alt),
+        method,
+        gnss,
+        graph.stamps_ns,
+        graph.positions,
         source=gnss_file(mission),
     )
     return Placement(fit)

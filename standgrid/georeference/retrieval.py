@@ -98,9 +98,13 @@ def _too_far(
         return float(query_distances(there, mission.pose_of(other)[:3, 3].reshape(1, 3))[0])
 
     hint = swap_hint(
-        lat, lon, nearest_payload_m, max_distance,
-        what="the nearest payload is", advice="give LAT LON, latitude first",
-    )  # fmt: skip
+        lat,
+        lon,
+        nearest_payload_m,
+        max_distance,
+        what="the nearest payload is",
+        advice="give LAT LON, latitude first",
+    )
     hint = hint or "latitude comes first"
     return PayloadTooFarError(
         f"the payload nearest latitude {lat}, longitude {lon} is {metres / 1000:,.1f} km "

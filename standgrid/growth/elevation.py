@@ -64,30 +64,39 @@ def epoch_elevation(
     if not kinds:
         return EpochElevation(null_reason=f"{_NULL}: the epoch has no mission")
     if UNRECORDED in kinds:
-        return EpochElevation(null_reason=(
-            f"{_NULL}: how mission(s) {', '.join(kinds[UNRECORDED])} were placed is not "
-            "recorded (re-tile them), so their heights' vertical reference is unknown"
-        ))  # fmt: skip
+        return EpochElevation(
+            null_reason=(
+                f"{_NULL}: how mission(s) {', '.join(kinds[UNRECORDED])} were placed is not "
+                "recorded (re-tile them), so their heights' vertical reference is unknown"
+            )
+        )
     if len(kinds) > 1:
-        return EpochElevation(null_reason=(
-            f"{_NULL}: the epoch mixes missions with WGS 84 ellipsoidal heights (GNSS fit or "
-            f"anchor: {', '.join(kinds[ELLIPSOIDAL])}) and already-projected clouds (heights "
-            f"of their source's vertical datum: {', '.join(kinds[PROJECTED])}); its DTM has "
-            "no one vertical reference"
-        ))  # fmt: skip
+        return EpochElevation(
+            null_reason=(
+                f"{_NULL}: the epoch mixes missions with WGS 84 ellipsoidal heights (GNSS fit or "
+                f"anchor: {', '.join(kinds[ELLIPSOIDAL])}) and already-projected clouds (heights "
+                f"of their source's vertical datum: {', '.join(kinds[PROJECTED])}); its DTM has "
+                "no one vertical reference"
+            )
+        )
     if ELLIPSOIDAL in kinds:
         if isinstance(geoid, NoGeoidModel):
             return EpochElevation(null_reason=f"{_NULL}: {geoid.reason}")
         return EpochElevation(geoid=geoid, reference=geoid.describe())
     if heights_above_sea_level:
-        return EpochElevation(reference=(
-            "heights of the already-projected clouds, as they are: above sea level as the "
-            "user says (--heights-above-sea-level); no geoid applied"
-        ), user_says_above_sea_level=True)  # fmt: skip
-    return EpochElevation(null_reason=(
-        f"{_NULL}: heights of already-projected clouds: vertical datum unknown; pass "
-        "--heights-above-sea-level if they are"
-    ))  # fmt: skip
+        return EpochElevation(
+            reference=(
+                "heights of the already-projected clouds, as they are: above sea level as the "
+                "user says (--heights-above-sea-level); no geoid applied"
+            ),
+            user_says_above_sea_level=True,
+        )
+    return EpochElevation(
+        null_reason=(
+            f"{_NULL}: heights of already-projected clouds: vertical datum unknown; pass "
+            "--heights-above-sea-level if they are"
+        )
+    )
 
 
 def above_sea_level(

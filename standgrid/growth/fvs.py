@@ -47,20 +47,45 @@ DEFAULT_VARIANT = "PN"
 DEFAULT_SPECIES = "DF"
 
 STAND_COLUMNS = {
-    "Stand_ID": "TEXT", "Variant": "TEXT", "Inv_Year": "INTEGER", "Latitude": "REAL",
-    "Longitude": "REAL", "Slope": "REAL", "Aspect": "REAL", "ElevFt": "REAL",
-    "Basal_Area_Factor": "REAL", "Inv_Plot_Size": "REAL", "Brk_DBH": "REAL",
-    "Num_Plots": "INTEGER", "DG_Trans": "INTEGER", "DG_Measure": "REAL",
-    "HTG_Trans": "INTEGER", "HTG_Measure": "REAL",
-    "SG_Cell_ID": "TEXT", "SG_Epoch": "TEXT", "SG_Level": "INTEGER", "SG_Area_m2": "REAL",
-    "SG_Trees_Without_DBH": "INTEGER", "SG_Species_Source": "TEXT",
-}  # fmt: skip
+    "Stand_ID": "TEXT",
+    "Variant": "TEXT",
+    "Inv_Year": "INTEGER",
+    "Latitude": "REAL",
+    "Longitude": "REAL",
+    "Slope": "REAL",
+    "Aspect": "REAL",
+    "ElevFt": "REAL",
+    "Basal_Area_Factor": "REAL",
+    "Inv_Plot_Size": "REAL",
+    "Brk_DBH": "REAL",
+    "Num_Plots": "INTEGER",
+    "DG_Trans": "INTEGER",
+    "DG_Measure": "REAL",
+    "HTG_Trans": "INTEGER",
+    "HTG_Measure": "REAL",
+    "SG_Cell_ID": "TEXT",
+    "SG_Epoch": "TEXT",
+    "SG_Level": "INTEGER",
+    "SG_Area_m2": "REAL",
+    "SG_Trees_Without_DBH": "INTEGER",
+    "SG_Species_Source": "TEXT",
+}
 TREE_COLUMNS = {
-    "Stand_ID": "TEXT", "Plot_ID": "INTEGER", "Tree_ID": "INTEGER", "Tree_Count": "REAL",
-    "History": "INTEGER", "Species": "TEXT", "DBH": "REAL", "DG": "REAL", "Ht": "REAL",
-    "HTG": "REAL", "CrRatio": "INTEGER",
-    "SG_Tree_ID": "TEXT", "SG_Tree_UID": "INTEGER", "SG_DBH_Source": "TEXT",
-}  # fmt: skip
+    "Stand_ID": "TEXT",
+    "Plot_ID": "INTEGER",
+    "Tree_ID": "INTEGER",
+    "Tree_Count": "REAL",
+    "History": "INTEGER",
+    "Species": "TEXT",
+    "DBH": "REAL",
+    "DG": "REAL",
+    "Ht": "REAL",
+    "HTG": "REAL",
+    "CrRatio": "INTEGER",
+    "SG_Tree_ID": "TEXT",
+    "SG_Tree_UID": "INTEGER",
+    "SG_DBH_Source": "TEXT",
+}
 
 
 @dataclass
@@ -141,8 +166,9 @@ def slope_aspect(dtm: Path, polygon: Any) -> tuple[float, float, float]:
 def _stand_polygons(catalog: Catalog) -> pd.DataFrame:
     import pyogrio
 
-    frame = pyogrio.read_dataframe(catalog.path(paths.INDEX), layer="stand_metrics",
-                                   columns=["cell_id", "epoch"])  # fmt: skip
+    frame = pyogrio.read_dataframe(
+        catalog.path(paths.INDEX), layer="stand_metrics", columns=["cell_id", "epoch"]
+    )
     frame["epoch"] = frame["epoch"].astype(str)
     return frame
 
@@ -239,10 +265,18 @@ def export_fvs(
     """
     with Catalog.reading(catalog_path) as catalog:  # one consistent state of every file
         return _export_fvs(
-            catalog, Path(out), level=level, epochs=epochs, variant=variant, species=species,
-            species_by_stand=species_by_stand, increments=increments, overwrite=overwrite,
-            geoid=find_geoid(geoid_dirs), heights_above_sea_level=heights_above_sea_level,
-        )  # fmt: skip
+            catalog,
+            Path(out),
+            level=level,
+            epochs=epochs,
+            variant=variant,
+            species=species,
+            species_by_stand=species_by_stand,
+            increments=increments,
+            overwrite=overwrite,
+            geoid=find_geoid(geoid_dirs),
+            heights_above_sea_level=heights_above_sea_level,
+        )
 
 
 def _export_fvs(
@@ -338,8 +372,11 @@ def _export_fvs(
             slope, aspect, elev = (
                 slope_aspect(dtm, geom) if geom is not None and dtm.is_file() else (math.nan,) * 3
             )
-            cx, cy = (geom.centroid.x, geom.centroid.y) if geom is not None else (
-                float(mine["x"].mean()), float(mine["y"].mean()))  # fmt: skip
+            cx, cy = (
+                (geom.centroid.x, geom.centroid.y)
+                if geom is not None
+                else (float(mine["x"].mean()), float(mine["y"].mean()))
+            )
             lon, lat = to_wgs84.transform(cx, cy)
             elev, why = above_sea_level(elevations[epoch], lon, lat, elev)
             if why is not None:
@@ -349,19 +386,34 @@ def _export_fvs(
             if code is None:
                 code = species or DEFAULT_SPECIES
                 report.species_default_used = report.species_default_used or species is None
-            stand_rows.append({
-                "Stand_ID": stand_id, "Variant": variant.upper(), "Inv_Year": year,
-                "Latitude": lat, "Longitude": lon, "Slope": _opt(slope), "Aspect": _opt(aspect),
-                "ElevFt": _opt(elev / M_PER_FT), "Basal_Area_Factor": -1.0 / acres,
-                "Inv_Plot_Size": 1.0 / acres, "Brk_DBH": ALL_TREES_BREAK_DBH, "Num_Plots": 1,
-                "DG_Trans": 1 if years else None, "DG_Measure": years,
-                "HTG_Trans": 0 if years else None, "HTG_Measure": years,
-                "SG_Cell_ID": cell_id, "SG_Epoch": epoch, "SG_Level": level,
-                "SG_Area_m2": area,
-                "SG_Trees_Without_DBH": len(mine) - len(with_dbh),
-                "SG_Species_Source": "per-stand" if cell_id in species_by_stand
-                else ("user default" if species else "placeholder default"),
-            })  # fmt: skip
+            stand_rows.append(
+                {
+                    "Stand_ID": stand_id,
+                    "Variant": variant.upper(),
+                    "Inv_Year": year,
+                    "Latitude": lat,
+                    "Longitude": lon,
+                    "Slope": _opt(slope),
+                    "Aspect": _opt(aspect),
+                    "ElevFt": _opt(elev / M_PER_FT),
+                    "Basal_Area_Factor": -1.0 / acres,
+                    "Inv_Plot_Size": 1.0 / acres,
+                    "Brk_DBH": ALL_TREES_BREAK_DBH,
+                    "Num_Plots": 1,
+                    "DG_Trans": 1 if years else None,
+                    "DG_Measure": years,
+                    "HTG_Trans": 0 if years else None,
+                    "HTG_Measure": years,
+                    "SG_Cell_ID": cell_id,
+                    "SG_Epoch": epoch,
+                    "SG_Level": level,
+                    "SG_Area_m2": area,
+                    "SG_Trees_Without_DBH": len(mine) - len(with_dbh),
+                    "SG_Species_Source": "per-stand"
+                    if cell_id in species_by_stand
+                    else ("user default" if species else "placeholder default"),
+                }
+            )
             tree_frames.append(
                 _tree_rows(stand_id, with_dbh.sort_values("tree_id"), code, incr, years)
             )
@@ -373,8 +425,9 @@ def _export_fvs(
     report.stands = len(stand_rows)
     report.trees = len(tree_table)
     report.trees_with_increments = int((tree_table["DG"].notna() | tree_table["HTG"].notna()).sum())
-    _write_database(Path(out), pd.DataFrame(stand_rows, columns=list(STAND_COLUMNS)), tree_table,
-                    overwrite)  # fmt: skip
+    _write_database(
+        Path(out), pd.DataFrame(stand_rows, columns=list(STAND_COLUMNS)), tree_table, overwrite
+    )
     return report
 
 

@@ -31,12 +31,34 @@ FORMATS = {
 }
 #: The generic tree list, in order (docs/TREES.md describes each column).
 TREE_COLUMNS = [
-    "epoch", "date", "stand_id", "cell_id", "tree_id", "tree_uid", "detected_by", "x", "y",
-    "stem_x", "stem_y",
-    "lon", "lat", "z_ground", "height_m", "dbh_cm", "dbh_source", "dbh_se_cm", "dbh_reason",
-    "basal_area_m2", "crown_area_m2", "crown_diameter_m", "n_points", "counted", "stand_area_m2",
-    "trees_per_ha", "crs",
-]  # fmt: skip
+    "epoch",
+    "date",
+    "stand_id",
+    "cell_id",
+    "tree_id",
+    "tree_uid",
+    "detected_by",
+    "x",
+    "y",
+    "stem_x",
+    "stem_y",
+    "lon",
+    "lat",
+    "z_ground",
+    "height_m",
+    "dbh_cm",
+    "dbh_source",
+    "dbh_se_cm",
+    "dbh_reason",
+    "basal_area_m2",
+    "crown_area_m2",
+    "crown_diameter_m",
+    "n_points",
+    "counted",
+    "stand_area_m2",
+    "trees_per_ha",
+    "crs",
+]
 
 
 def catalog_epochs(catalog: Catalog, epochs: Sequence[str] | None) -> list[str]:
@@ -62,8 +84,11 @@ def _not_enriched(epoch: str, record: Any) -> str:
     """Why an epoch has no tree list: stale (enriched, then re-tiled: why) or never enriched."""
     if record.invalidated:
         why = record.invalidated.get("reason")
-        return (f"epoch {epoch!r} is stale: its tiles changed after it was enriched"
-                + (f" ({why})" if why else "") + "; re-run `standgrid enrich`")  # fmt: skip
+        return (
+            f"epoch {epoch!r} is stale: its tiles changed after it was enriched"
+            + (f" ({why})" if why else "")
+            + "; re-run `standgrid enrich`"
+        )
     return f"epoch {epoch!r} is not enriched: run `standgrid enrich` first"
 
 

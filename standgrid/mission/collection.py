@@ -162,10 +162,17 @@ class MissionCollection:
             rec
             for rec in self.records
             if metadata_matches(
-                rec.site, rec.robot, rec.date, rec.sensors, site=site,
-                date_from=date_from, date_to=date_to, robot=robot, sensors=sensors,
+                rec.site,
+                rec.robot,
+                rec.date,
+                rec.sensors,
+                site=site,
+                date_from=date_from,
+                date_to=date_to,
+                robot=robot,
+                sensors=sensors,
             )
-        ]  # fmt: skip
+        ]
 
 
 def metadata_matches(

@@ -54,11 +54,13 @@ class ElevationMap:
         """The cells holding a height as points ``(N, 3)``: in the base frame (or the CRS)."""
         rows, cols = np.nonzero(np.isfinite(self.heights))
         r = self.resolution
-        pts = np.column_stack([
-            self.origin[0] + (cols + 0.5) * r,
-            self.origin[1] + (rows + 0.5) * r,
-            self.heights[rows, cols].astype(np.float64),
-        ])  # fmt: skip
+        pts = np.column_stack(
+            [
+                self.origin[0] + (cols + 0.5) * r,
+                self.origin[1] + (rows + 0.5) * r,
+                self.heights[rows, cols].astype(np.float64),
+            ]
+        )
         return _transformed(pts, self.pose)
 
 
@@ -79,8 +81,9 @@ class VoxelGrid:
         """The grid box's 8 corners in the base frame ``(8, 3)``."""
         lo = np.asarray(self.origin, np.float64)
         hi = lo + np.asarray(self.values.shape, np.float64) * self.voxel_size
-        box = np.array([[x, y, z] for x in (lo[0], hi[0]) for y in (lo[1], hi[1])
-                        for z in (lo[2], hi[2])])  # fmt: skip
+        box = np.array(
+            [[x, y, z] for x in (lo[0], hi[0]) for y in (lo[1], hi[1]) for z in (lo[2], hi[2])]
+        )
         return _transformed(box, self.pose)
 
     def occupied_points(self, threshold: float = 0.5) -> NDArray[np.float64]:
@@ -115,8 +118,9 @@ class OctreeMap:
     def corners(self) -> NDArray[np.float64]:
         """The octree's metric box's 8 corners in the base frame ``(8, 3)``."""
         lo, hi = self.box
-        box = np.array([[x, y, z] for x in (lo[0], hi[0]) for y in (lo[1], hi[1])
-                        for z in (lo[2], hi[2])])  # fmt: skip
+        box = np.array(
+            [[x, y, z] for x in (lo[0], hi[0]) for y in (lo[1], hi[1]) for z in (lo[2], hi[2])]
+        )
         return _transformed(box, self.pose)
 
     def occupied_points(self) -> NDArray[np.float64]:
@@ -175,8 +179,14 @@ def read_voxel_grid(path: str | Path) -> VoxelGrid | OctreeMap:
         )
     size = _positive(data, "voxel_size", p)
     origin = _vector(data, "origin", 3, p)
-    return VoxelGrid(values.astype(np.float32), size, (origin[0], origin[1], origin[2]), kind,
-                     _pose(data.get("pose"), p), p)  # fmt: skip
+    return VoxelGrid(
+        values.astype(np.float32),
+        size,
+        (origin[0], origin[1], origin[2]),
+        kind,
+        _pose(data.get("pose"), p),
+        p,
+    )
 
 
 def _octomap(p: Path) -> OctreeMap:
@@ -210,9 +220,13 @@ def _octomap(p: Path) -> OctreeMap:
         except (OSError, ValueError) as exc:
             raise DerivedMapFormatError(f"unreadable JSON sidecar: {exc}", path=sidecar) from exc
         pose = _pose(meta.get("pose") if isinstance(meta, dict) else None, sidecar)
-    return OctreeMap(np.asarray(occupied, np.float64).reshape(-1, 3),
-                     float(tree.getResolution()), ((lo[0], lo[1], lo[2]), (hi[0], hi[1], hi[2])),
-                     pose, p)  # fmt: skip
+    return OctreeMap(
+        np.asarray(occupied, np.float64).reshape(-1, 3),
+        float(tree.getResolution()),
+        ((lo[0], lo[1], lo[2]), (hi[0], hi[1], hi[2])),
+        pose,
+        p,
+    )
 
 
 def _npz(p: Path) -> dict[str, Any]:
@@ -279,8 +293,14 @@ def _elevation_npz(p: Path) -> ElevationMap:
     if "heights" not in data:
         raise DerivedMapFormatError(f"missing 'heights' (has {sorted(data)})", path=p)
     origin = _vector(data, "origin", 2, p)
-    return ElevationMap(_heights(data["heights"], p), _positive(data, "resolution", p),
-                        (origin[0], origin[1]), _pose(data.get("pose"), p), None, p)  # fmt: skip
+    return ElevationMap(
+        _heights(data["heights"], p),
+        _positive(data, "resolution", p),
+        (origin[0], origin[1]),
+        _pose(data.get("pose"), p),
+        None,
+        p,
+    )
 
 
 def _elevation_tif(p: Path) -> ElevationMap:
@@ -339,8 +359,9 @@ def _elevation_png(p: Path) -> ElevationMap:
         heights[values == int(nodata)] = np.nan
     heights = np.flipud(heights)  # PNG row 0 is the top row (the largest y)
     pose = _pose(meta.get("pose"), sidecar)
-    return ElevationMap(heights.astype(np.float32), resolution, (origin[0], origin[1]), pose,
-                        None, p)  # fmt: skip
+    return ElevationMap(
+        heights.astype(np.float32), resolution, (origin[0], origin[1]), pose, None, p
+    )
 
 
 # --- writing ----------------------------------------------------------------------------

@@ -215,8 +215,10 @@ def discover_layout(path: str | Path) -> MissionLayout:
     imu_payloads = _stamped_files(imu_dir, text, unrecognised) if imu_dir.is_dir() else ()
 
     maps: dict[str, tuple[StampedFile, ...]] = {}
-    for folder, exts in ((ELEVATION_FOLDER, ELEVATION_EXTENSIONS),
-                         (VOLUMETRIC_FOLDER, VOLUMETRIC_EXTENSIONS)):  # fmt: skip
+    for folder, exts in (
+        (ELEVATION_FOLDER, ELEVATION_EXTENSIONS),
+        (VOLUMETRIC_FOLDER, VOLUMETRIC_EXTENSIONS),
+    ):
         if (root / folder).is_dir():
             found = _stamped_files(root / folder, exts | {"json"}, unrecognised)
             maps[folder] = tuple(f for f in found if f.path.suffix.lower() != ".json")
@@ -263,9 +265,16 @@ def is_mission_folder(path: str | Path) -> bool:
         return False
     layout = discover_layout(root)
     known = {
-        *GRAPH_NAMES, *POSES_CSV_NAMES, "metadata.yaml", *PAYLOAD_FOLDERS, *LAYER_FOLDERS,
-        *(name.split("/")[0] for name in SCAN_FOLDERS), "payloads", "images_rectified", "gnss",
-    }  # fmt: skip
+        *GRAPH_NAMES,
+        *POSES_CSV_NAMES,
+        "metadata.yaml",
+        *PAYLOAD_FOLDERS,
+        *LAYER_FOLDERS,
+        *(name.split("/")[0] for name in SCAN_FOLDERS),
+        "payloads",
+        "images_rectified",
+        "gnss",
+    }
     strangers = [p for p in root.iterdir() if p.name not in known]
     return layout.is_mission and not layout.unrecognised and not strangers
 

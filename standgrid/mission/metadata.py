@@ -243,8 +243,17 @@ class MissionMetadata:
 KEY_SYNONYMS: dict[str, tuple[str, ...]] = {
     "name": ("name", "mission_name", "mission"),
     "date": (
-        "date", "start_time", "start", "datetime", "date_time", "start_datetime",
-        "timestamp", "start_date", "recording_date", "recorded_at", "recorded",
+        "date",
+        "start_time",
+        "start",
+        "datetime",
+        "date_time",
+        "start_datetime",
+        "timestamp",
+        "start_date",
+        "recording_date",
+        "recorded_at",
+        "recorded",
     ),
     "time": ("time", "time_of_day", "start_clock"),
     "place": ("place", "site", "location", "site_name", "place_name", "location_name"),
@@ -254,7 +263,7 @@ KEY_SYNONYMS: dict[str, tuple[str, ...]] = {
     "sensors": ("sensors", "sensor", "sensor_list", "sensor_suite"),
     "tags": ("tags", "tag", "labels", "keywords"),
     "notes": ("notes", "note", "description", "comment", "comments", "remarks"),
-}  # fmt: skip
+}
 FOLDER_NAME = "folder name"
 #: Keys of a sensor mapping that hold the model / the kind.
 _SENSOR_MODEL_KEYS = ("model", "name", "type", "id")

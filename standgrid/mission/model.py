@@ -597,8 +597,10 @@ def _with_derived_maps(
         return payloads
     index = {p.stamp: k for k, p in enumerate(payloads)}
     out = list(payloads)
-    for files, key in ((layout.elevation_maps, "elevation_map"),
-                       (layout.volumetric_maps, "volumetric_map")):  # fmt: skip
+    for files, key in (
+        (layout.elevation_maps, "elevation_map"),
+        (layout.volumetric_maps, "volumetric_map"),
+    ):
         seen: dict[Stamp, Path] = {}
         for f in files:
             if f.stamp in seen:

@@ -476,8 +476,10 @@ class _GridMaps:
             ns = _stamp_ns(gridmap_header(msg))
             if self.layer not in msg.layers:  # a wrong layer name: said at once
                 where = f"{self.topic} at {Stamp.from_ns(ns)}"
-                raise BagFormatError(f"{where}: no GridMap layer {self.layer!r} "
-                                     f"(layers: {list(msg.layers)})", path=paths[0])  # fmt: skip
+                raise BagFormatError(
+                    f"{where}: no GridMap layer {self.layer!r} (layers: {list(msg.layers)})",
+                    path=paths[0],
+                )
             if not len(stamps):
                 continue
             k = int(np.argmin(np.abs(stamps - ns)))

@@ -133,10 +133,11 @@ def _vpc_files(path: Path) -> list[Path]:
                 asset["href"]
                 for key, asset in feature["assets"].items()
                 if "overview" not in (asset.get("roles") or [])
-                and ("data" in (asset.get("roles") or []) or key == "data"
-                     or not asset.get("roles"))
+                and (
+                    "data" in (asset.get("roles") or []) or key == "data" or not asset.get("roles")
+                )
                 and str(asset.get("href", "")).lower().endswith(SCAN_SUFFIXES)
-            ]  # fmt: skip
+            ]
             if len(data) != 1:
                 raise MetadataError(
                     f"feature {number} has {len(data)} point-cloud data assets (one expected)",
@@ -144,8 +145,9 @@ def _vpc_files(path: Path) -> list[Path]:
                 )
             hrefs.append(data[0])
     except (OSError, UnicodeDecodeError, ValueError, KeyError, TypeError, AttributeError) as exc:
-        raise MetadataError(f"not a virtual point cloud (STAC ItemCollection): {exc}",
-                            path=path) from exc  # fmt: skip
+        raise MetadataError(
+            f"not a virtual point cloud (STAC ItemCollection): {exc}", path=path
+        ) from exc
     files = []
     for href in hrefs:
         if re.match(r"^[a-z][a-z0-9+.-]*://", href, re.I):
@@ -190,8 +192,16 @@ def _facts(path: Path) -> _FileFacts:
         raise PointCloudFormatError(f"unreadable LAS/LAZ header ({exc})", path=path) from exc
     if created is not None and created.year < 1990:
         created = None
-    return _FileFacts(path, count, None if crs is None else CRS.of(crs).text, bool(standard),
-                      has_time, created, box, first)  # fmt: skip
+    return _FileFacts(
+        path,
+        count,
+        None if crs is None else CRS.of(crs).text,
+        bool(standard),
+        has_time,
+        created,
+        box,
+        first,
+    )
 
 
 def adjusted_gps_to_date(seconds: float) -> dt.date:
@@ -265,7 +275,7 @@ def _date(
         "give it (option scan_date)",
         path=path,
         option="scan_date",
-    )  # fmt: skip
+    )
 
 
 def _crs(facts: list[_FileFacts], options: ScanOptions, path: Path) -> str | None:
@@ -317,11 +327,12 @@ def scan_summary(path: str | Path) -> dict[str, Any]:
         "points": sum(f.points for f in facts),
         "crs": crs,
         "date": date,
-        "gps_time": "none" if not any(k for k, _ in kinds) else (
-            "week seconds" if any(k == "week" for k, _ in kinds) else "adjusted standard"),
+        "gps_time": "none"
+        if not any(k for k, _ in kinds)
+        else ("week seconds" if any(k == "week" for k, _ in kinds) else "adjusted standard"),
         "extent_crs": {"min": lo.tolist(), "max": hi.tolist()},
         "needs": needs,
-    }  # fmt: skip
+    }
 
 
 def open_scan(path: str | Path, options: ScanOptions = ScanOptions()) -> Any:
@@ -358,29 +369,53 @@ def open_scan(path: str | Path, options: ScanOptions = ScanOptions()) -> Any:
     offsets = {f.path: _week_offset(*kind, day) for f, kind in zip(facts, kinds, strict=True)}
     crs_value = None if crs is None else CRS.of(crs)
     payloads = [
-        Payload(Stamp.from_ns(base * NS_PER_S + k), None, file, "utm", {}, "point_cloud",
-                crs=crs_value, span=span, window=window, site=site, time_offset=offsets[file][0],
-                time_wrap=offsets[file][1])
+        Payload(
+            Stamp.from_ns(base * NS_PER_S + k),
+            None,
+            file,
+            "utm",
+            {},
+            "point_cloud",
+            crs=crs_value,
+            span=span,
+            window=window,
+            site=site,
+            time_offset=offsets[file][0],
+            time_wrap=offsets[file][1],
+        )
         for k, (file, span, window, site) in enumerate(parts)
-    ]  # fmt: skip
+    ]
     warnings = []
     for f, (kind, _) in zip(facts, kinds, strict=True):
         if kind is not None and (kind == "standard") != f.gps_standard:
             flagged = "adjusted standard" if f.gps_standard else "week seconds"
-            warnings.append(f"{f.path.name}: the header flags its GPS times {flagged}, their "
-                            f"values are {kind} time: read as {kind} time")  # fmt: skip
+            warnings.append(
+                f"{f.path.name}: the header flags its GPS times {flagged}, their "
+                f"values are {kind} time: read as {kind} time"
+            )
     if any(offset for offset, _ in offsets.values()):
         warnings.append(
             f"GPS times in week seconds: made adjusted standard GPS time in the GPS week that "
             f"puts them nearest to {day.isoformat()} (the date from the {date_source})"
         )
-    metadata = MissionMetadata(name=name, date=day, place=None, robot=None,
-                               sources={"date": date_source})  # fmt: skip
+    metadata = MissionMetadata(
+        name=name, date=day, place=None, robot=None, sources={"date": date_source}
+    )
     mission = Mission(
-        layout=MissionLayout(root=src), metadata=metadata, graph=None, payloads=payloads,
-        scans=[], gnss=None, imu=None, images=[], problems=[], strict=True, source_poses={},
-        cache=CloudCache(0), warnings=warnings,
-    )  # fmt: skip
+        layout=MissionLayout(root=src),
+        metadata=metadata,
+        graph=None,
+        payloads=payloads,
+        scans=[],
+        gnss=None,
+        imu=None,
+        images=[],
+        problems=[],
+        strict=True,
+        source_poses={},
+        cache=CloudCache(0),
+        warnings=warnings,
+    )
     mission.name = name
     mission.scan_path = path_xyz
     return mission
@@ -435,8 +470,9 @@ def read_trajectory(path: Path) -> tuple[NDArray[np.float64], NDArray[np.float64
         except (IndexError, ValueError):
             raise SensorLogFormatError(
                 f"expected numbers in columns {[c + 1 for c in cols]} (time, x, y, z)",
-                path=path, line=number,
-            ) from None  # fmt: skip
+                path=path,
+                line=number,
+            ) from None
         if not np.all(np.isfinite(values[i])):
             raise SensorLogFormatError("a value is not finite", path=path, line=number)
         if i and values[i, 0] <= values[i - 1, 0]:

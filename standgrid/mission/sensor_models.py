@@ -49,17 +49,29 @@ KIND_ALIASES: dict[str, str] = {
 #: ``(pattern, kind)``: a name whose normalised form matches ``pattern`` (re.match) is a kind.
 SENSOR_MODELS: list[tuple[str, str]] = [
     # GNSS receivers first: u-blox's ZED-F9P shares its prefix with the ZED camera
-    (r"(zed-?f9|u-?blox|neo-?m8|septentrio|mosaic|asterx|novatel|oem7|pwrpak|trimble"
-     r"|emlid|reach|swift|piksi|duro|gnss|gps|rtk)", "gnss"),
-    (r"(velodyne|vlp|hdl|vls|alpha-?prime|hesai|pandar|xt-?16|xt-?32|qt-?64|at-?128|ouster"
-     r"|os-?[012](\b|-|$)|os-?dome|livox|mid-?(40|70|360)|avia|horizon|hap(\b|-|$)|robosense"
-     r"|rs-?(lidar|bpearl|helios|ruby|m1)|riegl|vux|vz-|sick|lms|mrs|geoslam|zeb|leica-?blk"
-     r"|blk2go|faro|emesent|hovermap|innoviz|luminar|cepton|quanergy|lidar|laser)", "lidar"),
-    (r"(xsens|mti|microstrain|3dm-?gx|vectornav|vn-?[123]00|epson-?g|bosch-?bmi|bmi0|adis|imu"
-     r"|ins(\b|-|$))", "imu"),
-    (r"(zed|realsense|d4[0-9]{2}|l515|alphasense|sevensense|flir|blackfly|basler|allied"
-     r"|ximea|gopro|insta360|cam|image|rgb|thermal)", "camera"),
-]  # fmt: skip
+    (
+        r"(zed-?f9|u-?blox|neo-?m8|septentrio|mosaic|asterx|novatel|oem7|pwrpak|trimble"
+        r"|emlid|reach|swift|piksi|duro|gnss|gps|rtk)",
+        "gnss",
+    ),
+    (
+        r"(velodyne|vlp|hdl|vls|alpha-?prime|hesai|pandar|xt-?16|xt-?32|qt-?64|at-?128|ouster"
+        r"|os-?[012](\b|-|$)|os-?dome|livox|mid-?(40|70|360)|avia|horizon|hap(\b|-|$)|robosense"
+        r"|rs-?(lidar|bpearl|helios|ruby|m1)|riegl|vux|vz-|sick|lms|mrs|geoslam|zeb|leica-?blk"
+        r"|blk2go|faro|emesent|hovermap|innoviz|luminar|cepton|quanergy|lidar|laser)",
+        "lidar",
+    ),
+    (
+        r"(xsens|mti|microstrain|3dm-?gx|vectornav|vn-?[123]00|epson-?g|bosch-?bmi|bmi0|adis|imu"
+        r"|ins(\b|-|$))",
+        "imu",
+    ),
+    (
+        r"(zed|realsense|d4[0-9]{2}|l515|alphasense|sevensense|flir|blackfly|basler|allied"
+        r"|ximea|gopro|insta360|cam|image|rgb|thermal)",
+        "camera",
+    ),
+]
 
 
 def normalise(name: str) -> str:

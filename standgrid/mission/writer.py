@@ -113,9 +113,14 @@ def write_payload_logs(
             write_gnss(gnss, gnss_dir / first.filename("gnss", "txt"))
         for ns, idx in zip(stamps, _window_groups(gnss.stamps_ns, stamps), strict=True):
             part = GnssFixes(
-                gnss.stamps_ns[idx], gnss.lat[idx], gnss.lon[idx], gnss.alt[idx],
-                gnss.quality[idx], gnss.h_std[idx], gnss.v_std[idx],
-            )  # fmt: skip
+                gnss.stamps_ns[idx],
+                gnss.lat[idx],
+                gnss.lon[idx],
+                gnss.alt[idx],
+                gnss.quality[idx],
+                gnss.h_std[idx],
+                gnss.v_std[idx],
+            )
             write_gnss(part, gnss_dir / Stamp.from_ns(ns).filename("gnss", "txt"))
     if imu is not None and len(imu):
         imu_dir = folder / "payloads" / "imu"

@@ -292,8 +292,13 @@ class _Store:
                 for name in names:
                     # take into the output (rows are a permutation's: "clip" never clips; it
                     # spares take's buffer, and is ~4x faster than indexing an (N, 3) array)
-                    np.take(block.columns[name], rows, axis=0, out=out[name][at : at + count],
-                            mode="clip")  # fmt: skip
+                    np.take(
+                        block.columns[name],
+                        rows,
+                        axis=0,
+                        out=out[name][at : at + count],
+                        mode="clip",
+                    )
             at += count
         return out
 

@@ -138,8 +138,9 @@ def _read(
     for path, _, start, count in parts:
         got = np.fromfile(path, dtype=dtype, count=count, offset=start * dtype.itemsize)
         if len(got) != count:
-            raise ConservationError(f"run file ended early: {count - len(got)} records missing",
-                                    path=path)  # fmt: skip
+            raise ConservationError(
+                f"run file ended early: {count - len(got)} records missing", path=path
+            )
         out[at : at + count] = got
         at += count
     names = [n for n in dtype.names or () if n != _XYZ]

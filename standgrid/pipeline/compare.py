@@ -101,17 +101,32 @@ def compare_epochs(
             source.root
         )
         if same:
-            return _compare(source, source, epoch_from, epoch_to, other_catalog, max_distance,
-                            min_observed_fraction, None)  # fmt: skip
+            return _compare(
+                source,
+                source,
+                epoch_from,
+                epoch_to,
+                other_catalog,
+                max_distance,
+                min_observed_fraction,
+                None,
+            )
         with contextlib.ExitStack() as reading:
             assert other_catalog is not None
             target = reading.enter_context(
                 Catalog.reading(other_catalog, lock_timeout=lock_timeout)
             )
             return _compare(
-                source, target, epoch_from, epoch_to, other_catalog, max_distance,
-                min_observed_fraction, Path(scratch), reading.close,
-            )  # fmt: skip
+                source,
+                target,
+                epoch_from,
+                epoch_to,
+                other_catalog,
+                max_distance,
+                min_observed_fraction,
+                Path(scratch),
+                reading.close,
+            )
 
 
 def _compare(
@@ -237,9 +252,11 @@ def _compare(
         )
         written = _write_outputs(txn, source, folder, changes, matches, epoch_from, epoch_to, cells)
         outputs = {
-            "chm_difference": chm_rel, "chm_difference_style": style_rel, **written,
+            "chm_difference": chm_rel,
+            "chm_difference_style": style_rel,
+            **written,
             "gpkg": paths.INDEX,
-        }  # fmt: skip
+        }
         other = (
             str(Path(other_catalog).resolve())
             if other_catalog is not None and target is not source

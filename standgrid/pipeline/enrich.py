@@ -187,8 +187,9 @@ def _enrich_epoch(
         )
     arrays = applied.rasters
     in_cells = cells_mask(grid, polygons)
-    coverage = Coverage(grid, arrays["observed"] & in_cells, arrays["near_ground"] & in_cells,
-                        in_cells)  # fmt: skip
+    coverage = Coverage(
+        grid, arrays["observed"] & in_cells, arrays["near_ground"] & in_cells, in_cells
+    )
     trees = tree_table(applied.tree_frames, epoch)
 
     unseen = ~coverage.near_ground
@@ -199,8 +200,12 @@ def _enrich_epoch(
         arrays[name][unseen] = np.nan  # terrain (and heights over it) extrapolated there
         write_raster(txn, paths.raster(epoch, name), arrays[name], grid, description)
     write_raster(
-        txn, paths.raster(epoch, "density"), arrays["density"], grid, "points per square metre",
-    )  # fmt: skip
+        txn,
+        paths.raster(epoch, "density"),
+        arrays["density"],
+        grid,
+        "points per square metre",
+    )
     write_coverage(txn, paths.raster(epoch, "observed"), coverage)
     against_dtm = _elevation_map_vs_dtm(txn, epoch, arrays["dtm"], grid)
     observed_m2 = float(sum(s.observed_m2 for s in samples))  # each cell's, clipped to it

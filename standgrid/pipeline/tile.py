@@ -141,8 +141,9 @@ def tile_missions(
         )
 
     refuse_overlap(path, [i.mission.path for i in ingests])
-    request = GridRequest(options.scheme, options.cell_size, tuple(options.levels), options.origin,
-                          options.crs)  # fmt: skip
+    request = GridRequest(
+        options.scheme, options.cell_size, tuple(options.levels), options.origin, options.crs
+    )
     placements = [i.placement for i in ingests]
     with contextlib.ExitStack() as stack:
         executor = stack.enter_context(execution.open())
@@ -196,16 +197,22 @@ def _prepare(
         mission = open_scan(given, scan)
     else:
         if options.trajectory is not None:
-            raise CatalogError("option trajectory is for plain scans (LAS/LAZ files or "
-                               "folders of them); a mission has its pose graph",
-                               path=Path(given), option="trajectory")  # fmt: skip
+            raise CatalogError(
+                "option trajectory is for plain scans (LAS/LAZ files or "
+                "folders of them); a mission has its pose graph",
+                path=Path(given),
+                option="trajectory",
+            )
         mission = open_mission(given, cache_points=0)
     progress.status(f"georeferencing {mission.name}")
     try:
         placement = place_mission(
-            mission, crs=crs, anchor=options.anchor, method=options.method,
+            mission,
+            crs=crs,
+            anchor=options.anchor,
+            method=options.method,
             accept_poor=options.accept_poor_georeference,
-        )  # fmt: skip
+        )
     except NotGeoreferencedError as exc:
         # no GNSS and no anchor: the catalog (or the missions given with it) may place it
         if not options.align or mission.graph is None or mission.is_projected:

@@ -58,13 +58,16 @@ def create_app(
 
     for what, limit in (("write", write_time_limit), ("tile", tile_time_limit)):
         if limit is not None and not (math.isfinite(limit) and limit > 0):
-            raise ValueError(f"{what} time limit must be a positive number of seconds, "
-                             f"got {limit!r}")  # fmt: skip
+            raise ValueError(
+                f"{what} time limit must be a positive number of seconds, got {limit!r}"
+            )
     if placement_tolerance is not None and not (
         math.isfinite(placement_tolerance) and placement_tolerance >= 0
     ):
-        raise TilingError(f"placement tolerance must be a finite number of metres >= 0, "
-                          f"got {placement_tolerance!r}")  # fmt: skip
+        raise TilingError(
+            f"placement tolerance must be a finite number of metres >= 0, "
+            f"got {placement_tolerance!r}"
+        )
 
     from standgrid.serve import events, files, ingest, ogc, problems, viewer
     from standgrid.serve import missions as retrieval
@@ -78,15 +81,21 @@ def create_app(
     # writes run in worker processes, each started at its first call
     workers = {
         "mission_writer": WorkerProcess(
-            "mission writer", processes=WRITER_PROCESSES, time_limit=write_time_limit,
-            memory_limit=write_memory_limit, limit_status=400,
+            "mission writer",
+            processes=WRITER_PROCESSES,
+            time_limit=write_time_limit,
+            memory_limit=write_memory_limit,
+            limit_status=400,
             limit_hint=": its data could not be read in bounded time",
         ),
         "tiler": WorkerProcess(
-            "tiling", niceness=TILER_NICENESS, time_limit=tile_time_limit, limit_status=503,
+            "tiling",
+            niceness=TILER_NICENESS,
+            time_limit=tile_time_limit,
+            limit_status=503,
             limit_hint="; the catalog keeps its last commit (a longer limit: --tile-time-limit)",
         ),
-    }  # fmt: skip
+    }
 
     @contextlib.asynccontextmanager
     async def lifespan(_: Any) -> AsyncIterator[None]:
@@ -124,20 +133,27 @@ def create_app(
     app.include_router(ingest.router)
     app.include_router(events.router)
 
-    viewer.install(app, description={
-        "title": "standgrid",
-        "catalog": root.name,
-        "links": [
-            {"rel": "ogc", "href": "/ogc", "title": "OGC API - Features"},
-            {"rel": "files", "href": "/files", "title": "catalog files (range requests)"},
-            {"rel": "missions", "href": "/missions", "title": "retrieval API"},
-            {"rel": "events", "href": "/events", "type": "text/event-stream",
-             "title": "live events (Server-Sent Events)"},
-            {"rel": "service-desc", "href": "/openapi.json", "title": "OpenAPI 3.1"},
-            {"rel": "service-doc", "href": "/docs", "title": "API documentation"},
-            {"rel": "viewer", "href": "/", "type": "text/html", "title": "web viewer"},
-        ],
-    })  # fmt: skip
+    viewer.install(
+        app,
+        description={
+            "title": "standgrid",
+            "catalog": root.name,
+            "links": [
+                {"rel": "ogc", "href": "/ogc", "title": "OGC API - Features"},
+                {"rel": "files", "href": "/files", "title": "catalog files (range requests)"},
+                {"rel": "missions", "href": "/missions", "title": "retrieval API"},
+                {
+                    "rel": "events",
+                    "href": "/events",
+                    "type": "text/event-stream",
+                    "title": "live events (Server-Sent Events)",
+                },
+                {"rel": "service-desc", "href": "/openapi.json", "title": "OpenAPI 3.1"},
+                {"rel": "service-doc", "href": "/docs", "title": "API documentation"},
+                {"rel": "viewer", "href": "/", "type": "text/html", "title": "web viewer"},
+            ],
+        },
+    )
 
     # The middleware added last runs first: the write guard answers before the body limit
     # reads anything or a route is found.

@@ -80,8 +80,9 @@ class EventHub:
     """The app's events: published by the ingest routes, streamed to every subscriber. Used
     from the server's event loop only (no locks)."""
 
-    def __init__(self, ring: int = RING_EVENTS, queue: int = CLIENT_QUEUE,
-                 max_clients: int = MAX_CLIENTS) -> None:  # fmt: skip
+    def __init__(
+        self, ring: int = RING_EVENTS, queue: int = CLIENT_QUEUE, max_clients: int = MAX_CLIENTS
+    ) -> None:
         self.run = secrets.token_hex(4)
         self.ring: deque[Event] = deque(maxlen=ring)
         self.queue_size = queue
@@ -176,8 +177,9 @@ class EventHub:
         self.subscribers.clear()
 
 
-async def _stream(hub: EventHub, last_event_id: str | None,
-                  heartbeat: float) -> AsyncIterator[bytes]:  # fmt: skip
+async def _stream(
+    hub: EventHub, last_event_id: str | None, heartbeat: float
+) -> AsyncIterator[bytes]:
     """The SSE text of one client: subscribed as the response starts (a request given up
     before leaves nothing behind), until the server stops or the client goes."""
     sub = hub.subscribe(last_event_id)
@@ -207,9 +209,10 @@ async def _stream(hub: EventHub, last_event_id: str | None,
 )
 async def events(
     request: Request,
-    last_event_id: Annotated[str | None, Header(description="the id of the last event "
-                                                "received (a reconnect)")] = None,
-) -> StreamingResponse:  # fmt: skip
+    last_event_id: Annotated[
+        str | None, Header(description="the id of the last event received (a reconnect)")
+    ] = None,
+) -> StreamingResponse:
     hub: EventHub = request.app.state.events
     hub.check_room()
     heartbeat: float = getattr(request.app.state, "event_heartbeat", HEARTBEAT_S)

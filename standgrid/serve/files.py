@@ -51,8 +51,9 @@ def published_files(catalog: Catalog) -> set[str]:
         if folder.is_dir():
             for file in folder.iterdir():
                 if file.suffix == ".tif":
-                    rels.update({paths.raster(epoch, file.stem),
-                                 paths.raster_style(epoch, file.stem)})  # fmt: skip
+                    rels.update(
+                        {paths.raster(epoch, file.stem), paths.raster_style(epoch, file.stem)}
+                    )
     for entry in catalog.comparisons.values():
         rels.update(str(rel) for rel in (entry.get("outputs") or {}).values())
     return rels
@@ -79,21 +80,23 @@ def check_range(header: str | None, size: int) -> None:
         if (start and int(start) < size) or (not start and int(end) > 0 and size > 0):
             satisfiable = True
     if not satisfiable:
-        raise Problem(416, f"Range: {header!r} lies outside the file's {size} bytes",
-                      headers={"Content-Range": f"bytes */{size}"})  # fmt: skip
+        raise Problem(
+            416,
+            f"Range: {header!r} lies outside the file's {size} bytes",
+            headers={"Content-Range": f"bytes */{size}"},
+        )
 
 
 @router.get("/files", summary="The files the catalog publishes, with their URLs")
 def listing(request: Request) -> JSONResponse:
     root = request.app.state.catalog_root
     with snapshot(root, with_index=False) as snap:
-        present = sorted(r for r in published_files(snap.catalog)
-                         if snap.catalog.path(r).is_file())  # fmt: skip
+        present = sorted(r for r in published_files(snap.catalog) if snap.catalog.path(r).is_file())
         sizes = {r: snap.catalog.path(r).stat().st_size for r in present}
     base = str(request.base_url).rstrip("/")
-    return JSONResponse({"files": [
-        {"path": r, "size": sizes[r], "href": f"{base}/files/{r}"} for r in present
-    ]})  # fmt: skip
+    return JSONResponse(
+        {"files": [{"path": r, "size": sizes[r], "href": f"{base}/files/{r}"} for r in present]}
+    )
 
 
 _FILE_RESPONSES: dict[int | str, dict[str, Any]] = {
@@ -109,8 +112,12 @@ _FILE_RESPONSES: dict[int | str, dict[str, Any]] = {
     responses=_FILE_RESPONSES,
     summary="One file of the catalog (HTTP range requests supported)",
 )
-@router.head("/files/{relative:path}", operation_id="head_file", responses=_FILE_RESPONSES,
-             summary="One file's headers (size, type, Accept-Ranges)")  # fmt: skip
+@router.head(
+    "/files/{relative:path}",
+    operation_id="head_file",
+    responses=_FILE_RESPONSES,
+    summary="One file's headers (size, type, Accept-Ranges)",
+)
 def file(request: Request, relative: str) -> Any:
     root = request.app.state.catalog_root
     with snapshot(root, with_index=False) as snap:

@@ -43,8 +43,10 @@ Label = Annotated[str, Field(max_length=MAX_LABEL)]
 
 
 def _body(content: dict[str, Any], description: str) -> dict[str, Any]:
-    return {"requestBody": {"required": True, "description": description, "content": content},
-            "security": [{"bearer": []}]}  # fmt: skip
+    return {
+        "requestBody": {"required": True, "description": description, "content": content},
+        "security": [{"bearer": []}],
+    }
 
 
 class GnssOrigin(BaseModel):
@@ -75,8 +77,11 @@ def check_name(name: str) -> str:
     """A mission name that is safe as one folder name (letters, digits, ``.``, ``_``, ``-``;
     no leading dot), else a 400 problem."""
     if not _NAME.match(name) or ".." in name:
-        raise Problem(400, f"mission name {name!r}: use letters, digits, '.', '_', '-' "
-                      "(at most 128, not starting with '.' or '-')")  # fmt: skip
+        raise Problem(
+            400,
+            f"mission name {name!r}: use letters, digits, '.', '_', '-' "
+            "(at most 128, not starting with '.' or '-')",
+        )
     return name
 
 
@@ -106,8 +111,9 @@ async def _turn(request: Request, live: Any) -> AsyncIterator[None]:
             del turns[name]
 
 
-async def _write(request: Request, live: Any, method: str, *args: Any,
-                 announce: tuple[int, int] | bool = False) -> Any:  # fmt: skip
+async def _write(
+    request: Request, live: Any, method: str, *args: Any, announce: tuple[int, int] | bool = False
+) -> Any:
     """``live.<method>(*args)`` in the mission folders' worker process, in the mission's turn.
     Once it stored something (outcome ``created`` or ``stored``), ``announce`` publishes the
     mission's trajectory (True) and the payload of that stamp (a stamp), still in the turn:
@@ -135,9 +141,15 @@ async def _announce(request: Request, live: Any, stamp: tuple[int, int] | None) 
         told = await writer.call(describe, str(live.path.absolute()), root, stamp)
     except Problem as exc:
         if stamp is not None:
-            hub.publish("payload", {"mission": live.path.name,
-                                    "payload": f"{stamp[0]}_{stamp[1]:09d}", "placed": False,
-                                    "reason": f"not described: {exc.detail}"})  # fmt: skip
+            hub.publish(
+                "payload",
+                {
+                    "mission": live.path.name,
+                    "payload": f"{stamp[0]}_{stamp[1]:09d}",
+                    "placed": False,
+                    "reason": f"not described: {exc.detail}",
+                },
+            )
         return
     if told["payload"] is not None:
         hub.publish("payload", told["payload"])
@@ -145,8 +157,9 @@ async def _announce(request: Request, live: Any, stamp: tuple[int, int] | None) 
 
 
 def _answer(outcome: str, status_created: int = 201, **extra: Any) -> JSONResponse:
-    return JSONResponse({"outcome": outcome, **extra},
-                        status_code=200 if outcome == "unchanged" else status_created)  # fmt: skip
+    return JSONResponse(
+        {"outcome": outcome, **extra}, status_code=200 if outcome == "unchanged" else status_created
+    )
 
 
 @router.post(
@@ -161,21 +174,33 @@ async def create(request: Request, mission: NewMission) -> JSONResponse:
     live = _live(request, mission.name)
     _check_catalog_folder(request, live)
     metadata = MissionMetadata(
-        name=mission.name, date=mission.date, place=mission.place, robot=mission.robot,
-        unit=mission.unit, time=mission.time, sensors=list(mission.sensors),
-        tags=list(mission.tags), notes=mission.notes,
-        gnss=None if mission.gnss is None else (
-            mission.gnss.latitude, mission.gnss.longitude, mission.gnss.altitude),
-    )  # fmt: skip
+        name=mission.name,
+        date=mission.date,
+        place=mission.place,
+        robot=mission.robot,
+        unit=mission.unit,
+        time=mission.time,
+        sensors=list(mission.sensors),
+        tags=list(mission.tags),
+        notes=mission.notes,
+        gnss=None
+        if mission.gnss is None
+        else (mission.gnss.latitude, mission.gnss.longitude, mission.gnss.altitude),
+    )
     live.path.parent.mkdir(parents=True, exist_ok=True)
     outcome = await _write(request, live, "create", metadata)
     if outcome == "created":
         hub: EventHub = request.app.state.events
-        hub.publish("mission", {
-            "mission": mission.name, "date": mission.date.isoformat(), "robot": mission.robot,
-            "place": mission.place,
-            "gnss": None if mission.gnss is None else mission.gnss.model_dump(),
-        })  # fmt: skip
+        hub.publish(
+            "mission",
+            {
+                "mission": mission.name,
+                "date": mission.date.isoformat(),
+                "robot": mission.robot,
+                "place": mission.place,
+                "gnss": None if mission.gnss is None else mission.gnss.model_dump(),
+            },
+        )
     return _answer(outcome, name=mission.name)
 
 
@@ -206,9 +231,14 @@ async def payload(
     name: str,
     stamp: Annotated[str, Query(description="<sec>_<nsec, 9 digits>")],
     format: Annotated[str, Query(description="pcd, ply, las or laz")] = "pcd",
-    pose: Annotated[str | None, Query(description="node pose T_map_base: x,y,z,qx,qy,qz,qw "
-                                      "(adds the node when the graph lacks it)")] = None,
-) -> JSONResponse:  # fmt: skip
+    pose: Annotated[
+        str | None,
+        Query(
+            description="node pose T_map_base: x,y,z,qx,qy,qz,qw "
+            "(adds the node when the graph lacks it)"
+        ),
+    ] = None,
+) -> JSONResponse:
     from standgrid.stamps import Stamp
 
     match = _STAMP.match(stamp)
@@ -239,9 +269,8 @@ async def graph(request: Request, name: str) -> JSONResponse:
 @router.post(
     "/{name}/gnss",
     summary="Send GNSS fixes (the canonical text log); fixes already stored are kept once",
-    openapi_extra=_body(_TEXT, "# sec, nsec, latitude, longitude, altitude, quality, h_std, "
-                        "v_std"),
-)  # fmt: skip
+    openapi_extra=_body(_TEXT, "# sec, nsec, latitude, longitude, altitude, quality, h_std, v_std"),
+)
 async def gnss(request: Request, name: str) -> JSONResponse:
     live = _live(request, name)
     outcome, new = await _write(request, live, "add_gnss", await request.body(), announce=True)
@@ -264,9 +293,10 @@ async def gnss(request: Request, name: str) -> JSONResponse:
 async def tile(
     request: Request,
     name: str,
-    exact: Annotated[bool, Query(description="use the fresh georeference fit, whatever "
-                                 "the placement tolerance")] = False,
-) -> JSONResponse:  # fmt: skip
+    exact: Annotated[
+        bool, Query(description="use the fresh georeference fit, whatever the placement tolerance")
+    ] = False,
+) -> JSONResponse:
     live = _live(request, name)
     if not (live.path / "metadata.yaml").is_file():
         raise Problem(404, f"no mission {name!r} was created on this server")
@@ -279,8 +309,15 @@ async def tile(
         report, cells = await tiler.call(tile_with_cells, folder, str(root), tolerance)
         hub: EventHub = request.app.state.events
         tiled = report["missions"].get(name, {})
-        hub.publish("tiled", {"mission": name, "epoch": tiled.get("epoch"), "epochs": cells,
-                              "placement": tiled.get("placement")})  # fmt: skip
+        hub.publish(
+            "tiled",
+            {
+                "mission": name,
+                "epoch": tiled.get("epoch"),
+                "epochs": cells,
+                "placement": tiled.get("placement"),
+            },
+        )
     return JSONResponse(_public(request, report))
 
 
@@ -291,8 +328,11 @@ def _check_catalog_folder(request: Request, live: Any) -> None:
     with snapshot(request.app.state.catalog_root, with_index=False) as snap:
         record = snap.catalog.mission_records.get(name)
     if record is not None and record.path and Path(record.path) != live.path.absolute():
-        raise Problem(409, f"the catalog holds a mission {name!r} tiled from another folder "
-                      "than this server's: choose another name")  # fmt: skip
+        raise Problem(
+            409,
+            f"the catalog holds a mission {name!r} tiled from another folder "
+            "than this server's: choose another name",
+        )
 
 
 def _public(request: Request, report: Any) -> Any:

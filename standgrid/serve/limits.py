@@ -39,8 +39,9 @@ class BodyLimit:
             except ValueError:
                 declared = -1
             if declared < 0:
-                response = problem_response(400, "invalid Content-Length",
-                                            instance=scope.get("path"))  # fmt: skip
+                response = problem_response(
+                    400, "invalid Content-Length", instance=scope.get("path")
+                )
                 await response(scope, receive, send)
                 return
             if declared > self.max_bytes:

@@ -43,8 +43,9 @@ def describe(
     catalog = Catalog.open(catalog_root)
     to_catalog, reason = _placement(mission, catalog)
     out: dict[str, Any] = {"trajectory": _trajectory(mission, to_catalog, reason, catalog)}
-    out["payload"] = None if stamp is None else _payload(mission, stamp, to_catalog, reason,
-                                                          catalog)  # fmt: skip
+    out["payload"] = (
+        None if stamp is None else _payload(mission, stamp, to_catalog, reason, catalog)
+    )
     return out
 
 
@@ -90,8 +91,9 @@ def _wgs84(geometry: Any, catalog: Catalog) -> dict[str, Any]:
     from standgrid.crs import CRS
 
     to_lonlat = CRS.of(catalog.crs).transformer_to("EPSG:4326")
-    moved = shapely.transform(geometry, lambda xy: np.column_stack(to_lonlat.transform(
-        xy[:, 0], xy[:, 1], errcheck=True)))  # fmt: skip
+    moved = shapely.transform(
+        geometry, lambda xy: np.column_stack(to_lonlat.transform(xy[:, 0], xy[:, 1], errcheck=True))
+    )
     return _geojson(moved, DEGREE_DECIMALS)
 
 
@@ -164,15 +166,19 @@ def _payload(
         return out
     centre = pose[:3, 3]
     hull = footprint(transform_points(pose, xyz), shapely.Point(centre[:2]))
-    out["map"] = {"position": _round(centre, PROJECTED_DECIMALS),
-                  "footprint": _geojson(hull, PROJECTED_DECIMALS)}  # fmt: skip
+    out["map"] = {
+        "position": _round(centre, PROJECTED_DECIMALS),
+        "footprint": _geojson(hull, PROJECTED_DECIMALS),
+    }
     if to_catalog is not None:
         at = to_catalog.projector.exact(centre[None, :])[0]
         points = to_catalog.base_points(np.array(xyz, dtype=np.float64), pose)
         hull = footprint(points, shapely.Point(at[:2]))
         out["placed"] = True
-        out["position"] = {**_placed(shapely.Point(at[:2]), catalog),
-                           "z": round(float(at[2]), PROJECTED_DECIMALS)}  # fmt: skip
+        out["position"] = {
+            **_placed(shapely.Point(at[:2]), catalog),
+            "z": round(float(at[2]), PROJECTED_DECIMALS),
+        }
         out["footprint"] = _placed(hull, catalog)
     return out
 
@@ -189,8 +195,13 @@ def tile_with_cells(folder: str, catalog_root: str, placement_tolerance: float |
     cells: dict[str, dict[str, list[str]]] = {}
     for key in sorted(before.keys() | after.keys()):
         old, new = before.get(key), after.get(key)
-        kind = "new" if old is None else "removed" if new is None else (
-            "changed" if old != new else None)  # fmt: skip
+        kind = (
+            "new"
+            if old is None
+            else "removed"
+            if new is None
+            else ("changed" if old != new else None)
+        )
         if kind is not None:
             epoch, cell_id = key
             cells.setdefault(epoch, {"new": [], "changed": [], "removed": []})[kind].append(cell_id)
@@ -212,5 +223,9 @@ def _tile_files(root: Path) -> dict[tuple[str, str], tuple[str, int, int, int]]:
             with contextlib.suppress(OSError):
                 stat = catalog.path(str(row.tile_path)).stat()
                 found[(str(row.epoch), str(row.cell_id))] = (
-                    str(row.tile_path), stat.st_ino, stat.st_mtime_ns, stat.st_size)  # fmt: skip
+                    str(row.tile_path),
+                    stat.st_ino,
+                    stat.st_mtime_ns,
+                    stat.st_size,
+                )
     return found

@@ -138,10 +138,17 @@ def search(
         _summary(request, r)
         for r in sorted(records, key=lambda r: (r.date, r.name))
         if metadata_matches(
-            r.place, r.robot, r.date or None, r.sensors, site=site, date_from=start,
-            date_to=end, robot=robot, sensors=sensor,
+            r.place,
+            r.robot,
+            r.date or None,
+            r.sensors,
+            site=site,
+            date_from=start,
+            date_to=end,
+            robot=robot,
+            sensors=sensor,
         )
-    ]  # fmt: skip
+    ]
     return JSONResponse({"missions": found, "count": len(found)})
 
 
@@ -159,8 +166,9 @@ def by_type(
     from standgrid.mission.retrieval import DATA_TYPES, payload_records, retrieve_payload_by_type
 
     if type.lower().replace("-", "_") not in DATA_TYPES:
-        raise Problem(400, f"type: unknown data type {type[:64]!r}; known: "
-                      f"{', '.join(sorted(DATA_TYPES))}")  # fmt: skip
+        raise Problem(
+            400, f"type: unknown data type {type[:64]!r}; known: {', '.join(sorted(DATA_TYPES))}"
+        )
     record = _record(request, name)
     found = retrieve_payload_by_type(_opened(record), type)
     return _payloads(request, record, payload_records(found))
@@ -318,8 +326,7 @@ def payload(
     if wanted is None:
         return _payloads(request, record, payload_records([found]))
     (layered,) = layers_of(request.app.state.catalog_root, mission, [found], wanted)
-    headers = {"Cache-Control": "no-cache",
-               "X-Standgrid-Enrichment": str(layered.enrichment_id)}  # fmt: skip
+    headers = {"Cache-Control": "no-cache", "X-Standgrid-Enrichment": str(layered.enrichment_id)}
     if format == "json":
         return JSONResponse(layered.to_dict(points=points), headers=headers)
     stamp = f"{found.stamp.sec}_{found.stamp.nsec:09d}"

@@ -67,18 +67,23 @@ router = APIRouter(prefix="/ogc", tags=["OGC API - Features"])
 @router.get("/", include_in_schema=False)
 def landing(request: Request) -> JSONResponse:
     base = _base(request)
-    return _json({
-        "title": "standgrid catalog",
-        "description": "The stand-grid catalog's index layers as OGC API - Features",
-        "links": [
-            {"rel": "self", "type": "application/json", "href": base},
-            {"rel": "service-desc", "type": OPENAPI_JSON, "href": f"{base}/api"},
-            {"rel": "service-doc", "type": "text/html",
-             "href": str(request.base_url).rstrip("/") + "/docs"},
-            {"rel": "conformance", "type": "application/json", "href": f"{base}/conformance"},
-            {"rel": "data", "type": "application/json", "href": f"{base}/collections"},
-        ],
-    })  # fmt: skip
+    return _json(
+        {
+            "title": "standgrid catalog",
+            "description": "The stand-grid catalog's index layers as OGC API - Features",
+            "links": [
+                {"rel": "self", "type": "application/json", "href": base},
+                {"rel": "service-desc", "type": OPENAPI_JSON, "href": f"{base}/api"},
+                {
+                    "rel": "service-doc",
+                    "type": "text/html",
+                    "href": str(request.base_url).rstrip("/") + "/docs",
+                },
+                {"rel": "conformance", "type": "application/json", "href": f"{base}/conformance"},
+                {"rel": "data", "type": "application/json", "href": f"{base}/collections"},
+            ],
+        }
+    )
 
 
 @router.get("/conformance", summary="Conformance classes")
@@ -114,8 +119,14 @@ def _stale_comparisons(snap: Snapshot) -> list[dict[str, str]]:
     for key, entry in sorted(snap.catalog.comparisons.items()):
         reason = other_catalog_change(entry, others)
         if reason is not None:
-            stale.append({"comparison": key, "epoch_from": str(entry.get("from")),
-                          "epoch_to": str(entry.get("to")), "reason": reason})  # fmt: skip
+            stale.append(
+                {
+                    "comparison": key,
+                    "epoch_from": str(entry.get("from")),
+                    "epoch_to": str(entry.get("to")),
+                    "reason": reason,
+                }
+            )
     return stale
 
 
@@ -142,10 +153,13 @@ def _collection(request: Request, snap: Snapshot, layer: Layer) -> dict[str, Any
         "links": [
             {"rel": "self", "type": "application/json", "href": base},
             {"rel": "items", "type": GEOJSON, "href": f"{base}/items"},
-            {"rel": "http://www.opengis.net/def/rel/ogc/1.0/queryables",
-             "type": "application/schema+json", "href": f"{base}/queryables"},
+            {
+                "rel": "http://www.opengis.net/def/rel/ogc/1.0/queryables",
+                "type": "application/schema+json",
+                "href": f"{base}/queryables",
+            },
         ],
-    }  # fmt: skip
+    }
     own = crs_mod.catalog_crs_uri(snap.catalog.crs)
     if own is not None:
         body["storageCrs"] = own
@@ -167,11 +181,13 @@ def collections(request: Request) -> JSONResponse:
         items = [_collection(request, snap, layer) for layer in snap.layers.values()]
         offered = _offered(snap)
     base = _base(request)
-    return _json({
-        "links": [{"rel": "self", "type": "application/json", "href": f"{base}/collections"}],
-        "collections": items,
-        "crs": offered,
-    })  # fmt: skip
+    return _json(
+        {
+            "links": [{"rel": "self", "type": "application/json", "href": f"{base}/collections"}],
+            "collections": items,
+            "crs": offered,
+        }
+    )
 
 
 @router.get("/collections/{collection_id}", summary="One collection")
@@ -187,17 +203,21 @@ def queryables(request: Request, collection_id: str) -> JSONResponse:
         assert snap.provider is not None
         types = snap.provider.queryables(layer)
     base = f"{_base(request)}/collections/{layer.name}/queryables"
-    return _json({
-        "$schema": "https://json-schema.org/draft/2020-12/schema",
-        "$id": base,
-        "type": "object",
-        "title": layer.name,
-        "properties": {name: {"type": kind} for name, kind in types.items()},
-    }, "application/schema+json")  # fmt: skip
+    return _json(
+        {
+            "$schema": "https://json-schema.org/draft/2020-12/schema",
+            "$id": base,
+            "type": "object",
+            "title": layer.name,
+            "properties": {name: {"type": kind} for name, kind in types.items()},
+        },
+        "application/schema+json",
+    )
 
 
-def _int(request: Request, name: str, default: int, low: int, high: int, *,
-         clamp: bool = False) -> int:  # fmt: skip
+def _int(
+    request: Request, name: str, default: int, low: int, high: int, *, clamp: bool = False
+) -> int:
     """The integer parameter ``name``: at least ``low``; a larger value than ``high`` is
     ``high`` (``clamp``) or a 400 problem."""
     text = request.query_params.get(name)
@@ -248,8 +268,11 @@ def _query(request: Request, snap: Snapshot, layer: Layer) -> Query:
     params = request.query_params
     unknown = [k for k in params if k not in ITEMS_PARAMETERS and k not in layer.column_types]
     if unknown:
-        raise Problem(400, f"unknown parameters {unknown}; properties of {layer.name!r}: "
-                      f"{[c.name for c in layer.columns]}")  # fmt: skip
+        raise Problem(
+            400,
+            f"unknown parameters {unknown}; properties of {layer.name!r}: "
+            f"{[c.name for c in layer.columns]}",
+        )
     if len(set(params.keys())) != len(params.multi_items()):
         raise Problem(400, "a parameter is given more than once")
     if params.get("f") not in (None, "json", "geojson"):
@@ -316,17 +339,20 @@ def _features(
     provider) kept as :class:`orjson.Fragment`."""
     texts = provider.geojson(layer, page, source_crs, out_crs)
     return [
-        {"type": "Feature", "id": fid,
-         "geometry": None if text is None else orjson.Fragment(text), "properties": props,
-         "links": links(fid)}
+        {
+            "type": "Feature",
+            "id": fid,
+            "geometry": None if text is None else orjson.Fragment(text),
+            "properties": props,
+            "links": links(fid),
+        }
         for fid, props, text in zip(page.fids, page.properties, texts, strict=True)
-    ]  # fmt: skip
+    ]
 
 
 def _geojson(body: Any, out_crs: str) -> Response:
     """``body`` written once by orjson (non-finite numbers as null, as before)."""
-    return Response(orjson.dumps(body), media_type=GEOJSON,
-                    headers={"Content-Crs": f"<{out_crs}>"})  # fmt: skip
+    return Response(orjson.dumps(body), media_type=GEOJSON, headers={"Content-Crs": f"<{out_crs}>"})
 
 
 def _with_params(request: Request, **changes: Any) -> str:
@@ -348,30 +374,50 @@ def items(request: Request, collection_id: str) -> Response:
         page = snap.provider.items(layer, query, snap.epoch_dates)
         items_url = f"{_base(request)}/collections/{layer.name}/items"
         body_features = _features(
-            snap.provider, layer, page, snap.catalog.crs, out_crs,
+            snap.provider,
+            layer,
+            page,
+            snap.catalog.crs,
+            out_crs,
             lambda fid: [{"rel": "self", "type": GEOJSON, "href": f"{items_url}/{fid}"}],
-        )  # fmt: skip
+        )
     links = [
         {"rel": "self", "type": GEOJSON, "href": str(request.url)},
-        {"rel": "collection", "type": "application/json",
-         "href": f"{_base(request)}/collections/{layer.name}"},
-    ]  # fmt: skip
+        {
+            "rel": "collection",
+            "type": "application/json",
+            "href": f"{_base(request)}/collections/{layer.name}",
+        },
+    ]
     if query.offset + len(page.fids) < page.number_matched:
-        links.append({"rel": "next", "type": GEOJSON,
-                      "href": _with_params(request, offset=query.offset + query.limit,
-                                           limit=query.limit)})  # fmt: skip
+        links.append(
+            {
+                "rel": "next",
+                "type": GEOJSON,
+                "href": _with_params(request, offset=query.offset + query.limit, limit=query.limit),
+            }
+        )
     if query.offset > 0:
-        links.append({"rel": "prev", "type": GEOJSON,
-                      "href": _with_params(request, offset=max(0, query.offset - query.limit),
-                                           limit=query.limit)})  # fmt: skip
-    return _geojson({
-        "type": "FeatureCollection",
-        "features": body_features,
-        "numberMatched": page.number_matched,
-        "numberReturned": len(page.fids),
-        "timeStamp": dt.datetime.now(dt.UTC).strftime("%Y-%m-%dT%H:%M:%SZ"),
-        "links": links,
-    }, out_crs)  # fmt: skip
+        links.append(
+            {
+                "rel": "prev",
+                "type": GEOJSON,
+                "href": _with_params(
+                    request, offset=max(0, query.offset - query.limit), limit=query.limit
+                ),
+            }
+        )
+    return _geojson(
+        {
+            "type": "FeatureCollection",
+            "features": body_features,
+            "numberMatched": page.number_matched,
+            "numberReturned": len(page.fids),
+            "timeStamp": dt.datetime.now(dt.UTC).strftime("%Y-%m-%dT%H:%M:%SZ"),
+            "links": links,
+        },
+        out_crs,
+    )
 
 
 @router.get("/collections/{collection_id}/items/{feature_id}", summary="One feature")
@@ -395,9 +441,13 @@ def item(request: Request, collection_id: str, feature_id: str) -> Response:
             raise Problem(404, f"collection {layer.name!r} has no feature {fid}")
         links = [
             {"rel": "self", "type": GEOJSON, "href": str(request.url)},
-            {"rel": "collection", "type": "application/json",
-             "href": f"{_base(request)}/collections/{layer.name}"},
-        ]  # fmt: skip
-        body = _features(snap.provider, layer, page, snap.catalog.crs, out_crs,
-                         lambda fid: links)[0]  # fmt: skip
+            {
+                "rel": "collection",
+                "type": "application/json",
+                "href": f"{_base(request)}/collections/{layer.name}",
+            },
+        ]
+        body = _features(snap.provider, layer, page, snap.catalog.crs, out_crs, lambda fid: links)[
+            0
+        ]
     return _geojson(body, out_crs)

@@ -124,13 +124,15 @@ def install(app: Any) -> None:
             for e in exc.errors()
         ]
         text = "; ".join(f"{e['where']}: {e['message']}" for e in errors)
-        return problem_response(400, f"invalid request: {text}", instance=request.url.path,
-                                errors=errors)  # fmt: skip
+        return problem_response(
+            400, f"invalid request: {text}", instance=request.url.path, errors=errors
+        )
 
     async def unexpected(request: Request, exc: Exception) -> Any:
         _log.error("%s %s failed", request.method, request.url.path, exc_info=exc)
-        return problem_response(500, f"internal error ({type(exc).__name__})",
-                                instance=request.url.path)  # fmt: skip
+        return problem_response(
+            500, f"internal error ({type(exc).__name__})", instance=request.url.path
+        )
 
     app.add_exception_handler(StandgridError, standgrid_error)
     app.add_exception_handler(HTTPException, http_error)

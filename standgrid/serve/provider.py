@@ -34,10 +34,18 @@ from standgrid.errors import CatalogError
 
 #: GeoPackage column type -> JSON schema type of a queryable.
 _TYPES = {
-    "INTEGER": "integer", "INT": "integer", "MEDIUMINT": "integer", "SMALLINT": "integer",
-    "TINYINT": "integer", "BOOLEAN": "boolean", "REAL": "number", "DOUBLE": "number",
-    "FLOAT": "number", "DATE": "string", "DATETIME": "string",
-}  # fmt: skip
+    "INTEGER": "integer",
+    "INT": "integer",
+    "MEDIUMINT": "integer",
+    "SMALLINT": "integer",
+    "TINYINT": "integer",
+    "BOOLEAN": "boolean",
+    "REAL": "number",
+    "DOUBLE": "number",
+    "FLOAT": "number",
+    "DATE": "string",
+    "DATETIME": "string",
+}
 #: Envelope size in bytes by the GeoPackage binary header's envelope indicator.
 _ENVELOPE_BYTES = {0: 0, 1: 32, 2: 48, 3: 48, 4: 64}
 #: Tables of the index that are not feature layers.
@@ -187,9 +195,14 @@ def read_layers(conn: sqlite3.Connection) -> dict[str, Layer]:
             else None
         )
         layers[name] = Layer(
-            name, columns, geom_col, geom_type, bounds,
-            rtree if rtree in tables else None, str(description or ""),
-        )  # fmt: skip
+            name,
+            columns,
+            geom_col,
+            geom_type,
+            bounds,
+            rtree if rtree in tables else None,
+            str(description or ""),
+        )
     return layers
 
 
@@ -401,8 +414,9 @@ def bbox_sql(layer: Layer, query: Query, epoch_dates: Mapping[str, str]) -> Bbox
         f"WHERE fid IN ({inside} UNION ALL SELECT value FROM json_each(?)) AND ({where}) "
         "ORDER BY fid LIMIT ? OFFSET ?"
     )
-    return BboxSql(edges, inside_count, page_sql,
-                   (inside_params, [*params, query.limit, query.offset]))  # fmt: skip
+    return BboxSql(
+        edges, inside_count, page_sql, (inside_params, [*params, query.limit, query.offset])
+    )
 
 
 def _bbox_page(
@@ -481,10 +495,11 @@ class GeoPackageProvider:
         where, params = where_sql(layer, query, dates)
         matched = conn.execute(f"SELECT COUNT(*) FROM {table} WHERE {where}", params).fetchone()
         result = _rows(
-            conn, layer,
+            conn,
+            layer,
             f"SELECT {columns} FROM {table} WHERE {where} ORDER BY fid LIMIT ? OFFSET ?",
             [*params, query.limit, query.offset],
-        )  # fmt: skip
+        )
         result.number_matched = int(matched[0])
         return result
 
@@ -506,8 +521,9 @@ class GeoPackageProvider:
             written: list[str | None] = [None] * len(todo)
             if len(present):
                 moved = crs_mod.geometries_to(geoms[present], source_crs, crs)
-                for k, text in zip(present.tolist(), shapely.to_geojson(moved).tolist(),
-                                   strict=True):  # fmt: skip
+                for k, text in zip(
+                    present.tolist(), shapely.to_geojson(moved).tolist(), strict=True
+                ):
                     written[k] = text
             keep = len(texts) < MAX_CACHED_TEXTS
             for k, text in zip(todo, written, strict=True):
@@ -519,6 +535,8 @@ class GeoPackageProvider:
     def get(self, layer: Layer, fid: int) -> Page:
         """The feature ``fid`` (an empty page when there is none)."""
         return _rows(
-            self.connection, layer,
-            f"SELECT {_columns_sql(layer)} FROM {_quote(layer.name)} WHERE fid = ?", [fid],
-        )  # fmt: skip
+            self.connection,
+            layer,
+            f"SELECT {_columns_sql(layer)} FROM {_quote(layer.name)} WHERE fid = ?",
+            [fid],
+        )

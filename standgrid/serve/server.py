@@ -63,8 +63,9 @@ class Server(uvicorn.Server):
     """A uvicorn server that knows its bound address once started (port 0 = any free port)
     and calls ``on_started(base_url)`` then."""
 
-    def __init__(self, config: uvicorn.Config,
-                 on_started: Callable[[str], None] | None = None) -> None:  # fmt: skip
+    def __init__(
+        self, config: uvicorn.Config, on_started: Callable[[str], None] | None = None
+    ) -> None:
         super().__init__(config)
         self.base_url: str | None = None
         self._on_started = on_started
@@ -97,8 +98,9 @@ def config(app: Any, host: str, port: int, **options: Any) -> uvicorn.Config:
 
 
 @contextlib.contextmanager
-def running(app: Any, host: str = "127.0.0.1", port: int = 0,
-            timeout: float = 20.0, **options: Any) -> Iterator[Server]:  # fmt: skip
+def running(
+    app: Any, host: str = "127.0.0.1", port: int = 0, timeout: float = 20.0, **options: Any
+) -> Iterator[Server]:
     """The app served by a real uvicorn server in a thread, on a free port by default;
     stopped (and joined) on exit."""
     server = Server(config(app, host, port, **options))

@@ -95,8 +95,9 @@ class Snapshot:
         """The layer of a collection id from a request (404 unless the index has it)."""
         layer = self.layers.get(collection_id)
         if layer is None:
-            raise Problem(404, f"no collection {collection_id!r}; collections: "
-                          f"{sorted(self.layers)}")  # fmt: skip
+            raise Problem(
+                404, f"no collection {collection_id!r}; collections: {sorted(self.layers)}"
+            )
         return layer
 
 

@@ -30,8 +30,12 @@ BUILD_MANIFEST = "build-manifest.json"
 #: Media type of a cell's points (layout in :func:`cell_points`).
 POINTS_MEDIA_TYPE = "application/vnd.standgrid.points"
 #: Per-point arrays of the points answer, in order: name, numpy dtype.
-POINT_ARRAYS = (("xyz", "<f4"), ("height_above_ground", "<f4"), ("tree_key", "<u4"),
-                ("classification", "u1"))  # fmt: skip
+POINT_ARRAYS = (
+    ("xyz", "<f4"),
+    ("height_above_ground", "<f4"),
+    ("tree_key", "<u4"),
+    ("classification", "u1"),
+)
 #: At most this many points in one points answer: beyond it every k-th point is sent
 #: (evenly strided; ``meta.capped``), so a dense cell or payload stays drawable.
 MAX_VIEW_POINTS = 500_000
@@ -87,25 +91,31 @@ def viewer_config(catalog: Catalog, layers: set[str]) -> dict[str, Any]:
         chm = paths.raster(label, "chm")
         chm_path = catalog.path(chm)
         has_chm = chm in published and chm_path.is_file()
-        epochs.append({
-            "label": label,
-            "date": record.date,
-            "state": record.state,
-            "chm": f"files/{chm}" if has_chm else None,
-            "chm_max": _raster_max(chm_path) if has_chm else None,
-            "tiles": tile_format(catalog.tiles(label)),
-        })  # fmt: skip
+        epochs.append(
+            {
+                "label": label,
+                "date": record.date,
+                "state": record.state,
+                "chm": f"files/{chm}" if has_chm else None,
+                "chm_max": _raster_max(chm_path) if has_chm else None,
+                "tiles": tile_format(catalog.tiles(label)),
+            }
+        )
     comparisons = []
     for key, entry in catalog.comparisons.items():
         if entry.get("other_catalog"):
             continue  # against another catalog: its layers are not in this index
         diff = str((entry.get("outputs") or {}).get("chm_difference") or "")
         has_diff = bool(diff) and diff in published and catalog.path(diff).is_file()
-        comparisons.append({
-            "key": key, "from": entry["from"], "to": entry["to"],
-            "chm_diff": f"files/{diff}" if has_diff else None,
-            "chm_diff_max": _raster_max(catalog.path(diff)) if has_diff else None,
-        })  # fmt: skip
+        comparisons.append(
+            {
+                "key": key,
+                "from": entry["from"],
+                "to": entry["to"],
+                "chm_diff": f"files/{diff}" if has_diff else None,
+                "chm_diff_max": _raster_max(catalog.path(diff)) if has_diff else None,
+            }
+        )
     return {
         "catalog": catalog.root.name,
         "crs": {
@@ -157,13 +167,20 @@ def encode_points(
     if total > limit:
         # ``limit`` distinct indices spread evenly over the points, in their order
         keep = np.linspace(0, total, limit, endpoint=False).astype(np.int64)
-        xyz, height, tree_id, classification = (a[keep] for a in (xyz, height, tree_id,
-                                                                    classification))  # fmt: skip
+        xyz, height, tree_id, classification = (
+            a[keep] for a in (xyz, height, tree_id, classification)
+        )
         meta["stride"] = total / limit
     count = len(xyz)
     origin = xyz.min(axis=0) if count else np.zeros(3)
-    header = json.dumps({"count": count, "origin": [float(v) for v in origin],
-                         "arrays": [list(a) for a in POINT_ARRAYS], "meta": meta})  # fmt: skip
+    header = json.dumps(
+        {
+            "count": count,
+            "origin": [float(v) for v in origin],
+            "arrays": [list(a) for a in POINT_ARRAYS],
+            "meta": meta,
+        }
+    )
     head = header.encode()
     head += b" " * (-(4 + len(head)) % 4)
     keys = tree_key(tree_id).astype("<u4")
@@ -183,8 +200,14 @@ def encode_points(
 #: A feature id (``fid``) or payload id: SQLite's 64-bit integers, not negative.
 FeatureId = Annotated[int, Query(ge=0, le=2**63 - 1)]
 #: How many points one answer may hold (a request may ask for fewer).
-Limit = Annotated[int, Query(ge=1, le=MAX_VIEW_POINTS, description="at most this many points "
-                             "are sent (every k-th beyond it)")]  # fmt: skip
+Limit = Annotated[
+    int,
+    Query(
+        ge=1,
+        le=MAX_VIEW_POINTS,
+        description="at most this many points are sent (every k-th beyond it)",
+    ),
+]
 
 
 def _read_tile(path: Path, relative: str) -> Any:
@@ -206,15 +229,19 @@ def _fields(las: Any, keep: np.ndarray) -> tuple[np.ndarray, ...]:
         return np.asarray(las[name])[keep] if name in names else np.full(count, fill)
 
     xyz = np.column_stack([np.asarray(las.x), np.asarray(las.y), np.asarray(las.z)])[keep]
-    return (xyz, field("height_above_ground", np.nan).astype(np.float64),
-            field("tree_id", 0).astype(np.int64), np.asarray(las.classification)[keep])  # fmt: skip
+    return (
+        xyz,
+        field("height_above_ground", np.nan).astype(np.float64),
+        field("tree_id", 0).astype(np.int64),
+        np.asarray(las.classification)[keep],
+    )
 
 
 @router.get(
     "/viewer/points/{epoch}/{cell_id}",
     summary="A cell's points for the 3-D view (compact binary; buffer points left out)",
     responses={200: {"content": {POINTS_MEDIA_TYPE: {}}}},
-)  # fmt: skip
+)
 def cell_points(
     request: Request,
     epoch: str,
@@ -239,13 +266,19 @@ def cell_points(
         las = _read_tile(snap.catalog.path(relative), relative)
     core = ~np.asarray(las.withheld, dtype=bool)
     xyz, height, tree_ids, classification = _fields(las, core)
-    meta: dict[str, Any] = {"tile": f"files/{relative}",
-                            "tile_points": int(las.header.point_count),
-                            "buffer_points": int(las.header.point_count) - len(xyz)}  # fmt: skip
+    meta: dict[str, Any] = {
+        "tile": f"files/{relative}",
+        "tile_points": int(las.header.point_count),
+        "buffer_points": int(las.header.point_count) - len(xyz),
+    }
     if chosen is not None:
         key = int(tree_key(np.array([chosen]))[0])
-        meta["tree"] = {"fid": tree, "tree_id": str(chosen), "key": key,
-                        "points": int((tree_ids == chosen).sum())}  # fmt: skip
+        meta["tree"] = {
+            "fid": tree,
+            "tree_id": str(chosen),
+            "key": key,
+            "points": int((tree_ids == chosen).sum()),
+        }
     body = encode_points(xyz, height, tree_ids, classification, meta, limit)
     return Response(body, media_type=POINTS_MEDIA_TYPE, headers={"Cache-Control": "no-cache"})
 
@@ -254,7 +287,7 @@ def cell_points(
     "/viewer/points",
     summary="A payload's points for the 3-D view, read from the catalog's tiles",
     responses={200: {"content": {POINTS_MEDIA_TYPE: {}}}},
-)  # fmt: skip
+)
 def payload_points(
     request: Request, payload: FeatureId, limit: Limit = MAX_VIEW_POINTS
 ) -> Response:
@@ -280,13 +313,18 @@ def payload_points(
             footprint = shapely.Point(row["x"], row["y"])
         epoch, mission, expected = str(row["epoch"]), str(row["mission"]), int(row["point_count"])
         tiles = set(snap.catalog.tiles(epoch)) if epoch in snap.catalog.epochs else set()
-        cells = snap.provider.items(snap.layer("cells"),
-                                    Query(equals={"epoch": epoch}, limit=1 << 30))  # fmt: skip
-        held = [k for k, p in enumerate(cells.properties) if p["tile_path"] in tiles
-                and mission in str(p.get("missions") or "").split(",")]  # fmt: skip
+        cells = snap.provider.items(
+            snap.layer("cells"), Query(equals={"epoch": epoch}, limit=1 << 30)
+        )
+        held = [
+            k
+            for k, p in enumerate(cells.properties)
+            if p["tile_path"] in tiles and mission in str(p.get("missions") or "").split(",")
+        ]
         distance = shapely.distance(cells.geometries[held], footprint) if held else []
-        order = sorted(zip(distance, (str(cells.properties[k]["tile_path"]) for k in held),
-                           strict=True))  # fmt: skip
+        order = sorted(
+            zip(distance, (str(cells.properties[k]["tile_path"]) for k in held), strict=True)
+        )
         parts: list[tuple[np.ndarray, ...]] = []
         read: list[str] = []
         count = 0
@@ -295,8 +333,11 @@ def payload_points(
                 break
             las = _read_tile(snap.catalog.path(relative), relative)
             if "payload_id" not in set(las.point_format.dimension_names):
-                raise Problem(409, f"{relative}: the tile has no payload_id dimension, so a "
-                              "payload's points cannot be told apart")  # fmt: skip
+                raise Problem(
+                    409,
+                    f"{relative}: the tile has no payload_id dimension, so a "
+                    "payload's points cannot be told apart",
+                )
             mine = ~np.asarray(las.withheld, dtype=bool) & (
                 np.asarray(las["payload_id"]) == payload
             )
@@ -304,10 +345,18 @@ def payload_points(
             if mine.any():
                 parts.append(_fields(las, mine))
                 count += int(mine.sum())
-    meta = {"payload": {"payload_id": payload, "mission": mission, "epoch": epoch,
-                        "point_count": expected, "found": count, "complete": count == expected,
-                        "tiles": [f"files/{t}" for t in read],
-                        "tiles_with_points": len(parts)}}  # fmt: skip
+    meta = {
+        "payload": {
+            "payload_id": payload,
+            "mission": mission,
+            "epoch": epoch,
+            "point_count": expected,
+            "found": count,
+            "complete": count == expected,
+            "tiles": [f"files/{t}" for t in read],
+            "tiles_with_points": len(parts),
+        }
+    }
     none = (np.zeros((0, 3)), np.zeros(0), np.zeros(0, np.int64), np.zeros(0, np.uint8))
     xyz, height, tree_ids, classification = (
         np.concatenate(a) for a in zip(*(parts or [none]), strict=True)

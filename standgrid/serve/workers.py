@@ -162,9 +162,11 @@ class _Process:
         context = multiprocessing.get_context("spawn")
         self.conn, child = context.Pipe()
         self.process = context.Process(
-            target=_serve, args=(child, os.getpid(), niceness, memory_limit),
-            name=f"standgrid {name} worker", daemon=False,
-        )  # fmt: skip
+            target=_serve,
+            args=(child, os.getpid(), niceness, memory_limit),
+            name=f"standgrid {name} worker",
+            daemon=False,
+        )
         self.process.start()
         child.close()
         self.ready = False
@@ -233,9 +235,17 @@ class WorkerProcess:
     and the call raises a :class:`Problem` of ``limit_status``, its detail ending in
     ``limit_hint``."""
 
-    def __init__(self, name: str, *, niceness: int = 0, processes: int = 1,
-                 time_limit: float | None = None, memory_limit: int | None = None,
-                 limit_status: int = 503, limit_hint: str = "") -> None:  # fmt: skip
+    def __init__(
+        self,
+        name: str,
+        *,
+        niceness: int = 0,
+        processes: int = 1,
+        time_limit: float | None = None,
+        memory_limit: int | None = None,
+        limit_status: int = 503,
+        limit_hint: str = "",
+    ) -> None:
         if processes < 1:
             raise ValueError(f"processes must be at least 1, got {processes}")
         if time_limit is not None and not time_limit > 0:
@@ -298,8 +308,12 @@ class WorkerProcess:
         if freed is not None:
             freed.set()
 
-    async def call(self, function: Callable[..., Any], *args: Any,
-                   time_limit: float | EllipsisType | None = ...) -> Any:  # fmt: skip
+    async def call(
+        self,
+        function: Callable[..., Any],
+        *args: Any,
+        time_limit: float | EllipsisType | None = ...,
+    ) -> Any:
         """``function(*args)`` in a worker (a module-level function; picklable arguments and
         result), within ``time_limit`` seconds (default: the worker's; None: no limit).
         Raises :class:`Problem` for a library error, a call over a limit or a worker that
@@ -322,26 +336,43 @@ class WorkerProcess:
             if not worker.ready:
                 detail = f"the {self.name} worker did not start within {STARTUP_LIMIT_S:g} s"
                 raise Problem(503, f"{detail}: send the request again") from exc
-            _log.error("the %s worker ran %s past its limit of %s s: killed", self.name,
-                       function.__name__, limit)  # fmt: skip
-            raise Problem(self.limit_status, f"the {self.name} worker did not finish within "
-                          f"its limit of {limit:g} s: stopped, nothing of this request was "
-                          f"kept{self.limit_hint}") from exc  # fmt: skip
+            _log.error(
+                "the %s worker ran %s past its limit of %s s: killed",
+                self.name,
+                function.__name__,
+                limit,
+            )
+            raise Problem(
+                self.limit_status,
+                f"the {self.name} worker did not finish within "
+                f"its limit of {limit:g} s: stopped, nothing of this request was "
+                f"kept{self.limit_hint}",
+            ) from exc
         except (EOFError, OSError) as exc:
-            _log.error("the %s worker died in %s after %.1f s", self.name, function.__name__,
-                       time.monotonic() - started)  # fmt: skip
-            raise Problem(500, f"the {self.name} worker died before it answered; the catalog "
-                          "and the mission folders hold their last complete writes (a commit "
-                          "cut short is finished or discarded before the next read): send "
-                          "the request again") from exc  # fmt: skip
+            _log.error(
+                "the %s worker died in %s after %.1f s",
+                self.name,
+                function.__name__,
+                time.monotonic() - started,
+            )
+            raise Problem(
+                500,
+                f"the {self.name} worker died before it answered; the catalog "
+                "and the mission folders hold their last complete writes (a commit "
+                "cut short is finished or discarded before the next read): send "
+                "the request again",
+            ) from exc
         finally:  # a timeout, a death or a cancelled request: the process goes
             self._give_back(worker, keep=keep)
         if "problem" in answer:
             raise Problem(answer["problem"]["status"], answer["problem"]["detail"])
         if "memory" in answer:
-            raise Problem(self.limit_status, f"the {self.name} worker needed more than its "
-                          f"memory limit of {(self.memory_limit or 0) >> 20} MiB: nothing of "
-                          f"this request was kept{self.limit_hint}")  # fmt: skip
+            raise Problem(
+                self.limit_status,
+                f"the {self.name} worker needed more than its "
+                f"memory limit of {(self.memory_limit or 0) >> 20} MiB: nothing of "
+                f"this request was kept{self.limit_hint}",
+            )
         if "error" in answer:
             raise Problem(500, f"internal error in the {self.name} worker ({answer['error']})")
         return answer["result"]

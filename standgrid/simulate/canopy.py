@@ -222,9 +222,18 @@ def _overstorey(
     dbh = np.clip(0.15 + rng.gamma(2.0, 0.08, n), 0.15, 0.70)
     height = np.clip(reference_height(dbh) + rng.normal(0.0, 1.5, n), 18.0, 35.0)
     fork = np.where(rng.random(n) < fork_fraction, height * rng.uniform(0.4, 0.75, n), np.nan)
-    trees = _layer(rng, terrain, xy, OVERSTOREY, conifer_fraction, dbh=dbh, height=height,
-                   crown_base=height * rng.uniform(0.35, 0.65, n), crown_radius=np.zeros(n),
-                   fork_height_m=fork)  # fmt: skip
+    trees = _layer(
+        rng,
+        terrain,
+        xy,
+        OVERSTOREY,
+        conifer_fraction,
+        dbh=dbh,
+        height=height,
+        crown_base=height * rng.uniform(0.35, 0.65, n),
+        crown_radius=np.zeros(n),
+        fork_height_m=fork,
+    )
     centres = crown_centres(trees)
     nearest = cKDTree(centres).query(centres, k=2)[0][:, 1] if n > 1 else np.full(n, np.inf)
     radius = np.minimum(1.0 + 7.0 * dbh + rng.normal(0.0, 0.3, n), 0.8 * nearest)
@@ -264,12 +273,21 @@ def _understorey(
     )
     covered = pairs.data < over.crown_radius[pairs.col]
     ceiling = np.full(n, np.inf)
-    np.minimum.at(ceiling, pairs.row[covered],
-                  (over.z_ground + over.crown_base)[pairs.col[covered]] - 1.0)  # fmt: skip
+    np.minimum.at(
+        ceiling, pairs.row[covered], (over.z_ground + over.crown_base)[pairs.col[covered]] - 1.0
+    )
     height = np.maximum(np.minimum(height, ceiling - terrain.height(xy[:, 0], xy[:, 1])), 3.0)
-    return _layer(rng, terrain, xy, UNDERSTOREY, conifer_fraction, dbh=dbh, height=height,
-                  crown_base=np.minimum(rng.uniform(1.5, 5.0, n), height - 1.0),
-                  crown_radius=rng.uniform(0.6, 2.0, n))  # fmt: skip
+    return _layer(
+        rng,
+        terrain,
+        xy,
+        UNDERSTOREY,
+        conifer_fraction,
+        dbh=dbh,
+        height=height,
+        crown_base=np.minimum(rng.uniform(1.5, 5.0, n), height - 1.0),
+        crown_radius=rng.uniform(0.6, 2.0, n),
+    )
 
 
 def _snags(
@@ -284,8 +302,17 @@ def _snags(
     n = len(xy)
     dbh = 0.10 + 0.35 * rng.beta(1.5, 2.5, n)
     height = rng.uniform(3.0, np.minimum(18.0, 0.9 * reference_height(dbh)))
-    return _layer(rng, terrain, xy, SNAG, conifer_fraction, dbh=dbh, height=height,
-                  crown_base=height, crown_radius=np.zeros(n))  # fmt: skip
+    return _layer(
+        rng,
+        terrain,
+        xy,
+        SNAG,
+        conifer_fraction,
+        dbh=dbh,
+        height=height,
+        crown_base=height,
+        crown_radius=np.zeros(n),
+    )
 
 
 def generate_mixed_forest(
@@ -316,16 +343,35 @@ def generate_mixed_forest(
     xmin, ymin, xmax, ymax = bounds
     area_ha = (xmax - xmin) * (ymax - ymin) / 10_000.0
     spacing = min(3.0, 0.5 * np.sqrt(10_000.0 / max(overstorey_ha, 1e-9)))
-    over = _overstorey(rng, bounds, terrain, round(overstorey_ha * area_ha), spacing,
-                       conifer_fraction, fork_fraction)  # fmt: skip
-    under = _understorey(rng, bounds, terrain, over, round(understorey_ha * area_ha),
-                         under_crown_fraction, conifer_fraction)  # fmt: skip
+    over = _overstorey(
+        rng,
+        bounds,
+        terrain,
+        round(overstorey_ha * area_ha),
+        spacing,
+        conifer_fraction,
+        fork_fraction,
+    )
+    under = _understorey(
+        rng,
+        bounds,
+        terrain,
+        over,
+        round(understorey_ha * area_ha),
+        under_crown_fraction,
+        conifer_fraction,
+    )
     stems = np.column_stack([np.concatenate([over.x, under.x]), np.concatenate([over.y, under.y])])
     snags = _snags(rng, bounds, terrain, stems, round(snags_ha * area_ha), conifer_fraction)
     trees = Trees.concat([over, under, snags])
     trees = replace(trees, tree_id=np.arange(1, len(trees) + 1, dtype=np.int64))
     n = round(shrub_density_ha * area_ha)
     xy = _uniform(rng, bounds, n)
-    shrubs = Shrubs(xy[:, 0], xy[:, 1], terrain.height(xy[:, 0], xy[:, 1]),
-                    rng.uniform(0.3, 1.5, n), rng.uniform(0.3, 2.5, n))  # fmt: skip
+    shrubs = Shrubs(
+        xy[:, 0],
+        xy[:, 1],
+        terrain.height(xy[:, 0], xy[:, 1]),
+        rng.uniform(0.3, 1.5, n),
+        rng.uniform(0.3, 2.5, n),
+    )
     return trees, shrubs

@@ -60,11 +60,16 @@ class ScanMission:
 
     def summary(self) -> dict[str, Any]:
         return {
-            "name": self.name, "mission": str(self.mission_dir), "truth": str(self.truth_dir),
-            "crs": self.crs, "nodes": len(self.graph), "payloads": len(self.spans),
-            "points": self.n_points, "gnss_fixes": len(self.gnss.fixes),
+            "name": self.name,
+            "mission": str(self.mission_dir),
+            "truth": str(self.truth_dir),
+            "crs": self.crs,
+            "nodes": len(self.graph),
+            "payloads": len(self.spans),
+            "points": self.n_points,
+            "gnss_fixes": len(self.gnss.fixes),
             "gnss_outliers": int(self.gnss.outlier.sum()),
-        }  # fmt: skip
+        }
 
 
 def _normalise_crs(crs: str) -> str:
@@ -112,8 +117,13 @@ def _read_scans(
         CRS.of(use_crs)
     except CRSError as exc:
         raise CRSError(f"unusable CRS {use_crs!r}: {exc.message}", path=paths[0]) from exc
-    return (np.concatenate(xyz_parts), np.concatenate(inten_parts), np.concatenate(cls_parts),
-            use_crs, sources)  # fmt: skip
+    return (
+        np.concatenate(xyz_parts),
+        np.concatenate(inten_parts),
+        np.concatenate(cls_parts),
+        use_crs,
+        sources,
+    )
 
 
 def _centre_line(xy: NDArray[np.float64], inset: float) -> NDArray[np.float64]:
@@ -204,8 +214,14 @@ def mission_from_scan(
     mid = node_crs[len(node_crs) // 2 : len(node_crs) // 2 + 1]
     probe = FrameChain(use_crs, (0.0, 0.0, 0.0), np.eye(4))
     provisional = FrameChain(use_crs, tuple(probe.crs_to_lla(mid)[0]), np.eye(4))
-    model = GnssModel(rate_hz=gnss_rate_hz, rtk_h_std=(gnss_noise_m, gnss_noise_m), rtk_windows=0,
-                      dropouts=0, outlier_fraction=outlier_fraction, open_sky=True)  # fmt: skip
+    model = GnssModel(
+        rate_hz=gnss_rate_hz,
+        rtk_h_std=(gnss_noise_m, gnss_noise_m),
+        rtk_windows=0,
+        dropouts=0,
+        outlier_fraction=outlier_fraction,
+        open_sky=True,
+    )
     gnss = simulate_gnss(rng, provisional, stamps_ns, node_crs, model)
     fixes = gnss.fixes
     lla_ref = (float(fixes.lat[0]), float(fixes.lon[0]), float(fixes.alt[0]))
@@ -240,21 +256,34 @@ def mission_from_scan(
     from standgrid.mission.metadata import MissionMetadata
 
     metadata = MissionMetadata(
-        name=name, date=date, time=dt.time(10, 0), place=place or _default_place(paths),
-        robot=robot, unit=None,
+        name=name,
+        date=date,
+        time=dt.time(10, 0),
+        place=place or _default_place(paths),
+        robot=robot,
+        unit=None,
         gnss=lla_ref,
-        sensors=["lidar", "gnss", "imu"], tags=["simulated", "from-scan"],
+        sensors=["lidar", "gnss", "imu"],
+        tags=["simulated", "from-scan"],
         notes=f"cut from {', '.join(p.name for p in paths)} (CRS {use_crs}), seed {seed}",
         extra={"simulator": {"seed": int(seed), "source_crs": use_crs}},
-    )  # fmt: skip
+    )
     with atomic_output(
         mission_dir, overwrite=overwrite, replaces=is_mission_folder, what="a mission folder"
     ) as tmp:
         tmp.mkdir()
         write_canonical_parts(
-            tmp, metadata=metadata, graph=graph, stamps_ns=stamps_ns, true_poses=true_poses,
-            spans=spans, payloads=payloads, fixes=fixes, rng=rng, imu_rate_hz=10.0,
-        )  # fmt: skip
+            tmp,
+            metadata=metadata,
+            graph=graph,
+            stamps_ns=stamps_ns,
+            true_poses=true_poses,
+            spans=spans,
+            payloads=payloads,
+            fixes=fixes,
+            rng=rng,
+            imu_rate_hz=10.0,
+        )
     with atomic_output(
         truth_dir, overwrite=overwrite, replaces=is_truth_folder, what="a simulator truth folder"
     ) as tmp:
@@ -281,8 +310,12 @@ def mission_from_scan(
                 "seed": int(seed),
                 "epoch": 1,
                 "date": date.isoformat(),
-                "bounds": [float(kept[:, 0].min()), float(kept[:, 1].min()),
-                           float(kept[:, 0].max()), float(kept[:, 1].max())],
+                "bounds": [
+                    float(kept[:, 0].min()),
+                    float(kept[:, 1].min()),
+                    float(kept[:, 0].max()),
+                    float(kept[:, 1].max()),
+                ],
                 "sources": sources,
                 "points_kept": len(point_index),
                 "radius_m": radius,
@@ -291,9 +324,17 @@ def mission_from_scan(
                 "outlier_fraction": outlier_fraction,
             },
             tmp / "truth.json",
-        )  # fmt: skip
+        )
     return ScanMission(
-        name=name, mission_dir=mission_dir, truth_dir=truth_dir, crs=use_crs, chain=chain,
-        graph=graph, true_poses=true_poses, stamps_ns=stamps_ns, spans=spans,
-        n_points=len(point_index), gnss=gnss,
-    )  # fmt: skip
+        name=name,
+        mission_dir=mission_dir,
+        truth_dir=truth_dir,
+        crs=use_crs,
+        chain=chain,
+        graph=graph,
+        true_poses=true_poses,
+        stamps_ns=stamps_ns,
+        spans=spans,
+        n_points=len(point_index),
+        gnss=gnss,
+    )

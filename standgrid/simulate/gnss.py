@@ -55,9 +55,14 @@ class GnssModel:
         120 s, a 1 m bias per recording, RTK float or single fixes stating 0.5 m, no RTK
         fixed windows, 2 % multipath outliers."""
         return cls(
-            canopy_h_std=(0.3, 0.3), rtk_windows=0, bias_h_m=1.0, walk_h_m=2.0,
-            walk_tau_s=120.0, stated_h_m=0.5, float_share=0.5,
-        )  # fmt: skip
+            canopy_h_std=(0.3, 0.3),
+            rtk_windows=0,
+            bias_h_m=1.0,
+            walk_h_m=2.0,
+            walk_tau_s=120.0,
+            stated_h_m=0.5,
+            float_share=0.5,
+        )
 
 
 #: ``standgrid simulate --gnss``: the models by name.

@@ -81,14 +81,35 @@ class EpochSpec:
 
 
 EPOCHS: dict[int, EpochSpec] = {
-    1: EpochSpec(dt.date(2024, 5, 14), dt.time(9, 30), "anymal", "coyote", 0.7, "y",
-                 ("velodyne-vlp16", "gnss", "imu")),
-    2: EpochSpec(dt.date(2028, 5, 20), dt.time(10, 15), "frontier", "v15", 1.2, "x",
-                 ("hesai-xt32", "gnss", "imu", "cameras")),
+    1: EpochSpec(
+        dt.date(2024, 5, 14),
+        dt.time(9, 30),
+        "anymal",
+        "coyote",
+        0.7,
+        "y",
+        ("velodyne-vlp16", "gnss", "imu"),
+    ),
+    2: EpochSpec(
+        dt.date(2028, 5, 20),
+        dt.time(10, 15),
+        "frontier",
+        "v15",
+        1.2,
+        "x",
+        ("hesai-xt32", "gnss", "imu", "cameras"),
+    ),
     # a second robot over the same stand on the first campaign's day (same trees)
-    3: EpochSpec(dt.date(2024, 5, 14), dt.time(13, 40), "spot", "lynx", 0.6, "x",
-                 ("ouster-os0", "gnss", "imu")),
-}  # fmt: skip
+    3: EpochSpec(
+        dt.date(2024, 5, 14),
+        dt.time(13, 40),
+        "spot",
+        "lynx",
+        0.6,
+        "x",
+        ("ouster-os0", "gnss", "imu"),
+    ),
+}
 #: The mission of ``EPOCHS[k]`` scans the world of this campaign (1: 2024, 2: 2028).
 CAMPAIGN_OF = {1: 1, 2: 2, 3: 1}
 
@@ -292,13 +313,23 @@ def _graph(
     vertices = {i: Vertex(i, Stamp.from_ns(int(s)), estimate[i]) for i, s in enumerate(stamps_ns)}
     odo_t, odo_r, lc_t, lc_r = 0.01, 0.002, 0.02, 0.003
     edges = [
-        Edge(i, i + 1, noisy_relative(rng, true_poses[i], true_poses[i + 1], odo_t, odo_r),
-             information_matrix(odo_t, odo_r))
+        Edge(
+            i,
+            i + 1,
+            noisy_relative(rng, true_poses[i], true_poses[i + 1], odo_t, odo_r),
+            information_matrix(odo_t, odo_r),
+        )
         for i in range(len(stamps_ns) - 1)
-    ]  # fmt: skip
+    ]
     for i, j in loop_closure_pairs(true_poses[:, :3, 3]):
-        edges.append(Edge(i, j, noisy_relative(rng, true_poses[i], true_poses[j], lc_t, lc_r),
-                          information_matrix(lc_t, lc_r)))  # fmt: skip
+        edges.append(
+            Edge(
+                i,
+                j,
+                noisy_relative(rng, true_poses[i], true_poses[j], lc_t, lc_r),
+                information_matrix(lc_t, lc_r),
+            )
+        )
     return PoseGraph(
         vertices=vertices,
         edges=edges,
@@ -340,10 +371,22 @@ def run_simulation(
     graph = _graph(rng, stamps_ns, true_poses, estimate, chain, config)
     spans = payload_spans(arc, config.payload_spacing)
     return SimulatedMission(
-        name=spec.mission_name(), epoch=epoch, seed=seed, mission_dir=None, truth_dir=None,
-        world=world, chain=chain, stamps_ns=stamps_ns, true_poses=true_poses, graph=graph,
-        spans=spans, node_crs=node_crs, config=config, gnss=gnss, path_length_m=float(arc[-1]),
-    )  # fmt: skip
+        name=spec.mission_name(),
+        epoch=epoch,
+        seed=seed,
+        mission_dir=None,
+        truth_dir=None,
+        world=world,
+        chain=chain,
+        stamps_ns=stamps_ns,
+        true_poses=true_poses,
+        graph=graph,
+        spans=spans,
+        node_crs=node_crs,
+        config=config,
+        gnss=gnss,
+        path_length_m=float(arc[-1]),
+    )
 
 
 def world_lla(xyz_crs: NDArray[np.float64]) -> NDArray[np.float64]:
@@ -454,10 +497,14 @@ def write_canonical_parts(
         n_points += len(cloud)
         stamp = Stamp.from_ns(int(stamps_ns[span.centre]))
         payload_stamps.append(stamp)
-        write_cloud(cloud, folder / "payload_clouds" / stamp.filename("cloud", "pcd"),
-                    viewpoint=graph.vertices[span.centre].pose)  # fmt: skip
-    imu = simulate_imu(rng, stamps_ns, true_poses, int(stamps_ns[0]), int(stamps_ns[-1]),
-                       imu_rate_hz)  # fmt: skip
+        write_cloud(
+            cloud,
+            folder / "payload_clouds" / stamp.filename("cloud", "pcd"),
+            viewpoint=graph.vertices[span.centre].pose,
+        )
+    imu = simulate_imu(
+        rng, stamps_ns, true_poses, int(stamps_ns[0]), int(stamps_ns[-1]), imu_rate_hz
+    )
     write_payload_logs(folder, payload_stamps, fixes, imu)
     return n_points
 
@@ -504,8 +551,7 @@ def write_truth_folder(sim: SimulatedMission, folder: Path, config: SimulationCo
         "gnss_h_std_meaning": "horizontal RMS error; per axis h_std / sqrt(2)",
         "trees_dbh_height": "DBH at 1.3 m above ground; stems taper linearly to the tree top",
     }
-    if (config.forest, config.scanner_kind, config.lane_spacing) != ("plantation", "surface",
-                                                                     32.0):  # fmt: skip
+    if (config.forest, config.scanner_kind, config.lane_spacing) != ("plantation", "surface", 32.0):
         info.update(_opt_in_truth(config))
     if config.elevation_maps is not None:
         info["elevation_maps"] = config.elevation_maps.truth()
@@ -519,8 +565,11 @@ def _opt_in_truth(config: SimulationConfig) -> dict[str, Any]:
     simulation's truth.json, which stays as it was."""
     info: dict[str, Any] = {"forest": config.forest, "lane_spacing_m": config.lane_spacing}
     if config.scanner_kind == "surface":
-        info["scanner"] = {"kind": "surface", "max_range_m": config.scanner.max_range,
-                           "noise_std_m": config.scanner.noise_std}  # fmt: skip
+        info["scanner"] = {
+            "kind": "surface",
+            "max_range_m": config.scanner.max_range,
+            "noise_std_m": config.scanner.noise_std,
+        }
         return info
     model = RAYCAST_SCANNERS[config.scanner_kind]
     info["scanner"] = {
@@ -638,6 +687,13 @@ def simulate_pair(
 
 
 __all__ = [
-    "EPOCHS", "SimulatedMission", "SimulationConfig", "World", "build_world", "run_simulation",
-    "simulate_mission", "simulate_pair", "stand_bounds",
-]  # fmt: skip
+    "EPOCHS",
+    "SimulatedMission",
+    "SimulationConfig",
+    "World",
+    "build_world",
+    "run_simulation",
+    "simulate_mission",
+    "simulate_pair",
+    "stand_bounds",
+]

@@ -33,13 +33,27 @@ from standgrid.simulate.terrain import Terrain
 from standgrid.stamps import Stamp
 
 TREE_COLUMNS = (
-    "tree_id", "x", "y", "z_ground", "dbh_m", "height_m", "crown_base_m", "crown_radius_m",
-    "species", "status",
-)  # fmt: skip
+    "tree_id",
+    "x",
+    "y",
+    "z_ground",
+    "dbh_m",
+    "height_m",
+    "crown_base_m",
+    "crown_radius_m",
+    "species",
+    "status",
+)
 #: Columns of a mixed stand, after :data:`TREE_COLUMNS`.
 STAND_COLUMNS = (
-    "kind", "lean_deg", "lean_azimuth_deg", "fork_height_m", "x_bh", "y_bh", "foliage_density",
-)  # fmt: skip
+    "kind",
+    "lean_deg",
+    "lean_azimuth_deg",
+    "fork_height_m",
+    "x_bh",
+    "y_bh",
+    "foliage_density",
+)
 SHRUB_COLUMNS = ("x", "y", "z_ground", "radius_m", "height_m")
 GNSS_TRUTH_HEADER = "sec,nsec,x,y,z,outlier"
 
@@ -127,19 +141,28 @@ def write_trees_csv(trees: Trees, path: Path) -> None:
         out.writerow(TREE_COLUMNS + STAND_COLUMNS if stand else TREE_COLUMNS)
         for k in range(len(trees)):
             row = [
-                int(trees.tree_id[k]), _fmt(trees.x[k], 4), _fmt(trees.y[k], 4),
-                _fmt(trees.z_ground[k], 4), _fmt(trees.dbh[k], 4), _fmt(trees.height[k], 3),
-                _fmt(trees.crown_base[k], 3), _fmt(trees.crown_radius[k], 3),
-                str(trees.species[k]), str(trees.status[k]),
-            ]  # fmt: skip
+                int(trees.tree_id[k]),
+                _fmt(trees.x[k], 4),
+                _fmt(trees.y[k], 4),
+                _fmt(trees.z_ground[k], 4),
+                _fmt(trees.dbh[k], 4),
+                _fmt(trees.height[k], 3),
+                _fmt(trees.crown_base[k], 3),
+                _fmt(trees.crown_radius[k], 3),
+                str(trees.species[k]),
+                str(trees.status[k]),
+            ]
             if stand:
                 fork = trees.fork_height_m[k]
                 row += [
-                    str(trees.kind[k]), _fmt(trees.lean_deg[k], 3),
+                    str(trees.kind[k]),
+                    _fmt(trees.lean_deg[k], 3),
                     _fmt(trees.lean_azimuth_deg[k], 3),
-                    _fmt(fork, 3) if np.isfinite(fork) else "", _fmt(trees.x_bh[k], 4),
-                    _fmt(trees.y_bh[k], 4), _fmt(trees.foliage_density[k], 4),
-                ]  # fmt: skip
+                    _fmt(fork, 3) if np.isfinite(fork) else "",
+                    _fmt(trees.x_bh[k], 4),
+                    _fmt(trees.y_bh[k], 4),
+                    _fmt(trees.foliage_density[k], 4),
+                ]
             out.writerow(row)
 
 
@@ -201,13 +224,17 @@ def _trees_from_csv(path: Path) -> Trees:
             stand.update({c: col(c) for c in STAND_COLUMNS[1:]})
         return Trees(
             tree_id=np.array([int(r["tree_id"]) for r in rows], dtype=np.int64),
-            x=col("x"), y=col("y"), z_ground=col("z_ground"), dbh=col("dbh_m"),
-            height=col("height_m"), crown_base=col("crown_base_m"),
+            x=col("x"),
+            y=col("y"),
+            z_ground=col("z_ground"),
+            dbh=col("dbh_m"),
+            height=col("height_m"),
+            crown_base=col("crown_base_m"),
             crown_radius=col("crown_radius_m"),
             species=np.array([r["species"] for r in rows], dtype=np.str_),
             status=np.array([r["status"] for r in rows], dtype=np.str_),
             **stand,
-        )  # fmt: skip
+        )
     except (KeyError, ValueError) as exc:
         raise FormatError(f"bad tree list: {exc}", path=path) from exc
 

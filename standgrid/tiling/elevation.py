@@ -161,8 +161,10 @@ def _place_volume(
         entry["bounds"] = None
     else:
         corners = to_catalog.base_points(grid.corners(), pose=pose)
-        entry["bounds"] = [*corners.min(axis=0).round(3).tolist(),
-                           *corners.max(axis=0).round(3).tolist()]  # fmt: skip
+        entry["bounds"] = [
+            *corners.min(axis=0).round(3).tolist(),
+            *corners.max(axis=0).round(3).tolist(),
+        ]
     placed.volumetric.append(entry)
 
 
@@ -174,8 +176,15 @@ def lattice_grid(
     closed: bool = False,
 ) -> RasterGrid:
     """The raster of :data:`PIXEL_M` pixels through ``origin`` covering ``bounds``."""
-    return RasterGrid.covering(bounds, origin=origin, cell_size=PIXEL_M, pixel_size=PIXEL_M,
-                               snap_to_cells=False, closed=closed, crs=crs)  # fmt: skip
+    return RasterGrid.covering(
+        bounds,
+        origin=origin,
+        cell_size=PIXEL_M,
+        pixel_size=PIXEL_M,
+        snap_to_cells=False,
+        closed=closed,
+        crs=crs,
+    )
 
 
 def resample(
@@ -293,8 +302,13 @@ def stage_mission_maps(
             txn.delete(old_rel)
     if placed is not None and placed.heights is not None:
         assert placed.grid is not None
-        write_cog(txn.stage(rel), placed.heights.astype(np.float32), placed.grid, nodata=NODATA,
-                  description=f"{name}: payload elevation maps, mean (m)")  # fmt: skip
+        write_cog(
+            txn.stage(rel),
+            placed.heights.astype(np.float32),
+            placed.grid,
+            nodata=NODATA,
+            description=f"{name}: payload elevation maps, mean (m)",
+        )
 
 
 def stage_epoch_mosaic(
@@ -307,8 +321,10 @@ def stage_epoch_mosaic(
     from standgrid.export.styles import raster_style_path, write_raster_style
     from standgrid.geotiff import NODATA, read_raster, write_cog
 
-    rels = {p.relative_to(catalog.root).as_posix()
-            for p in catalog.root.glob(paths.mission_elevation_map(epoch, "*"))}  # fmt: skip
+    rels = {
+        p.relative_to(catalog.root).as_posix()
+        for p in catalog.root.glob(paths.mission_elevation_map(epoch, "*"))
+    }
     rels |= {r for r in staged if r.startswith(paths.maps_folder(epoch) + "/")}
     pieces = []
     for rel in sorted(rels):
@@ -327,8 +343,13 @@ def stage_epoch_mosaic(
     origin = (grid0.x0, grid0.y0)  # every piece lies on the one lattice
     grid, heights = mean_mosaic(pieces, origin, crs)
     tif = txn.stage(target)
-    write_cog(tif, heights.astype(np.float32), grid, nodata=NODATA,
-              description="payloads' elevation maps, placed and averaged (m)")  # fmt: skip
+    write_cog(
+        tif,
+        heights.astype(np.float32),
+        grid,
+        nodata=NODATA,
+        description="payloads' elevation maps, placed and averaged (m)",
+    )
     write_raster_style(tif, "dtm", qml=txn.stage(raster_style_path(target)))
     summary: dict[str, Any] = {
         "raster": target,

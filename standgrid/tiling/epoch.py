@@ -91,8 +91,9 @@ def tile_epoch(
     maps = _place_maps(catalog, txn, epoch, group, plan)
     _record_missions(catalog, txn, index, epoch, group, plan, tiles, maps)
     result = tiles.result
-    result.maps_staged = {paths.mission_elevation_map(epoch, n) for n, m in maps.items()
-                          if m.heights is not None}  # fmt: skip
+    result.maps_staged = {
+        paths.mission_elevation_map(epoch, n) for n, m in maps.items() if m.heights is not None
+    }
     result.changed = plan.increment is None or bool(plan.read or plan.rewrite)
     settled = txn.settle_epoch(epoch, settings.tiling, changed=result.changed)
     if not result.changed and settled and before and settled.date != before.date:
@@ -293,8 +294,9 @@ def _gather_tiles(
         for name in missions:
             tiles.tiles_of.setdefault(name, set()).add(rel)
         size = plan.partition.cell_size(cell_id)
-        row = cell_row(cell_id, info, level=0, cell_size=size, epoch=epoch, missions=missions,
-                       tile_path=rel)  # fmt: skip
+        row = cell_row(
+            cell_id, info, level=0, cell_size=size, epoch=epoch, missions=missions, tile_path=rel
+        )
         tiles.cell_rows.append(row)
         tiles.result.tiles.append((rel, info))
     untouched = set(plan.previous) - set(plan.rewrite)
@@ -313,8 +315,9 @@ def _gather_tiles(
             for name in filter(None, str(row["missions"]).split(",")):
                 tiles.tiles_of.setdefault(name, set()).add(row["tile_path"])
             tiles.cell_rows.append(row)
-            tiles.result.tiles.append((row["tile_path"], kept_tile_info(
-                catalog.path(row["tile_path"]), row, catalog.crs)))  # fmt: skip
+            tiles.result.tiles.append(
+                (row["tile_path"], kept_tile_info(catalog.path(row["tile_path"]), row, catalog.crs))
+            )
     if rowless:
         raise CatalogError(
             f"epoch {epoch}: tiles without a row in the index's cells layer: "
@@ -390,12 +393,18 @@ def _record_missions(
         placed = maps.get(mission.name)
         extra = {} if placed is None else {"derived_maps": placed.record()}
         record = txn.record_mission(
-            mission.name, epoch=epoch, date=ingest.date, path=str(mission.path.resolve()),
-            georeference=ingest.placement.record(), placement=_note(ingest),
+            mission.name,
+            epoch=epoch,
+            date=ingest.date,
+            path=str(mission.path.resolve()),
+            georeference=ingest.placement.record(),
+            placement=_note(ingest),
             payload_count=len(cloud_payloads(mission)),
             point_count=sum(r["point_count"] for r in mine_rows),
-            tiles=sorted(tiles_of.get(mission.name, ())), **metadata_extra(mission), **extra,
-        )  # fmt: skip
+            tiles=sorted(tiles_of.get(mission.name, ())),
+            **metadata_extra(mission),
+            **extra,
+        )
         tiles.result.missions[mission.name] = {
             "number": record["number"],
             "epoch": epoch,
@@ -411,10 +420,17 @@ def _record_missions(
         assert ingest.to_catalog is not None
         trajectories += trajectory_rows(mission, ingest.to_catalog, epoch)
         fixes.append(gnss_rows(mission, ingest.placement, catalog.crs))
-        mission_rows.append(mission_row(
-            mission, ingest.placement, ingest.number, epoch, ingest.date, catalog,
-            placement_offset_m=_note(ingest)["offset_m"],
-        ))  # fmt: skip
+        mission_rows.append(
+            mission_row(
+                mission,
+                ingest.placement,
+                ingest.number,
+                epoch,
+                ingest.date,
+                catalog,
+                placement_offset_m=_note(ingest)["offset_m"],
+            )
+        )
     index.replace("cells", tiles.cell_rows, epochs={epoch})
     index.replace("payloads", rows, missions=names)
     index.replace("trajectories", trajectories, missions=names)
@@ -448,9 +464,17 @@ def _choose_placements(
     for ingest in group:
         name = ingest.mission.name
         ingest.choice = choose_placement(
-            ingest.mission, ingest.number, epoch, ingest.placement, records.get(name), stored,
-            cells, schema, catalog.crs, settings.placement_tolerance,
-        )  # fmt: skip
+            ingest.mission,
+            ingest.number,
+            epoch,
+            ingest.placement,
+            records.get(name),
+            stored,
+            cells,
+            schema,
+            catalog.crs,
+            settings.placement_tolerance,
+        )
         if ingest.choice.placement is not ingest.placement:
             ingest.placement = ingest.choice.placement
             ingest.to_catalog = ingest.placement.to_catalog(catalog.crs, name)

@@ -104,8 +104,9 @@ def trajectory_rows(mission: Mission, to_catalog: ToCatalog, epoch: str) -> list
 
     if to_catalog.fit is None and mission.scan_path is not None and len(mission.scan_path) > 1:
         xyz = to_catalog.projected_points(mission.scan_path)  # a plain scan's trajectory
-        return [{"mission": mission.name, "epoch": epoch,
-                 "geometry": shapely.LineString(xyz[:, :2])}]  # fmt: skip
+        return [
+            {"mission": mission.name, "epoch": epoch, "geometry": shapely.LineString(xyz[:, :2])}
+        ]
     if to_catalog.fit is None or mission.graph is None or len(mission.graph) < 2:
         return []
     xyz = to_catalog.projector.exact(mission.graph.positions)

@@ -200,10 +200,13 @@ def _swapped_near_catalog(catalog: Catalog, lat: float, lon: float) -> str | Non
         return float(geodesic_m(la, lo, lats, lons).min())
 
     return swap_hint(
-        round(lat, 6), round(lon, 6), nearest_mission_m, SWAP_HINT_NEAR_M,
+        round(lat, 6),
+        round(lon, 6),
+        nearest_mission_m,
+        SWAP_HINT_NEAR_M,
         what="the catalog's nearest mission is",
         advice="the mission's GNSS log has latitude and longitude swapped",
-    )  # fmt: skip
+    )
 
 
 def create_catalog(

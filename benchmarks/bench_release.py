@@ -89,6 +89,9 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--repeat", type=int, default=1, help="best of N per measurement")
     parser.add_argument("--workdir", type=Path, default=None)
     parser.add_argument("--skip-enrich", action="store_true")
+    parser.add_argument(
+        "--skip-tile", action="store_true", help="enrich the LAZ catalogs already in --workdir"
+    )
     opts = parser.parse_args(argv)
     from bench_tile import measure_simulate
 
@@ -107,7 +110,7 @@ def main(argv: list[str] | None = None) -> int:
             missions = list((sim_root / "missions").glob("*"))
         mission = missions[0]
         label = f"{n / 1e6:g} M"
-        for what, extra in (("tile LAZ", []), ("tile LAS", ["--las"])):
+        for what, extra in () if opts.skip_tile else (("tile LAZ", []), ("tile LAS", ["--las"])):
             best: dict[str, dict[str, float]] = {}
             counts = {}
             for _ in range(opts.repeat):

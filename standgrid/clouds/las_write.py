@@ -227,6 +227,341 @@ def extra_type(name: str, values: NDArray[Any], path: Path) -> str:
     )
 
 
+#: A part of the points: its first row, its (3, N) contiguous coordinate columns and its
+#: fields.
+_Part = tuple[int, NDArray[np.float64], dict[str, NDArray[Any]]]
+#: A standard dimension's checked values: (first row, values) of each part.
+_Checked = list[tuple[int, NDArray[Any]]]
+
+
+@dataclass(frozen=True)
+class _CloudParts:
+    """The points as written: the core part, then the buffer part (if any)."""
+
+    n_core: int
+    n_buffer: int
+    parts: list[_Part]
+    #: Each field as a zero-length array of the dtype (and per-point shape) it is written as.
+    fields: dict[str, NDArray[Any]]
+
+    @property
+    def n(self) -> int:
+        """The number of points, buffer included."""
+        return self.n_core + self.n_buffer
+
+
+def _cloud_parts(out: Path, core: PointCloud, buffer: PointCloud | None) -> _CloudParts:
+    """The core and buffer parts, their fields checked to agree (names, per-point shapes).
+    The parts go straight into the record: no concatenated copies."""
+    n_core = len(core)
+    n_buffer = len(buffer) if buffer is not None else 0
+    core_fields = dict(core.fields)
+    buffer_fields = dict(buffer.fields) if buffer is not None else {}
+    if n_buffer and set(core_fields) != set(buffer_fields):
+        raise PointCloudFormatError(
+            f"core fields {sorted(core_fields)} differ from buffer fields {sorted(buffer_fields)}",
+            path=out,
+        )
+    for name, values in core_fields.items():
+        if n_buffer and buffer_fields[name].shape[1:] != values.shape[1:]:
+            raise PointCloudFormatError(
+                f"field {name!r} has shape {values.shape[1:]} per core point and "
+                f"{buffer_fields[name].shape[1:]} per buffer point",
+                path=out,
+            )
+    # (x, y, z) as contiguous columns: reduced for the bounds, scaled into the record
+    parts: list[_Part] = [(0, np.ascontiguousarray(core.xyz.T), core_fields)]
+    if n_buffer:
+        assert buffer is not None
+        parts.append((n_core, np.ascontiguousarray(buffer.xyz.T), buffer_fields))
+    fields = {
+        name: _probe(values, buffer_fields[name] if n_buffer else None)
+        for name, values in core_fields.items()
+    }
+    return _CloudParts(n_core, n_buffer, parts, fields)
+
+
+def _standard_values(
+    out: Path, parts: _CloudParts, has_colour: bool, convention: LasConvention
+) -> dict[str, _Checked]:
+    """The standard dimensions' values of each part, checked (and floats made integers)
+    before any work; an intensity of more than one value per point refused."""
+    fields = parts.fields
+    exact_intensity = () if convention.keep_raw_intensity else ("intensity",)
+    standard = {
+        name: [
+            (start, las_dimension_values(name, f[name], out, first_point=start))
+            for start, _, f in parts.parts
+        ]
+        for name in (
+            *STANDARD_FIELDS,
+            "withheld",
+            *exact_intensity,
+            *(COLOUR_FIELDS if has_colour else ()),
+        )
+        if name in fields
+    }
+    if "intensity" in fields and fields["intensity"].ndim != 1:
+        raise PointCloudFormatError(
+            f"field 'intensity' has shape {fields['intensity'].shape[1:]} per point; "
+            "LAS intensity holds one value per point",
+            path=out,
+        )
+    return standard
+
+
+def _las_header(
+    out: Path, convention: LasConvention, point_format: int, has_gps_time: bool, crs: str | None
+) -> Any:
+    """A LAS 1.4 header: the convention's software, the GPS time type, the CRS VLR."""
+    import laspy
+
+    header = laspy.LasHeader(point_format=point_format, version="1.4")
+    if convention.software is not None:
+        header.generating_software, header.system_identifier = convention.software
+    if convention.gps_time_always or has_gps_time:
+        header.global_encoding.gps_time_type = laspy.header.GpsTimeType.STANDARD
+    if crs is not None:
+        _add_crs(out, header, crs, wkt1=convention.wkt1)
+    return header
+
+
+def _add_crs(out: Path, header: Any, crs: str, *, wkt1: bool) -> None:
+    """The CRS VLR: as WKT1 (GDAL flavour) with ``wkt1``, else pyproj's default WKT."""
+    import laspy
+    import pyproj
+
+    if wkt1:
+        parsed_crs, wkt = crs_wkt(crs)
+        header.add_crs(parsed_crs)
+        for vlr in header.vlrs:
+            if isinstance(vlr, laspy.vlrs.known.WktCoordinateSystemVlr):
+                vlr.string = wkt
+        return
+    try:
+        header.add_crs(pyproj.CRS.from_user_input(crs))
+    except pyproj.exceptions.CRSError as exc:
+        raise CRSError(f"unusable CRS {crs!r}: {exc}", path=out) from exc
+
+
+@dataclass(frozen=True)
+class _Coordinates:
+    """The core's and all points' coordinate extremes, and the offsets."""
+
+    core_lo: NDArray[np.float64]
+    core_hi: NDArray[np.float64]
+    all_lo: NDArray[np.float64]
+    all_hi: NDArray[np.float64]
+    offsets: NDArray[np.float64]
+
+    @classmethod
+    def of(
+        cls,
+        out: Path,
+        parts: _CloudParts,
+        scale: float,
+        lattice_origin: tuple[float, float] | None,
+    ) -> _Coordinates:
+        """Refuses non-finite coordinates and a span too large for int32 at ``scale``."""
+        core_lo, core_hi = _column_bounds(parts.parts[0][1])
+        all_lo, all_hi = core_lo, core_hi
+        if parts.n_buffer:
+            buffer_lo, buffer_hi = _column_bounds(parts.parts[1][1])
+            all_lo, all_hi = buffer_lo, buffer_hi
+            if parts.n_core:
+                all_lo, all_hi = np.minimum(core_lo, buffer_lo), np.maximum(core_hi, buffer_hi)
+        if not parts.n:
+            return cls(core_lo, core_hi, all_lo, all_hi, np.zeros(3))
+        # min and max propagate NaN and reach +-inf: finite extremes mean finite coordinates
+        if not (np.all(np.isfinite(all_lo)) and np.all(np.isfinite(all_hi))):
+            raise PointCloudFormatError("non-finite coordinates", path=out)
+        offsets = _offsets(all_lo, lattice_origin)
+        span = np.round((all_hi - offsets) / scale)
+        if np.any(span > INT32_MAX):
+            raise PointCloudFormatError(
+                f"the points span {(all_hi - offsets).max():.0f} m: too large for "
+                f"{scale:g} m coordinates in LAS int32",
+                path=out,
+            )
+        return cls(core_lo, core_hi, all_lo, all_hi, offsets)
+
+    def stored(self, scale: float) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+        """The stored extremes: rounding is monotonic, so the rounded true extremes."""
+        offsets = self.offsets
+        file_lo = offsets + np.round((self.all_lo - offsets) / scale) * scale
+        file_hi = offsets + np.round((self.all_hi - offsets) / scale) * scale
+        return file_lo, file_hi
+
+
+def _offsets(
+    all_lo: NDArray[np.float64], lattice_origin: tuple[float, float] | None
+) -> NDArray[np.float64]:
+    """The floor of the minimum, or whole metres from ``lattice_origin`` below it."""
+    if lattice_origin is None:
+        return np.floor(all_lo)
+    # Offsets are whole metres from the grid's origin: the stored lattice is then the
+    # one snap_to_storage(origin) snaps to, whatever the origin.
+    lattice = np.array([float(lattice_origin[0]), float(lattice_origin[1]), 0.0])
+    return lattice + np.floor(all_lo - lattice)
+
+
+#: An extra-bytes dimension: its probe (dtype, per-point shape) and the field it is filled from.
+_Extra = tuple[NDArray[Any], str]
+
+
+def _field_dimensions(
+    out: Path,
+    header: Any,
+    fields: dict[str, NDArray[Any]],
+    has_colour: bool,
+    convention: LasConvention,
+    intensity_scale: float,
+) -> dict[str, _Extra]:
+    """Where every field goes, decided before the record is allocated: the extra-bytes
+    dimensions added to ``header`` (checked), and the convention's field manifest VLR."""
+    import laspy
+
+    extra = _extra_fields(fields, has_colour, convention)
+    for name, (values, _) in extra.items():
+        if len(name.encode()) > 32:
+            raise PointCloudFormatError(
+                f"field name {name!r} is longer than the 32 bytes LAS extra bytes allow", path=out
+            )
+        described = convention.manifest and values.dtype == np.bool_
+        header.add_extra_dim(
+            laspy.ExtraBytesParams(
+                name=name,
+                type=extra_type(name, values, out),
+                description="bool" if described else "",
+            )
+        )
+    if convention.manifest:
+        manifest = {
+            name: values.dtype.str if values.ndim == 1 else f"{values.shape[1]}{values.dtype.str}"
+            for name, values in fields.items()
+        }
+        header.vlrs.append(
+            laspy.VLR(
+                VLR_USER_ID,
+                VLR_RECORD_ID,
+                "standgrid field manifest",
+                json.dumps({"fields": manifest, "intensity_scale": intensity_scale}).encode(),
+            )
+        )
+    return extra
+
+
+def _extra_fields(
+    fields: dict[str, NDArray[Any]], has_colour: bool, convention: LasConvention
+) -> dict[str, _Extra]:
+    """The fields no standard dimension holds (a non-native intensity's exact values as
+    ``intensity_raw``, colours short of all three), in field order."""
+    extra: dict[str, _Extra] = {}
+    for name, values in fields.items():
+        if name == "intensity":
+            if convention.keep_raw_intensity and not intensity_is_native(values):
+                extra["intensity_raw"] = (values, name)
+        elif name in COLOUR_FIELDS:
+            if not has_colour:
+                extra[name] = (values, name)
+        elif name not in LAS_DIMENSION_NAMES:
+            extra[name] = (values, name)
+    return extra
+
+
+def _point_record(
+    header: Any,
+    parts: _CloudParts,
+    standard: dict[str, _Checked],
+    extra: dict[str, _Extra],
+    coordinates: _Coordinates,
+    scale: float,
+    convention: LasConvention,
+    intensity_scale: float,
+) -> tuple[Any, dict[str, NDArray[Any]]]:
+    """The ``laspy.LasData`` of every part's points, and the bit fields' values as given to
+    laspy (which packs them)."""
+    import laspy
+
+    fields = parts.fields
+    record = _blank_record(
+        header.point_format, parts.n_core, parts.n_buffer, convention.default_return
+    )
+    points = laspy.PackedPointRecord(record, header.point_format)
+
+    def put(target: str, name: str, convert: Any = None) -> None:
+        """Field ``name`` of every part into dimension ``target`` (cast to the field's dtype)."""
+        dtype = fields[name].dtype
+        for start, _, part_fields in parts.parts:
+            values = part_fields[name].astype(dtype, copy=False)
+            record[target][start : start + len(values)] = (
+                values if convert is None else convert(values)
+            )
+
+    for axis, upper in enumerate("XYZ"):
+        for start, part_columns, _ in parts.parts:
+            part = part_columns[axis]
+            record[upper][start : start + len(part)] = _storage_ints(
+                part, coordinates.offsets[axis], scale
+            )
+    packed: dict[str, NDArray[Any]] = {}
+    for name, checked in standard.items():
+        if name in (record.dtype.names or ()):
+            for start, values in checked:
+                record[name][start : start + len(values)] = values
+        else:  # a bit field: laspy packs it
+            packed[name] = np.concatenate([values for _, values in checked])
+            points[name] = packed[name]
+    if "intensity" in fields and "intensity" not in standard:
+        if intensity_is_native(fields["intensity"]):
+            put("intensity", "intensity")
+        else:
+            put("intensity", "intensity", lambda v: _scaled_intensity(v, intensity_scale))
+    for name, (values, source) in extra.items():
+        to_bytes = (lambda v: v.astype(np.uint8)) if values.dtype == np.bool_ else None
+        put(name, source, to_bytes)
+    return laspy.LasData(header, points), packed
+
+
+def _file_extent(
+    out: Path,
+    parts: _CloudParts,
+    standard: dict[str, _Checked],
+    packed: dict[str, NDArray[Any]],
+    coordinates: _Coordinates,
+    scale: float,
+    default_return: int,
+) -> LasExtent | None:
+    """What laspy would compute from the packed points, from the values at hand (None: no
+    points); refuses NaN or infinite GPS times."""
+    n = parts.n
+    if not n:
+        return None
+    returns = packed.get("return_number")
+    if returns is not None:
+        by_return = np.bincount(returns.astype(np.int64), minlength=16)
+    else:  # every point has the blank record's return number
+        by_return = np.zeros(16, np.int64)
+        by_return[default_return] = n
+    gps = (0.0, 0.0)
+    if "gps_time" in standard:
+        gps = _gps_extremes(out, standard["gps_time"])
+    file_lo, file_hi = coordinates.stored(scale)
+    return LasExtent(file_lo, file_hi, gps, by_return)
+
+
+def _gps_extremes(out: Path, checked: _Checked) -> tuple[float, float]:
+    """(min, max) of the stored GPS times; NaN or infinite extremes refused."""
+    stored = [v for _, v in checked if len(v)]
+    # np.min/np.max, not min/max: a NaN extreme of any part propagates
+    gps = (
+        float(np.min([v.min() for v in stored])),
+        float(np.max([v.max() for v in stored])),
+    )
+    check_finite_gps_time(*gps, stored, out)  # NaN or inf extremes: not written
+    return gps
+
+
 def encode_las(
     core: PointCloud,
     *,
@@ -245,207 +580,25 @@ def encode_las(
     that origin). ``core`` and ``buffer`` must carry the same field names; neither may
     carry ``withheld`` when there is a buffer. Every field is checked before any work.
     """
-    import laspy
-
     out = path
-    n_core = len(core)
-    n_buffer = len(buffer) if buffer is not None else 0
-    core_fields = dict(core.fields)
-    buffer_fields = dict(buffer.fields) if buffer is not None else {}
-    if n_buffer and set(core_fields) != set(buffer_fields):
-        raise PointCloudFormatError(
-            f"core fields {sorted(core_fields)} differ from buffer fields {sorted(buffer_fields)}",
-            path=out,
-        )
-    for name, values in core_fields.items():
-        if n_buffer and buffer_fields[name].shape[1:] != values.shape[1:]:
-            raise PointCloudFormatError(
-                f"field {name!r} has shape {values.shape[1:]} per core point and "
-                f"{buffer_fields[name].shape[1:]} per buffer point",
-                path=out,
-            )
-    n = n_core + n_buffer
-    # The core and buffer parts go straight into the record: no concatenated copies.
-    # (x, y, z) as contiguous columns: reduced for the bounds, scaled into the record
-    core_columns = np.ascontiguousarray(core.xyz.T)
-    parts = [(0, core_columns, core_fields)]
-    if n_buffer:
-        assert buffer is not None
-        buffer_columns = np.ascontiguousarray(buffer.xyz.T)
-        parts.append((n_core, buffer_columns, buffer_fields))
-    #: Each field as a zero-length array of the dtype (and per-point shape) it is written as.
-    fields: dict[str, NDArray[Any]] = {
-        name: _probe(values, buffer_fields[name] if n_buffer else None)
-        for name, values in core_fields.items()
-    }
+    parts = _cloud_parts(out, core, buffer)
+    fields = parts.fields
     has_colour = all(c in fields for c in COLOUR_FIELDS)
     point_format = 7 if has_colour else 6
-    exact_intensity = () if convention.keep_raw_intensity else ("intensity",)
-    # The standard dimensions' values, checked (and floats made integers) before any work.
-    standard: dict[str, list[tuple[int, NDArray[Any]]]] = {
-        name: [
-            (start, las_dimension_values(name, f[name], out, first_point=start))
-            for start, _, f in parts
-        ]
-        for name in (
-            *STANDARD_FIELDS,
-            "withheld",
-            *exact_intensity,
-            *(COLOUR_FIELDS if has_colour else ()),
-        )
-        if name in fields
-    }
-    if "intensity" in fields and fields["intensity"].ndim != 1:
-        raise PointCloudFormatError(
-            f"field 'intensity' has shape {fields['intensity'].shape[1:]} per point; "
-            "LAS intensity holds one value per point",
-            path=out,
-        )
-
-    header = laspy.LasHeader(point_format=point_format, version="1.4")
-    if convention.software is not None:
-        header.generating_software, header.system_identifier = convention.software
-    if convention.gps_time_always or "gps_time" in fields:
-        header.global_encoding.gps_time_type = laspy.header.GpsTimeType.STANDARD
-    if crs is not None:
-        if convention.wkt1:
-            parsed_crs, wkt = crs_wkt(crs)
-            header.add_crs(parsed_crs)
-            for vlr in header.vlrs:
-                if isinstance(vlr, laspy.vlrs.known.WktCoordinateSystemVlr):
-                    vlr.string = wkt
-        else:
-            import pyproj
-
-            try:
-                header.add_crs(pyproj.CRS.from_user_input(crs))
-            except pyproj.exceptions.CRSError as exc:
-                raise CRSError(f"unusable CRS {crs!r}: {exc}", path=out) from exc
-
-    core_lo, core_hi = _column_bounds(core_columns)
-    all_lo, all_hi = core_lo, core_hi
-    if n_buffer:
-        buffer_lo, buffer_hi = _column_bounds(buffer_columns)
-        all_lo, all_hi = buffer_lo, buffer_hi
-        if n_core:
-            all_lo, all_hi = np.minimum(core_lo, buffer_lo), np.maximum(core_hi, buffer_hi)
-    # min and max propagate NaN and reach +-inf: finite extremes mean finite coordinates
-    if n and not (np.all(np.isfinite(all_lo)) and np.all(np.isfinite(all_hi))):
-        raise PointCloudFormatError("non-finite coordinates", path=out)
-    if not n:
-        offsets = np.zeros(3)
-    elif lattice_origin is None:
-        offsets = np.floor(all_lo)
-    else:
-        # Offsets are whole metres from the grid's origin: the stored lattice is then the
-        # one snap_to_storage(origin) snaps to, whatever the origin.
-        lattice = np.array([float(lattice_origin[0]), float(lattice_origin[1]), 0.0])
-        offsets = lattice + np.floor(all_lo - lattice)
-    if n:
-        span = np.round((all_hi - offsets) / scale)
-        if np.any(span > INT32_MAX):
-            raise PointCloudFormatError(
-                f"the points span {(all_hi - offsets).max():.0f} m: too large for "
-                f"{scale:g} m coordinates in LAS int32",
-                path=out,
-            )
-    header.offsets = offsets
+    standard = _standard_values(out, parts, has_colour, convention)
+    header = _las_header(out, convention, point_format, "gps_time" in fields, crs)
+    coordinates = _Coordinates.of(out, parts, scale, lattice_origin)
+    header.offsets = coordinates.offsets
     header.scales = np.full(3, scale)
-
-    # Decide where every field goes before allocating the record.
-    manifest: dict[str, str] = {}
-    extra: dict[str, NDArray[Any]] = {}
-    source_of: dict[str, str] = {}  # the field each extra dimension is filled from
-    for name, values in fields.items():
-        manifest[name] = (
-            values.dtype.str if values.ndim == 1 else f"{values.shape[1]}{values.dtype.str}"
-        )
-        if name == "intensity":
-            if convention.keep_raw_intensity and not intensity_is_native(values):
-                extra["intensity_raw"], source_of["intensity_raw"] = values, name
-        elif name in COLOUR_FIELDS:
-            if not has_colour:
-                extra[name], source_of[name] = values, name
-        elif name not in LAS_DIMENSION_NAMES:
-            extra[name], source_of[name] = values, name
-    for name, values in extra.items():
-        if len(name.encode()) > 32:
-            raise PointCloudFormatError(
-                f"field name {name!r} is longer than the 32 bytes LAS extra bytes allow", path=out
-            )
-        described = convention.manifest and values.dtype == np.bool_
-        header.add_extra_dim(
-            laspy.ExtraBytesParams(
-                name=name,
-                type=extra_type(name, values, out),
-                description="bool" if described else "",
-            )
-        )
-    if convention.manifest:
-        header.vlrs.append(
-            laspy.VLR(
-                VLR_USER_ID,
-                VLR_RECORD_ID,
-                "standgrid field manifest",
-                json.dumps({"fields": manifest, "intensity_scale": intensity_scale}).encode(),
-            )
-        )
-
-    record = _blank_record(header.point_format, n_core, n_buffer, convention.default_return)
-    points = laspy.PackedPointRecord(record, header.point_format)
-
-    def put(target: str, name: str, convert: Any = None) -> None:
-        """Field ``name`` of every part into dimension ``target`` (cast to the field's dtype)."""
-        dtype = fields[name].dtype
-        for start, _, part_fields in parts:
-            values = part_fields[name].astype(dtype, copy=False)
-            record[target][start : start + len(values)] = (
-                values if convert is None else convert(values)
-            )
-
-    for axis, upper in enumerate("XYZ"):
-        for start, part_columns, _ in parts:
-            part = part_columns[axis]
-            record[upper][start : start + len(part)] = _storage_ints(part, offsets[axis], scale)
-    packed: dict[str, NDArray[Any]] = {}  # the bit fields' values, as given to laspy
-    for name, checked in standard.items():
-        if name in (record.dtype.names or ()):
-            for start, values in checked:
-                record[name][start : start + len(values)] = values
-        else:  # a bit field: laspy packs it
-            packed[name] = np.concatenate([values for _, values in checked])
-            points[name] = packed[name]
-    if "intensity" in fields and "intensity" not in standard:
-        if intensity_is_native(fields["intensity"]):
-            put("intensity", "intensity")
-        else:
-            put("intensity", "intensity", lambda v: _scaled_intensity(v, intensity_scale))
-    for name, values in extra.items():
-        to_bytes = (lambda v: v.astype(np.uint8)) if values.dtype == np.bool_ else None
-        put(name, source_of[name], to_bytes)
-    las = laspy.LasData(header, points)
-    extent = None
-    if n:  # what laspy would compute from the packed points, from the values at hand
-        returns = packed.get("return_number")
-        if returns is not None:
-            by_return = np.bincount(returns.astype(np.int64), minlength=16)
-        else:  # every point has the blank record's return number
-            by_return = np.zeros(16, np.int64)
-            by_return[convention.default_return] = n
-        gps = (0.0, 0.0)
-        if "gps_time" in standard:
-            stored = [v for _, v in standard["gps_time"] if len(v)]
-            # np.min/np.max, not min/max: a NaN extreme of any part propagates
-            gps = (
-                float(np.min([v.min() for v in stored])),
-                float(np.max([v.max() for v in stored])),
-            )
-            check_finite_gps_time(*gps, stored, out)  # NaN or inf extremes: not written
-        # rounding is monotonic: the stored extremes are the rounded true extremes
-        file_lo = offsets + np.round((all_lo - offsets) / scale) * scale
-        file_hi = offsets + np.round((all_hi - offsets) / scale) * scale
-        extent = LasExtent(file_lo, file_hi, gps, by_return)
-    return EncodedLas(las, extent, point_format, (core_lo, core_hi), core_columns)
+    extra = _field_dimensions(out, header, fields, has_colour, convention, intensity_scale)
+    las, packed = _point_record(
+        header, parts, standard, extra, coordinates, scale, convention, intensity_scale
+    )
+    extent = _file_extent(
+        out, parts, standard, packed, coordinates, scale, convention.default_return
+    )
+    core_bounds = (coordinates.core_lo, coordinates.core_hi)
+    return EncodedLas(las, extent, point_format, core_bounds, parts.parts[0][1])
 
 
 def write_las_cloud(

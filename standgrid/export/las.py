@@ -49,6 +49,7 @@ from standgrid.clouds.las_write import (
     TILE,
     VLR_RECORD_ID,
     VLR_USER_ID,
+    EncodedLas,
     encode_las,
     extra_type,
     write_las,
@@ -128,26 +129,14 @@ def write_tile(
     out = Path(path)
     if laz is None:
         laz = out.suffix.lower() == ".laz"
-    if buffer is None and "withheld" in core.fields:  # a combined cloud (CellPoints.combined())
-        flags = np.asarray(las_dimension_values("withheld", core.fields["withheld"], out), bool)
-        if flags.any():
-            core, buffer = core.select(~flags), core.select(flags)
-    buffer = (
-        buffer
-        if buffer is not None
-        else PointCloud.empty({k: v.dtype for k, v in core.fields.items()})
-    )
-    core_fields = {k: v for k, v in core.fields.items() if k != "withheld"}
-    buffer_fields = {k: v for k, v in buffer.fields.items() if k != "withheld"}
-    if "withheld" in core.fields and np.any(core.fields["withheld"]):
-        raise PointCloudFormatError("core points must not be withheld", path=out)
+    core, buffer = _tile_parts(out, core, buffer)
     encoded = encode_las(
-        PointCloud(core.xyz, core_fields),
+        PointCloud(core.xyz, _without_withheld(core)),
         path=out,
         convention=TILE,
         scale=SCALE,
         crs=crs,
-        buffer=PointCloud(buffer.xyz, buffer_fields) if len(buffer) else None,
+        buffer=PointCloud(buffer.xyz, _without_withheld(buffer)) if len(buffer) else None,
         lattice_origin=lattice_origin,
         intensity_scale=intensity_scale,
     )
@@ -159,12 +148,45 @@ def write_tile(
         durable=durable,
         extent=encoded.extent,
     )
-    n_core, n_buffer = len(core), len(buffer)
-    core_lo, core_hi = encoded.core_bounds
-    core_columns = encoded.core_columns
-    extent = encoded.extent
-    point_format = encoded.point_format
+    return _tile_info(out, core, len(buffer), encoded, bool(laz), crs, core_bounds)
 
+
+def _tile_parts(
+    out: Path, core: PointCloud, buffer: PointCloud | None
+) -> tuple[PointCloud, PointCloud]:
+    """The core and buffer points (a combined cloud split by its ``withheld`` flags; no
+    buffer: an empty one); withheld core points refused."""
+    if buffer is None and "withheld" in core.fields:  # a combined cloud (CellPoints.combined())
+        flags = np.asarray(las_dimension_values("withheld", core.fields["withheld"], out), bool)
+        if flags.any():
+            core, buffer = core.select(~flags), core.select(flags)
+    buffer = (
+        buffer
+        if buffer is not None
+        else PointCloud.empty({k: v.dtype for k, v in core.fields.items()})
+    )
+    if "withheld" in core.fields and np.any(core.fields["withheld"]):
+        raise PointCloudFormatError("core points must not be withheld", path=out)
+    return core, buffer
+
+
+def _without_withheld(cloud: PointCloud) -> dict[str, NDArray[Any]]:
+    """``cloud``'s fields but ``withheld`` (the part says it)."""
+    return {k: v for k, v in cloud.fields.items() if k != "withheld"}
+
+
+def _tile_info(
+    out: Path,
+    core: PointCloud,
+    n_buffer: int,
+    encoded: EncodedLas,
+    compressed: bool,
+    crs: str,
+    core_bounds: Any,
+) -> TileInfo:
+    """What was written: counts, the core's bounds and z statistics, points per source."""
+    n_core = len(core)
+    core_lo, core_hi = encoded.core_bounds
     z = core.xyz[:, 2]
     if n_core:
         bounds = (*map(float, core_lo), *map(float, core_hi))
@@ -173,11 +195,12 @@ def write_tile(
             float(core_hi[2]),
             float(z.mean()),
             # the same values in the same order as z: percentile copies them either way
-            float(np.percentile(core_columns[2], 95)),
+            float(np.percentile(encoded.core_columns[2], 95)),
         )
     else:
         bounds = (float("nan"),) * 6
         z_stats = (float("nan"),) * 4
+    extent = encoded.extent
     if extent is not None:
         file_bounds = (*map(float, extent.mins), *map(float, extent.maxs))
     else:
@@ -196,8 +219,8 @@ def write_tile(
         z_max=z_stats[1],
         z_mean=z_stats[2],
         z_p95=z_stats[3],
-        point_format=point_format,
-        compressed=bool(laz),
+        point_format=encoded.point_format,
+        compressed=compressed,
         crs=crs,
         core_bounds=core_bounds,
         points_per_source=per_source,
@@ -235,13 +258,24 @@ def rewrite_tile(
     :func:`read_tile` of the result equals :func:`write_tile` of the same cloud and fields
     (standard LAS fields checked by the same rule: exact or ``PointCloudFormatError`` naming
     ``source``, before the record is changed). ``laz`` defaults to the suffix of ``path``."""
-    import laspy
-
     out, src = Path(path), Path(source)
     manifest = _manifest(record, src)
     if manifest is None:
         raise PointCloudFormatError("not a standgrid tile (no field manifest)", path=src)
     # Every field checked before the record is touched: a refusal leaves it as read.
+    stored_values, extra_types = _rewritten_values(record, fields, src)
+    _add_extra_dims(record, fields, extra_types, manifest)
+    _set_fields(record, fields, stored_values, manifest)
+    if laz is None:
+        laz = out.suffix.lower() == ".laz"
+    write_las(record, out, laz=laz, overwrite=True, durable=durable)
+
+
+def _rewritten_values(
+    record: Any, fields: dict[str, NDArray[Any]], src: Path
+) -> tuple[dict[str, NDArray[Any]], dict[str, str]]:
+    """Each field's values as stored (checked: one per point; a standard field exact, an
+    extra one storable; no other LAS dimension), and the extra-bytes type of each extra."""
     extra_types: dict[str, str] = {}
     stored_values: dict[str, NDArray[Any]] = {}
     for name, values in fields.items():
@@ -260,26 +294,49 @@ def rewrite_tile(
         else:
             extra_types[name] = extra_type(name, values, src)
             stored_values[name] = values.astype(np.uint8) if values.dtype == np.bool_ else values
+    return stored_values, extra_types
+
+
+def _add_extra_dims(
+    record: Any,
+    fields: dict[str, NDArray[Any]],
+    extra_types: dict[str, str],
+    manifest: dict[str, str],
+) -> None:
+    """The extra dimensions missing from ``record`` (or stored with another type) added:
+    one new record, the stored bytes copied field by field of the raw array."""
+    import laspy
+
     added = []
-    for name, values in fields.items():
-        if name in extra_types:
-            if name in manifest and manifest[name] != values.dtype.str:
-                record.remove_extra_dim(name)  # stored with another type: stored anew
-            if name not in record.point_format.extra_dimension_names:
-                added.append(
-                    laspy.ExtraBytesParams(
-                        name=name,
-                        type=extra_types[name],
-                        description="bool" if values.dtype == np.bool_ else "",
-                    )
+    for name in extra_types:
+        values = fields[name]
+        if name in manifest and manifest[name] != values.dtype.str:
+            record.remove_extra_dim(name)  # stored with another type: stored anew
+        if name not in record.point_format.extra_dimension_names:
+            added.append(
+                laspy.ExtraBytesParams(
+                    name=name,
+                    type=extra_types[name],
+                    description="bool" if values.dtype == np.bool_ else "",
                 )
-    if added:  # one new record, the stored bytes copied field by field of the raw array
-        stored_points = record.points.array
-        record.header.add_extra_dims(added)
-        points = laspy.ScaleAwarePointRecord.zeros(len(stored_points), header=record.header)
-        for name in stored_points.dtype.names:
-            points.array[name] = stored_points[name]
-        record.points = points
+            )
+    if not added:
+        return
+    stored_points = record.points.array
+    record.header.add_extra_dims(added)
+    points = laspy.ScaleAwarePointRecord.zeros(len(stored_points), header=record.header)
+    for name in stored_points.dtype.names:
+        points.array[name] = stored_points[name]
+    record.points = points
+
+
+def _set_fields(
+    record: Any,
+    fields: dict[str, NDArray[Any]],
+    stored_values: dict[str, NDArray[Any]],
+    manifest: dict[str, str],
+) -> None:
+    """The fields' stored values into ``record``, and its field manifest VLR updated."""
     raw = record.points.array
     for name, values in fields.items():
         stored = stored_values[name]
@@ -293,9 +350,6 @@ def rewrite_tile(
             data = json.loads(bytes(vlr.record_data).decode())
             data["fields"] = manifest
             vlr.record_data = json.dumps(data).encode()
-    if laz is None:
-        laz = out.suffix.lower() == ".laz"
-    write_las(record, out, laz=laz, overwrite=True, durable=durable)
 
 
 def _manifest(las: Any, path: Path) -> dict[str, str] | None:

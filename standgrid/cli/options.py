@@ -209,9 +209,9 @@ REGISTRY: dict[str, Option] = {
                "show_default": "a quarter of the available RAM, 256 to 4096 MB",
                "help": "Memory budget in MB of this process (and of each dask worker): chunks"
                " are sized, reads and writes ahead limited, and the partition engine spills to"
-               " disk by it. The peak stays within about 1.1x the budget plus the interpreter's"
-               " own (at 512 on 20 M points: tile 548 MB, enrich 769 MB; the interpreter 205 MB"
-               " with its imports, 323 MB once every pass has run)."}),
+               " disk by it. tile's peak stays within 1.1x the budget plus the interpreter's"
+               " own (~200 MB); enrich's comes close (at 512 on 20 M points: 768-811 MB) and"
+               " exceeds it where one cell and its buffer do not fit (it says so)."}),
         Option("lock_timeout", ("--lock-timeout",), (f"{_RUN}.lock_timeout",), {"type": float,
                "default": _default_lock_timeout, "show_default": "30",
                "help": "Seconds to wait while another process writes (or reads) the catalog,"

@@ -63,6 +63,7 @@ def test_options_and_execution_validate_themselves() -> None:
         (lambda: standgrid.Execution(scheduler="not an address"), "scheduler"),
         (lambda: standgrid.Execution(memory_mb=8), "memory_mb"),
         (lambda: standgrid.Execution(lock_timeout=-1.0), "lock_timeout"),
+        (lambda: standgrid.Execution(lock_timeout=True), "lock_timeout"),  # not 1 s
         (lambda: standgrid.TileOptions(buffer=-1.0), "buffer"),
         (lambda: standgrid.TileOptions(anchor=(91.0, 0.0, 0.0, 0.0)), "anchor"),
         (lambda: standgrid.TileOptions(epoch="a/b"), "epoch"),

@@ -419,6 +419,8 @@ def test_published_events_are_bounded() -> None:
         late = hub.subscribe(published[4].id)
         assert [late.queue.get_nowait().id for _ in range(3)] == [e.id for e in published[5:]]
         assert hub.subscribe(published[0].id).queue.get_nowait().type == "resync"
+        for hostile in (f"{hub.run}-²", f"{hub.run}-", "-1", "x" * 10_000):  # a resync, no error
+            assert hub.subscribe(hostile).queue.get_nowait().type == "resync", hostile
         hub.close()
         assert hub.subscribers == set()
 

@@ -73,7 +73,10 @@ class Execution:
             )
         timeout = self.lock_timeout
         if timeout is not None and not (
-            isinstance(timeout, int | float) and math.isfinite(timeout) and timeout >= 0
+            isinstance(timeout, int | float)
+            and not isinstance(timeout, bool)
+            and math.isfinite(timeout)
+            and timeout >= 0
         ):
             raise OptionError("lock_timeout", f"{timeout!r}: give seconds >= 0, or None")
         if not all(callable(getattr(self.progress, m, None)) for m in ("track", "status")):

@@ -156,7 +156,8 @@ class EventHub:
         """The kept events after ``last_event_id``; None when some are no longer kept, or
         the id is not one of this run."""
         run, _, number = last_event_id.strip().rpartition("-")
-        if run != self.run or not number.isdigit() or int(number) > self._count:
+        digits = number.isascii() and number.isdigit()  # not '²': int() would refuse it
+        if run != self.run or not digits or int(number) > self._count:
             return None
         after = int(number)
         oldest = self._count - len(self.ring) + 1  # the number of ring[0]
@@ -177,12 +178,9 @@ class EventHub:
         self.subscribers.clear()
 
 
-async def _stream(
-    hub: EventHub, last_event_id: str | None, heartbeat: float
-) -> AsyncIterator[bytes]:
-    """The SSE text of one client: subscribed as the response starts (a request given up
-    before leaves nothing behind), until the server stops or the client goes."""
-    sub = hub.subscribe(last_event_id)
+async def _stream(hub: EventHub, sub: Subscriber, heartbeat: float) -> AsyncIterator[bytes]:
+    """The SSE text of one subscribed client, until the server stops or the client goes
+    (it is unsubscribed then, also when the response never started)."""
     last = hub.ring[-1].id if hub.ring else None
     try:
         hello = json.dumps({"last": last, "kept": len(hub.ring)})
@@ -214,10 +212,10 @@ async def events(
     ] = None,
 ) -> StreamingResponse:
     hub: EventHub = request.app.state.events
-    hub.check_room()
+    sub = hub.subscribe(last_event_id)  # here, so a full hub is a 503 before any header
     heartbeat: float = getattr(request.app.state, "event_heartbeat", HEARTBEAT_S)
     return StreamingResponse(
-        _stream(hub, last_event_id, heartbeat),
+        _stream(hub, sub, heartbeat),
         media_type="text/event-stream",
         headers={"Cache-Control": "no-cache", "X-Accel-Buffering": "no"},
     )

@@ -143,7 +143,15 @@ def _payload(
     from standgrid.partition.chunks import footprint
 
     payloads = cloud_payloads(mission)
-    index = next(k for k, p in enumerate(payloads) if (p.stamp.sec, p.stamp.nsec) == stamp)
+    index = next((k for k, p in enumerate(payloads) if (p.stamp.sec, p.stamp.nsec) == stamp), None)
+    if index is None:  # stored, but not a point cloud the mission places (nothing to draw)
+        return {
+            "mission": mission.name,
+            "payload": f"{stamp[0]}_{stamp[1]:09d}",
+            "payloads": len(payloads),
+            "placed": False,
+            "reason": "not a point-cloud payload of the mission",
+        }
     payload = payloads[index]
     xyz = mission.load_base(payload).xyz
     out: dict[str, Any] = {

@@ -237,6 +237,7 @@ def test_service_serves_the_layered_payload(pair: EnrichedPair) -> None:
         assert missing.status_code == 404
 
 
+@pytest.mark.slow  # the default suite keeps to its time; CI runs it with -m slow
 def test_never_stale_after_retiling_or_re_enriching(pair: EnrichedPair, tmp_path: Path) -> None:
     """One server over a copy: re-tiling 2028 makes its layers a 409 (typed error in the
     API); enriching it again (other options) serves the new tiles' values."""

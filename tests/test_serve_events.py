@@ -264,6 +264,7 @@ def test_a_reconnect_gets_what_it_missed(served: tuple[str, Path, Path, Any]) ->
         assert resync.type == "resync" and resync.data["reason"] == "gap", stale
 
 
+@pytest.mark.slow  # the default suite keeps to its time; CI runs it with -m slow
 def test_a_client_that_stops_reading_holds_up_nothing(tmp_path: Path) -> None:
     """A client connects and never reads: the robot's writes answer as fast as ever, the
     other client gets every event, and the silent one, read at last, finds a ``resync``

@@ -63,6 +63,7 @@ def live_base(tmp_path: Path) -> Any:
         yield server.base_url, catalog
 
 
+@pytest.mark.slow  # the default suite keeps to its time; CI runs it with -m slow
 def test_live_view_shows_each_payload_then_the_cells(
     browser: Any,  # noqa: F811
     live_base: tuple[str, Path],

@@ -38,7 +38,7 @@ def stream(source: Path, folder: Path, batch: int, tolerance: float | None) -> d
     from standgrid.errors import GeoreferenceError
     from standgrid.mission.live import LiveMission
     from standgrid.mission.metadata import read_metadata
-    from standgrid.mission.model import open_mission
+    from standgrid.mission.opening import open_mission
     from standgrid.partition import StandGrid
     from standgrid.serve.workers import tile_mission
     from standgrid.simulate.stream import fixes_until, graph_until

@@ -131,7 +131,7 @@ def robot_requests() -> list[tuple[str, str, dict[str, Any]]]:
     import yaml
 
     from standgrid.geometry import translation_quat
-    from standgrid.mission.model import open_mission
+    from standgrid.mission.opening import open_mission
 
     meta = yaml.safe_load((SOURCE / "metadata.yaml").read_text())
     mission = open_mission(SOURCE, strict=False)

@@ -55,7 +55,7 @@ if TYPE_CHECKING:
     from standgrid.engine.execution import Execution
     from standgrid.engine.progress import Progress
     from standgrid.enrichment.options import EnrichOptions
-    from standgrid.mission.model import open_mission
+    from standgrid.mission.opening import open_mission
     from standgrid.partition.grid import StandGrid
     from standgrid.pointcloud import PointCloud
     from standgrid.stamps import Stamp
@@ -94,7 +94,7 @@ _LAZY: dict[str, tuple[str, str]] = {
     "Stamp": ("standgrid.stamps", "Stamp"),
     "Catalog": ("standgrid.catalog.store", "Catalog"),
     "open_catalog": ("standgrid.catalog.store", "open_catalog"),
-    "open_mission": ("standgrid.mission.model", "open_mission"),
+    "open_mission": ("standgrid.mission.opening", "open_mission"),
     "StandGrid": ("standgrid.partition.grid", "StandGrid"),
     "TileOptions": ("standgrid.tiling.options", "TileOptions"),
     "EnrichOptions": ("standgrid.enrichment.options", "EnrichOptions"),

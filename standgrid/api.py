@@ -240,7 +240,8 @@ def retrieve_payload_by_gnss(
 
 
 def _opened(mission: str | Path | Mission) -> Mission:
-    from standgrid.mission.model import Mission, open_mission
+    from standgrid.mission.model import Mission
+    from standgrid.mission.opening import open_mission
 
     return mission if isinstance(mission, Mission) else open_mission(mission, strict=False)
 

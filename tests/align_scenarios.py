@@ -93,7 +93,7 @@ def placements(root: Path, catalog: Path) -> Placements:
 
     from standgrid.georeference.fit import GeoreferenceFit
     from standgrid.georeference.project import MapProjector
-    from standgrid.mission.model import open_mission
+    from standgrid.mission.opening import open_mission
     from standgrid.simulate import load_truth
 
     state = json.loads((catalog / "catalog.json").read_text())

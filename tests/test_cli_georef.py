@@ -113,7 +113,7 @@ def test_georef_errors_are_clean(mission: Path) -> None:
 
 def test_graph_anchor_read_from_disk(mission: Path) -> None:
     from standgrid.georeference import georeference_mission
-    from standgrid.mission.model import open_mission
+    from standgrid.mission.opening import open_mission
     from standgrid.mission.posegraph import PoseGraph, read_pose_graph, write_pose_graph
 
     graph_path = mission / "slam_pose_graph.g2o"

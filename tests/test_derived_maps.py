@@ -26,7 +26,7 @@ from standgrid.mission.derived_maps import (
     write_elevation_npz,
     write_voxel_npz,
 )
-from standgrid.mission.model import open_mission
+from standgrid.mission.opening import open_mission
 from standgrid.rastergrid import RasterGrid
 from standgrid.simulate import simulate_mission
 from standgrid.simulate.elevation import ElevationMapModel

@@ -293,7 +293,7 @@ def _projected_copy(source: Path, target: Path, geoid: Any) -> Path:
 
     from standgrid.clouds import write_cloud
     from standgrid.georeference import MapProjector, georeference_mission
-    from standgrid.mission.model import open_mission
+    from standgrid.mission.opening import open_mission
     from standgrid.pointcloud import PointCloud
 
     (target / "payload_clouds").mkdir(parents=True)

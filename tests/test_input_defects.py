@@ -66,7 +66,7 @@ def test_swapped_gnss_log_is_refused_with_the_swap_hint(tmp_path: Path) -> None:
     location its metadata.yaml gives: refused, naming the log and saying it is swapped;
     --accept-poor-georeference still places it (an explicit override)."""
     from standgrid.georeference.placement import place_mission
-    from standgrid.mission.model import open_mission
+    from standgrid.mission.opening import open_mission
 
     mission = open_mission(_mission_with_fixes(tmp_path, "swap"))
     with pytest.raises(MisplacedMissionError) as info:
@@ -115,7 +115,7 @@ def test_scattered_gnss_fixes_are_a_typed_error(tmp_path: Path) -> None:
     """RTK-quality fixes scattered by hundreds of metres left RANSAC no inliers and ended in
     an IndexError in weighted_median; now a GeoreferenceError naming the log."""
     from standgrid.georeference import georeference_mission
-    from standgrid.mission.model import open_mission
+    from standgrid.mission.opening import open_mission
 
     mission = open_mission(_mission_with_fixes(tmp_path, "scatter"))
     with pytest.raises(InsufficientGnssError, match="too scattered to fit") as info:

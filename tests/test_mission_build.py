@@ -13,7 +13,7 @@ from standgrid.clouds import read_cloud, write_cloud
 from standgrid.errors import MissionConsistencyError, OutputExistsError
 from standgrid.geometry import transform_points
 from standgrid.mission.build import build_payloads, group_by_area, group_by_distance
-from standgrid.mission.model import open_mission
+from standgrid.mission.opening import open_mission
 from standgrid.pointcloud import PointCloud
 
 

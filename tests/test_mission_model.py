@@ -12,7 +12,8 @@ from mission_factory import make_graph, make_mission
 from standgrid.clouds import write_cloud
 from standgrid.errors import DuplicateStampError, MissionNotFoundError, OrphanPayloadError
 from standgrid.geometry import pose_matrix, transform_points
-from standgrid.mission.model import Mission, open_mission
+from standgrid.mission.model import Mission
+from standgrid.mission.opening import open_mission
 from standgrid.mission.posegraph import EdgeKind, PoseGraph, Vertex, read_pose_graph
 from standgrid.pointcloud import PointCloud
 from standgrid.stamps import Stamp

@@ -16,7 +16,7 @@ from standgrid.errors import BagFormatError
 from standgrid.geometry import invert_pose, pose_matrix
 from standgrid.mission.build import build_payloads
 from standgrid.mission.gridmap import GRIDMAP_MSGS_ROS1, register_gridmap_types
-from standgrid.mission.model import open_mission
+from standgrid.mission.opening import open_mission
 from standgrid.mission.posegraph import write_pose_graph
 from standgrid.mission.rosbag import bag_to_mission
 from standgrid.mission.sensors import write_gnss

@@ -10,7 +10,8 @@ from mission_factory import make_graph, make_mission
 
 from standgrid.errors import MissionNotFoundError, OutputExistsError
 from standgrid.geometry import pose_matrix
-from standgrid.mission.model import Mission, open_mission
+from standgrid.mission.model import Mission
+from standgrid.mission.opening import open_mission
 from standgrid.mission.writer import write_mission
 
 

@@ -29,7 +29,7 @@ from standgrid.enrichment.payload_layers import (
 from standgrid.errors import OptionError, PayloadNotTiledError, StaleLayersError
 from standgrid.georeference.fit import GeoreferenceFit
 from standgrid.georeference.project import MapProjector
-from standgrid.mission.model import open_mission
+from standgrid.mission.opening import open_mission
 from standgrid.pipeline.enrich import enrich_catalog
 from standgrid.pipeline.tile import tile_missions
 from standgrid.pointcloud import PointCloud

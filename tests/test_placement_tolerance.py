@@ -15,7 +15,7 @@ from standgrid.catalog import Catalog
 from standgrid.export.las import read_tile
 from standgrid.mission.live import LiveMission
 from standgrid.mission.metadata import read_metadata
-from standgrid.mission.model import open_mission
+from standgrid.mission.opening import open_mission
 from standgrid.pipeline.tile import tile_missions
 from standgrid.simulate.stream import fixes_until, graph_until
 from standgrid.tiling.options import TileOptions

@@ -11,7 +11,7 @@ from mission_factory import make_mission
 from standgrid.errors import NotGeoreferencedError, PayloadNotFoundError
 from standgrid.geometry import pose_matrix, transform_points
 from standgrid.georeference.retrieval import retrieve_payload_by_gnss
-from standgrid.mission.model import open_mission
+from standgrid.mission.opening import open_mission
 from standgrid.mission.retrieval import (
     footprint,
     retrieve_payload_by_pose,

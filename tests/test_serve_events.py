@@ -133,7 +133,7 @@ def _metadata(name: str = NAME) -> dict[str, Any]:
 def _payload_requests() -> list[tuple[dict[str, str], bytes]]:
     """The bundled mission's payloads as the robot sends them: stamp, format, node pose."""
     from standgrid.geometry import translation_quat
-    from standgrid.mission.model import open_mission
+    from standgrid.mission.opening import open_mission
 
     mission = open_mission(SOURCE, strict=False)
     sent = []

@@ -157,7 +157,7 @@ def test_mission_search_and_summary(base: str) -> None:
 
 def test_payload_retrieval_matches_the_library(base: str) -> None:
     from standgrid.georeference.retrieval import retrieve_payload_by_gnss
-    from standgrid.mission.model import open_mission
+    from standgrid.mission.opening import open_mission
     from standgrid.mission.retrieval import retrieve_payload_by_pose, retrieve_payload_by_type
 
     mission = open_mission(REPO_ROOT / "data/missions" / COYOTE, strict=False)
@@ -195,7 +195,7 @@ def test_payload_cloud_as_laz(base: str, catalog: Path) -> None:
     from standgrid.export.las import read_tile
     from standgrid.georeference.fit import GeoreferenceFit
     from standgrid.georeference.project import MapProjector
-    from standgrid.mission.model import open_mission
+    from standgrid.mission.opening import open_mission
 
     mission = open_mission(REPO_ROOT / "data/missions" / COYOTE, strict=False)
     payload = mission.payloads[3]

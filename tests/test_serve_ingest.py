@@ -64,7 +64,7 @@ def _tiles(catalog: Path) -> dict[str, laspy.LasData]:
 def test_streamed_mission_tiles_like_the_folder(
     served: tuple[str, Path, Path], tmp_path: Path
 ) -> None:
-    from standgrid.mission.model import open_mission
+    from standgrid.mission.opening import open_mission
     from standgrid.pipeline.tile import tile_missions
     from standgrid.tiling.options import TileOptions
 
@@ -207,7 +207,7 @@ def test_write_names_and_bodies_are_checked(served: tuple[str, Path, Path]) -> N
 def test_a_payload_pose_adds_its_node(tmp_path: Path) -> None:
     from standgrid.geometry import pose_matrix
     from standgrid.mission.metadata import read_metadata
-    from standgrid.mission.model import open_mission
+    from standgrid.mission.opening import open_mission
     from standgrid.stamps import Stamp
 
     live = LiveMission(tmp_path / NAME)
@@ -362,7 +362,7 @@ def test_concurrent_senders_are_serialised(tmp_path: Path) -> None:
     from concurrent.futures import ThreadPoolExecutor
 
     from standgrid.mission.metadata import read_metadata
-    from standgrid.mission.model import open_mission
+    from standgrid.mission.opening import open_mission
     from standgrid.mission.posegraph import read_pose_graph
 
     live = LiveMission(tmp_path / NAME)
@@ -395,7 +395,7 @@ def test_a_mission_tiling_does_not_hold_up_another_missions_writes(tmp_path: Pat
     from concurrent.futures import ThreadPoolExecutor
 
     from standgrid.catalog import Catalog
-    from standgrid.mission.model import open_mission
+    from standgrid.mission.opening import open_mission
     from standgrid.partition import StandGrid
     from standgrid.serve import create_app
     from standgrid.serve.server import running

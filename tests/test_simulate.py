@@ -16,7 +16,7 @@ from standgrid.clouds import read_cloud, read_cloud_header
 from standgrid.errors import OutputExistsError
 from standgrid.geometry import invert_pose, relative_pose, transform_points
 from standgrid.mission.metadata import parse_mission_name, read_metadata
-from standgrid.mission.model import open_mission
+from standgrid.mission.opening import open_mission
 from standgrid.mission.posegraph import EdgeKind, read_pose_graph
 from standgrid.mission.sensors import read_gnss, read_imu
 from standgrid.simulate import Truth, load_truth, simulate_mission, simulate_pair

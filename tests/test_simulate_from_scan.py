@@ -12,7 +12,7 @@ from pyproj import CRS, Transformer
 
 from standgrid.clouds import read_cloud
 from standgrid.geometry import invert_pose, transform_points
-from standgrid.mission.model import open_mission
+from standgrid.mission.opening import open_mission
 from standgrid.mission.posegraph import read_pose_graph
 from standgrid.mission.sensors import read_gnss
 from standgrid.simulate import load_truth, mission_from_scan

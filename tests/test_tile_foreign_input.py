@@ -24,7 +24,7 @@ from standgrid.clouds import write_cloud
 from standgrid.errors import CRSError, GeoreferenceError
 from standgrid.geometry import yaw_of
 from standgrid.georeference import MapProjector, georeference_mission
-from standgrid.mission.model import open_mission
+from standgrid.mission.opening import open_mission
 from standgrid.pipeline.tile import tile_missions
 from standgrid.pointcloud import PointCloud
 from standgrid.simulate import simulate_mission

@@ -12,7 +12,7 @@ import pytest
 from standgrid.catalog import Catalog
 from standgrid.mission.live import LiveMission
 from standgrid.mission.metadata import read_metadata
-from standgrid.mission.model import open_mission
+from standgrid.mission.opening import open_mission
 from standgrid.pipeline.tile import tile_missions
 from standgrid.tiling.options import TileOptions
 from tests.conftest import BUNDLED_MISSIONS

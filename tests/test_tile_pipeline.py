@@ -664,7 +664,7 @@ def test_reingest_into_another_epoch_moves_the_points(tmp_path: Path) -> None:
 
 def test_the_fused_base_frame_path_matches_the_exact_chain() -> None:
     from standgrid.georeference import georeference_mission
-    from standgrid.mission.model import open_mission
+    from standgrid.mission.opening import open_mission
 
     opened = open_mission(M1)
     projector = MapProjector(georeference_mission(opened), "auto")

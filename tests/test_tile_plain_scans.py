@@ -253,7 +253,7 @@ def _scan_of_mission(root: Path, name: str) -> Path:
     """A commercial scanner's export of a simulated mission: its points at their true CRS
     coordinates, one LAZ with the CRS (as a georeferenced handheld scan is delivered)."""
 
-    from standgrid.mission.model import open_mission
+    from standgrid.mission.opening import open_mission
     from standgrid.simulate import load_truth
 
     chain = load_truth(root / "truth" / name).chain()
@@ -273,7 +273,7 @@ def _scan_of_mission(root: Path, name: str) -> Path:
 def _placement_error(root: Path, catalog: Path, name: str) -> np.ndarray:
     from standgrid.georeference.fit import GeoreferenceFit
     from standgrid.georeference.project import MapProjector
-    from standgrid.mission.model import open_mission
+    from standgrid.mission.opening import open_mission
     from standgrid.simulate import load_truth
 
     state = json.loads((catalog / "catalog.json").read_text())

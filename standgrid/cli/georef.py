@@ -62,7 +62,7 @@ def georef(
       standgrid georef MISSION --method rigid3d --crs EPSG:25830 --json
     """
     from standgrid.georeference import MapProjector, georeference_mission
-    from standgrid.mission.model import open_mission
+    from standgrid.mission.opening import open_mission
 
     status(f"opening {mission}", quiet)
     opened = open_mission(mission)

@@ -81,7 +81,7 @@ def info(mission: Path, strict: bool, as_json: bool) -> None:
       standgrid info MISSION --json | jq .payloads
       standgrid info SCAN.laz
     """
-    from standgrid.mission.model import open_mission
+    from standgrid.mission.opening import open_mission
     from standgrid.mission.scan import is_scan, scan_summary
 
     if is_scan(mission):

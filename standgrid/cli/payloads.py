@@ -63,7 +63,7 @@ def build(
       standgrid payloads build slam_tutorial -o OUT --graph slam_tutorial/graphs/ground_truth.slam
     """
     from standgrid.mission.build import build_payloads
-    from standgrid.mission.model import open_mission
+    from standgrid.mission.opening import open_mission
 
     how = f"{area} m tiles" if area is not None else f"every {distance} m"
     status(f"building payloads ({how}) from {mission} ...", quiet)

@@ -165,7 +165,7 @@ def by_type(
       standgrid retrieve by-type MISSION image --json
       standgrid retrieve by-type MISSION point_cloud --layers CATALOG --out clouds/
     """
-    from standgrid.mission.model import open_mission
+    from standgrid.mission.opening import open_mission
     from standgrid.mission.retrieval import payload_records, retrieve_payload_by_type
 
     opened = open_mission(mission, strict=False)
@@ -209,7 +209,7 @@ def by_pose(
       standgrid retrieve by-pose MISSION 12.5 -3.0 --covering --json
       standgrid retrieve by-pose MISSION 12.5 -3.0 --layers CATALOG --out payload.laz
     """
-    from standgrid.mission.model import open_mission
+    from standgrid.mission.opening import open_mission
     from standgrid.mission.retrieval import payload_records, retrieve_payload_by_pose
 
     opened = open_mission(mission, strict=False)
@@ -257,7 +257,7 @@ def by_gnss(
       standgrid retrieve by-gnss MISSION 51.776 -1.338 --layers CATALOG --which ground
     """
     from standgrid.georeference.retrieval import locate_by_gnss
-    from standgrid.mission.model import open_mission
+    from standgrid.mission.opening import open_mission
     from standgrid.mission.retrieval import payload_records
 
     opened = open_mission(mission, strict=False)

@@ -226,7 +226,8 @@ def layers_of(
 ) -> list[PayloadLayers]:
     """:func:`payload_layers` of several payloads of one mission, read in one snapshot."""
     from standgrid.catalog import Catalog
-    from standgrid.mission.model import Mission, open_mission
+    from standgrid.mission.model import Mission
+    from standgrid.mission.opening import open_mission
 
     wanted = parse_layers(layers)
     opened = mission if isinstance(mission, Mission) else open_mission(Path(mission), strict=False)

@@ -15,7 +15,8 @@ from standgrid.clouds import read_cloud_header
 from standgrid.errors import MissionConsistencyError, MissionNotFoundError, StandgridError
 from standgrid.geometry import Matrix4, invert_pose
 from standgrid.mission.layout import GRAPH_NAMES, POSES_CSV_NAMES, is_mission_folder
-from standgrid.mission.model import Mission, Payload, open_mission
+from standgrid.mission.model import Mission, Payload
+from standgrid.mission.opening import open_mission
 from standgrid.mission.posegraph import PoseGraph
 from standgrid.mission.writer import CloudToWrite, own_graph, write_canonical
 from standgrid.pointcloud import PointCloud
@@ -90,7 +91,7 @@ def _accumulate(
 
 
 def _read_any_graph(path: Path) -> PoseGraph:
-    from standgrid.mission.model import read_pose_graph_file
+    from standgrid.mission.opening import read_pose_graph_file
     from standgrid.mission.poses_csv import read_poses_csv
 
     if not path.is_file():

@@ -14,7 +14,8 @@ from numpy.typing import ArrayLike, NDArray
 
 from standgrid.errors import OrphanPayloadError, PayloadNotFoundError
 from standgrid.geometry import transform_points
-from standgrid.mission.model import Mission, Payload, PayloadKind, open_mission
+from standgrid.mission.model import Mission, Payload, PayloadKind
+from standgrid.mission.opening import open_mission
 from standgrid.stamps import Stamp
 
 #: data_type aliases -> payload kind.

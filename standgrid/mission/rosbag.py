@@ -439,7 +439,7 @@ def bag_to_mission(
             shutil.rmtree(tmp, ignore_errors=True)
     finally:
         reader.close()
-    from standgrid.mission.model import open_mission
+    from standgrid.mission.opening import open_mission
 
     report.payloads = len(open_mission(out_path).payloads)
     return report
@@ -464,7 +464,7 @@ class _GridMaps:
             ELEVATION_PREFIX,
             write_elevation_npz,
         )
-        from standgrid.mission.model import open_mission
+        from standgrid.mission.opening import open_mission
 
         mission = open_mission(mission_dir)
         stamps = np.array([p.stamp.ns for p in mission.payloads], np.int64)

@@ -89,7 +89,7 @@ def _references(
     from scipy.spatial import cKDTree
 
     from standgrid.errors import StandgridError
-    from standgrid.mission.model import open_mission
+    from standgrid.mission.opening import open_mission
     from standgrid.mission.scan import ScanOptions, is_scan, open_scan
 
     given = {i.mission.name for i in ingests}

@@ -187,7 +187,8 @@ def _prepare(
     """Open (a folder, without a point cache: each payload is read once) and place a mission
     (``crs``: of clouds already projected that name none)."""
     from standgrid.georeference.placement import place_mission
-    from standgrid.mission.model import Mission, open_mission
+    from standgrid.mission.model import Mission
+    from standgrid.mission.opening import open_mission
     from standgrid.mission.scan import ScanOptions, is_scan, open_scan
 
     if isinstance(given, Mission):

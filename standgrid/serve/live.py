@@ -37,7 +37,7 @@ def describe(
     """In the worker: the ``trajectory`` event of the mission in ``folder`` and, given a
     ``stamp``, the ``payload`` event of its payload of that stamp (``payload``: None)."""
     from standgrid.catalog import Catalog
-    from standgrid.mission.model import open_mission
+    from standgrid.mission.opening import open_mission
 
     mission = open_mission(folder, strict=False, cache_points=0)
     catalog = Catalog.open(catalog_root)

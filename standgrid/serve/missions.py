@@ -49,7 +49,7 @@ def _record(request: Request, name: str) -> MissionRecord:
 
 def _opened(record: MissionRecord) -> Any:
     """The mission's folder, opened once and kept (keyed by path and folder mtime)."""
-    from standgrid.mission.model import open_mission
+    from standgrid.mission.opening import open_mission
 
     if not record.path or not Path(record.path).is_dir():
         raise Problem(404, f"mission {record.name!r}: its folder is not available to this server")

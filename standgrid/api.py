@@ -20,7 +20,8 @@ if TYPE_CHECKING:
     from standgrid.engine.execution import Execution
     from standgrid.enrichment.options import EnrichOptions
     from standgrid.enrichment.payload_layers import PayloadLayers
-    from standgrid.mission.model import Mission, Payload
+    from standgrid.mission.model import Mission
+    from standgrid.mission.payload import Payload
     from standgrid.pipeline.compare import CompareReport
     from standgrid.pipeline.enrich import EnrichReport
     from standgrid.pipeline.run import RunReport

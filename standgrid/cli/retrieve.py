@@ -11,7 +11,8 @@ import click
 from standgrid.cli.options import emit, json_option
 
 if TYPE_CHECKING:
-    from standgrid.mission.model import Mission, Payload
+    from standgrid.mission.model import Mission
+    from standgrid.mission.payload import Payload
 
 F = TypeVar("F", bound=Callable[..., Any])
 

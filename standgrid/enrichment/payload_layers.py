@@ -48,7 +48,8 @@ if TYPE_CHECKING:
 
     from standgrid.catalog import Catalog, MissionRecord
     from standgrid.georeference.placement import ToCatalog
-    from standgrid.mission.model import Mission, Payload
+    from standgrid.mission.model import Mission
+    from standgrid.mission.payload import Payload
     from standgrid.pointcloud import PointCloud
     from standgrid.rastergrid import RasterGrid
 

@@ -24,7 +24,8 @@ from standgrid.errors import CatalogError, CRSError, GeoreferenceError
 if TYPE_CHECKING:
     from standgrid.georeference.fit import GeoreferenceFit
     from standgrid.georeference.project import MapProjector
-    from standgrid.mission.model import Mission, Payload
+    from standgrid.mission.model import Mission
+    from standgrid.mission.payload import Payload
 
 #: Projectors and transformers built in this process, by :attr:`ToCatalog.key` (unique per
 #: recipe; a dask worker keeps them across the tasks of a run).

@@ -14,8 +14,9 @@ from standgrid.geometry import invert_pose, transform_points
 from standgrid.georeference.enu import enu_to_lla, lla_to_enu
 from standgrid.georeference.location import swap_hint
 from standgrid.georeference.mission import georeference_mission
-from standgrid.mission.model import Mission, Payload
+from standgrid.mission.model import Mission
 from standgrid.mission.opening import open_mission
+from standgrid.mission.payload import Payload
 from standgrid.mission.retrieval import query_distances, retrieve_payload_by_pose
 
 #: Metres: the default largest distance from a GNSS query to its nearest payload.

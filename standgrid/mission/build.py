@@ -15,8 +15,9 @@ from standgrid.clouds import read_cloud_header
 from standgrid.errors import MissionConsistencyError, MissionNotFoundError, StandgridError
 from standgrid.geometry import Matrix4, invert_pose
 from standgrid.mission.layout import GRAPH_NAMES, POSES_CSV_NAMES, is_mission_folder
-from standgrid.mission.model import Mission, Payload
+from standgrid.mission.model import Mission
 from standgrid.mission.opening import open_mission
+from standgrid.mission.payload import Payload
 from standgrid.mission.posegraph import PoseGraph
 from standgrid.mission.writer import CloudToWrite, own_graph, write_canonical
 from standgrid.pointcloud import PointCloud

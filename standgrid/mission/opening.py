@@ -24,15 +24,8 @@ from standgrid.errors import (
 from standgrid.geometry import Matrix4
 from standgrid.mission.layout import CloudFolder, MissionLayout, discover_layout, layer_name
 from standgrid.mission.metadata import MissionMetadata, metadata_from_folder_name, read_metadata
-from standgrid.mission.model import (
-    DEFAULT_CACHE_POINTS,
-    CloudCache,
-    Mission,
-    Payload,
-    PayloadKind,
-    _attach,
-    _vertices_by_stamp,
-)
+from standgrid.mission.model import DEFAULT_CACHE_POINTS, CloudCache, Mission
+from standgrid.mission.payload import Payload, PayloadKind, _attach, _vertices_by_stamp
 from standgrid.mission.posegraph import PoseGraph
 from standgrid.mission.poses_csv import read_poses_csv
 from standgrid.mission.sensors import (

@@ -14,8 +14,9 @@ from numpy.typing import ArrayLike, NDArray
 
 from standgrid.errors import OrphanPayloadError, PayloadNotFoundError
 from standgrid.geometry import transform_points
-from standgrid.mission.model import Mission, Payload, PayloadKind
+from standgrid.mission.model import Mission
 from standgrid.mission.opening import open_mission
+from standgrid.mission.payload import Payload, PayloadKind
 from standgrid.stamps import Stamp
 
 #: data_type aliases -> payload kind.

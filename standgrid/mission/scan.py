@@ -340,7 +340,8 @@ def open_scan(path: str | Path, options: ScanOptions = ScanOptions()) -> Any:
     doc). Raises a typed error naming the file for anything it cannot use."""
     from standgrid.mission.layout import MissionLayout
     from standgrid.mission.metadata import MissionMetadata
-    from standgrid.mission.model import CloudCache, Mission, Payload
+    from standgrid.mission.model import CloudCache, Mission
+    from standgrid.mission.payload import Payload
 
     src = Path(path).absolute()
     if not src.exists():

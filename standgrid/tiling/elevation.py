@@ -30,7 +30,8 @@ if TYPE_CHECKING:
     from standgrid.crs import CRS, CRSLike
     from standgrid.georeference.placement import ToCatalog
     from standgrid.mission.derived_maps import ElevationMap
-    from standgrid.mission.model import Mission, Payload
+    from standgrid.mission.model import Mission
+    from standgrid.mission.payload import Payload
 
 #: Pixel of the elevation-map rasters (m): the DTM's default (``EnrichOptions.pixel_size``).
 PIXEL_M = 1.0

@@ -15,7 +15,8 @@ if TYPE_CHECKING:
     from standgrid.catalog.store import Catalog
     from standgrid.crs import CRSLike
     from standgrid.georeference.placement import Placement, ToCatalog
-    from standgrid.mission.model import Mission, Payload
+    from standgrid.mission.model import Mission
+    from standgrid.mission.payload import Payload
     from standgrid.partition.schema import Schema
 
 

@@ -21,10 +21,9 @@ from standgrid.mission.scan import (
     ScanOptions,
     adjusted_gps_to_date,
     open_scan,
-    read_trajectory,
-    segment_times,
     week_start,
 )
+from standgrid.mission.scan_trajectory import read_trajectory, segment_times
 from standgrid.pipeline.tile import tile_missions
 from standgrid.stamps import unix_ns_to_adjusted_gps_time
 from standgrid.tiling.options import TileOptions

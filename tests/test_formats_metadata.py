@@ -10,15 +10,17 @@ import yaml
 
 from standgrid.errors import MissionNameError
 from standgrid.mission.metadata import (
-    KNOWN_ROBOTS,
     MissionMetadata,
-    MissionName,
     metadata_from_folder_name,
+    read_metadata,
+    write_metadata,
+)
+from standgrid.mission.mission_name import (
+    KNOWN_ROBOTS,
+    MissionName,
     parse_mission_name,
     parse_rosbag_name,
-    read_metadata,
     register_robot,
-    write_metadata,
 )
 
 

@@ -15,7 +15,8 @@ from scipy.spatial import cKDTree
 from standgrid.clouds import read_cloud, read_cloud_header
 from standgrid.errors import OutputExistsError
 from standgrid.geometry import invert_pose, relative_pose, transform_points
-from standgrid.mission.metadata import parse_mission_name, read_metadata
+from standgrid.mission.metadata import read_metadata
+from standgrid.mission.mission_name import parse_mission_name
 from standgrid.mission.opening import open_mission
 from standgrid.mission.posegraph import EdgeKind, read_pose_graph
 from standgrid.mission.sensors import read_gnss, read_imu

@@ -8,16 +8,18 @@ from standgrid.clouds import (
     write_cloud,
 )
 from standgrid.mission.metadata import (
-    KNOWN_ROBOTS,
     MissionMetadata,
+    metadata_from_folder_name,
+    read_metadata,
+    write_metadata,
+)
+from standgrid.mission.mission_name import (
+    KNOWN_ROBOTS,
     MissionName,
     RosbagName,
-    metadata_from_folder_name,
     parse_mission_name,
     parse_rosbag_name,
-    read_metadata,
     register_robot,
-    write_metadata,
 )
 from standgrid.mission.posegraph import (
     Edge,

@@ -177,6 +177,7 @@ def test_3_concurrent_adds_to_one_catalog_lose_nothing(tmp_path: Path) -> None:
     assert sorted(missions_everywhere(out)) == sorted([M1.name, M2.name, other.name])
 
 
+@pytest.mark.slow  # the default suite keeps to its time; CI runs it with -m slow
 def test_3_enrich_and_tile_at_once_lose_nothing(tmp_path: Path) -> None:
     out = tmp_path / "cat"
     tile_missions([M1], out)

@@ -259,6 +259,7 @@ def test_an_interrupted_enrichment_leaves_no_chunk_running_and_the_catalog_as_it
     assert after == before
 
 
+@pytest.mark.slow  # the default suite keeps to its time; CI runs it with -m slow
 def test_a_voronoi_catalog_is_the_same_for_any_chunk_layout(
     tmp_path_factory: pytest.TempPathFactory,
 ) -> None:

@@ -345,6 +345,7 @@ def test_an_epoch_whose_dbh_model_pooled_a_re_tiled_epoch_is_invalidated_too(
     assert epochs["2032"].state == "enriched"  # its own model: untouched
 
 
+@pytest.mark.slow  # the default suite keeps to its time; CI runs it with -m slow
 def test_a_comparison_against_another_catalog_goes_stale_when_that_epoch_changes(
     pair: EnrichedPair, tmp_path: Path
 ) -> None:

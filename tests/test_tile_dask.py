@@ -179,6 +179,7 @@ def test_existing_scheduler_matches_one_process(
     assert_same_catalog(one_process, catalog)
 
 
+@pytest.mark.slow  # the default suite keeps to its time; CI runs it with -m slow
 def test_voronoi_reingest_on_cluster_matches_one_process(tmp_path: Path) -> None:
     """Voronoi cells, two missions in one epoch, then one re-ingested: old tiles are read,
     their other mission's points kept, on the workers as in one process."""

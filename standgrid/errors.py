@@ -225,6 +225,11 @@ class MissionFolderConflictError(CatalogError, FileExistsError):
     needs ``replace_missions`` / ``--replace``)."""
 
 
+class StorageError(StandgridError, OSError):
+    """Object storage (``s3://`` and the other URLs :mod:`standgrid.storage` reaches) refused
+    or failed a request; the message names the URL."""
+
+
 class CatalogConflictError(CatalogError):
     """The catalog changed after it was opened; a transaction on the stale view is refused."""
 

@@ -7,7 +7,15 @@ from typing import Any
 
 import click
 
-from standgrid.cli.options import CLUSTER, emit, execution, json_option, options, quiet_option
+from standgrid.cli.options import (
+    CLUSTER,
+    catalog_argument,
+    emit,
+    execution,
+    json_option,
+    options,
+    quiet_option,
+)
 
 
 def _human(report: dict[str, Any]) -> str:
@@ -22,7 +30,7 @@ def _human(report: dict[str, Any]) -> str:
 
 
 @click.command("align")
-@click.argument("catalog", type=click.Path(exists=True, file_okay=False, path_type=Path))
+@catalog_argument()
 @options(*CLUSTER)
 @json_option
 @quiet_option

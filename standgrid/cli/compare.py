@@ -10,6 +10,7 @@ import click
 from standgrid.cli.options import (
     COMPARE,
     build,
+    catalog_argument,
     emit,
     execution,
     json_option,
@@ -46,7 +47,7 @@ def _human(r: dict[str, Any]) -> str:
 
 
 @click.command("compare")
-@click.argument("catalog", type=click.Path(exists=True, file_okay=False, path_type=Path))
+@catalog_argument()
 @options(*COMPARE, "lock_timeout")
 @json_option
 @quiet_option

@@ -14,6 +14,7 @@ from standgrid.cli.options import (
     CLUSTER,
     ENRICH,
     build,
+    catalog_argument,
     emit,
     execution,
     json_option,
@@ -53,7 +54,7 @@ def _human(r: dict[str, Any]) -> str:
 
 
 @click.command("enrich")
-@click.argument("catalog", type=click.Path(exists=True, file_okay=False, path_type=Path))
+@catalog_argument()
 @options(*ENRICH, *CLUSTER)
 @json_option
 @quiet_option

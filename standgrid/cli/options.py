@@ -318,20 +318,48 @@ def say_flags(text: str) -> str:
     return _OPTION_NAME.sub(flag, text)
 
 
-def mission_argument(nargs: int = 1, scans: bool = False) -> Callable[[F], F]:
+class Location(click.ParamType):
+    """A folder or file (checked as ``path`` checks it), or an object-storage URL
+    (``s3://bucket/prefix``, …) taken as it is."""
+
+    name = "path|url"
+
+    def __init__(self, path: click.Path) -> None:
+        self.path = path
+
+    def convert(self, value: Any, param: click.Parameter | None, ctx: click.Context | None) -> Any:
+        from standgrid.storage import is_url
+
+        if is_url(value):
+            return str(value).rstrip("/")
+        return self.path.convert(value, param, ctx)
+
+
+def catalog_argument(exists: bool = True) -> Callable[[F], F]:
+    """The CATALOG argument: a catalog folder or an object-storage URL."""
+    path = click.Path(exists=exists, file_okay=False, path_type=Path)
+    return click.argument("catalog", type=Location(path))
+
+
+def mission_argument(nargs: int = 1, scans: bool = False, urls: bool = False) -> Callable[[F], F]:
     """A mission folder argument (one, or several with ``nargs=-1``); ``scans``: plain scan
-    files (LAS/LAZ/COPC, VPC) are taken too."""
+    files (LAS/LAZ/COPC, VPC) are taken too; ``urls``: object-storage URLs too."""
+    path = click.Path(exists=True, file_okay=scans, path_type=Path)
     return click.argument(
         "missions" if nargs != 1 else "mission",
         nargs=nargs,
         required=True,
-        type=click.Path(exists=True, file_okay=scans, path_type=Path),
+        type=Location(path) if urls else path,
     )
 
 
 def output_option(required: bool = True, help: str = "Output folder.") -> Callable[[F], F]:
     return click.option(
-        "-o", "--output", required=required, type=click.Path(path_type=Path), help=help
+        "-o",
+        "--output",
+        required=required,
+        type=Location(click.Path(path_type=Path)),
+        help=help + " An object-storage URL (s3://bucket/prefix) holds it there.",
     )
 
 

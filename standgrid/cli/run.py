@@ -12,6 +12,7 @@ from standgrid.cli.options import (
     COMPARE,
     ENRICH,
     TILE,
+    Location,
     build,
     emit,
     execution,
@@ -68,7 +69,7 @@ def _human(r: dict[str, Any]) -> str:
     "paths",
     nargs=-1,
     required=True,
-    type=click.Path(exists=True, path_type=Path),
+    type=Location(click.Path(exists=True, path_type=Path)),
 )
 @output_option(help="Catalog folder.")
 @options(*RUN_OPTIONS)

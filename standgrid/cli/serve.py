@@ -8,11 +8,11 @@ from pathlib import Path
 
 import click
 
-from standgrid.cli.options import json_option
+from standgrid.cli.options import catalog_argument, json_option
 
 
 @click.command(name="serve")
-@click.argument("catalog", type=click.Path(exists=True, file_okay=False, path_type=Path))
+@catalog_argument()
 @click.option(
     "--host",
     default="127.0.0.1",
@@ -77,7 +77,7 @@ from standgrid.cli.options import json_option
 )
 @json_option
 def serve(
-    catalog: Path,
+    catalog: Path | str,
     host: str,
     port: int,
     token_file: Path | None,
@@ -98,19 +98,60 @@ def serve(
     /docs      the OpenAPI documentation of every endpoint
 
     Reads are open; a write needs 'Authorization: Bearer <token>'. The URLs are printed on
-    stdout once the server listens (--json: one JSON line).
+    stdout once the server listens (--json: one JSON line). A CATALOG in object storage
+    (s3://bucket/prefix) is served read-only, as the generation current at start.
 
     \b
     Example:
       standgrid serve standgrid-demo --port 8000
       curl 'http://127.0.0.1:8000/ogc/collections/cells/items?limit=5'
     """
-    from standgrid.serve.app import create_app
     from standgrid.serve.auth import load_token
-    from standgrid.serve.server import Server, check_port_free, config, service_urls
+    from standgrid.serve.server import check_port_free
+    from standgrid.storage import is_url
 
     check_port_free(host, port)  # one clear line, not uvicorn's, and before the app loads
     token = load_token(token_file)
+    with contextlib.ExitStack() as stack:
+        if is_url(catalog):
+            if token is not None:
+                raise click.UsageError("a catalog in object storage is served read-only")
+            from standgrid.catalog.remote import catalog_at
+
+            local = stack.enter_context(catalog_at(catalog, write=False))
+        else:
+            local = Path(catalog)
+        _serve(
+            local,
+            str(catalog),
+            token,
+            host,
+            port,
+            as_json,
+            max_body,
+            missions_folder,
+            placement_tolerance,
+            write_time_limit,
+            tile_time_limit,
+        )
+
+
+def _serve(
+    catalog: Path,
+    name: str,
+    token: str | None,
+    host: str,
+    port: int,
+    as_json: bool,
+    max_body: int,
+    missions_folder: Path | None,
+    placement_tolerance: float,
+    write_time_limit: float,
+    tile_time_limit: float,
+) -> None:
+    from standgrid.serve.app import create_app
+    from standgrid.serve.server import Server, config, service_urls
+
     app = create_app(
         catalog,
         token=token,
@@ -124,11 +165,11 @@ def serve(
     def started(base: str) -> None:
         urls = service_urls(base)
         if as_json:
-            click.echo(json.dumps({"catalog": str(catalog), "writes": token is not None, **urls}))
+            click.echo(json.dumps({"catalog": name, "writes": token is not None, **urls}))
         else:
-            click.echo(f"serving {catalog} ({'read-write' if token else 'read-only'})")
-            for name, url in urls.items():
-                click.echo(f"  {name:9} {url}")
+            click.echo(f"serving {name} ({'read-write' if token else 'read-only'})")
+            for what, url in urls.items():
+                click.echo(f"  {what:9} {url}")
             click.echo("Ctrl-C stops it.", err=True)
 
     server = Server(config(app, host, port), on_started=started)

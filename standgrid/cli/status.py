@@ -7,7 +7,7 @@ from typing import Any
 
 import click
 
-from standgrid.cli.options import emit, execution, json_option, options
+from standgrid.cli.options import catalog_argument, emit, execution, json_option, options
 
 
 def _human(s: dict[str, Any]) -> str:
@@ -40,7 +40,7 @@ def _human(s: dict[str, Any]) -> str:
 
 
 @click.command(name="status")
-@click.argument("catalog", type=click.Path(exists=True, file_okay=False, path_type=Path))
+@catalog_argument()
 @options("lock_timeout")
 @json_option
 def status(catalog: Path, as_json: bool, **params: Any) -> None:

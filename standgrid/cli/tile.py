@@ -91,7 +91,7 @@ def alignment_lines(alignment: dict[str, Any] | None) -> list[str]:
 
 
 @click.command("tile")
-@mission_argument(nargs=-1, scans=True)
+@mission_argument(nargs=-1, scans=True, urls=True)
 @output_option(help="Catalog folder (created, or added to when it is a catalog).")
 @options(*TILE, "overwrite", *CLUSTER)
 @json_option

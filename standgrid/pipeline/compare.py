@@ -24,6 +24,7 @@ from standgrid.comparison.coverage import (
 )
 from standgrid.comparison.options import CompareOptions
 from standgrid.engine import Execution
+from standgrid.errors import OptionError
 
 if TYPE_CHECKING:
     import geopandas as gpd
@@ -36,7 +37,7 @@ if TYPE_CHECKING:
 class CompareReport:
     """What a comparison found; ``to_dict`` is the CLI's ``--json``."""
 
-    catalog: Path
+    catalog: Path | str  # a folder, or the object-storage URL it was committed to
     epoch_from: str
     epoch_to: str
     years: float
@@ -87,7 +88,19 @@ def compare_epochs(
     import tempfile
 
     from standgrid.catalog import Catalog
+    from standgrid.catalog.remote import catalog_at
+    from standgrid.storage import is_url
 
+    if is_url(options.other_catalog):
+        raise OptionError(
+            "other_catalog",
+            "an object-storage URL is not read here yet; compare against a folder",
+        )
+    if is_url(catalog_path):
+        lock_timeout = execution.lock_timeout
+        with catalog_at(catalog_path, write=True, lock_timeout=lock_timeout) as root:
+            report = compare_epochs(root, options, execution=execution)
+        return replace(report, catalog=str(catalog_path))
     progress, lock_timeout = execution.progress, execution.lock_timeout
     epoch_from, epoch_to = options.epoch_from, options.epoch_to
     other_catalog = options.other_catalog

@@ -18,7 +18,7 @@ on any error):
 from __future__ import annotations
 
 import contextlib
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -40,7 +40,7 @@ __all__ = ["EnrichReport", "enrich_catalog"]
 
 @dataclass
 class EnrichReport:
-    catalog: Path
+    catalog: Path | str  # a folder, or the object-storage URL it was committed to
     epochs: dict[str, dict[str, Any]] = field(default_factory=dict)
 
     def to_dict(self) -> dict[str, Any]:
@@ -56,11 +56,19 @@ def enrich_catalog(
     """Enrich every epoch of the catalog (or ``options.epochs``); returns what was done.
 
     Chunks run as ``execution`` says (this process, or a dask cluster), each process within
-    its memory budget; this process alone writes the catalog, under its writer lock.
+    its memory budget; this process alone writes the catalog, under its writer lock. A
+    catalog at an object-storage URL is enriched in a working copy and committed back
+    (:mod:`standgrid.catalog.remote`).
     """
     from standgrid.catalog import Catalog
+    from standgrid.catalog.remote import catalog_at
     from standgrid.catalog.store import require_catalog
+    from standgrid.storage import is_url
 
+    if is_url(catalog_path):
+        with catalog_at(catalog_path, write=True, lock_timeout=execution.lock_timeout) as root:
+            report = enrich_catalog(root, options, execution=execution)
+        return replace(report, catalog=str(catalog_path))
     require_catalog(catalog_path)  # before a cluster starts or a lock file is made
     with contextlib.ExitStack() as stack:
         executor = stack.enter_context(execution.open())

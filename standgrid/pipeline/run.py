@@ -28,14 +28,17 @@ class RunReport:
 
 def expand_missions(paths: Sequence[str | Path]) -> list[Path]:
     """Mission folders and plain scans (:func:`~standgrid.mission.scan.is_scan`) as given; a
-    folder that is neither stands for the missions in it."""
+    folder that is neither stands for the missions in it; object-storage URLs are fetched
+    into a local cache first."""
     from standgrid.mission.collection import MissionCollection
     from standgrid.mission.layout import discover_layout
     from standgrid.mission.scan import is_scan
+    from standgrid.storage import is_url
+    from standgrid.storage.objects import fetched_folder
 
     found: list[Path] = []
     for raw in paths:
-        path = Path(raw)
+        path = fetched_folder(str(raw)) if is_url(raw) else Path(raw)
         if is_scan(path):
             found.append(path)
             continue

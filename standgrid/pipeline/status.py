@@ -27,8 +27,13 @@ def catalog_status(
     a writer up to ``execution.lock_timeout``.
     """
     from standgrid.catalog import Catalog
+    from standgrid.catalog.paths import CATALOG_FILE
+    from standgrid.catalog.remote import catalog_at
+    from standgrid.storage import is_url
 
-    catalog = Catalog.open(catalog_path, lock_timeout=execution.lock_timeout)  # one read
+    timeout = execution.lock_timeout
+    with catalog_at(catalog_path, write=False, lock_timeout=timeout, only=(CATALOG_FILE,)) as root:
+        catalog = Catalog.open(root, lock_timeout=timeout)  # one read
     missions = catalog.mission_records
     epochs: dict[str, Any] = {}
     invalidated: list[dict[str, Any]] = []
@@ -70,7 +75,7 @@ def catalog_status(
                 "at": item["at"],
             }
     return {
-        "catalog": str(catalog.root),
+        "catalog": str(catalog_path) if is_url(catalog_path) else str(catalog.root),
         "crs": catalog.crs,
         "scheme": catalog.scheme,
         "epochs": epochs,

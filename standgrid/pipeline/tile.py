@@ -18,7 +18,7 @@ from __future__ import annotations
 import contextlib
 import shutil
 from collections.abc import Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -57,7 +57,7 @@ __all__ = ["TileReport", "realign_catalog", "tile_missions"]
 class TileReport:
     """What a tiling run did; ``to_dict`` is the CLI's ``--json``."""
 
-    catalog: Path
+    catalog: Path | str  # a folder, or the object-storage URL it was committed to
     crs: str
     scheme: str
     grid_fingerprint: str
@@ -112,11 +112,31 @@ def tile_missions(
 ) -> TileReport:
     """Georeference and tile missions into the catalog at ``catalog_path`` (made if absent).
 
-    ``mission_paths`` are mission folders or missions already opened (``open_mission``);
-    the per-payload and per-cell work runs as ``execution`` says. Raises a
-    :class:`~standgrid.errors.StandgridError` subclass on any bad input, leaving the
-    catalog as it was.
+    ``mission_paths`` are mission folders (or object-storage URLs of them) or missions
+    already opened (``open_mission``); ``catalog_path`` a folder or an object-storage URL
+    (:mod:`standgrid.catalog.remote`). The per-payload and per-cell work runs as
+    ``execution`` says. Raises a :class:`~standgrid.errors.StandgridError` subclass on any
+    bad input, leaving the catalog as it was.
     """
+    from standgrid.catalog.remote import catalog_at
+    from standgrid.storage import is_url
+    from standgrid.storage.objects import fetched_folder
+
+    missions = [fetched_folder(str(m)) if is_url(m) else m for m in mission_paths]
+    if not is_url(catalog_path):
+        return _tile_missions(missions, catalog_path, options, execution=execution)
+    with catalog_at(catalog_path, write=True, lock_timeout=execution.lock_timeout) as root:
+        report = _tile_missions(missions, root, options, execution=execution)
+    return replace(report, catalog=str(catalog_path))
+
+
+def _tile_missions(
+    mission_paths: Sequence[str | Path | Mission],
+    catalog_path: str | Path,
+    options: TileOptions,
+    *,
+    execution: Execution,
+) -> TileReport:
     from standgrid.catalog import Catalog, build_folder, publish, remove_stale_builds, writer_lock
     from standgrid.mission.model import Mission
 
@@ -348,11 +368,19 @@ def realign_catalog(
     """Re-tile every mission of a catalog from the folder it was tiled from, in its own
     epoch, aligned all together (``standgrid align``). Raises
     :class:`~standgrid.errors.CatalogError` when a mission's folder is gone."""
-    from dataclasses import replace
+    from standgrid.catalog.remote import catalog_at
+    from standgrid.storage import is_url
 
+    if not is_url(catalog_path):
+        return _realign_catalog(Path(catalog_path), options, execution=execution)
+    with catalog_at(catalog_path, write=True, lock_timeout=execution.lock_timeout) as root:
+        report = _realign_catalog(root, options, execution=execution)
+    return replace(report, catalog=str(catalog_path))
+
+
+def _realign_catalog(path: Path, options: TileOptions, *, execution: Execution) -> TileReport:
     from standgrid.catalog import Catalog
 
-    path = Path(catalog_path)
     records = Catalog.open(path, lock_timeout=execution.lock_timeout).mission_records
     if not records:
         raise CatalogError("no missions in the catalog: nothing to align", path=path)

@@ -1,0 +1,7 @@
+"""Object storage: ``s3://`` (and the other URLs obstore reaches) as a place for catalogs
+and missions: stores opened from URLs with the usual credentials, objects read, written and
+copied, folders mirrored."""
+
+from standgrid.storage.objects import ObjectFolder, is_url
+
+__all__ = ["ObjectFolder", "is_url"]

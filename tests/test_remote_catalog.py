@@ -1,0 +1,232 @@
+"""Catalogs in object storage (standgrid.catalog.remote) against a real S3-compatible server
+(moto_server on 127.0.0.1): the same catalog as on disk, kills during a commit, the lease."""
+
+from __future__ import annotations
+
+import importlib.util
+import json
+import os
+import subprocess
+import sys
+from collections.abc import Iterator
+from pathlib import Path
+
+import pytest
+from click.testing import CliRunner
+
+from standgrid.catalog.remote import HEAD, LOCK, Lease, RemoteCatalog, catalog_at
+from standgrid.cli import cli
+from standgrid.errors import CatalogBusyError, CatalogConflictError, CatalogNotFoundError
+from standgrid.storage import ObjectFolder
+from tests.conftest import BUNDLED_MISSIONS, REPO_ROOT
+from tests.s3_server import CREDENTIALS, moto_server, new_bucket
+
+pytest.importorskip("obstore")
+M1, M2 = sorted(p for p in BUNDLED_MISSIONS.iterdir() if p.is_dir())
+
+
+def _digest_module():  # benchmarks/catalog_digest.py: what two identical runs share
+    spec = importlib.util.spec_from_file_location(
+        "catalog_digest", REPO_ROOT / "benchmarks" / "catalog_digest.py"
+    )
+    assert spec is not None and spec.loader is not None
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+digest_catalog = _digest_module().digest_catalog
+
+
+@pytest.fixture(scope="module")
+def endpoint() -> Iterator[str]:
+    with moto_server() as url:
+        yield url
+
+
+@pytest.fixture
+def s3(endpoint: str, tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> str:
+    """``s3://<new bucket>/catalogs``, with the server's endpoint and credentials in the
+    environment (as a user would set them) and working copies under ``tmp_path``."""
+    for key, value in CREDENTIALS.items():
+        monkeypatch.setenv(key, value)
+    monkeypatch.setenv("AWS_ENDPOINT_URL", endpoint)
+    monkeypatch.setenv("STANDGRID_WORK_DIR", str(tmp_path / "work"))
+    return f"s3://{new_bucket(endpoint)}/catalogs"
+
+
+def checkout(url: str, target: Path) -> Path:
+    """The catalog at ``url`` as read by a reader, copied to ``target``."""
+    import shutil
+
+    with catalog_at(url, write=False) as root:
+        shutil.copytree(root, target)
+    return target
+
+
+def tile(args: list[str]) -> None:
+    result = CliRunner().invoke(cli, ["tile", *args, "-q"])
+    assert result.exit_code == 0, result.output
+
+
+@pytest.mark.slow
+def test_a_catalog_on_s3_is_the_catalog_on_disk(s3: str, tmp_path: Path) -> None:
+    url = f"{s3}/demo"
+    for mission in (M1, M2):  # a new catalog, then a second epoch added to it
+        tile([str(mission), "-o", str(tmp_path / "disk" / "demo")])
+        tile([str(mission), "-o", url])
+    on_disk = digest_catalog(tmp_path / "disk" / "demo")
+    on_s3 = digest_catalog(checkout(url, tmp_path / "s3" / "demo"))
+    assert len(on_disk) > 50 and on_s3 == on_disk  # tile bytes, index rows, VPCs, project
+
+    remote = RemoteCatalog(url)
+    head = remote.head()
+    assert head is not None and head.generation == 2
+    keys = [m["path"] for m in remote.folder.list()]
+    generations = {k.split("/")[0] for k in keys if k.startswith("g")}
+    assert generations == {head.root, *{g for g in generations if g != head.root}}
+    assert len(generations) == 2  # the current one and the one before, for readers in flight
+    assert LOCK not in keys  # the lease is given up
+    secret = CREDENTIALS["AWS_SECRET_ACCESS_KEY"].encode()
+    for key in keys:  # credentials are never written to the catalog
+        data = remote.folder.read(key)
+        assert data is not None and secret not in data[0]
+
+    status = CliRunner().invoke(cli, ["status", url, "--json"])
+    assert status.exit_code == 0, status.output
+    document = json.loads(status.stdout)
+    assert document["catalog"] == url and sorted(document["epochs"]) == ["2024", "2028"]
+
+
+def test_missions_read_from_object_storage(s3: str, tmp_path: Path) -> None:
+    folder = ObjectFolder.open(f"{s3}/missions/{M1.name}")
+    for path in sorted(M1.rglob("*")):
+        if path.is_file():
+            folder.upload(path, path.relative_to(M1).as_posix())
+    tile([f"{s3}/missions/{M1.name}", "-o", str(tmp_path / "from-s3")])
+    tile([str(M1), "-o", str(tmp_path / "from-disk")])
+    mine = digest_catalog(tmp_path / "from-s3")
+    theirs = digest_catalog(tmp_path / "from-disk")
+    assert mine.keys() == theirs.keys()
+    tiles = [k for k in mine if k.startswith("tiles/")]
+    assert tiles and all(mine[k] == theirs[k] for k in tiles)  # the same points, bit for bit
+
+
+def test_a_url_without_a_catalog_is_a_typed_error(s3: str) -> None:
+    with (
+        pytest.raises(CatalogNotFoundError, match="no standgrid catalog here"),
+        catalog_at(f"{s3}/nothing", write=False),
+    ):
+        pass
+    result = CliRunner().invoke(cli, ["status", f"{s3}/nothing"])
+    assert result.exit_code == 1 and "CatalogNotFoundError" in result.output
+    assert "Traceback" not in result.output
+
+
+def test_a_second_writer_waits_for_the_lease_then_gives_up(s3: str) -> None:
+    url = f"{s3}/busy"
+    holder = Lease(ObjectFolder.open(url), timeout=1).acquire()
+    try:
+        with (
+            pytest.raises(CatalogBusyError, match="another writer holds the catalog"),
+            catalog_at(url, write=True, lock_timeout=0.5),
+        ):
+            pass
+    finally:
+        holder.release()
+    with catalog_at(url, write=True, lock_timeout=0.5):  # free again
+        pass
+
+
+@pytest.mark.slow
+def test_a_commit_on_a_stale_head_is_refused(s3: str, tmp_path: Path) -> None:
+    url = f"{s3}/stale"
+    tile([str(M1), "-o", url])
+    remote = RemoteCatalog(url)
+    before = remote.head()
+    assert before is not None
+    stale_root = tmp_path / "work-stale"
+    checkout(url, stale_root)
+    (stale_root / "notes.txt").write_text("a change made on an old view")
+    tile([str(M2), "-o", url])  # another writer commits meanwhile
+    lease = Lease(remote.folder, timeout=5).acquire()
+    try:
+        with pytest.raises(CatalogConflictError, match="another writer committed first"):
+            remote._commit(stale_root, before, remote.manifest(before), lease)
+    finally:
+        lease.release()
+    head = remote.head()
+    assert head is not None and head.generation == 2
+
+
+_CHILD = """
+import sys
+from standgrid.cli import main
+sys.argv = ["standgrid", "tile", sys.argv[1], "-o", sys.argv[2], "-q"]
+main()
+"""
+
+
+@pytest.mark.parametrize(
+    ("point", "landed"),
+    [
+        pytest.param("remote-before-switch", False, marks=pytest.mark.slow),
+        pytest.param("remote-uploaded", False, marks=pytest.mark.slow),
+        pytest.param("remote-switched", True, marks=pytest.mark.slow),
+    ],
+)
+def test_a_kill_during_a_commit_leaves_the_old_or_the_new_catalog(
+    s3: str, tmp_path: Path, point: str, landed: bool
+) -> None:
+    url = f"{s3}/killed"
+    tile([str(M1), "-o", url])
+    old = digest_catalog(checkout(url, tmp_path / "old" / "killed"))
+    env = {**os.environ, "STANDGRID_CRASH_AT": point}
+    child = subprocess.run(
+        [sys.executable, "-c", _CHILD, str(M2), url], env=env, capture_output=True, timeout=300
+    )
+    assert child.returncode == -9, child.stderr.decode()[-2000:]  # SIGKILL at that point
+    seen = digest_catalog(checkout(url, tmp_path / "seen" / "killed"))
+    reference = tmp_path / "disk" / "killed"  # the catalog with both missions, on disk
+    tile([str(M1), "-o", str(reference)])
+    tile([str(M2), "-o", str(reference)])
+    assert seen == (digest_catalog(reference) if landed else old)  # whole, never a mix
+    remote = RemoteCatalog(url)
+    assert remote.folder.read(LOCK) is not None  # the dead writer's lease is still there
+    tile([str(M2), "-o", url])  # ... and taken over: its pid is dead on this host
+    head = remote.head()
+    assert head is not None and head.generation == (3 if landed else 2)
+    roots = {m["path"].split("/")[0] for m in remote.folder.list() if m["path"][0] == "g"}
+    assert len(roots) == 2  # the killed commit's half-written generation is gone
+    if not landed:
+        final = digest_catalog(checkout(url, tmp_path / "final" / "killed"))
+        assert final == digest_catalog(reference)
+
+
+def test_head_is_what_readers_follow(s3: str) -> None:
+    url = f"{s3}/head"
+    tile([str(M1), "-o", url])
+    remote = RemoteCatalog(url)
+    found = remote.folder.read(HEAD)
+    assert found is not None
+    body = json.loads(found[0])
+    assert body["generation"] == 1 and body["root"].startswith("g000001-")
+    manifest = remote.manifest(remote.head())  # type: ignore[arg-type]
+    assert "catalog.json" in manifest and "index.gpkg" in manifest
+    for rel, entry in manifest.items():  # every file named is there, at its size
+        data = remote.folder.read(f"{body['root']}/{rel}")
+        assert data is not None and len(data[0]) == entry["size"]
+
+
+@pytest.mark.slow
+def test_run_on_s3_tiles_enriches_and_compares_as_on_disk(s3: str, tmp_path: Path) -> None:
+    """The whole path (tile, enrich: DTM/CHM GeoTIFFs, trees, stands; compare) on the
+    server gives the catalog it gives on disk: tiles, rasters and tables byte for byte."""
+    url = f"{s3}/run"
+    for target in (str(tmp_path / "disk" / "run"), url):
+        result = CliRunner().invoke(cli, ["run", str(M1), str(M2), "-o", target, "-q"])
+        assert result.exit_code == 0, result.output
+    on_disk = digest_catalog(tmp_path / "disk" / "run")
+    on_s3 = digest_catalog(checkout(url, tmp_path / "s3" / "run"))
+    assert any(k.endswith(".tif") for k in on_disk) and any("tree_list" in k for k in on_disk)
+    assert on_s3 == on_disk

@@ -230,3 +230,112 @@ def test_run_on_s3_tiles_enriches_and_compares_as_on_disk(s3: str, tmp_path: Pat
     on_s3 = digest_catalog(checkout(url, tmp_path / "s3" / "run"))
     assert any(k.endswith(".tif") for k in on_disk) and any("tree_list" in k for k in on_disk)
     assert on_s3 == on_disk
+
+
+def _free_port() -> int:
+    import socket
+
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return int(s.getsockname()[1])
+
+
+@pytest.mark.slow
+def test_workers_without_a_shared_folder_build_the_same_catalog(
+    s3: str, tmp_path: Path, endpoint: str
+) -> None:
+    """A dask scheduler and two workers that cannot see this process's folders (each worker
+    runs in its own mount namespace with an empty file system over them): the catalog,
+    the missions and the tiles travel through the S3-compatible server only."""
+    import shutil
+    import time
+
+    if shutil.which("unshare") is None or os.geteuid() != 0:
+        pytest.skip("needs root and unshare(1) to hide this process's folders from workers")
+    private = Path(os.environ["STANDGRID_WORK_DIR"])  # working copies, fetched missions
+    private.mkdir(parents=True)
+    (private / "marker").write_text("only the client sees this")
+    probe = subprocess.run(
+        [
+            "unshare",
+            "--mount",
+            "--propagation",
+            "private",
+            "--",
+            "sh",
+            "-c",
+            f"mount -t tmpfs none {private} && ! test -e {private}/marker",
+        ],
+        capture_output=True,
+    )
+    if probe.returncode != 0:
+        pytest.skip(f"cannot hide a folder in a mount namespace here: {probe.stderr!r}")
+    for mission in (M1, M2):
+        folder = ObjectFolder.open(f"{s3}/missions/{mission.name}")
+        for path in sorted(mission.rglob("*")):
+            if path.is_file():
+                folder.upload(path, path.relative_to(mission).as_posix())
+    dask = str(Path(sys.executable).with_name("dask"))
+    port = _free_port()
+    address = f"tcp://127.0.0.1:{port}"
+    env = {**os.environ}
+    processes = [
+        subprocess.Popen(
+            [dask, "scheduler", "--host", "127.0.0.1", "--port", str(port), "--no-dashboard"],
+            env=env,
+            stdout=subprocess.DEVNULL,
+            stderr=subprocess.DEVNULL,
+        )
+    ]
+    try:
+        for k in range(2):
+            own = tmp_path / f"worker-{k}"
+            own.mkdir()
+            command = (
+                f"mount -t tmpfs none {private} && exec {dask} worker {address} --nworkers 1 "
+                f"--nthreads 1 --no-dashboard --local-directory {own}"
+            )
+            processes.append(
+                subprocess.Popen(
+                    ["unshare", "--mount", "--propagation", "private", "--", "sh", "-c", command],
+                    env=env,
+                    stdout=subprocess.DEVNULL,
+                    stderr=subprocess.DEVNULL,
+                )
+            )
+        from distributed import Client
+
+        with Client(address, timeout=60) as client:
+            client.wait_for_workers(2, timeout=120)
+            seen = client.run(lambda: os.path.exists(private / "marker"))
+            assert list(seen.values()) == [False, False]  # they do not see our folders
+        url = f"{s3}/cluster"
+        missions = [f"{s3}/missions/{m.name}" for m in (M1, M2)]
+        argv = ["tile", *missions, "-o", url, "--scheduler", address, "-q"]
+        shared = subprocess.run(
+            [str(Path(sys.executable).with_name("standgrid")), *argv],
+            env=env,
+            capture_output=True,
+            timeout=600,
+        )
+        assert shared.returncode == 1  # workers told to read this process's folders cannot
+        assert RemoteCatalog(url).head() is None
+        t0 = time.perf_counter()
+        result = CliRunner().invoke(cli, [*argv, "--no-shared-folder"])
+        assert result.exit_code == 0, result.output
+        seconds = time.perf_counter() - t0
+    finally:
+        for process in processes[::-1]:
+            process.terminate()
+            process.wait(30)
+    fetched = sorted(
+        (p for p in (private / "standgrid-cache").glob("*/*") if p.is_dir()), key=lambda p: p.name
+    )
+    reference = tmp_path / "disk" / "cluster"  # the same missions, on disk, in this process
+    tile([str(p) for p in fetched] + ["-o", str(reference)])
+    on_s3 = digest_catalog(checkout(url, tmp_path / "s3" / "cluster"))
+    assert on_s3 == digest_catalog(reference)
+    assert any(k.startswith("tiles/") for k in on_s3)
+    keys = [m["path"] for m in RemoteCatalog(url).folder.list()]
+    assert not any(k.startswith("_standgrid/outbox/") for k in keys)  # taken in, removed
+    print(f"2 workers without a shared folder: {seconds:.1f} s")

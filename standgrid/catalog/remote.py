@@ -61,11 +61,23 @@ from standgrid.storage.objects import (
 HEAD = "_standgrid/HEAD.json"
 LOCK = "_standgrid/lock.json"
 MANIFESTS = "_standgrid/manifests"
+#: Where workers without a shared folder put what they write (:func:`outbox_url`).
+OUTBOX = "_standgrid/outbox"
 FORMAT = 1
 #: Seconds a writer's lease lasts without renewal (renewed every third of it).
 LEASE_SECONDS = 60.0
 #: Where working copies and fetched missions go (default: the system's temporary folder).
 WORK_ENV = "STANDGRID_WORK_DIR"
+
+
+#: Files workers already put in object storage (SHA-256 -> URL), for the next commit to copy
+#: inside the store rather than upload again (:func:`note_in_store`).
+_IN_STORE: dict[str, str] = {}
+
+
+def note_in_store(url: str, sha256: str) -> None:
+    """A file with this digest is in the store at ``url`` (a worker put it there)."""
+    _IN_STORE[sha256] = url
 
 
 @dataclass(frozen=True)
@@ -260,14 +272,16 @@ class RemoteCatalog:
             return  # nothing changed (or the stage made no catalog): no new generation
         generation = (head.generation if head else 0) + 1
         new_root = f"g{generation:06d}-{uuid.uuid4().hex[:8]}"
-        uploads = {
-            f"{new_root}/{rel}": root / rel for rel, entry in now.items() if old.get(rel) != entry
-        }
-        copies = {
-            f"{new_root}/{rel}": f"{head.root}/{rel}"
-            for rel, entry in now.items()
-            if head is not None and old.get(rel) == entry
-        }
+        uploads: dict[str, Path] = {}
+        copies: dict[str, str] = {}
+        there = self.url + "/"
+        for rel, entry in now.items():
+            if head is not None and old.get(rel) == entry:
+                copies[f"{new_root}/{rel}"] = f"{head.root}/{rel}"
+            elif _IN_STORE.get(entry["sha256"], "").startswith(there):
+                copies[f"{new_root}/{rel}"] = _IN_STORE[entry["sha256"]][len(there) :]
+            else:
+                uploads[f"{new_root}/{rel}"] = root / rel
         mirror_up(self.folder, uploads)
         crash_point("remote-uploaded")
         copy_many(self.folder, copies)
@@ -287,6 +301,7 @@ class RemoteCatalog:
                 f"{self.url}: another writer committed first; open it again and repeat"
             ) from exc
         crash_point("remote-switched")
+        _IN_STORE.clear()
         self._collect({new_root} | ({head.root} if head else set()))
 
     def _collect(self, keep: set[str]) -> None:
@@ -297,9 +312,20 @@ class RemoteCatalog:
             key = meta["path"]
             top = key.split("/", 1)[0]
             generation = top.startswith("g") and "/" in key and top not in keep
-            if generation or (key.startswith(MANIFESTS + "/") and Path(key).stem not in keep):
+            outbox = key.startswith(OUTBOX + "/")  # workers' tiles, copied in by now
+            if (
+                generation
+                or outbox
+                or (key.startswith(MANIFESTS + "/") and Path(key).stem not in keep)
+            ):
                 stale.append(key)
         self.folder.delete(stale)
+
+
+def outbox_url(url: str) -> str:
+    """A new folder under the catalog at ``url`` for workers to put their outputs in (removed
+    by the commit that takes them, or the next one)."""
+    return f"{url.rstrip('/')}/{OUTBOX}/{uuid.uuid4().hex[:12]}"
 
 
 def _json(body: dict[str, Any]) -> bytes:

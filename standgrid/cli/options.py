@@ -204,6 +204,11 @@ REGISTRY: dict[str, Option] = {
                "help": "Run on an existing dask.distributed cluster (tcp://host:port); every"
                " worker must reach the catalog folder at the same path. The catalog is written"
                " only from here."}),
+        Option("shared_folder", ("--shared-folder/--no-shared-folder",),
+               (f"{_RUN}.shared_folder",), {"default": True, "show_default": True,
+               "help": "Whether the cluster's workers reach this machine's folders. With"
+               " --no-shared-folder (a catalog in object storage only) workers get each"
+               " cell's points from here and put their tiles in the object storage."}),
         Option("memory_mb", ("--memory",), (f"{_RUN}.memory_mb",), {"type": int,
                "default": _default_memory_mb,
                "show_default": "a quarter of the available RAM, 256 to 4096 MB",
@@ -248,7 +253,7 @@ ENRICH = (
     "min_density_pts_m2",
 )
 COMPARE = ("epoch_from", "epoch_to", "other_catalog", "max_distance", "min_observed_fraction")
-CLUSTER = ("workers", "scheduler", "memory_mb", "lock_timeout")
+CLUSTER = ("workers", "scheduler", "shared_folder", "memory_mb", "lock_timeout")
 
 overwrite_option = REGISTRY["overwrite"]
 

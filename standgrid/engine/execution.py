@@ -41,6 +41,9 @@ class Execution:
       (``None``: a quarter of the available memory, 256 to 4096 MB).
     - ``lock_timeout``: seconds to wait for another writer of the catalog (``None``: for ever).
     - ``progress``: told how far the stage got (:class:`~standgrid.engine.progress.Progress`).
+    - ``shared_folder``: the cluster's workers reach this process's folders (the default).
+      False: they share none, and exchange what they write through the object storage a
+      catalog at a URL lives in (``outbox``, set by the stage: the URL workers put it under).
     """
 
     workers: int | None = None
@@ -49,6 +52,8 @@ class Execution:
     lock_timeout: float | None = DEFAULT_LOCK_TIMEOUT
     progress: Progress = SILENT
     executor: Executor | None = field(default=None, compare=False, repr=False)
+    shared_folder: bool = True
+    outbox: str | None = field(default=None, repr=False)
 
     def __post_init__(self) -> None:
         if self.workers is not None and (
@@ -79,6 +84,8 @@ class Execution:
             and timeout >= 0
         ):
             raise OptionError("lock_timeout", f"{timeout!r}: give seconds >= 0, or None")
+        if not isinstance(self.shared_folder, bool):
+            raise OptionError("shared_folder", f"{self.shared_folder!r}: give True or False")
         if not all(callable(getattr(self.progress, m, None)) for m in ("track", "status")):
             raise OptionError("progress", f"{self.progress!r} is no Progress (track(), status())")
 

@@ -28,7 +28,7 @@ from standgrid.catalog import paths
 from standgrid.engine import Execution
 from standgrid.enrichment.options import EnrichOptions
 from standgrid.enrichment.stands import StandSample
-from standgrid.errors import EnrichError, EpochNotFoundError
+from standgrid.errors import EnrichError, EpochNotFoundError, OptionError
 
 if TYPE_CHECKING:
     import pandas as pd
@@ -65,6 +65,12 @@ def enrich_catalog(
     from standgrid.catalog.store import require_catalog
     from standgrid.storage import is_url
 
+    if not execution.shared_folder and (execution.workers or execution.scheduler):
+        raise OptionError(
+            "shared_folder",
+            "enrich's workers read the catalog's tiles from its folder: without a shared "
+            "folder, enrich in this process (no workers, no scheduler)",
+        )
     if is_url(catalog_path):
         with catalog_at(catalog_path, write=True, lock_timeout=execution.lock_timeout) as root:
             report = enrich_catalog(root, options, execution=execution)

@@ -125,6 +125,10 @@ def tile_missions(
     missions = [fetched_folder(str(m)) if is_url(m) else m for m in mission_paths]
     if not is_url(catalog_path):
         return _tile_missions(missions, catalog_path, options, execution=execution)
+    if not execution.shared_folder:
+        from standgrid.catalog.remote import outbox_url
+
+        execution = replace(execution, outbox=outbox_url(str(catalog_path)))
     with catalog_at(catalog_path, write=True, lock_timeout=execution.lock_timeout) as root:
         report = _tile_missions(missions, root, options, execution=execution)
     return replace(report, catalog=str(catalog_path))
@@ -142,6 +146,12 @@ def _tile_missions(
 
     if not mission_paths:
         raise CatalogError("no missions given")
+    if not execution.shared_folder and execution.outbox is None:
+        raise OptionError(
+            "shared_folder",
+            "workers without a shared folder exchange tiles through object storage: give "
+            "the catalog as an object-storage URL (s3://bucket/prefix)",
+        )
     if options.anchor is not None and len(mission_paths) > 1:
         raise OptionError("anchor", "an anchor places one mission: tile one mission per anchor")
     progress, timeout = execution.progress, execution.lock_timeout
@@ -282,7 +292,12 @@ def _ingest(
         # a placement given by hand (an anchor, a fit method) is applied exactly
         by_hand = options.anchor is not None or options.method != TileOptions.method
         tolerance = None if by_hand else options.placement_tolerance
-        settings = EpochSettings(tiling, execution.memory_budget, tolerance)
+        outbox = None
+        if execution.outbox is not None:
+            from standgrid.storage import ObjectFolder
+
+            outbox = ObjectFolder.open(execution.outbox)
+        settings = EpochSettings(tiling, execution.memory_budget, tolerance, outbox)
         if options.align and not by_hand and _alignable(catalog, ingests):
             from standgrid.pipeline.align import align_ingests
 

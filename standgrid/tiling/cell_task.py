@@ -7,7 +7,9 @@ the task says (a transaction's staging folder) and returns the :class:`TileInfo`
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+import hashlib
+import tempfile
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any
 
@@ -67,3 +69,29 @@ def write_run_cell(task: RunCellTile) -> TileInfo:
     cell = read_cell(task.extents)
     tile = CellTile(task.path, cell.core, cell.buffer, task.crs, task.polygon, task.lattice_origin)
     return write_cell(tile)
+
+
+@dataclass(frozen=True)
+class OutboxTile:
+    """A cell to write on a worker that shares no folder with the client: the tile is put
+    in object storage (``outbox``, at ``key``); ``tile.path`` names the file (its suffix
+    says the format)."""
+
+    tile: CellTile
+    outbox: Any  # standgrid.storage.ObjectFolder (sent as its URL)
+    key: str
+
+
+def write_cell_to_outbox(task: OutboxTile) -> tuple[TileInfo, str, int]:
+    """Write the tile in a folder of this worker's own, put it at ``task.key``; returns its
+    TileInfo, SHA-256 and size (the client checks the copy it fetches against them)."""
+    with tempfile.TemporaryDirectory(prefix="standgrid-cell-") as folder:
+        local = Path(folder) / task.tile.path.name
+        info = write_cell(replace(task.tile, path=local))
+        digest = hashlib.sha256()
+        with open(local, "rb") as f:
+            while block := f.read(1 << 20):
+                digest.update(block)
+        size = local.stat().st_size
+        task.outbox.upload(local, task.key)
+    return info, digest.hexdigest(), size

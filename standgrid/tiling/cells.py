@@ -15,14 +15,16 @@ from __future__ import annotations
 import math
 import os
 import shutil
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Generator, Iterator, Sequence
 from contextlib import closing
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
+from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 from standgrid.catalog import paths
 from standgrid.engine import MemoryBudget, Progress, SerialExecutor
 from standgrid.engine.budget import bounded_map, release_memory
+from standgrid.errors import TilingError
 
 #: Peak bytes of loading an item (a payload, an old tile) over the bytes of the points it
 #: gives: raw fields, converted ones and the projected coordinates coexist for a while
@@ -39,6 +41,7 @@ if TYPE_CHECKING:
     from standgrid.partition.chunks import PayloadTask
     from standgrid.partition.engine import BufferFunction
     from standgrid.partition.protocol import Partition
+    from standgrid.tiling.cell_task import CellTile
     from standgrid.tiling.retile import KeptTiles
 
 
@@ -60,6 +63,8 @@ class EpochWork:
     laz: bool
     copc: bool
     memory_budget: MemoryBudget
+    #: Workers share no folder with this process: they put tiles here (an ObjectFolder).
+    outbox: Any = None
 
 
 @dataclass
@@ -76,7 +81,7 @@ class Cells:
 
 def write_cells(work: EpochWork, txn: Transaction, executor: Executor, progress: Progress) -> Cells:
     """Partition the epoch's points and write its tiles into the transaction's staging."""
-    if isinstance(executor, SerialExecutor):
+    if isinstance(executor, SerialExecutor) or work.outbox is not None:
         return _in_this_process(work, txn, executor, progress)
     return _on_cluster(work, txn, executor, progress)
 
@@ -138,7 +143,10 @@ def _in_this_process(
         def encode_cost(tile: CellTile) -> float:
             return ENCODE_FACTOR * (_cloud_bytes(tile.core) + _cloud_bytes(tile.buffer))
 
-        infos = bounded_map(write_cell, cells(), encode_cost, ahead_bytes)
+        if work.outbox is None or isinstance(executor, SerialExecutor):
+            infos = bounded_map(write_cell, cells(), encode_cost, ahead_bytes)
+        else:  # workers without a shared folder: points there, tiles back via the store
+            infos = _through_outbox(cells(), encode_cost, ahead_bytes, executor, work.outbox)
         with closing(infos):
             for k, info in enumerate(progress.track(infos, 0, f"{epoch}: tiles")):
                 done.tiles.append((*names[k], info))
@@ -147,6 +155,51 @@ def _in_this_process(
     done.points_in, done.points_out = stats.points_in, stats.points_out
     done.buffer_points, done.bytes_spilled = stats.buffer_points, stats.bytes_spilled
     return done
+
+
+def _through_outbox(
+    tiles: Iterator[CellTile],
+    cost: Callable[[CellTile], float],
+    budget: int,
+    executor: Executor,
+    outbox: Any,
+) -> Generator[TileInfo, None, None]:
+    """Each cell's tile written on a worker that shares no folder with this process: its
+    points go with the task, the worker puts the tile in ``outbox``; here it is fetched to
+    its staged path (checked by digest) and noted as already in the store, so the commit
+    copies it there instead of uploading it again. Cells go in batches of at most
+    ``budget`` estimated bytes (one at least); results come back in cell order."""
+    import hashlib
+    from uuid import uuid4
+
+    from standgrid.catalog.remote import note_in_store
+    from standgrid.tiling.cell_task import OutboxTile, write_cell_to_outbox
+
+    batch: list[CellTile] = []
+    held = 0.0
+    done = False
+    while not done:
+        tile = next(tiles, None)
+        done = tile is None
+        if tile is not None:
+            batch.append(tile)
+            held += cost(tile)
+        if not batch or (not done and held < budget):
+            continue
+        tasks = [
+            OutboxTile(replace(t, path=Path(t.path.name)), outbox, f"{uuid4().hex}{t.path.name}")
+            for t in batch  # a key of its own: cells of two epochs share names
+        ]
+        results = dict(executor.map(write_cell_to_outbox, tasks))
+        for k, staged in enumerate(batch):
+            info, sha, size = results[k]
+            outbox.download(tasks[k].key, staged.path)
+            digest = hashlib.sha256(staged.path.read_bytes()).hexdigest()
+            if digest != sha or staged.path.stat().st_size != size:
+                raise TilingError(f"{outbox.href(tasks[k].key)}: damaged in transfer")
+            note_in_store(outbox.href(tasks[k].key), sha)
+            yield replace(info, path=staged.path)
+        batch, held = [], 0.0
 
 
 class _LoadCost:

@@ -11,7 +11,7 @@ from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Any
 
 from standgrid.catalog import paths
-from standgrid.engine import MemoryBudget, Progress
+from standgrid.engine import MemoryBudget, Progress, SerialExecutor
 from standgrid.tiling.cells import Cells, EpochWork, write_cells
 
 if TYPE_CHECKING:
@@ -48,6 +48,9 @@ class EpochSettings:
     memory_budget: MemoryBudget
     #: keep a mission's placement while a refit moves it less than this (m); None: exact
     placement_tolerance: float | None = None
+    #: the cluster's workers share no folder with this process: payloads are read here, and
+    #: workers put the tiles they encode in this object-storage folder (an ObjectFolder)
+    outbox: Any = None
 
 
 @dataclass
@@ -77,7 +80,8 @@ def tile_epoch(
 ) -> EpochResult:
     """(Re)tile ``epoch``: its kept points plus the payloads of ``group``; the points of every
     mission in ``renewed`` (this run's missions) are taken out of the old tiles first."""
-    plan = _plan_epoch(catalog, index, epoch, group, renewed, settings, executor, progress)
+    reading = SerialExecutor() if settings.outbox is not None else executor  # paths: here
+    plan = _plan_epoch(catalog, index, epoch, group, renewed, settings, reading, progress)
     written = _write_epoch_cells(catalog, txn, epoch, plan, settings, executor, progress)
     tiles = _gather_tiles(catalog, txn, index, epoch, plan, written.cells)
     fed = _check_conservation(catalog, epoch, written)
@@ -255,6 +259,7 @@ def _write_epoch_cells(
         laz=settings.tiling.laz,
         copc=settings.tiling.copc,
         memory_budget=settings.memory_budget,
+        outbox=settings.outbox,
     )
     written.cells = write_cells(work, txn, executor, progress)
     return written

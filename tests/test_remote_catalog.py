@@ -339,3 +339,21 @@ def test_workers_without_a_shared_folder_build_the_same_catalog(
     keys = [m["path"] for m in RemoteCatalog(url).folder.list()]
     assert not any(k.startswith("_standgrid/outbox/") for k in keys)  # taken in, removed
     print(f"2 workers without a shared folder: {seconds:.1f} s")
+
+
+@pytest.mark.slow
+def test_nothing_but_generations_is_ever_deleted(s3: str) -> None:
+    url = f"{s3}/shared-prefix"
+    folder = ObjectFolder.open(url)
+    folder.write("gis/roads.gpkg", b"a user's own file beside the catalog")
+    folder.write("g000001-notmine/readme.txt", b"not a generation's name either")
+    tile([str(M1), "-o", url])
+    tile([str(M2), "-o", url])
+    tile([str(M1), "-o", url])  # three commits: the first generation is collected
+    keys = {m["path"] for m in folder.list()}
+    assert {"gis/roads.gpkg", "g000001-notmine/readme.txt"} <= keys
+
+
+def test_a_catalog_inside_its_missions_is_refused(s3: str) -> None:
+    result = CliRunner().invoke(cli, ["tile", f"{s3}/missions/m1", "-o", f"{s3}/missions"])
+    assert result.exit_code == 1 and "OutputOverlapsInputError" in result.output

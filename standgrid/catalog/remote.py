@@ -29,6 +29,7 @@ import contextlib
 import hashlib
 import json
 import os
+import re
 import shutil
 import socket
 import tempfile
@@ -61,6 +62,8 @@ from standgrid.storage.objects import (
 HEAD = "_standgrid/HEAD.json"
 LOCK = "_standgrid/lock.json"
 MANIFESTS = "_standgrid/manifests"
+#: A generation's folder name (nothing else at the catalog's URL is ever deleted).
+_GENERATION = re.compile(r"^g\d{6}-[0-9a-f]{8}$")
 #: Where workers without a shared folder put what they write (:func:`outbox_url`).
 OUTBOX = "_standgrid/outbox"
 FORMAT = 1
@@ -311,7 +314,7 @@ class RemoteCatalog:
         for meta in self.folder.list():
             key = meta["path"]
             top = key.split("/", 1)[0]
-            generation = top.startswith("g") and "/" in key and top not in keep
+            generation = bool(_GENERATION.match(top)) and "/" in key and top not in keep
             outbox = key.startswith(OUTBOX + "/")  # workers' tiles, copied in by now
             if (
                 generation

@@ -28,6 +28,7 @@ from standgrid.errors import (
     CatalogError,
     NotGeoreferencedError,
     OptionError,
+    OutputOverlapsInputError,
     out_of_space_error,
 )
 from standgrid.tiling.epoch import EpochSettings, Ingest, tile_epoch
@@ -122,6 +123,12 @@ def tile_missions(
     from standgrid.storage import is_url
     from standgrid.storage.objects import fetched_folder
 
+    for m in mission_paths:
+        if is_url(m) and is_url(catalog_path) and _nested(str(m), str(catalog_path)):
+            raise OutputOverlapsInputError(
+                f"the catalog {catalog_path} and the mission {m} overlap: writing one would "
+                "destroy the other"
+            )
     missions = [fetched_folder(str(m)) if is_url(m) else m for m in mission_paths]
     if not is_url(catalog_path):
         return _tile_missions(missions, catalog_path, options, execution=execution)
@@ -132,6 +139,12 @@ def tile_missions(
     with catalog_at(catalog_path, write=True, lock_timeout=execution.lock_timeout) as root:
         report = _tile_missions(missions, root, options, execution=execution)
     return replace(report, catalog=str(catalog_path))
+
+
+def _nested(a: str, b: str) -> bool:
+    """Whether one URL is, or lies inside, the other."""
+    a, b = a.rstrip("/") + "/", b.rstrip("/") + "/"
+    return a.startswith(b) or b.startswith(a)
 
 
 def _tile_missions(

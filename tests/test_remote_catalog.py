@@ -357,3 +357,45 @@ def test_nothing_but_generations_is_ever_deleted(s3: str) -> None:
 def test_a_catalog_inside_its_missions_is_refused(s3: str) -> None:
     result = CliRunner().invoke(cli, ["tile", f"{s3}/missions/m1", "-o", f"{s3}/missions"])
     assert result.exit_code == 1 and "OutputOverlapsInputError" in result.output
+
+
+@pytest.mark.slow  # a catalog tiled, a server started and stopped
+def test_serve_a_catalog_in_object_storage(s3: str) -> None:
+    import signal
+
+    import httpx
+
+    url = f"{s3}/served"
+    tile([str(M1), "-o", url])
+    remote = RemoteCatalog(url)
+    head = remote.head()
+    assert head is not None
+    refused = CliRunner().invoke(
+        cli, ["serve", url, "--port", "0"], env={"STANDGRID_TOKEN": "t" * 32}
+    )
+    assert refused.exit_code != 0 and "read-only" in refused.output
+    command = [
+        str(Path(sys.executable).with_name("standgrid")),
+        "serve",
+        url,
+        "--port",
+        "0",
+        "--json",
+    ]
+    proc = subprocess.Popen(command, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    try:
+        assert proc.stdout is not None
+        started = json.loads(proc.stdout.readline())
+        assert started["catalog"] == url and started["writes"] is False
+        base = started["service"].rstrip("/")
+        files = httpx.get(f"{base}/files", timeout=30).json()["files"]
+        tile_entry = next(f for f in files if f["path"].startswith("tiles/"))
+        stored = remote.folder.read(f"{head.root}/{tile_entry['path']}")
+        assert stored is not None and tile_entry["size"] == len(stored[0])
+        part = httpx.get(tile_entry["href"], headers={"Range": "bytes=100-299"}, timeout=30)
+        assert part.status_code == 206 and part.content == stored[0][100:300]
+        cells = httpx.get(f"{base}/ogc/collections/cells/items?limit=5", timeout=30)
+        assert cells.status_code == 200 and cells.json()["features"]
+    finally:
+        proc.send_signal(signal.SIGINT)
+        proc.communicate(timeout=30)

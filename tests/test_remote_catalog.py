@@ -399,3 +399,23 @@ def test_serve_a_catalog_in_object_storage(s3: str) -> None:
     finally:
         proc.send_signal(signal.SIGINT)
         proc.communicate(timeout=30)
+
+
+@pytest.mark.realdata
+def test_a_plain_scan_in_object_storage_is_tiled_into_a_catalog_there(
+    s3: str, tmp_path: Path
+) -> None:
+    from tests.conftest import real_file
+
+    scan = real_file("als/las_chablais3.laz")
+    ObjectFolder.open(f"{s3}/scans").upload(scan, scan.name)
+    options = ["--date", "2019-07-01", "-q"]
+    tile([f"{s3}/scans/{scan.name}", "-o", f"{s3}/als", *options])
+    tile([str(scan), "-o", str(tmp_path / "disk" / "als"), *options])
+    on_s3 = digest_catalog(checkout(f"{s3}/als", tmp_path / "s3" / "als"))
+    on_disk = digest_catalog(tmp_path / "disk" / "als")
+    tiles = sorted(k for k in on_disk if k.startswith("tiles/"))
+    assert tiles and [on_s3.get(k) for k in tiles] == [on_disk[k] for k in tiles]
+    missing = CliRunner().invoke(cli, ["tile", f"{s3}/scans/nothing.laz", "-o", f"{s3}/x"])
+    assert missing.exit_code == 1 and "StorageError" in missing.output
+    assert "nothing.laz" in missing.output and "Traceback" not in missing.output

@@ -162,6 +162,17 @@ class ObjectFolder:
         with _reported(self.href(source), f"copy to {target}"):
             obstore.copy(self.store, source, target)
 
+    def size(self, key: str) -> int | None:
+        """The object's size; None when there is no such object."""
+        import obstore
+        from obstore import exceptions as ox
+
+        with _reported(self.href(key), "head"):
+            try:
+                return int(obstore.head(self.store, key)["size"])
+            except (ox.NotFoundError, FileNotFoundError):
+                return None
+
     def list(self, prefix: str = "") -> list[dict[str, Any]]:
         """Every object under ``prefix`` (``path`` relative to the folder, ``size``,
         ``e_tag``)."""
@@ -209,8 +220,9 @@ def local_cache() -> Path:
 
 
 def fetched_folder(url: str, cache: Path | None = None) -> Path:
-    """The objects under ``url`` as a local folder ``cache/<digest>/<last segment>``, kept
-    between runs and refreshed by size (a mission keeps its folder, and so its identity)."""
+    """The objects under ``url`` as a local folder ``cache/<digest>/<last segment>``, or the
+    one object ``url`` names as that file; kept between runs and refreshed by size (a
+    mission keeps its folder, and so its identity)."""
     import hashlib
 
     url = url.rstrip("/")
@@ -218,8 +230,14 @@ def fetched_folder(url: str, cache: Path | None = None) -> Path:
     target = (cache or local_cache()) / digest / url.rsplit("/", 1)[-1]
     folder = ObjectFolder.open(url)
     wanted = {m["path"]: m["size"] for m in folder.list()}
-    if not wanted:
-        raise StorageError(f"{url}: no objects here")
+    if not wanted:  # one object (a plain scan: LAS/LAZ/COPC, a VPC): into the same folder
+        parent, _, name = url.rpartition("/")
+        folder = ObjectFolder.open(parent)
+        size = folder.size(name) if is_url(parent) else None
+        if size is None:
+            raise StorageError(f"{url}: no objects here")
+        target = target.parent
+        wanted = {name: size}
     stale = {
         key: key
         for key, size in wanted.items()

@@ -272,3 +272,78 @@ def test_stac_listed_and_linked_from_the_landing_page(base: str) -> None:
     landing = httpx.get(f"{base}/", headers={"Accept": "application/json"})
     links = {link["rel"]: link["href"] for link in landing.json()["links"]}
     assert links["stac"] == f"/files/{STAC_ROOT}"
+
+
+def test_stac_follows_a_commit_that_removes_a_raster(catalog: Path, tmp_path: Path) -> None:
+    from standgrid.catalog import paths
+
+    root = copy_catalog(catalog, tmp_path / "catalog")
+    item = root / "stac/epoch-2024/2024-dtm.json"
+    assert item.is_file()
+    opened = Catalog.open(root)
+    with opened.transaction() as txn:
+        txn.delete(paths.raster("2024", "dtm"))
+    assert not item.exists()
+    links = json.loads((root / "stac/epoch-2024/collection.json").read_text("utf-8"))["links"]
+    assert "./2024-dtm.json" not in {link["href"] for link in links}
+    assert "./2024-chm.json" in {link["href"] for link in links}
+    assert _stac_now(root) == {rel: (root / rel).read_bytes() for rel in stac_files(root)}
+
+
+def test_stac_of_copc_tiles_a_crs_without_epsg_and_nan_nodata() -> None:
+    import pyproj
+
+    from standgrid.catalog import paths
+    from standgrid.export.stac import (
+        Band,
+        StacGroup,
+        StacLayout,
+        StacRaster,
+        StacTile,
+        build_stac,
+    )
+
+    wkt = pyproj.CRS.from_proj4(
+        "+proj=tmerc +lat_0=0 +lon_0=9.5 +k=1 +x_0=500000 +y_0=0 +ellps=WGS84 +units=m"
+    ).to_wkt()
+    tile = StacTile(
+        "c1",
+        "tiles/e/c1.copc.laz",
+        12,
+        (500000.0, 5300000.0, 1.0, 500020.0, 5300020.0, 9.0),
+        ({"name": "X", "size": 8, "type": "floating"},),
+    )
+    band = Band("float32", "nan", 0.5, "m")
+    raster = StacRaster(
+        "dtm",
+        "rasters/e/dtm.tif",
+        (500000.0, 5300000.0, 500020.0, 5300020.0),
+        (40, 40),
+        (0.5, 0.0, 500000.0, 0.0, -0.5, 5300020.0),
+        band,
+    )
+    group = StacGroup("epoch-e", "Epoch e", "e", ("2030-06-01",), (tile,), (raster,), prefix="e")
+    layout = StacLayout(paths.STAC_ROOT, paths.stac_collection, paths.stac_item)
+    docs = build_stac("t", wkt, [group], layout)
+    item = docs[paths.stac_item("epoch-e", "e-c1")]
+    props = item["properties"]
+    assert props["pc:encoding"] == "COPC" and props["pc:count"] == 12
+    assert "proj:code" not in props and pyproj.CRS(props["proj:wkt2"]) == pyproj.CRS(wkt)
+    assert props["datetime"] == "2030-06-01T00:00:00Z"
+    assert item["assets"]["data"]["type"] == "application/vnd.laszip+copc"
+    lon0, lat0, _, lon1, lat1, _ = item["bbox"]
+    assert 9.4 < lon0 < lon1 < 9.6 and 47.0 < lat0 < lat1 < 48.5
+    nodata = docs[paths.stac_item("epoch-e", "e-dtm")]["assets"]["data"]["raster:bands"][0]
+    assert nodata["nodata"] == "nan"
+    assert build_stac("t", wkt, [group], layout) == docs  # nothing depends on the time
+    validator = JsonSchemaSTACValidator()
+    try:
+        from tests.stac_schemas import extension_schemas
+
+        validator.schema_cache.update(extension_schemas())
+    except RuntimeError:  # no PyPI and no cache: the core only
+        for rel, doc in docs.items():
+            validate_dict(doc, extensions=[], validator=validator, href=rel)
+    else:
+        for rel, doc in docs.items():
+            validate_dict(doc, validator=validator, href=rel)

@@ -13,6 +13,9 @@
     tables/stand_metrics.{csv,parquet}        stand_metrics(ext)
     tables/tree_list_<epoch>.{csv,parquet}    tree_list(epoch, ext)
     compare/<from>__<to>/<file>               comparison(epoch_from, epoch_to, file)
+    stac/catalog.json                         STAC_ROOT: the static STAC catalog
+    stac/<collection>/collection.json         stac_collection(collection_id)
+    stac/<collection>/<item>.json             stac_item(collection_id, item_id)
 
 Every function returns a POSIX relative path (``str``), the form :class:`Transaction` stages,
 deletes and journals; ``Catalog.path(rel)`` makes it absolute.
@@ -112,3 +115,18 @@ def comparison(epoch_from: str, epoch_to: str, file: str = "") -> str:
     """A comparison's folder, or the file ``file`` in it."""
     folder = comparison_folder(comparison_key(epoch_from, epoch_to))
     return f"{folder}/{file}" if file else folder
+
+
+#: The folder of the static STAC catalog (rewritten by every commit) and its root.
+STAC = "stac"
+STAC_ROOT = f"{STAC}/catalog.json"
+
+
+def stac_collection(collection_id: str) -> str:
+    """A STAC collection (``epoch-<label>``, ``compare-<key>``) of the STAC catalog."""
+    return f"{STAC}/{collection_id}/collection.json"
+
+
+def stac_item(collection_id: str, item_id: str) -> str:
+    """A STAC item (a tile, a raster) of a collection, beside it."""
+    return f"{STAC}/{collection_id}/{item_id}.json"

@@ -1,7 +1,8 @@
 """A transaction: staged changes to a catalog, committed all together or not at all.
 
 New and changed files are staged under ``.staging/<txn>/files/<relative path>`` (the new
-``catalog.json`` too). Commit: every staged file is fsynced, then, with the readers lock
+``catalog.json`` too); the commit stages the STAC catalog of what it leaves
+(:mod:`standgrid.catalog.stac`). Commit: every staged file is fsynced, then, with the readers lock
 held, the journal is written and carried out (:mod:`standgrid.catalog.journal`).
 """
 
@@ -337,6 +338,9 @@ class Transaction:
     def commit(self) -> None:
         if self._done:
             return
+        from standgrid.catalog.stac import stage_stac
+
+        stage_stac(self)  # stac/ describes what this commit leaves (catalog.stac)
         # the slow part first: readers never look at the staging, so they need not wait
         # while its files reach the disk; they wait only for the journal and the renames
         fsync_tree(self.folder / "files")

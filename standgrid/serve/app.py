@@ -141,6 +141,12 @@ def create_app(
             "links": [
                 {"rel": "ogc", "href": "/ogc", "title": "OGC API - Features"},
                 {"rel": "files", "href": "/files", "title": "catalog files (range requests)"},
+                {
+                    "rel": "stac",
+                    "href": "/files/stac/catalog.json",
+                    "type": "application/json",
+                    "title": "static STAC catalog (pystac-client, QGIS, STAC Browser)",
+                },
                 {"rel": "missions", "href": "/missions", "title": "retrieval API"},
                 {
                     "rel": "events",

@@ -2,7 +2,10 @@
 
 Only files the catalog publishes are served: the index, each epoch's VPC, tiles, rasters
 (and their QGIS styles) and tree lists, the stand metrics tables and the outputs of each
-comparison, all spelled by :mod:`standgrid.catalog.paths` or recorded in catalog.json. A
+comparison, the QGIS project and the static STAC catalog (``/files/stac/catalog.json``:
+its relative links and asset hrefs resolve to ``/files/...``, so a STAC client walks it
+over HTTP), all spelled by :mod:`standgrid.catalog.paths`, recorded in catalog.json or
+written under ``stac/`` by the last commit. A
 requested path is looked up in that set; it never becomes a path by itself. The VPC's
 relative tile links resolve to ``/files/tiles/...``, so QGIS and PDAL follow them.
 
@@ -20,6 +23,7 @@ from fastapi import APIRouter, Request
 from fastapi.responses import FileResponse, JSONResponse
 
 from standgrid.catalog import Catalog, paths
+from standgrid.catalog.stac import STAC, stac_files
 from standgrid.serve.problems import Problem
 from standgrid.serve.snapshot import snapshot
 
@@ -32,6 +36,8 @@ MEDIA_TYPES = {
     ".csv": "text/csv",
     ".parquet": "application/vnd.apache.parquet",
     ".gpkg": "application/geopackage+sqlite3",
+    ".qgz": "application/x-qgis-project",
+    ".json": "application/json",
 }
 _RANGE = re.compile(r"^\s*(\d*)\s*-\s*(\d*)\s*$")
 #: Most ranges one request may ask for (GDAL asks for a few; hundreds is an attack).
@@ -40,9 +46,16 @@ MAX_RANGES = 16
 router = APIRouter(tags=["Files"])
 
 
-def published_files(catalog: Catalog) -> set[str]:
-    """Catalog-relative paths of every file the service may serve (existing or not)."""
-    rels = {paths.INDEX, *(paths.stand_metrics(ext) for ext in paths.TABLE_FORMATS)}
+def published_files(catalog: Catalog, *, stac: bool = True) -> set[str]:
+    """Catalog-relative paths of every file the service may serve (existing or not); with
+    ``stac``, the STAC documents under ``stac/`` too (found by walking that folder)."""
+    rels = {
+        paths.INDEX,
+        paths.QGIS_PROJECT,
+        *(paths.stand_metrics(ext) for ext in paths.TABLE_FORMATS),
+    }
+    if stac:
+        rels.update(stac_files(catalog.root))
     for epoch in catalog.epochs:
         rels.add(paths.vpc(epoch))
         rels.update(catalog.tiles(epoch))
@@ -121,7 +134,8 @@ _FILE_RESPONSES: dict[int | str, dict[str, Any]] = {
 def file(request: Request, relative: str) -> Any:
     root = request.app.state.catalog_root
     with snapshot(root, with_index=False) as snap:
-        if relative not in published_files(snap.catalog):
+        in_stac = relative.startswith(f"{STAC}/")  # walk the stac/ folder for those only
+        if relative not in published_files(snap.catalog, stac=in_stac):
             raise Problem(404, f"the catalog publishes no file {relative!r} (see /files)")
         path = snap.catalog.path(relative)
         try:

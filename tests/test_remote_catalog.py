@@ -419,3 +419,47 @@ def test_a_plain_scan_in_object_storage_is_tiled_into_a_catalog_there(
     missing = CliRunner().invoke(cli, ["tile", f"{s3}/scans/nothing.laz", "-o", f"{s3}/x"])
     assert missing.exit_code == 1 and "StorageError" in missing.output
     assert "nothing.laz" in missing.output and "Traceback" not in missing.output
+
+
+@pytest.mark.slow
+def test_a_stac_client_walks_a_generation_straight_from_the_server(s3: str, endpoint: str) -> None:
+    """Plain HTTP against the S3-compatible server, no standgrid in between: HEAD.json
+    names the generation, its stac/catalog.json leads to every tile and raster."""
+    import boto3
+    import httpx
+    import pystac
+
+    url = f"{s3}/stac"
+    tile([str(M1), "-o", url])
+    bucket = url.removeprefix("s3://").split("/")[0]
+    policy = {  # published for anyone to read, as a STAC catalog is
+        "Version": "2012-10-17",
+        "Statement": [
+            {
+                "Effect": "Allow",
+                "Principal": "*",
+                "Action": "s3:GetObject",
+                "Resource": f"arn:aws:s3:::{bucket}/*",
+            }
+        ],
+    }
+    boto3.client("s3", endpoint_url=endpoint).put_bucket_policy(
+        Bucket=bucket, Policy=json.dumps(policy)
+    )
+    base = f"{endpoint}/{url.removeprefix('s3://')}"
+    head = httpx.get(f"{base}/{HEAD}", timeout=30).json()
+    root = pystac.Catalog.from_file(f"{base}/{head['root']}/stac/catalog.json")
+    items = list(root.get_items(recursive=True))
+    tiles = [i for i in items if "pc:count" in i.properties]
+    assert tiles and len(tiles) == len(
+        [
+            k
+            for k in RemoteCatalog(url).manifest(RemoteCatalog(url).head())
+            if k.startswith("tiles/")
+        ]  # type: ignore[arg-type]
+    )
+    for item in tiles[:5]:
+        for asset in item.assets.values():
+            href = asset.get_absolute_href() or ""  # a ranged read of each, anonymous
+            answer = httpx.get(href, headers={"Range": "bytes=0-3"}, timeout=30)
+            assert answer.status_code == 206 and len(answer.content) == 4, href

@@ -463,3 +463,32 @@ def test_a_stac_client_walks_a_generation_straight_from_the_server(s3: str, endp
             href = asset.get_absolute_href() or ""  # a ranged read of each, anonymous
             answer = httpx.get(href, headers={"Range": "bytes=0-3"}, timeout=30)
             assert answer.status_code == 206 and len(answer.content) == 4, href
+
+
+@pytest.mark.slow
+def test_a_comparison_against_a_catalog_in_object_storage_goes_stale_with_it(
+    s3: str, tmp_path: Path, tmp_path_factory: pytest.TempPathFactory
+) -> None:
+    """``compare --other s3://…`` reads that catalog's current generation and records its
+    URL; ``status`` reads that URL's HEAD to tell when the epoch it read changed."""
+    import shutil
+
+    from standgrid.comparison.options import CompareOptions
+    from standgrid.pipeline.compare import compare_epochs
+    from standgrid.pipeline.status import catalog_status
+    from tests.pipeline_fixtures import MISSIONS, copy_catalog, enriched_pair
+
+    pair = enriched_pair(tmp_path_factory)
+    url = f"{s3}/other"
+    with catalog_at(url, write=True) as root:  # an existing catalog, published there
+        shutil.copytree(pair.path, root)
+    here = copy_catalog(pair.path, tmp_path / "here")
+    report = compare_epochs(here, CompareOptions("2024", "2028", other_catalog=url))
+    assert report.trees and report.outputs
+    key = "2024__2028"
+    entry = json.loads((here / "catalog.json").read_text())["comparisons"][key]
+    assert entry["other_catalog"] == url and entry["other_epoch"]["enrichment"]
+    assert catalog_status(here)["comparisons"][key]["state"] == "present"
+    tile([str(BUNDLED_MISSIONS / MISSIONS["2028"]), "-o", url])  # re-tiled there
+    seen = catalog_status(here)["comparisons"][key]
+    assert seen["state"] == "stale" and "re-tiled" in seen["reason"] and url in seen["reason"]

@@ -47,6 +47,7 @@ from numpy.typing import NDArray
 from standgrid.catalog import paths
 from standgrid.catalog.records import enrichment_stamp
 from standgrid.errors import CatalogError
+from standgrid.storage import is_url
 
 if TYPE_CHECKING:
     from standgrid.catalog import Catalog, Transaction
@@ -198,8 +199,14 @@ def other_catalog_change(
     states = {} if states is None else states
     if other not in states:
         try:
-            states[other] = json.loads((Path(other) / paths.CATALOG_FILE).read_text("utf-8"))
-        except (OSError, ValueError):
+            if is_url(other):  # its current generation's catalog.json
+                from standgrid.catalog.remote import current_state
+
+                states[other] = current_state(other)
+            else:
+                text = (Path(other) / paths.CATALOG_FILE).read_text("utf-8")
+                states[other] = json.loads(text)
+        except (OSError, ValueError):  # StorageError is an OSError
             states[other] = None
     state = states[other]
     epoch_to = str(entry.get("to"))

@@ -325,6 +325,14 @@ class RemoteCatalog:
         self.folder.delete(stale)
 
 
+def current_state(url: str) -> dict[str, Any] | None:
+    """The ``catalog.json`` of the generation current at ``url`` (None: no catalog)."""
+    remote = RemoteCatalog(url)
+    head = remote.head()
+    found = remote.folder.read(f"{head.root}/{CATALOG_FILE}") if head else None
+    return None if found is None else dict(json.loads(found[0]))
+
+
 def outbox_url(url: str) -> str:
     """A new folder under the catalog at ``url`` for workers to put their outputs in (removed
     by the commit that takes them, or the next one)."""

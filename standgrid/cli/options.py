@@ -87,6 +87,23 @@ def _default_lock_timeout() -> float:
     return DEFAULT_LOCK_TIMEOUT
 
 
+class Location(click.ParamType):
+    """A folder or file (checked as ``path`` checks it), or an object-storage URL
+    (``s3://bucket/prefix``, …) taken as it is."""
+
+    name = "path|url"
+
+    def __init__(self, path: click.Path) -> None:
+        self.path = path
+
+    def convert(self, value: Any, param: click.Parameter | None, ctx: click.Context | None) -> Any:
+        from standgrid.storage import is_url
+
+        if is_url(value):
+            return str(value).rstrip("/")
+        return self.path.convert(value, param, ctx)
+
+
 _TILE, _ENRICH, _COMPARE, _RUN = "TileOptions", "EnrichOptions", "CompareOptions", "Execution"
 
 #: Every option of ``tile``, ``align``, ``enrich``, ``compare`` and ``run``, by its name (the
@@ -189,9 +206,10 @@ REGISTRY: dict[str, Option] = {
         Option("epoch_to", ("--to",), (f"{_COMPARE}.epoch_to",), {"default": None,
                "help": "Later epoch (default: the last)."}),
         Option("other_catalog", ("--other",), (f"{_COMPARE}.other_catalog",), {"default": None,
-               "type": click.Path(exists=True, file_okay=False, path_type=Path),
-               "help": "Take --to from this catalog (it must be on the same grid); --from and"
-               " --to then default to the first epoch of CATALOG and the last of this one."}),
+               "type": Location(click.Path(exists=True, file_okay=False, path_type=Path)),
+               "help": "Take --to from this catalog (a folder or an object-storage URL; it"
+               " must be on the same grid); --from and --to then default to the first epoch of"
+               " CATALOG and the last of this one."}),
         Option("max_distance", ("--max-distance",), (f"{_COMPARE}.max_distance",),
                {"type": float, "default": 2.0, "show_default": True,
                 "help": "Farthest a tree may be from its position in the earlier epoch to match"
@@ -321,23 +339,6 @@ def say_flags(text: str) -> str:
         return option.flag + ":" if match.group(2) else option.usage
 
     return _OPTION_NAME.sub(flag, text)
-
-
-class Location(click.ParamType):
-    """A folder or file (checked as ``path`` checks it), or an object-storage URL
-    (``s3://bucket/prefix``, …) taken as it is."""
-
-    name = "path|url"
-
-    def __init__(self, path: click.Path) -> None:
-        self.path = path
-
-    def convert(self, value: Any, param: click.Parameter | None, ctx: click.Context | None) -> Any:
-        from standgrid.storage import is_url
-
-        if is_url(value):
-            return str(value).rstrip("/")
-        return self.path.convert(value, param, ctx)
 
 
 def catalog_argument(exists: bool = True) -> Callable[[F], F]:

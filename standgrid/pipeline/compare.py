@@ -24,7 +24,7 @@ from standgrid.comparison.coverage import (
 )
 from standgrid.comparison.options import CompareOptions
 from standgrid.engine import Execution
-from standgrid.errors import OptionError
+from standgrid.storage import is_url
 
 if TYPE_CHECKING:
     import geopandas as gpd
@@ -84,23 +84,33 @@ def compare_epochs(
     ``options.min_observed_fraction`` of it get null changes with a reason. ``execution``
     gives the lock timeout and the progress (a comparison runs in this process).
     """
-    import os
-    import tempfile
 
-    from standgrid.catalog import Catalog
     from standgrid.catalog.remote import catalog_at
-    from standgrid.storage import is_url
 
-    if is_url(options.other_catalog):
-        raise OptionError(
-            "other_catalog",
-            "an object-storage URL is not read here yet; compare against a folder",
-        )
     if is_url(catalog_path):
         lock_timeout = execution.lock_timeout
         with catalog_at(catalog_path, write=True, lock_timeout=lock_timeout) as root:
             report = compare_epochs(root, options, execution=execution)
         return replace(report, catalog=str(catalog_path))
+    if is_url(options.other_catalog):  # read from its current generation, recorded by URL
+        url = str(options.other_catalog)
+        with catalog_at(url, write=False, lock_timeout=execution.lock_timeout) as other:
+            local = replace(options, other_catalog=other)
+            return _compare_epochs(catalog_path, local, execution, url)
+    return _compare_epochs(catalog_path, options, execution, None)
+
+
+def _compare_epochs(
+    catalog_path: str | Path,
+    options: CompareOptions,
+    execution: Execution,
+    other_name: str | None,
+) -> CompareReport:
+    import os
+    import tempfile
+
+    from standgrid.catalog import Catalog
+
     progress, lock_timeout = execution.progress, execution.lock_timeout
     epoch_from, epoch_to = options.epoch_from, options.epoch_to
     other_catalog = options.other_catalog
@@ -134,7 +144,7 @@ def compare_epochs(
                 target,
                 epoch_from,
                 epoch_to,
-                other_catalog,
+                other_name or other_catalog,
                 max_distance,
                 min_observed_fraction,
                 Path(scratch),
@@ -271,7 +281,7 @@ def _compare(
             "gpkg": paths.INDEX,
         }
         other = (
-            str(Path(other_catalog).resolve())
+            (other_catalog if is_url(other_catalog) else str(Path(other_catalog).resolve()))
             if other_catalog is not None and target is not source
             else None
         )

@@ -492,3 +492,44 @@ def test_a_comparison_against_a_catalog_in_object_storage_goes_stale_with_it(
     tile([str(BUNDLED_MISSIONS / MISSIONS["2028"]), "-o", url])  # re-tiled there
     seen = catalog_status(here)["comparisons"][key]
     assert seen["state"] == "stale" and "re-tiled" in seen["reason"] and url in seen["reason"]
+
+
+@pytest.mark.parametrize("body", [b"not json", b"[1, 2]", b'{"expires": "soon", "pid": "x"}'])
+def test_a_damaged_lease_is_taken_over(s3: str, body: bytes) -> None:
+    url = f"{s3}/damaged-lease"
+    folder = ObjectFolder.open(url)
+    folder.write(LOCK, body)
+    with catalog_at(url, write=True, lock_timeout=1):
+        found = folder.read(LOCK)
+        assert found is not None and json.loads(found[0])["pid"] == os.getpid()
+    assert folder.read(LOCK) is None
+
+
+@pytest.mark.parametrize(
+    ("head", "files"),
+    [
+        ({"generation": 1, "root": "../../outside"}, {}),
+        ({"generation": 1, "root": "g000001-0123abcd"}, {"../escape.txt": None}),
+        ({"generation": 1, "root": "g000001-0123abcd"}, {"/etc/escape": None}),
+        ({"generation": "one", "root": "g000001-0123abcd"}, {}),
+    ],
+)
+def test_a_hostile_head_or_manifest_is_refused_before_any_file_is_written(
+    s3: str, tmp_path: Path, head: dict[str, object], files: dict[str, None]
+) -> None:
+    from standgrid.errors import StorageError
+
+    url = f"{s3}/hostile"
+    folder = ObjectFolder.open(url)
+    folder.write(HEAD, json.dumps(head).encode())
+    manifest = {rel: {"size": 5, "sha256": "0" * 64} for rel in files}
+    if ".." not in str(head["root"]):  # (obstore refuses to write such a key at all)
+        body = json.dumps({"files": manifest}).encode()
+        folder.write(f"_standgrid/manifests/{head['root']}.json", body)
+    with (
+        pytest.raises(StorageError, match=r"not a standgrid|is no generation"),
+        catalog_at(url, write=False),
+    ):
+        pass
+    assert not [p for p in tmp_path.rglob("*") if p.is_file()]  # nothing written, anywhere
+    assert not Path("/etc/escape").exists()

@@ -131,8 +131,15 @@ class Lease:
             }
         ).encode()
 
+    @staticmethod
+    def _expires(held: dict[str, Any]) -> float:
+        try:
+            return float(held.get("expires", 0))
+        except (TypeError, ValueError):
+            return 0.0  # not a lease this code wrote: takeable
+
     def _takeable(self, held: dict[str, Any]) -> bool:
-        if float(held.get("expires", 0)) < time.time():
+        if self._expires(held) < time.time():
             return True
         pid = held.get("pid")
         return (
@@ -155,6 +162,7 @@ class Lease:
                     held = json.loads(found[0])
                 except ValueError:
                     held = {}
+                held = held if isinstance(held, dict) else {}
                 if self._takeable(held):
                     with contextlib.suppress(PreconditionFailed):
                         self.etag = self.folder.write(LOCK, self._body(), if_match=found[1])
@@ -163,7 +171,7 @@ class Lease:
                     raise CatalogBusyError(
                         f"{self.folder.url}: another writer holds the catalog (host "
                         f"{held.get('host')}, pid {held.get('pid')}, lease until "
-                        f"{time.strftime('%H:%M:%S', time.localtime(held.get('expires', 0)))})"
+                        f"{time.strftime('%H:%M:%S', time.localtime(self._expires(held)))})"
                         "; option lock_timeout sets how long to wait",
                         option="lock_timeout",
                     )
@@ -207,16 +215,30 @@ class RemoteCatalog:
             return None
         try:
             body = json.loads(found[0])
-            return Head(int(body["generation"]), str(body["root"]), found[1])
+            head = Head(int(body["generation"]), str(body["root"]), found[1])
         except (ValueError, KeyError, TypeError) as exc:
             raise StorageError(f"{self.folder.href(HEAD)}: not a standgrid HEAD: {exc}") from exc
+        if not _GENERATION.match(head.root):
+            raise StorageError(f"{self.folder.href(HEAD)}: {head.root!r} is no generation")
+        return head
 
     def manifest(self, head: Head) -> dict[str, dict[str, Any]]:
         """Every file of ``head``'s generation: relative path -> size and sha256."""
-        found = self.folder.read(f"{MANIFESTS}/{head.root}.json")
+        key = f"{MANIFESTS}/{head.root}.json"
+        found = self.folder.read(key)
         if found is None:
             raise StorageError(f"{self.url}: generation {head.root} has no manifest")
-        return dict(json.loads(found[0])["files"])
+        try:
+            files = dict(json.loads(found[0])["files"])
+            for rel, entry in files.items():  # a path to write under the working copy
+                parts = rel.split("/")
+                if rel.startswith("/") or "\\" in rel or any(p in ("", ".", "..") for p in parts):
+                    raise ValueError(f"{rel!r} leaves the catalog")
+                if not isinstance(entry["size"], int) or not isinstance(entry["sha256"], str):
+                    raise ValueError(f"{rel!r}: no size and digest")
+        except (ValueError, KeyError, TypeError) as exc:
+            raise StorageError(f"{self.folder.href(key)}: not a standgrid manifest: {exc}") from exc
+        return files
 
     def fetch(self, head: Head, files: dict[str, dict[str, Any]], target: Path) -> None:
         """Download generation ``head`` into ``target``, every file checked by its digest."""

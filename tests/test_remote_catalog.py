@@ -241,7 +241,7 @@ def _free_port() -> int:
 
 
 @pytest.mark.slow
-def test_workers_without_a_shared_folder_build_the_same_catalog(
+def test_workers_without_a_shared_folder_build_and_enrich_the_same_catalog(
     s3: str, tmp_path: Path, endpoint: str
 ) -> None:
     """A dask scheduler and two workers that cannot see this process's folders (each worker
@@ -324,6 +324,11 @@ def test_workers_without_a_shared_folder_build_the_same_catalog(
         result = CliRunner().invoke(cli, [*argv, "--no-shared-folder"])
         assert result.exit_code == 0, result.output
         seconds = time.perf_counter() - t0
+        enrich = ["enrich", url, "--scheduler", address, "--no-shared-folder", "-q"]
+        t0 = time.perf_counter()
+        result = CliRunner().invoke(cli, enrich)
+        assert result.exit_code == 0, result.output
+        enrich_seconds = time.perf_counter() - t0
     finally:
         for process in processes[::-1]:
             process.terminate()
@@ -333,12 +338,14 @@ def test_workers_without_a_shared_folder_build_the_same_catalog(
     )
     reference = tmp_path / "disk" / "cluster"  # the same missions, on disk, in this process
     tile([str(p) for p in fetched] + ["-o", str(reference)])
+    enriched = CliRunner().invoke(cli, ["enrich", str(reference), "-q"])
+    assert enriched.exit_code == 0, enriched.output
     on_s3 = digest_catalog(checkout(url, tmp_path / "s3" / "cluster"))
-    assert on_s3 == digest_catalog(reference)
-    assert any(k.startswith("tiles/") for k in on_s3)
+    assert on_s3 == digest_catalog(reference)  # tiles, rasters, tables, index: bit for bit
+    assert any(k.startswith("tiles/") for k in on_s3) and any(k.endswith(".tif") for k in on_s3)
     keys = [m["path"] for m in RemoteCatalog(url).folder.list()]
     assert not any(k.startswith("_standgrid/outbox/") for k in keys)  # taken in, removed
-    print(f"2 workers without a shared folder: {seconds:.1f} s")
+    print(f"2 workers without a shared folder: tile {seconds:.1f} s, enrich {enrich_seconds:.1f} s")
 
 
 @pytest.mark.slow

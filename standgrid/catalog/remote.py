@@ -78,6 +78,16 @@ WORK_ENV = "STANDGRID_WORK_DIR"
 _IN_STORE: dict[str, str] = {}
 
 
+#: Working copies checked out in this process: real path -> their generation's URL.
+_CHECKOUTS: dict[str, str] = {}
+
+
+def generation_of(root: str | os.PathLike[str]) -> str | None:
+    """The URL of the generation the working copy at ``root`` holds (None: ``root`` is no
+    working copy, or of a new catalog)."""
+    return _CHECKOUTS.get(os.path.realpath(root))
+
+
 def note_in_store(url: str, sha256: str) -> None:
     """A file with this digest is in the store at ``url`` (a worker put it there)."""
     _IN_STORE[sha256] = url
@@ -263,7 +273,13 @@ class RemoteCatalog:
         try:
             root = work / self.name
             head, files = self._fetch_current(root, only)
-            yield root
+            key = os.path.realpath(root)
+            if head is not None:
+                _CHECKOUTS[key] = f"{self.url}/{head.root}"
+            try:
+                yield root
+            finally:
+                _CHECKOUTS.pop(key, None)
             if write:
                 assert lease is not None
                 self._commit(root, head, files, lease)

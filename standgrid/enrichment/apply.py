@@ -15,6 +15,7 @@ import functools
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any
 
+from standgrid.engine import SerialExecutor
 from standgrid.enrichment.stands import StandAggregator, StandSample
 from standgrid.errors import EnrichError
 
@@ -141,7 +142,9 @@ def catalog_apply(
     rasters = EpochRasters.empty(grid)
     samples: list[StandSample] = []
     tree_frames = []
-    with contextlib.closing(apply_blocks(jobs, executor, progress, f"{epoch}: chunks")) as done:
+    remote = _remote(catalog, execution) if not isinstance(executor, SerialExecutor) else None
+    blocks = apply_blocks(jobs, executor, progress, f"{epoch}: chunks", remote)
+    with contextlib.closing(blocks) as done:
         for job, result in done:
             rasters.paste(job.chunk, result)
             stands.add(result.samples)
@@ -150,6 +153,20 @@ def catalog_apply(
     return AppliedEpoch(
         grid, polygons, rasters.arrays, samples, stands.result(), tree_frames, len(chunks)
     )
+
+
+def _remote(catalog: Catalog, execution: Execution) -> tuple[Any, Any] | None:
+    """Workers without a shared folder: the catalog generation's folder they read the tiles
+    from, and the outbox they put theirs in (None: workers share this process's folders)."""
+    if execution.outbox is None:
+        return None
+    from standgrid.catalog.remote import generation_of
+    from standgrid.storage import ObjectFolder
+
+    source = generation_of(catalog.root)
+    if source is None:
+        raise EnrichError("workers without a shared folder need the catalog in object storage")
+    return ObjectFolder.open(source), ObjectFolder.open(execution.outbox)
 
 
 def _epoch_cells(catalog: Catalog, epoch: str, partition: Partition) -> list[ChunkCell]:

@@ -13,6 +13,7 @@ import contextlib
 import functools
 from collections.abc import Generator, Sequence
 from dataclasses import dataclass
+from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
@@ -21,6 +22,7 @@ from numpy.typing import NDArray
 from standgrid.engine.budget import bounded_map, release_memory
 from standgrid.engine.executor import SerialExecutor, run_limited
 from standgrid.enrichment.block import RASTERS, BlockContext, BlockResult, enrich_block, paste
+from standgrid.errors import EnrichError
 
 if TYPE_CHECKING:
     from standgrid.engine import Executor, Progress
@@ -113,7 +115,11 @@ class EpochRasters:
 
 
 def apply_blocks(
-    jobs: Sequence[BlockJob], executor: Executor, progress: Progress, desc: str
+    jobs: Sequence[BlockJob],
+    executor: Executor,
+    progress: Progress,
+    desc: str,
+    remote: tuple[Any, Any] | None = None,
 ) -> Generator[tuple[BlockJob, BlockResult], None, None]:
     """Run every job; yield ``(job, result)`` in the jobs' order (results that finish early
     wait, so merging is deterministic whatever the executor; close it when done, see
@@ -121,7 +127,8 @@ def apply_blocks(
     :data:`~standgrid.engine.ordered.AHEAD` jobs run at once on threads (see
     :func:`chunks_at_once`), as many as their estimated working sets fit in the share of the
     budget the chunks get (:data:`CHUNK_SHARE`; a chunk cannot be smaller than one cell: a
-    dense one runs alone)."""
+    dense one runs alone). ``remote``: ``(source, outbox)`` object-storage folders for
+    workers that share no folder with this process (:class:`RemoteBlockJob`)."""
     from standgrid.engine.ordered import AHEAD, ordered_map
 
     if isinstance(executor, SerialExecutor):
@@ -136,9 +143,106 @@ def apply_blocks(
         with contextlib.closing(in_order):
             yield from zip(jobs, progress.track(in_order, len(jobs), desc), strict=True)
         return
+    if remote is not None:  # workers without the client's folders
+        yield from _through_store(jobs, executor, progress, desc, *remote)
+        return
     ordered = ordered_map(executor, run_block, jobs)
     with contextlib.closing(ordered):
         yield from zip(jobs, progress.track(ordered, len(jobs), desc), strict=True)
+
+
+def _through_store(
+    jobs: Sequence[BlockJob],
+    executor: Executor,
+    progress: Progress,
+    desc: str,
+    source: Any,
+    outbox: Any,
+) -> Generator[tuple[BlockJob, BlockResult], None, None]:
+    """Run the jobs as :class:`RemoteBlockJob`s; each rewritten tile is fetched from the
+    outbox to the path the job stages it at (checked by digest) and noted as already in the
+    store, so the commit copies it there instead of uploading it again."""
+    import hashlib
+    from uuid import uuid4
+
+    from standgrid.catalog.remote import note_in_store
+    from standgrid.engine.ordered import ordered_map
+
+    tasks = [
+        RemoteBlockJob(
+            job, source, outbox, tuple(f"{uuid4().hex}{Path(t).name}" for t in job.targets)
+        )
+        for job in jobs
+    ]
+    ordered = ordered_map(executor, run_remote_block, tasks)
+    with contextlib.closing(ordered):
+        for task, (result, digests) in zip(
+            tasks, progress.track(ordered, len(tasks), desc), strict=True
+        ):
+            for target, key, (sha, size) in zip(task.job.targets, task.keys, digests, strict=True):
+                outbox.download(key, Path(target))
+                data = Path(target).read_bytes()
+                if len(data) != size or hashlib.sha256(data).hexdigest() != sha:
+                    raise EnrichError(f"{outbox.href(key)}: damaged in transfer")
+                note_in_store(outbox.href(key), sha)
+            yield task.job, result
+
+
+@dataclass(frozen=True)
+class RemoteBlockJob:
+    """A :class:`BlockJob` for a worker that shares no folder with the client: it reads the
+    chunk's tiles from ``source`` (the catalog generation's folder in object storage) and
+    puts the tiles it rewrites in ``outbox`` at ``keys``."""
+
+    job: BlockJob
+    source: Any  # standgrid.storage.ObjectFolder (sent as its URL)
+    outbox: Any
+    keys: tuple[str, ...]
+
+
+def _tiles_here(source: Any, rels: Sequence[str]) -> Path:
+    """The generation's tiles ``rels`` in this worker's own folder (fetched once each)."""
+    import hashlib
+    import os
+    import tempfile
+
+    try:
+        from distributed import get_worker
+
+        base = Path(get_worker().local_directory)  # removed with the worker
+    except (ImportError, ValueError):
+        base = Path(tempfile.gettempdir())
+    root = base / "standgrid-tiles" / hashlib.sha256(source.url.encode()).hexdigest()[:16]
+    for rel in rels:
+        path = root / rel
+        if not path.is_file():
+            part = path.with_name(f".{path.name}.{os.getpid()}.part")
+            source.download(rel, part)
+            os.replace(part, path)
+    return root
+
+
+def run_remote_block(task: RemoteBlockJob) -> tuple[BlockResult, list[tuple[str, int]]]:
+    """:func:`run_block` on a worker without the client's folders (see
+    :class:`RemoteBlockJob`); returns the result and each rewritten tile's SHA-256 and size."""
+    import hashlib
+    import tempfile
+    from dataclasses import replace
+
+    chunk = task.job.chunk
+    rels = sorted({c.tile for c in (*chunk.cells, *chunk.neighbours, *chunk.far)})
+    root = _tiles_here(task.source, rels)
+    with tempfile.TemporaryDirectory(prefix="standgrid-chunk-") as out:
+        targets = tuple(
+            str(Path(out) / f"{k}-{Path(t).name}") for k, t in enumerate(task.job.targets)
+        )
+        result = run_block(replace(task.job, root=str(root), targets=targets))
+        digests = []
+        for target, key in zip(targets, task.keys, strict=True):
+            data = Path(target).read_bytes()
+            digests.append((hashlib.sha256(data).hexdigest(), len(data)))
+            task.outbox.upload(Path(target), key)
+    return result, digests
 
 
 def chunks_at_once(executor: Executor) -> int:

@@ -65,16 +65,20 @@ def enrich_catalog(
     from standgrid.catalog.store import require_catalog
     from standgrid.storage import is_url
 
-    if not execution.shared_folder and (execution.workers or execution.scheduler):
-        raise OptionError(
-            "shared_folder",
-            "enrich's workers read the catalog's tiles from its folder: without a shared "
-            "folder, enrich in this process (no workers, no scheduler)",
-        )
     if is_url(catalog_path):
+        if not execution.shared_folder:  # workers read tiles from, and put theirs in, the store
+            from standgrid.catalog.remote import outbox_url
+
+            execution = replace(execution, outbox=outbox_url(str(catalog_path)))
         with catalog_at(catalog_path, write=True, lock_timeout=execution.lock_timeout) as root:
             report = enrich_catalog(root, options, execution=execution)
         return replace(report, catalog=str(catalog_path))
+    if not execution.shared_folder and execution.outbox is None:
+        raise OptionError(
+            "shared_folder",
+            "workers without a shared folder exchange tiles through object storage: give "
+            "the catalog as an object-storage URL (s3://bucket/prefix)",
+        )
     require_catalog(catalog_path)  # before a cluster starts or a lock file is made
     with contextlib.ExitStack() as stack:
         executor = stack.enter_context(execution.open())

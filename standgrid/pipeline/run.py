@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 from collections.abc import Sequence
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -65,16 +65,13 @@ def run_pipeline(
 ) -> RunReport:
     """Tile every mission, enrich every epoch (or ``enrich_options.epochs``), and compare
     two epochs (``compare_options``; by default the first with the last) when there are
-    two; every stage runs as ``execution`` says (one cluster, or this process, for all;
-    without a shared folder, enrich and compare run in this process)."""
+    two; every stage runs as ``execution`` says (one cluster, or this process, for all)."""
     from standgrid.pipeline.compare import compare_epochs
 
     missions = expand_missions(paths)
     with execution.open() as executor:
         running = execution.on(executor)
         tiled = tile_missions(missions, catalog, tile_options, execution=running)
-        if not execution.shared_folder:  # enrich reads tiles by path: in this process
-            running = replace(execution, workers=None, scheduler=None, shared_folder=True)
         enriched = enrich_catalog(catalog, enrich_options, execution=running)
     compared = None
     if len(enriched.epochs) >= 2 or compare_options.other_catalog is not None:

@@ -147,10 +147,13 @@ def octree_nodes(
     (the cube is closed: a point on its far face is in the last node). ``keys``: (M, 4)
     node keys ``(depth, x, y, z)``, coarse to fine; ``node_of_point``: (N,) index into
     ``keys``; ``grouped``: the input indices node by node (in ``keys`` order; within a
-    node in finest-cell order). Exact integer arithmetic: node ``k`` of depth ``d`` holds
-    ``k * edge / 2**d <= u < (k + 1) * edge / 2**d`` on each axis; a node takes the first
-    point (in input order) of each cell of its ``resolution``-cubed grid, or all its
-    points when at most ``leaf_points`` are left. ``resolution`` is a power of two.
+    node in input order: a scan's order, which LAZ compresses best). Exact integer
+    arithmetic: node ``k`` of depth ``d`` holds ``k * edge / 2**d <= u < (k + 1) * edge /
+    2**d`` on each axis; a node takes the first point (in input order) of each cell of its
+    ``resolution``-cubed grid, or all its points when at most ``leaf_points`` are left, or
+    at the finest depth (cells at the lattice step, or as fine as the Morton code of one
+    64-bit sort key allows beside the point index: ``3 * depth`` bits + index bits <= 64,
+    at least 2 mm over a 33 m cube for 2 M points). ``resolution`` is a power of two.
 
     One sort: cells of every depth are prefixes of the finest cells' Morton codes
     (``floor(floor(x) / 2) == floor(x / 2)``), so each depth is a pass over runs.
@@ -160,8 +163,12 @@ def octree_nodes(
     n = len(ijk)
     edge = max(int(edge), 1)
     r_bits = resolution.bit_length() - 1
-    finest = 0  # cells of the finest depth: at least the lattice, at most 2**21 per axis
-    while (resolution << finest) < edge and (resolution << (finest + 1)) <= 1 << _MORTON_BITS:
+    # The finest depth: its cells at least the lattice step, and its Morton codes (3 bits a
+    # depth) beside the point index in 64 bits, so that one sort of values orders them.
+    idx_bits = max(n - 1, 1).bit_length()
+    most = min(_MORTON_BITS, (64 - idx_bits) // 3)
+    finest = 0
+    while (resolution << finest) < edge and (resolution << (finest + 1)) <= 1 << most:
         finest += 1
     cells = resolution << finest
     c = np.minimum((np.asarray(ijk, dtype=np.int64) * cells) // edge, cells - 1).astype(np.uint64)
@@ -193,9 +200,18 @@ def octree_nodes(
         taken = pos[take]
         taken_node = node[take]
         starts = np.r_[True, taken_node[1:] != taken_node[:-1]]
-        index = count + np.cumsum(starts) - 1
-        node_of_point[order[taken]] = index
-        grouped.append(order[taken])
+        index = np.cumsum(starts) - 1
+        # within a node, input order (a scan's order: LAZ compresses it better)
+        if 2 * idx_bits <= 64:
+            by_node = (index.astype(np.uint64) << np.uint64(idx_bits)) | order[taken].astype(
+                np.uint64
+            )
+            by_node.sort()
+            members = (by_node & np.uint64((1 << idx_bits) - 1)).astype(np.int64)
+        else:  # over 2**32 points
+            members = order[taken][np.lexsort((order[taken], index))]
+        node_of_point[members] = count + index
+        grouped.append(members)
         unique_nodes = taken_node[starts]
         x, y, z = (_compact(unique_nodes >> np.uint64(2 - axis)) for axis in range(3))
         keys.append(np.column_stack([np.full(len(unique_nodes), depth), x, y, z]).astype(np.int64))

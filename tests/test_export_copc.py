@@ -99,10 +99,12 @@ def tile(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, PointCloud, Po
     return path, core, buffer
 
 
-def test_octree_puts_every_point_in_one_node_inside_its_voxel() -> None:
+@pytest.mark.parametrize(
+    "n, edge", [(30_000, 20_000), (3_000, 2_000_000)]
+)  # Morton codes by table look-up; by bit spreading (finer than 2**16 cells)
+def test_octree_puts_every_point_in_one_node_inside_its_voxel(n: int, edge: int) -> None:
     rng = np.random.default_rng(5)
-    edge = 20_000
-    ijk = rng.integers(0, edge + 1, (30_000, 3))
+    ijk = rng.integers(0, edge + 1, (n, 3))
     ijk[:100] = edge  # the far faces belong to the last nodes
     keys, node, grouped = octree_nodes(ijk, edge, resolution=8, leaf_points=300)
     np.testing.assert_array_equal(np.sort(grouped), np.arange(len(ijk)))  # a permutation

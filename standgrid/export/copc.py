@@ -105,6 +105,24 @@ def _compact(v: NDArray[np.uint64]) -> NDArray[np.uint64]:
     return v
 
 
+_SPREAD_16: NDArray[np.uint64] | None = None  # _spread of every 16-bit value (512 KiB)
+
+
+def _morton(c: NDArray[np.int64], cells: int) -> NDArray[np.uint64]:
+    """Morton codes of (N, 3) cell coordinates in ``[0, cells)`` (x the most significant of
+    each bit triple); a table look-up per axis when ``cells <= 2**16``."""
+    global _SPREAD_16
+    if cells > 1 << 16:
+        u = c.astype(np.uint64)
+        return (
+            _spread(u[:, 0]) << np.uint64(2) | _spread(u[:, 1]) << np.uint64(1) | _spread(u[:, 2])
+        )
+    if _SPREAD_16 is None:
+        _SPREAD_16 = _spread(np.arange(1 << 16, dtype=np.uint64))
+    table = _SPREAD_16
+    return (table[c[:, 0]] << np.uint64(2)) | (table[c[:, 1]] << np.uint64(1)) | table[c[:, 2]]
+
+
 def _stable_order(
     code: NDArray[np.uint64], code_bits: int
 ) -> tuple[NDArray[np.int64], NDArray[np.uint64]]:
@@ -171,52 +189,51 @@ def octree_nodes(
     while (resolution << finest) < edge and (resolution << (finest + 1)) <= 1 << most:
         finest += 1
     cells = resolution << finest
-    c = np.minimum((np.asarray(ijk, dtype=np.int64) * cells) // edge, cells - 1).astype(np.uint64)
-    morton = _spread(c[:, 0]) << np.uint64(2) | _spread(c[:, 1]) << np.uint64(1) | _spread(c[:, 2])
+    c = np.minimum((np.asarray(ijk, dtype=np.int64) * cells) // edge, cells - 1)
+    morton = _morton(c, cells)
     order, code = _stable_order(morton, 3 * (r_bits + finest))
-    remaining = np.ones(n, dtype=bool)  # over sorted positions
+    del c, morton
     node_of_point = np.full(n, -1, dtype=np.int64)
     keys: list[NDArray[np.int64]] = []
     grouped: list[NDArray[np.int64]] = []
     count = 0
-    for depth in range(finest + 1):
-        pos = np.flatnonzero(remaining)
-        if not len(pos):
+    for depth in range(finest + 1):  # code, order: the points left, in sorted order
+        if not len(code):
             break
-        cell = code[pos] >> np.uint64(3 * (finest - depth))
+        cell = code >> np.uint64(3 * (finest - depth))
         node = cell >> np.uint64(3 * r_bits)
-        node_start = np.flatnonzero(np.r_[True, node[1:] != node[:-1]])
         if depth == finest:
-            take = np.ones(len(pos), dtype=bool)
+            take = np.ones(len(code), dtype=bool)
         else:
-            sizes = np.diff(np.r_[node_start, len(pos)])
+            node_start = np.flatnonzero(np.r_[True, node[1:] != node[:-1]])
+            sizes = np.diff(np.r_[node_start, len(code)])
             take = np.repeat(sizes <= leaf_points, sizes)
             cell_start = np.flatnonzero(np.r_[True, cell[1:] != cell[:-1]])
             # the first point in input order of each cell (a run is in finest-cell order):
             # where the input index is its run's least (indices are distinct)
-            index_of = order[pos]
-            first = np.minimum.reduceat(index_of, cell_start)
-            take |= index_of == np.repeat(first, np.diff(np.r_[cell_start, len(pos)]))
-        taken = pos[take]
+            first = np.minimum.reduceat(order, cell_start)
+            take |= order == np.repeat(first, np.diff(np.r_[cell_start, len(code)]))
+        taken_order = order[take]
         taken_node = node[take]
         starts = np.r_[True, taken_node[1:] != taken_node[:-1]]
         index = np.cumsum(starts) - 1
         # within a node, input order (a scan's order: LAZ compresses it better)
         if 2 * idx_bits <= 64:
-            by_node = (index.astype(np.uint64) << np.uint64(idx_bits)) | order[taken].astype(
+            by_node = (index.astype(np.uint64) << np.uint64(idx_bits)) | taken_order.astype(
                 np.uint64
             )
             by_node.sort()
             members = (by_node & np.uint64((1 << idx_bits) - 1)).astype(np.int64)
         else:  # over 2**32 points
-            members = order[taken][np.lexsort((order[taken], index))]
+            members = taken_order[np.lexsort((taken_order, index))]
         node_of_point[members] = count + index
         grouped.append(members)
         unique_nodes = taken_node[starts]
         x, y, z = (_compact(unique_nodes >> np.uint64(2 - axis)) for axis in range(3))
         keys.append(np.column_stack([np.full(len(unique_nodes), depth), x, y, z]).astype(np.int64))
         count += len(unique_nodes)
-        remaining[taken] = False
+        left = ~take
+        code, order = code[left], order[left]
     if not keys:
         return np.zeros((0, 4), dtype=np.int64), node_of_point, np.zeros(0, dtype=np.int64)
     return np.concatenate(keys), node_of_point, np.concatenate(grouped)
@@ -331,14 +348,17 @@ def _write_copc(
     header_block = _uncompressed_header(las, extent)
     records = las.points.array
     n = len(records)
-    ijk = np.column_stack([records[c].astype(np.int64) for c in ("X", "Y", "Z")])
     # The cube readers check nodes against (copclib derives it from the header bounds, laspy
     # and PDAL take it from the COPC info): corner at the minimum, edge the largest extent
     # (in lattice steps).
-    corner = ijk.min(axis=0) if n else np.zeros(3, np.int64)
-    edge = int((ijk.max(axis=0) - corner).max()) if n else 1
+    axes = [records[c] for c in ("X", "Y", "Z")]
+    corner = np.array([int(a.min()) for a in axes] if n else [0, 0, 0], dtype=np.int64)
+    edge = max(int(a.max()) - int(lo) for a, lo in zip(axes, corner, strict=True)) if n else 1
+    ijk = np.empty((n, 3), dtype=np.int64)
+    for axis, values in enumerate(axes):
+        np.subtract(values, corner[axis], out=ijk[:, axis], dtype=np.int64)
     keys, node_of_point, order = octree_nodes(
-        ijk - corner, edge, resolution=resolution, leaf_points=leaf_points
+        ijk, edge, resolution=resolution, leaf_points=leaf_points
     )
     del ijk
     counts = np.bincount(node_of_point, minlength=len(keys)) if n else np.zeros(0, np.int64)

@@ -1,4 +1,4 @@
-"""COPC 1.0 tile writer (copclib): a tile every LAS 1.4 reader reads, streamable by bounds.
+"""COPC 1.0 tile writer: a tile every LAS 1.4 reader reads, streamable by bounds.
 
 :func:`write_copc_tile` takes the arguments of :func:`~standgrid.export.las.write_tile` and
 writes the same points, fields and VLRs as a Cloud Optimized Point Cloud: LAZ 1.4 whose
@@ -6,26 +6,25 @@ points are grouped into the nodes of an octree (one LAZ chunk per node) indexed 
 hierarchy, so a reader (laspy's ``CopcReader``, QGIS, PDAL) fetches only the nodes a bounds
 or resolution query touches, locally or over HTTP range requests.
 
-How it is built:
+How it is built, in memory (no scratch file):
 
-1. :func:`write_tile` writes an uncompressed scratch tile beside the target: its point
-   records, typed extra-bytes VLR, WKT VLR and standgrid field manifest are the ones a
-   plain tile has, by construction.
-2. The octree: a cube around the points; the root takes one point per cell of a
-   ``resolution``-cubed grid over it (the first point of each cell, in tile order), and
-   each child node takes one point per cell of the same grid over its own (half-size) cube
-   from the points left, until a node has at most ``leaf_points`` points left (it takes
-   them all) or cells are finer than the 1 mm lattice. Every point is in exactly one node;
-   within a node points are in Morton order of the finest cells; nodes are written coarse
-   to fine.
-3. copclib's ``FileWriter`` compresses the nodes and writes the hierarchy.
-4. copclib's Python API can declare extra bytes only as untyped bytes and no VLRs of its
-   own, so the VLR block is rebuilt: COPC info first, then the scratch tile's VLRs (WKT,
-   typed extra bytes, field manifest), then copclib's LAZ VLR; the data after the block
-   moves by the size difference, and every absolute offset behind it (header, COPC info,
-   LAZ chunk table pointer, hierarchy entries) moves with it. Left out: copclib's extents
-   VLR (``copc``/10000, an extension outside COPC 1.0, all zeros when nodes are given as
-   raw records: a wrong number) and its WKT EVLR (the WKT is the scratch tile's VLR).
+1. The record is the plain tile's (:func:`~standgrid.export.las.encode_tile`, the one LAS
+   encoder): its point records, header, typed extra-bytes VLR, WKT VLR and standgrid field
+   manifest are a plain tile's by construction.
+2. The octree (:func:`octree_nodes`): a cube around the points; the root takes one point
+   per cell of a ``resolution``-cubed grid over it (the first point of each cell, in tile
+   order), and each child node takes one point per cell of the same grid over its own
+   (half-size) cube from the points left, until a node has at most ``leaf_points`` points
+   left (it takes them all) or cells reach the finest depth. Every point is in exactly one
+   node; within a node points keep the tile's (scan) order; nodes are written coarse to
+   fine.
+3. lazrs (laspy's LAZ codec) compresses each node as one variable-size LAZ chunk and
+   writes the chunk table. The rest is COPC 1.0's few fixed structs, written here: the
+   COPC info VLR first (cube, spacing, root hierarchy page, GPS time range), then the
+   plain tile's VLRs, then the LAZ VLR (variable-size chunks); the hierarchy is one EVLR
+   page whose entries name each node's chunk (offset, bytes, points, from the chunk
+   table). The tests read every tile back with laspy (as LAZ and with ``CopcReader``) and
+   with copclib's reader, which validates the hierarchy against the points.
 
 Written atomically (temporary sibling, fsync, rename). Point order differs from the plain
 tile's (grouped by node); :func:`~standgrid.export.las.read_tile` reads a COPC tile back to

@@ -1,5 +1,6 @@
-"""COPC tiles: written with write_copc_tile (copclib), read back by laspy (LasReader,
-CopcReader, also over HTTP from a real standgrid server), copclib's reader and read_tile."""
+"""COPC tiles: written with write_copc_tile (lazrs chunks, own COPC VLRs and hierarchy),
+read back by laspy (LasReader, CopcReader, also over HTTP from a real standgrid server),
+copclib's reader (the independent validator) and read_tile."""
 
 from __future__ import annotations
 
@@ -15,7 +16,7 @@ import pyproj
 import pytest
 
 from standgrid.errors import CRSError, OutputExistsError, PointCloudFormatError
-from standgrid.export.copc import is_copc, octree_nodes, write_copc_tile
+from standgrid.export.copc import _stable_order, is_copc, octree_nodes, write_copc_tile
 from standgrid.export.las import read_tile, snap_to_storage, write_tile
 from standgrid.pointcloud import PointCloud
 
@@ -98,10 +99,12 @@ def tile(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, PointCloud, Po
     return path, core, buffer
 
 
-def test_octree_puts_every_point_in_one_node_inside_its_voxel() -> None:
+@pytest.mark.parametrize(
+    "n, edge", [(30_000, 20_000), (3_000, 2_000_000)]
+)  # Morton codes by table look-up; by bit spreading (finer than 2**16 cells)
+def test_octree_puts_every_point_in_one_node_inside_its_voxel(n: int, edge: int) -> None:
     rng = np.random.default_rng(5)
-    edge = 20_000
-    ijk = rng.integers(0, edge + 1, (30_000, 3))
+    ijk = rng.integers(0, edge + 1, (n, 3))
     ijk[:100] = edge  # the far faces belong to the last nodes
     keys, node, grouped = octree_nodes(ijk, edge, resolution=8, leaf_points=300)
     np.testing.assert_array_equal(np.sort(grouped), np.arange(len(ijk)))  # a permutation
@@ -130,6 +133,84 @@ def test_octree_puts_every_point_in_one_node_inside_its_voxel() -> None:
     np.testing.assert_array_equal(np.flatnonzero(node == root), np.sort(first[first < len(ijk)]))
     with pytest.raises(ValueError, match="power of two"):
         octree_nodes(ijk, edge, resolution=12)
+
+
+@pytest.mark.parametrize(
+    "n, bits",
+    [(50_000, 30), (50_000, 60), (300_000, 63), (0, 3), (1, 3)],  # one sort, two, argsort
+)
+def test_stable_order_is_a_stable_argsort(n: int, bits: int) -> None:
+    rng = np.random.default_rng(n + bits)
+    code = rng.integers(0, 2**bits, n, dtype=np.uint64) if n else np.zeros(0, np.uint64)
+    code[: n // 3] = code[n // 3 : 2 * (n // 3)]  # ties
+    code[: n // 10] &= np.uint64(2**64 - 256)  # ties in the high bits only
+    order, sorted_code = _stable_order(code, bits)
+    want = np.argsort(code, kind="stable")
+    np.testing.assert_array_equal(order, want)
+    np.testing.assert_array_equal(sorted_code, code[want])
+
+
+def test_hierarchy_entries_are_the_laz_chunks_node_by_node(
+    tile: tuple[Path, PointCloud, PointCloud],
+) -> None:
+    """Each hierarchy entry names one LAZ chunk (variable-size chunks, in entry order): its
+    offset, byte size and point count; copclib's and laspy's node lists agree."""
+    import lazrs
+
+    path, core, buffer = tile
+    with laspy.open(path) as f:
+        header = f.header
+        laz_vlr = lazrs.LazVlr(header.vlrs.get("LasZipVlr")[0].record_data)
+    assert laz_vlr.uses_variable_size_chunks()
+    with open(path, "rb") as stream:
+        stream.seek(header.offset_to_point_data)
+        table = lazrs.read_chunk_table(stream, laz_vlr)
+    reader = copclib.FileReader(str(path))
+    try:
+        nodes = sorted(reader.GetAllNodes(), key=lambda n: n.offset)
+    finally:
+        reader.Close()
+    assert [(n.point_count, n.byte_size) for n in nodes] == [tuple(t) for t in table]
+    offsets = header.offset_to_point_data + 8 + np.r_[0, np.cumsum([b for _, b in table])[:-1]]
+    assert [n.offset for n in nodes] == offsets.tolist()
+    with laspy.CopcReader.open(path) as copc:
+        entries = list(copc.root_page.entries.values())  # laspy's reading of the same page
+    assert sorted((e.offset, e.byte_size, e.point_count) for e in entries) == [
+        (n.offset, n.byte_size, n.point_count) for n in nodes
+    ]
+    assert sum(n.point_count for n in nodes) == len(core) + len(buffer)
+
+
+def test_level_and_resolution_queries_return_the_nodes_copclib_reads(
+    tile: tuple[Path, PointCloud, PointCloud],
+) -> None:
+    path, core, buffer = tile
+    reader = copclib.FileReader(str(path))
+    try:
+        by_depth: dict[int, list[np.ndarray]] = {}
+        depths = {node.key.d for node in reader.GetAllNodes()}
+        for node in reader.GetAllNodes():
+            if node.key.d <= 1:
+                p = reader.GetPoints(node)
+                xyz = np.column_stack([np.asarray(p.x), np.asarray(p.y), np.asarray(p.z)])
+                by_depth.setdefault(node.key.d, []).append(xyz)
+    finally:
+        reader.Close()
+
+    def rows(xyz: Any) -> np.ndarray:
+        if not isinstance(xyz, np.ndarray):  # a laspy record
+            xyz = np.column_stack([np.asarray(xyz.x), np.asarray(xyz.y), np.asarray(xyz.z)])
+        got = np.round(xyz * 1000).astype(np.int64)
+        return got[np.lexsort(got.T)]
+
+    with laspy.CopcReader.open(path) as copc:
+        spacing = copc.copc_info.spacing
+        root = copc.query(level=0)
+        coarse = copc.query(resolution=spacing / 2)  # levels 0 and 1
+        finest = copc.query(resolution=spacing / 2 ** max(depths))
+    np.testing.assert_array_equal(rows(root), rows(np.concatenate(by_depth[0])))
+    np.testing.assert_array_equal(rows(coarse), rows(np.concatenate(by_depth[0] + by_depth[1])))
+    assert len(root) < len(coarse) < len(finest) == len(core) + len(buffer)
 
 
 def test_copc_file_is_laz_14_with_the_plain_tiles_vlrs_and_dims(

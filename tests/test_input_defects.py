@@ -275,26 +275,33 @@ def test_full_disk_while_writing_geopackage_and_laz(tmp_path: Path) -> None:
     assert out["left"] == ["index.gpkg"], out
 
 
-def test_lazrs_errors_keep_the_errno_of_the_failed_write(tmp_path: Path) -> None:
+@pytest.mark.parametrize(
+    "module, writer, name",
+    [("las", "write_tile", "t.laz"), ("copc", "write_copc_tile", "t.copc.laz")],
+)
+def test_lazrs_errors_keep_the_errno_of_the_failed_write(
+    tmp_path: Path, module: str, writer: str, name: str
+) -> None:
     """lazrs reports a failed Python write only as "IoError: Failed to call write": the
-    stream keeps the OSError, so a full disk is told apart from other LAZ errors."""
+    stream keeps the OSError, so a full disk is told apart from other LAZ errors (LAZ and
+    COPC tiles: both are compressed by lazrs)."""
     script = textwrap.dedent(
-        """
+        f"""
         import resource, signal, sys
         import numpy as np
         signal.signal(signal.SIGXFSZ, signal.SIG_IGN)
         from standgrid.errors import OutOfSpaceError
-        from standgrid.export.las import write_tile
+        from standgrid.export.{module} import {writer}
         from standgrid.pointcloud import PointCloud
-        cloud = PointCloud(np.random.default_rng(0).uniform(0, 20, (200000, 3)), {})
+        cloud = PointCloud(np.random.default_rng(0).uniform(0, 20, (200000, 3)), {{}})
         resource.setrlimit(resource.RLIMIT_FSIZE, (100000, resource.RLIM_INFINITY))
         try:
-            write_tile(sys.argv[1], cloud, crs="EPSG:32630")
+            {writer}(sys.argv[1], cloud, crs="EPSG:32630")
         except OutOfSpaceError as exc:
             print("full", exc.path)
         """
     )
-    out = tmp_path / "t.laz"
+    out = tmp_path / name
     done = subprocess.run(
         [sys.executable, "-c", script, str(out)],
         capture_output=True,

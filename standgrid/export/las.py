@@ -129,14 +129,11 @@ def write_tile(
     out = Path(path)
     if laz is None:
         laz = out.suffix.lower() == ".laz"
-    core, buffer = _tile_parts(out, core, buffer)
-    encoded = encode_las(
-        PointCloud(core.xyz, _without_withheld(core)),
-        path=out,
-        convention=TILE,
-        scale=SCALE,
+    encoded, core, n_buffer = encode_tile(
+        out,
+        core,
         crs=crs,
-        buffer=PointCloud(buffer.xyz, _without_withheld(buffer)) if len(buffer) else None,
+        buffer=buffer,
         lattice_origin=lattice_origin,
         intensity_scale=intensity_scale,
     )
@@ -148,7 +145,32 @@ def write_tile(
         durable=durable,
         extent=encoded.extent,
     )
-    return _tile_info(out, core, len(buffer), encoded, bool(laz), crs, core_bounds)
+    return tile_info(out, core, n_buffer, encoded, bool(laz), crs, core_bounds)
+
+
+def encode_tile(
+    out: Path,
+    core: PointCloud,
+    *,
+    crs: str,
+    buffer: PointCloud | None,
+    lattice_origin: tuple[float, float],
+    intensity_scale: float,
+) -> tuple[EncodedLas, PointCloud, int]:
+    """A tile's record as :func:`write_tile` writes it (nothing written): the encoding, the
+    core points and the number of buffer points (for :func:`tile_info`)."""
+    core, buffer = _tile_parts(out, core, buffer)
+    encoded = encode_las(
+        PointCloud(core.xyz, _without_withheld(core)),
+        path=out,
+        convention=TILE,
+        scale=SCALE,
+        crs=crs,
+        buffer=PointCloud(buffer.xyz, _without_withheld(buffer)) if len(buffer) else None,
+        lattice_origin=lattice_origin,
+        intensity_scale=intensity_scale,
+    )
+    return encoded, core, len(buffer)
 
 
 def _tile_parts(
@@ -175,7 +197,7 @@ def _without_withheld(cloud: PointCloud) -> dict[str, NDArray[Any]]:
     return {k: v for k, v in cloud.fields.items() if k != "withheld"}
 
 
-def _tile_info(
+def tile_info(
     out: Path,
     core: PointCloud,
     n_buffer: int,
@@ -258,17 +280,25 @@ def rewrite_tile(
     :func:`read_tile` of the result equals :func:`write_tile` of the same cloud and fields
     (standard LAS fields checked by the same rule: exact or ``PointCloudFormatError`` naming
     ``source``, before the record is changed). ``laz`` defaults to the suffix of ``path``."""
-    out, src = Path(path), Path(source)
-    manifest = _manifest(record, src)
-    if manifest is None:
-        raise PointCloudFormatError("not a standgrid tile (no field manifest)", path=src)
-    # Every field checked before the record is touched: a refusal leaves it as read.
-    stored_values, extra_types = _rewritten_values(record, fields, src)
-    _add_extra_dims(record, fields, extra_types, manifest)
-    _set_fields(record, fields, stored_values, manifest)
+    out = Path(path)
+    set_tile_fields(record, fields, source=source)
     if laz is None:
         laz = out.suffix.lower() == ".laz"
     write_las(record, out, laz=laz, overwrite=True, durable=durable)
+
+
+def set_tile_fields(
+    record: Any, fields: dict[str, NDArray[Any]], *, source: str | os.PathLike[str]
+) -> None:
+    """:func:`rewrite_tile`'s change of ``record`` (read from ``source``), nothing written:
+    every field checked first (a refusal leaves the record as read), then set or added."""
+    src = Path(source)
+    manifest = _manifest(record, src)
+    if manifest is None:
+        raise PointCloudFormatError("not a standgrid tile (no field manifest)", path=src)
+    stored_values, extra_types = _rewritten_values(record, fields, src)
+    _add_extra_dims(record, fields, extra_types, manifest)
+    _set_fields(record, fields, stored_values, manifest)
 
 
 def _rewritten_values(

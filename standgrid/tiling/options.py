@@ -49,8 +49,9 @@ class TileOptions:
     buffer: float | None = None
     #: ``None``: the catalog's setting (LAZ for a new catalog).
     laz: bool | None = None
-    #: COPC tiles (streamable LAZ; writing costs 2-5x a LAZ tile). ``None``: the catalog's
-    #: setting (not COPC for a new catalog).
+    #: COPC tiles (streamable LAZ; tiling to COPC costs 1.1-1.4x the CPU of tiling to LAZ:
+    #: ``benchmarks/bench_copc.py --tiling``). ``None``: the catalog's setting (not COPC for
+    #: a new catalog).
     copc: bool | None = None
     method: Literal["yaw2d", "rigid3d"] = "yaw2d"
     #: ``(lat, lon, alt, yaw_deg)``: place the map frame by hand, no GNSS fit

@@ -96,6 +96,12 @@ def test_a_catalog_on_s3_is_the_catalog_on_disk(s3: str, tmp_path: Path) -> None
     assert status.exit_code == 0, status.output
     document = json.loads(status.stdout)
     assert document["catalog"] == url and sorted(document["epochs"]) == ["2024", "2028"]
+    refused = CliRunner().invoke(cli, ["tile", str(M2), "-o", url, "--grid", "50"])
+    assert refused.exit_code == 1 and "GridMismatchError" in refused.output
+    assert f"{url}/catalog.json" in refused.output  # the catalog's URL, not a working copy
+    assert "standgrid-catalog-" not in refused.output
+    head_after = remote.head()
+    assert head_after is not None and head_after.generation == 2  # nothing committed
 
 
 def test_missions_read_from_object_storage(s3: str, tmp_path: Path) -> None:

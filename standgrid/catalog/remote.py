@@ -48,6 +48,7 @@ from standgrid.errors import (
     CatalogBusyError,
     CatalogConflictError,
     CatalogNotFoundError,
+    StandgridError,
     StorageError,
 )
 from standgrid.storage.objects import (
@@ -278,6 +279,9 @@ class RemoteCatalog:
                 _CHECKOUTS[key] = f"{self.url}/{head.root}"
             try:
                 yield root
+            except StandgridError as exc:  # say the catalog's URL, not the working copy's
+                _name_url(exc, work, self.url)
+                raise
             finally:
                 _CHECKOUTS.pop(key, None)
             if write:
@@ -375,6 +379,16 @@ def outbox_url(url: str) -> str:
     """A new folder under the catalog at ``url`` for workers to put their outputs in (removed
     by the commit that takes them, or the next one)."""
     return f"{url.rstrip('/')}/{OUTBOX}/{uuid.uuid4().hex[:12]}"
+
+
+def _name_url(exc: StandgridError, work: Path, url: str) -> None:
+    """An error's text with the working copy's paths said as the catalog's URL."""
+    folders = {str(work), os.path.realpath(work)}
+    for folder in sorted(folders, key=len, reverse=True):
+        text = str(exc.args[0]) if exc.args else exc.message
+        named = text.replace(f"{folder}/{url.rsplit('/', 1)[-1]}", url).replace(folder, url)
+        exc.args = (named, *exc.args[1:])
+        exc.message = exc.message.replace(folder, url)
 
 
 def _json(body: dict[str, Any]) -> bytes:

@@ -86,12 +86,15 @@ def extension_schemas() -> dict[str, dict[str, Any]]:
             return schemas
     with tempfile.TemporaryDirectory() as tmp:
         command = [sys.executable, "-m", "pip", "download", "--no-deps", "--no-binary", ":all:"]
-        done = subprocess.run(
-            [*command, "--quiet", "--dest", tmp, *SDISTS],
-            capture_output=True,
-            text=True,
-            timeout=300,
-        )
+        try:
+            done = subprocess.run(
+                [*command, "--quiet", "--dest", tmp, *SDISTS],
+                capture_output=True,
+                text=True,
+                timeout=90,
+            )
+        except (subprocess.TimeoutExpired, OSError) as exc:  # a slow or absent registry
+            raise RuntimeError(f"pip download {' '.join(SDISTS)}: {exc}") from exc
         if done.returncode != 0:
             raise RuntimeError(f"pip download {' '.join(SDISTS)} failed: {done.stderr[-800:]}")
         schemas = _recorded(Path(tmp))

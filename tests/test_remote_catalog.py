@@ -86,7 +86,8 @@ def test_a_catalog_on_s3_is_the_catalog_on_disk(s3: str, tmp_path: Path) -> None
     generations = {k.split("/")[0] for k in keys if k.startswith("g")}
     assert generations == {head.root, *{g for g in generations if g != head.root}}
     assert len(generations) == 2  # the current one and the one before, for readers in flight
-    assert LOCK not in keys  # the lease is given up
+    lease = remote.folder.read(LOCK)  # the lease is given up: written back expired
+    assert lease is not None and json.loads(lease[0])["expires"] == 0
     secret = CREDENTIALS["AWS_SECRET_ACCESS_KEY"].encode()
     for key in keys:  # credentials are never written to the catalog
         data = remote.folder.read(key)
@@ -299,7 +300,7 @@ def test_workers_without_a_shared_folder_build_and_enrich_the_same_catalog(
             own.mkdir()
             command = (
                 f"mount -t tmpfs none {private} && exec {dask} worker {address} --nworkers 1 "
-                f"--nthreads 1 --no-dashboard --local-directory {own}"
+                f"--nthreads 2 --no-dashboard --local-directory {own}"
             )
             processes.append(
                 subprocess.Popen(
@@ -372,6 +373,22 @@ def test_a_catalog_inside_its_missions_is_refused(s3: str) -> None:
     assert result.exit_code == 1 and "OutputOverlapsInputError" in result.output
 
 
+def _first_line(proc: subprocess.Popen[str], timeout: float) -> str:
+    """The process's first line of output, or the test fails (the process killed) when
+    none comes within ``timeout`` s: a server that stalls never hangs the suite."""
+    import threading
+
+    lines: list[str] = []
+    assert proc.stdout is not None
+    reader = threading.Thread(target=lambda: lines.append(proc.stdout.readline()), daemon=True)  # type: ignore[union-attr]
+    reader.start()
+    reader.join(timeout)
+    if not lines or not lines[0]:
+        proc.kill()
+        pytest.fail(f"no output from {proc.args} within {timeout} s")
+    return lines[0]
+
+
 @pytest.mark.slow  # a catalog tiled, a server started and stopped
 def test_serve_a_catalog_in_object_storage(s3: str) -> None:
     import signal
@@ -397,8 +414,7 @@ def test_serve_a_catalog_in_object_storage(s3: str) -> None:
     ]
     proc = subprocess.Popen(command, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     try:
-        assert proc.stdout is not None
-        started = json.loads(proc.stdout.readline())
+        started = json.loads(_first_line(proc, timeout=120))
         assert started["catalog"] == url and started["writes"] is False
         base = started["service"].rstrip("/")
         files = httpx.get(f"{base}/files", timeout=30).json()["files"]
@@ -515,7 +531,8 @@ def test_a_damaged_lease_is_taken_over(s3: str, body: bytes) -> None:
     with catalog_at(url, write=True, lock_timeout=1):
         found = folder.read(LOCK)
         assert found is not None and json.loads(found[0])["pid"] == os.getpid()
-    assert folder.read(LOCK) is None
+    found = folder.read(LOCK)
+    assert found is not None and json.loads(found[0]).get("released") is True
 
 
 @pytest.mark.parametrize(
@@ -546,3 +563,47 @@ def test_a_hostile_head_or_manifest_is_refused_before_any_file_is_written(
         pass
     assert not [p for p in tmp_path.rglob("*") if p.is_file()]  # nothing written, anywhere
     assert not Path("/etc/escape").exists()
+
+
+def test_a_fetched_mission_follows_its_objects(s3: str, tmp_path: Path) -> None:
+    """A mission fetched from object storage is refreshed by size and ETag (a file replaced
+    by one of the same size too), loses the files whose objects are gone, and keeps its
+    URL as its source."""
+    from standgrid.storage.objects import fetched_folder, source_of
+
+    url = f"{s3}/missions/m"
+    folder = ObjectFolder.open(url)
+    folder.write("poses.csv", b"0,1,2\n")
+    folder.write("clouds/a.pcd", b"points a")
+    folder.write("clouds/b.pcd", b"points b")
+    local = fetched_folder(url)
+    assert (local / "clouds" / "b.pcd").read_bytes() == b"points b"
+    assert source_of(local) == url and source_of(local / "clouds") == f"{url}/clouds"
+    folder.write("poses.csv", b"9,9,9\n")  # the same size, new content
+    folder.delete(["clouds/b.pcd"])
+    again = fetched_folder(url)
+    assert again == local and (local / "poses.csv").read_bytes() == b"9,9,9\n"
+    assert not (local / "clouds" / "b.pcd").exists() and (local / "clouds" / "a.pcd").exists()
+    assert not list(local.rglob("*.part"))
+
+
+def test_a_conditional_write_without_an_etag_is_refused(s3: str) -> None:
+    from standgrid.errors import StorageError
+
+    folder = ObjectFolder.open(f"{s3}/etag")
+    folder.write("x", b"1")
+    with pytest.raises(StorageError, match="no ETag"):
+        folder.write("x", b"2", if_match=None)
+    found = folder.read("x")
+    assert found is not None and found[0] == b"1"
+
+
+@pytest.mark.parametrize(
+    "url", ["s3://user:secret@bucket/p", "s3://bucket/p?X-Amz-Signature=abc", "s3://bucket/../p"]
+)
+def test_credentials_or_dots_in_a_url_are_refused(url: str) -> None:
+    from standgrid.errors import StorageError
+
+    with pytest.raises(StorageError) as caught:
+        ObjectFolder.open(url)
+    assert "secret" not in str(caught.value) and "abc" not in str(caught.value)

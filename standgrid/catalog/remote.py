@@ -26,8 +26,8 @@ the switch. Plain HTTP clients find the current one through ``_standgrid/HEAD.js
 from __future__ import annotations
 
 import contextlib
-import hashlib
 import json
+import logging
 import os
 import re
 import shutil
@@ -55,6 +55,7 @@ from standgrid.storage.objects import (
     ObjectFolder,
     PreconditionFailed,
     copy_many,
+    file_sha256,
     is_url,
     mirror_down,
     mirror_up,
@@ -63,6 +64,7 @@ from standgrid.storage.objects import (
 HEAD = "_standgrid/HEAD.json"
 LOCK = "_standgrid/lock.json"
 MANIFESTS = "_standgrid/manifests"
+_log = logging.getLogger("standgrid.catalog")
 #: A generation's folder name (nothing else at the catalog's URL is ever deleted).
 _GENERATION = re.compile(r"^g\d{6}-[0-9a-f]{8}$")
 #: Where workers without a shared folder put what they write (:func:`outbox_url`).
@@ -79,13 +81,14 @@ WORK_ENV = "STANDGRID_WORK_DIR"
 _IN_STORE: dict[str, str] = {}
 
 
-#: Working copies checked out in this process: real path -> their generation's URL.
-_CHECKOUTS: dict[str, str] = {}
+#: Working copies checked out in this process: real path -> their generation's URL and
+#: manifest (relative path -> size and sha256).
+_CHECKOUTS: dict[str, tuple[str, dict[str, dict[str, Any]]]] = {}
 
 
-def generation_of(root: str | os.PathLike[str]) -> str | None:
-    """The URL of the generation the working copy at ``root`` holds (None: ``root`` is no
-    working copy, or of a new catalog)."""
+def generation_of(root: str | os.PathLike[str]) -> tuple[str, dict[str, dict[str, Any]]] | None:
+    """The URL and manifest of the generation the working copy at ``root`` holds (None:
+    ``root`` is no working copy, or of a new catalog)."""
     return _CHECKOUTS.get(os.path.realpath(root))
 
 
@@ -101,14 +104,6 @@ class Head:
     generation: int
     root: str
     etag: str | None
-
-
-def _sha256(path: Path) -> str:
-    digest = hashlib.sha256()
-    with open(path, "rb") as f:
-        while block := f.read(1 << 20):
-            digest.update(block)
-    return digest.hexdigest()
 
 
 def _work_folder(prefix: str) -> Path:
@@ -192,23 +187,33 @@ class Lease:
         return self
 
     def _renew(self) -> None:
+        renewed = time.monotonic()
         while not self._stop.wait(LEASE_SECONDS / 3):
             try:
                 self.etag = self.folder.write(LOCK, self._body(), if_match=self.etag)
+                renewed = time.monotonic()
             except PreconditionFailed:
                 self.lost = True
                 return
-            except StorageError:
-                continue  # a network hiccup: the next renewal may get through
+            except StorageError:  # a network hiccup: the next renewal may get through
+                if time.monotonic() - renewed > LEASE_SECONDS * 2 / 3:
+                    self.lost = True  # others may take it over soon: commit nothing
+                    return
 
     def release(self) -> None:
+        """Give the lease up: its object is rewritten as expired, only while it is still
+        this writer's (a conditional write; the next writer takes an expired lease at
+        once). Failing to is said, not raised: the lease expires by itself."""
         self._stop.set()
         if self._thread is not None:
             self._thread.join()
-        if not self.lost:
-            found = self.folder.read(LOCK)
-            if found is not None and found[1] == self.etag:
-                self.folder.delete([LOCK])
+        if self.lost or self.etag is None:
+            return
+        expired = json.dumps({"owner": self.owner, "released": True, "expires": 0}).encode()
+        try:
+            self.folder.write(LOCK, expired, if_match=self.etag)
+        except StorageError as exc:  # taken over since, or the store is unreachable
+            _log.warning("%s: lease not given up (%s); it expires by itself", self.folder.url, exc)
 
 
 class RemoteCatalog:
@@ -229,7 +234,7 @@ class RemoteCatalog:
             head = Head(int(body["generation"]), str(body["root"]), found[1])
         except (ValueError, KeyError, TypeError) as exc:
             raise StorageError(f"{self.folder.href(HEAD)}: not a standgrid HEAD: {exc}") from exc
-        if not _GENERATION.match(head.root):
+        if not _GENERATION.match(head.root) or not head.root.startswith(f"g{head.generation:06d}-"):
             raise StorageError(f"{self.folder.href(HEAD)}: {head.root!r} is no generation")
         return head
 
@@ -245,7 +250,8 @@ class RemoteCatalog:
                 parts = rel.split("/")
                 if rel.startswith("/") or "\\" in rel or any(p in ("", ".", "..") for p in parts):
                     raise ValueError(f"{rel!r} leaves the catalog")
-                if not isinstance(entry["size"], int) or not isinstance(entry["sha256"], str):
+                size, digest = entry["size"], entry["sha256"]
+                if type(size) is not int or size < 0 or not isinstance(digest, str):
                     raise ValueError(f"{rel!r}: no size and digest")
         except (ValueError, KeyError, TypeError) as exc:
             raise StorageError(f"{self.folder.href(key)}: not a standgrid manifest: {exc}") from exc
@@ -255,7 +261,7 @@ class RemoteCatalog:
         """Download generation ``head`` into ``target``, every file checked by its digest."""
         mirror_down(self.folder, {f"{head.root}/{rel}": rel for rel in files}, target)
         for rel, entry in files.items():
-            if (target / rel).stat().st_size != entry["size"] or _sha256(target / rel) != entry[
+            if (target / rel).stat().st_size != entry["size"] or file_sha256(target / rel) != entry[
                 "sha256"
             ]:
                 raise StorageError(f"{self.folder.href(head.root + '/' + rel)}: damaged copy")
@@ -269,6 +275,8 @@ class RemoteCatalog:
         ``only`` (reading): just these files."""
         if write and only:
             raise ValueError("a working copy to write holds every file")
+        if write:
+            self._require_conditional_writes()
         lease = Lease(self.folder, lock_timeout).acquire() if write else None
         work = _work_folder("standgrid-catalog-")
         try:
@@ -276,7 +284,7 @@ class RemoteCatalog:
             head, files = self._fetch_current(root, only)
             key = os.path.realpath(root)
             if head is not None:
-                _CHECKOUTS[key] = f"{self.url}/{head.root}"
+                _CHECKOUTS[key] = (f"{self.url}/{head.root}", files)
             try:
                 yield root
             except StandgridError as exc:  # say the catalog's URL, not the working copy's
@@ -288,9 +296,28 @@ class RemoteCatalog:
                 assert lease is not None
                 self._commit(root, head, files, lease)
         finally:
+            if write:
+                _IN_STORE.clear()  # workers' outputs of this checkout: committed, or not
             if lease is not None:
                 lease.release()
             shutil.rmtree(work, ignore_errors=True)
+
+    def _require_conditional_writes(self) -> None:
+        """:class:`StorageError` unless the store refuses to create an object twice (a
+        store ignoring conditional writes would let two writers both switch HEAD)."""
+        probe = f"_standgrid/probe-{uuid.uuid4().hex}"
+        self.folder.write(probe, b"", create=True)
+        try:
+            self.folder.write(probe, b"", create=True)
+        except PreconditionFailed:
+            return
+        finally:
+            with contextlib.suppress(StorageError):
+                self.folder.delete([probe])
+        raise StorageError(
+            f"{self.url}: the store ignores conditional writes (If-None-Match): a catalog "
+            "there could lose a commit to a concurrent writer; use a store that honours them"
+        )
 
     def _fetch_current(
         self, root: Path, only: Sequence[str]
@@ -299,8 +326,8 @@ class RemoteCatalog:
             head = self.head()
             if head is None:
                 return None, {}
-            files = self.manifest(head)
             try:
+                files = self.manifest(head)
                 self.fetch(head, {k: files[k] for k in only if k in files} if only else files, root)
                 return head, files
             except StorageError:
@@ -329,7 +356,16 @@ class RemoteCatalog:
                 uploads[f"{new_root}/{rel}"] = root / rel
         mirror_up(self.folder, uploads)
         crash_point("remote-uploaded")
-        copy_many(self.folder, copies)
+        try:
+            copy_many(self.folder, copies)
+        except StorageError:  # a worker's tile gone from the outbox (collected): upload it
+            again = {
+                t: root / t.split("/", 1)[1] for t, src in copies.items() if src.startswith(OUTBOX)
+            }
+            if not again:
+                raise
+            mirror_up(self.folder, again)
+            copy_many(self.folder, {t: src for t, src in copies.items() if t not in again})
         manifest = {"format": FORMAT, "generation": generation, "root": new_root, "files": now}
         self.folder.write(f"{MANIFESTS}/{new_root}.json", _json(manifest), create=True)
         crash_point("remote-before-switch")
@@ -346,8 +382,10 @@ class RemoteCatalog:
                 f"{self.url}: another writer committed first; open it again and repeat"
             ) from exc
         crash_point("remote-switched")
-        _IN_STORE.clear()
-        self._collect({new_root} | ({head.root} if head else set()))
+        try:  # committed: tidying up can fail (a policy without DeleteObject), and is said
+            self._collect({new_root} | ({head.root} if head else set()))
+        except StorageError as exc:
+            _log.warning("%s: committed; old generations not removed (%s)", self.url, exc)
 
     def _collect(self, keep: set[str]) -> None:
         """Delete generations (and manifests) other than ``keep``: older ones and the
@@ -403,7 +441,7 @@ def _scan(root: Path) -> dict[str, dict[str, Any]]:
     for path in sorted(root.rglob("*")):
         rel = path.relative_to(root).as_posix()
         if path.is_file() and not rel.startswith(STAGING_DIR + "/"):
-            files[rel] = {"size": path.stat().st_size, "sha256": _sha256(path)}
+            files[rel] = {"size": path.stat().st_size, "sha256": file_sha256(path)}
     return files
 
 

@@ -155,18 +155,21 @@ def catalog_apply(
     )
 
 
-def _remote(catalog: Catalog, execution: Execution) -> tuple[Any, Any] | None:
+def _remote(catalog: Catalog, execution: Execution) -> tuple[Any, Any, dict[str, str]] | None:
     """Workers without a shared folder: the catalog generation's folder they read the tiles
-    from, and the outbox they put theirs in (None: workers share this process's folders)."""
+    from, the outbox they put theirs in, and the tiles' digests they check (None: workers
+    share this process's folders)."""
     if execution.outbox is None:
         return None
     from standgrid.catalog.remote import generation_of
     from standgrid.storage import ObjectFolder
 
-    source = generation_of(catalog.root)
-    if source is None:
+    found = generation_of(catalog.root)
+    if found is None:
         raise EnrichError("workers without a shared folder need the catalog in object storage")
-    return ObjectFolder.open(source), ObjectFolder.open(execution.outbox)
+    url, files = found
+    digests = {rel: str(entry["sha256"]) for rel, entry in files.items()}
+    return ObjectFolder.open(url), ObjectFolder.open(execution.outbox), digests
 
 
 def _epoch_cells(catalog: Catalog, epoch: str, partition: Partition) -> list[ChunkCell]:

@@ -23,6 +23,7 @@ from standgrid.engine.budget import bounded_map, release_memory
 from standgrid.engine.executor import SerialExecutor, run_limited
 from standgrid.enrichment.block import RASTERS, BlockContext, BlockResult, enrich_block, paste
 from standgrid.errors import EnrichError
+from standgrid.storage import file_sha256
 
 if TYPE_CHECKING:
     from standgrid.engine import Executor, Progress
@@ -119,7 +120,7 @@ def apply_blocks(
     executor: Executor,
     progress: Progress,
     desc: str,
-    remote: tuple[Any, Any] | None = None,
+    remote: tuple[Any, Any, dict[str, str]] | None = None,
 ) -> Generator[tuple[BlockJob, BlockResult], None, None]:
     """Run every job; yield ``(job, result)`` in the jobs' order (results that finish early
     wait, so merging is deterministic whatever the executor; close it when done, see
@@ -127,8 +128,9 @@ def apply_blocks(
     :data:`~standgrid.engine.ordered.AHEAD` jobs run at once on threads (see
     :func:`chunks_at_once`), as many as their estimated working sets fit in the share of the
     budget the chunks get (:data:`CHUNK_SHARE`; a chunk cannot be smaller than one cell: a
-    dense one runs alone). ``remote``: ``(source, outbox)`` object-storage folders for
-    workers that share no folder with this process (:class:`RemoteBlockJob`)."""
+    dense one runs alone). ``remote``: ``(source, outbox, digests)``: object-storage
+    folders and the tiles' digests, for workers that share no folder with this process
+    (:class:`RemoteBlockJob`)."""
     from standgrid.engine.ordered import AHEAD, ordered_map
 
     if isinstance(executor, SerialExecutor):
@@ -158,31 +160,29 @@ def _through_store(
     desc: str,
     source: Any,
     outbox: Any,
+    digests: dict[str, str],
 ) -> Generator[tuple[BlockJob, BlockResult], None, None]:
     """Run the jobs as :class:`RemoteBlockJob`s; each rewritten tile is fetched from the
     outbox to the path the job stages it at (checked by digest) and noted as already in the
     store, so the commit copies it there instead of uploading it again."""
-    import hashlib
     from uuid import uuid4
 
     from standgrid.catalog.remote import note_in_store
     from standgrid.engine.ordered import ordered_map
 
-    tasks = [
-        RemoteBlockJob(
-            job, source, outbox, tuple(f"{uuid4().hex}{Path(t).name}" for t in job.targets)
-        )
-        for job in jobs
-    ]
+    tasks = []
+    for job in jobs:
+        chunk = job.chunk
+        rels = {c.tile for c in (*chunk.cells, *chunk.neighbours, *chunk.far)}
+        keys = tuple(f"{uuid4().hex}{Path(t).name}" for t in job.targets)
+        tasks.append(RemoteBlockJob(job, source, outbox, keys, {r: digests[r] for r in rels}))
     ordered = ordered_map(executor, run_remote_block, tasks)
     with contextlib.closing(ordered):
-        for task, (result, digests) in zip(
-            tasks, progress.track(ordered, len(tasks), desc), strict=True
-        ):
-            for target, key, (sha, size) in zip(task.job.targets, task.keys, digests, strict=True):
+        tracked = progress.track(ordered, len(tasks), desc)
+        for task, (result, written) in zip(tasks, tracked, strict=True):
+            for target, key, (sha, size) in zip(task.job.targets, task.keys, written, strict=True):
                 outbox.download(key, Path(target))
-                data = Path(target).read_bytes()
-                if len(data) != size or hashlib.sha256(data).hexdigest() != sha:
+                if Path(target).stat().st_size != size or file_sha256(Path(target)) != sha:
                     raise EnrichError(f"{outbox.href(key)}: damaged in transfer")
                 note_in_store(outbox.href(key), sha)
             yield task.job, result
@@ -191,19 +191,22 @@ def _through_store(
 @dataclass(frozen=True)
 class RemoteBlockJob:
     """A :class:`BlockJob` for a worker that shares no folder with the client: it reads the
-    chunk's tiles from ``source`` (the catalog generation's folder in object storage) and
-    puts the tiles it rewrites in ``outbox`` at ``keys``."""
+    chunk's tiles from ``source`` (the catalog generation's folder in object storage),
+    checked against ``digests``, and puts the tiles it rewrites in ``outbox`` at ``keys``."""
 
     job: BlockJob
     source: Any  # standgrid.storage.ObjectFolder (sent as its URL)
     outbox: Any
     keys: tuple[str, ...]
+    #: the SHA-256 of each tile the chunk reads (catalog-relative path -> digest)
+    digests: dict[str, str]
 
 
-def _tiles_here(source: Any, rels: Sequence[str]) -> Path:
-    """The generation's tiles ``rels`` in this worker's own folder (fetched once each)."""
+def _tiles_here(source: Any, digests: dict[str, str]) -> Path:
+    """The generation's tiles (relative path -> SHA-256) in this worker's own folder,
+    fetched once each and checked (threads fetching one tile at once each write a part of
+    their own; a whole one is renamed in place)."""
     import hashlib
-    import os
     import tempfile
 
     try:
@@ -213,36 +216,33 @@ def _tiles_here(source: Any, rels: Sequence[str]) -> Path:
     except (ImportError, ValueError):
         base = Path(tempfile.gettempdir())
     root = base / "standgrid-tiles" / hashlib.sha256(source.url.encode()).hexdigest()[:16]
-    for rel in rels:
+    for rel, digest in sorted(digests.items()):
         path = root / rel
-        if not path.is_file():
-            part = path.with_name(f".{path.name}.{os.getpid()}.part")
-            source.download(rel, part)
-            os.replace(part, path)
+        if path.is_file():
+            continue
+        source.download(rel, path)  # atomic: a part file of this thread's, then renamed
+        if file_sha256(path) != digest:
+            path.unlink(missing_ok=True)
+            raise EnrichError(f"{source.href(rel)}: not the tile its manifest names")
     return root
 
 
 def run_remote_block(task: RemoteBlockJob) -> tuple[BlockResult, list[tuple[str, int]]]:
     """:func:`run_block` on a worker without the client's folders (see
     :class:`RemoteBlockJob`); returns the result and each rewritten tile's SHA-256 and size."""
-    import hashlib
     import tempfile
     from dataclasses import replace
 
-    chunk = task.job.chunk
-    rels = sorted({c.tile for c in (*chunk.cells, *chunk.neighbours, *chunk.far)})
-    root = _tiles_here(task.source, rels)
+    root = _tiles_here(task.source, task.digests)
     with tempfile.TemporaryDirectory(prefix="standgrid-chunk-") as out:
-        targets = tuple(
-            str(Path(out) / f"{k}-{Path(t).name}") for k, t in enumerate(task.job.targets)
-        )
+        names = [Path(t).name for t in task.job.targets]
+        targets = tuple(str(Path(out) / f"{k}-{name}") for k, name in enumerate(names))
         result = run_block(replace(task.job, root=str(root), targets=targets))
-        digests = []
+        written = []
         for target, key in zip(targets, task.keys, strict=True):
-            data = Path(target).read_bytes()
-            digests.append((hashlib.sha256(data).hexdigest(), len(data)))
+            written.append((file_sha256(Path(target)), Path(target).stat().st_size))
             task.outbox.upload(Path(target), key)
-    return result, digests
+    return result, written
 
 
 def chunks_at_once(executor: Executor) -> int:

@@ -42,6 +42,7 @@ from numpy.typing import NDArray
 from standgrid.catalog import paths
 from standgrid.catalog.records import ENRICHED
 from standgrid.errors import OptionError, PayloadNotTiledError, StaleLayersError
+from standgrid.storage.objects import source_of
 
 if TYPE_CHECKING:
     import pandas as pd
@@ -579,7 +580,7 @@ def _mission_record(catalog: Catalog, mission: Mission) -> MissionRecord:
             f"{sorted(catalog.mission_records)}): tile it first",
             path=catalog.root,
         )
-    if record.path and Path(record.path).resolve() != Path(mission.path).resolve():
+    if record.path and record.path != source_of(mission.path):
         raise PayloadNotTiledError(
             f"the catalog's mission {mission.name!r} was tiled from {record.path}, not from "
             f"{mission.path}",

@@ -9,12 +9,12 @@ from __future__ import annotations
 import datetime as dt
 import threading
 from collections import OrderedDict
-from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
 from standgrid.engine import Progress
+from standgrid.storage.objects import local_copy
 
 if TYPE_CHECKING:
     from standgrid.alignment.landmarks import Landmarks
@@ -106,16 +106,22 @@ def _references(
         reach += GLOBAL_REACH_M
     out = []
     for name, record in sorted(catalog.mission_records.items()):
-        if name in given or not record.path or not Path(record.path).exists():
+        if name in given or not record.path:
+            continue
+        try:  # a mission tiled from object storage is read from its local copy
+            where = local_copy(record.path)
+        except StandgridError:
+            continue  # a reference that cannot be read is no reference
+        if not where.exists():
             continue
         placement = _recorded(record)
         if placement is None:
             continue
         try:
-            if is_scan(record.path):  # a plain scan: its landmarks need neither date nor path
-                mission = open_scan(record.path, ScanOptions(crs=crs, date=_record_date(record)))
+            if is_scan(where):  # a plain scan: its landmarks need neither date nor path
+                mission = open_scan(where, ScanOptions(crs=crs, date=_record_date(record)))
             else:
-                mission = open_mission(record.path, cache_points=0)
+                mission = open_mission(where, cache_points=0)
             nodes = _nodes_crs(mission, placement, crs)
         except StandgridError:
             continue  # a reference that cannot be read is no reference

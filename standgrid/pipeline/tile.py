@@ -408,11 +408,17 @@ def realign_catalog(
 
 def _realign_catalog(path: Path, options: TileOptions, *, execution: Execution) -> TileReport:
     from standgrid.catalog import Catalog
+    from standgrid.storage import is_url
+    from standgrid.storage.objects import local_copy
 
     records = Catalog.open(path, lock_timeout=execution.lock_timeout).mission_records
     if not records:
         raise CatalogError("no missions in the catalog: nothing to align", path=path)
-    gone = sorted(n for n, r in records.items() if not r.path or not Path(r.path).is_dir())
+    gone = sorted(
+        n
+        for n, r in records.items()
+        if not r.path or (not is_url(r.path) and not Path(r.path).exists())
+    )
     if gone:
         raise CatalogError(
             f"cannot re-align: the folders of {', '.join(gone)} are gone (tile them again "
@@ -420,7 +426,7 @@ def _realign_catalog(path: Path, options: TileOptions, *, execution: Execution) 
             path=path,
             option="replace_missions",
         )
-    missions = [Path(str(r.path)) for _, r in sorted(records.items())]
+    missions = [local_copy(str(r.path)) for _, r in sorted(records.items())]  # URLs fetched
     epochs = tuple(sorted((n, r.epoch) for n, r in records.items()))
     settings = replace(options, align=True, epochs=epochs, overwrite=False)
     return tile_missions(missions, path, settings, execution=execution)

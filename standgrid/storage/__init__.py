@@ -2,6 +2,6 @@
 and missions: stores opened from URLs with the usual credentials, objects read, written and
 copied, folders mirrored."""
 
-from standgrid.storage.objects import ObjectFolder, is_url
+from standgrid.storage.objects import ObjectFolder, file_sha256, is_url
 
-__all__ = ["ObjectFolder", "is_url"]
+__all__ = ["ObjectFolder", "file_sha256", "is_url"]

@@ -33,9 +33,24 @@ TRANSFER_THREADS = 8
 PART_BYTES = 8 * 1024 * 1024
 
 
+#: :meth:`ObjectFolder.write` without a condition (the default; a ``None`` ETag is none).
+UNCONDITIONAL = object()
+
+
 class PreconditionFailed(StorageError):
     """A conditional write found the object not as expected (created or changed by another
     writer since it was read)."""
+
+
+def file_sha256(path: str | os.PathLike[str]) -> str:
+    """The SHA-256 of a file, read in 1 MiB blocks."""
+    import hashlib
+
+    digest = hashlib.sha256()
+    with open(path, "rb") as f:
+        while block := f.read(1 << 20):
+            digest.update(block)
+    return digest.hexdigest()
 
 
 def is_url(location: object) -> bool:
@@ -70,10 +85,15 @@ def _open_store(url: str) -> Any:
             options["endpoint"] = endpoint
         client = {"allow_http": True} if (endpoint or "").startswith("http://") else {}
         if not os.environ.get("AWS_ACCESS_KEY_ID") and os.environ.get("AWS_PROFILE"):
-            with contextlib.suppress(ImportError):
+            try:
                 from obstore.auth.boto3 import Boto3CredentialProvider
 
                 options["credential_provider"] = Boto3CredentialProvider()
+            except ImportError as exc:
+                raise StorageError(
+                    f"{url}: AWS_PROFILE is set: reading profiles needs boto3 "
+                    "(pip install boto3), or set AWS_ACCESS_KEY_ID/AWS_SECRET_ACCESS_KEY"
+                ) from exc
         opener: Any = from_url  # its overloads type each store's options apart
         return opener(url.replace("s3a://", "s3://", 1), client_options=client, **options)
     return from_url(url)
@@ -92,6 +112,17 @@ class ObjectFolder:
         url = url.rstrip("/")
         if not is_url(url):
             raise StorageError(f"{url}: not an object-storage URL (s3://bucket/prefix, …)")
+        from urllib.parse import urlsplit
+
+        parts = urlsplit(url)
+        if parts.username or parts.password or parts.query or parts.fragment:
+            shown = f"{parts.scheme}://{parts.hostname or ''}{parts.path}"
+            raise StorageError(
+                f"{shown}: credentials or parameters in the URL are not taken (they would be "
+                "written to catalogs and messages): give them in the environment"
+            )
+        if any(p in (".", "..") for p in parts.path.split("/")):
+            raise StorageError(f"{url}: '.' and '..' are no folder names in object storage")
         with _reported(url, "open"):
             return cls(url, _open_store(url))
 
@@ -126,13 +157,24 @@ class ObjectFolder:
             return bytes(obstore.get_range(self.store, key, start=start, end=end))
 
     def write(
-        self, key: str, data: bytes, *, create: bool = False, if_match: str | None = None
+        self, key: str, data: bytes, *, create: bool = False, if_match: object = UNCONDITIONAL
     ) -> str | None:
         """Write ``data`` at ``key``; ``create``: only if absent; ``if_match``: only if its
-        ETag is still that (:class:`PreconditionFailed` otherwise). Returns the new ETag."""
+        ETag is still that (:class:`PreconditionFailed` otherwise; an ETag of None, from a
+        store that gives none, is a :class:`StorageError`, never an overwrite). Returns the
+        new ETag."""
         import obstore
 
-        mode: Any = "create" if create else ({"e_tag": if_match} if if_match else "overwrite")
+        if create:
+            mode: Any = "create"
+        elif if_match is UNCONDITIONAL:
+            mode = "overwrite"
+        elif isinstance(if_match, str) and if_match:
+            mode = {"e_tag": if_match}
+        else:
+            raise StorageError(
+                f"{self.href(key)}: the store gave no ETag: it cannot be written conditionally"
+            )
         with _reported(self.href(key), "write"):
             return obstore.put(self.store, key, data, mode=mode, use_multipart=False)["e_tag"]
 
@@ -145,14 +187,23 @@ class ObjectFolder:
 
     def download(self, key: str, path: Path) -> int:
         """Stream ``key`` into the file ``path`` (made with its folders); returns its size."""
+        import threading
+
         import obstore
 
-        path.parent.mkdir(parents=True, exist_ok=True)
         size = 0
-        with _reported(self.href(key), "download"), open(path, "wb") as out:
-            for chunk in obstore.get(self.store, key).stream(min_chunk_size=PART_BYTES):
-                out.write(chunk)
-                size += len(chunk)
+        part = path.with_name(f".{path.name}.{os.getpid()}.{threading.get_ident()}.part")
+        with _reported(self.href(key), "download"):
+            path.parent.mkdir(parents=True, exist_ok=True)
+            try:
+                with open(part, "wb") as out:
+                    for chunk in obstore.get(self.store, key).stream(min_chunk_size=PART_BYTES):
+                        out.write(chunk)
+                        size += len(chunk)
+                os.replace(part, path)  # whole, or not there: never a torn file
+            finally:
+                with contextlib.suppress(FileNotFoundError):
+                    part.unlink()
         return size
 
     def copy(self, source: str, target: str) -> None:
@@ -219,29 +270,78 @@ def local_cache() -> Path:
     return Path(os.environ.get("STANDGRID_WORK_DIR") or tempfile.gettempdir()) / "standgrid-cache"
 
 
+#: Local folders fetched from object storage (real path -> the URL they hold).
+_FETCHED: dict[str, str] = {}
+
+
+def source_of(path: str | os.PathLike[str]) -> str:
+    """Where ``path`` came from: the URL of a folder (or file) fetched by
+    :func:`fetched_folder` in this process, or of something inside one; else its real
+    path."""
+    real = os.path.realpath(path)
+    for folder, url in _FETCHED.items():  # the folder itself, or inside it (a folder of missions)
+        if real == folder or real.startswith(folder + os.sep):
+            return url + real[len(folder) :].replace(os.sep, "/")
+    return real
+
+
+def local_copy(location: str | os.PathLike[str]) -> Path:
+    """``location`` as a local path: an object-storage URL fetched (:func:`fetched_folder`),
+    a path as it is."""
+    return fetched_folder(str(location)) if is_url(location) else Path(location)
+
+
+def check_key(key: str, where: str) -> str:
+    """``key`` when it stays inside its folder (no ``..``, ``.``, empty or absolute parts),
+    else :class:`StorageError` naming ``where``."""
+    parts = key.split("/")
+    if not key or key.startswith("/") or "\\" in key or any(p in ("", ".", "..") for p in parts):
+        raise StorageError(f"{where}: {key!r} leaves its folder")
+    return key
+
+
 def fetched_folder(url: str, cache: Path | None = None) -> Path:
     """The objects under ``url`` as a local folder ``cache/<digest>/<last segment>``, or the
-    one object ``url`` names as that file; kept between runs and refreshed by size (a
-    mission keeps its folder, and so its identity)."""
+    one object ``url`` names as that file. Kept between runs and refreshed by size and
+    ETag; files whose objects are gone are removed (a mission keeps its folder, so its
+    identity: :func:`source_of` gives its URL back)."""
     import hashlib
+    import json
 
     url = url.rstrip("/")
     digest = hashlib.sha256(url.encode()).hexdigest()[:16]
     target = (cache or local_cache()) / digest / url.rsplit("/", 1)[-1]
     folder = ObjectFolder.open(url)
-    wanted = {m["path"]: m["size"] for m in folder.list()}
-    if not wanted:  # one object (a plain scan: LAS/LAZ/COPC, a VPC): into the same folder
+    wanted = {check_key(m["path"], url): (m["size"], m.get("e_tag")) for m in folder.list()}
+    single = not wanted
+    if single:  # one object (a plain scan: LAS/LAZ/COPC, a VPC): into the same folder
         parent, _, name = url.rpartition("/")
         folder = ObjectFolder.open(parent)
         size = folder.size(name) if is_url(parent) else None
         if size is None:
             raise StorageError(f"{url}: no objects here")
         target = target.parent
-        wanted = {name: size}
+        wanted = {name: (size, None)}
+    state_file = (target if single else target.parent) / ".objects.json"  # size and ETag
+    try:
+        held = {k: tuple(v) for k, v in json.loads(state_file.read_text()).items()}
+    except (OSError, ValueError, AttributeError):
+        held = {}
     stale = {
         key: key
-        for key, size in wanted.items()
-        if not (target / key).is_file() or (target / key).stat().st_size != size
+        for key, (size, etag) in wanted.items()
+        if not (target / key).is_file()
+        or (target / key).stat().st_size != size
+        or (etag is not None and held.get(key) != (size, etag))
     }
     mirror_down(folder, stale, target)
-    return target
+    if not single:  # files whose objects are gone
+        for path in sorted(target.rglob("*"), reverse=True):
+            rel = path.relative_to(target).as_posix()
+            if path.is_file() and rel not in wanted:
+                path.unlink()
+    state_file.parent.mkdir(parents=True, exist_ok=True)
+    state_file.write_text(json.dumps({k: list(v) for k, v in wanted.items()}))
+    fetched = target if not single else target / next(iter(wanted))
+    _FETCHED[os.path.realpath(fetched)] = url
+    return fetched

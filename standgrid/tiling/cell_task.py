@@ -7,7 +7,6 @@ the task says (a transaction's staging folder) and returns the :class:`TileInfo`
 
 from __future__ import annotations
 
-import hashlib
 import tempfile
 from dataclasses import dataclass, replace
 from pathlib import Path
@@ -17,6 +16,7 @@ from standgrid.export.copc import is_copc, write_copc_tile
 from standgrid.export.las import TileInfo, write_tile
 from standgrid.partition.spill import CellExtents, read_cell
 from standgrid.pointcloud import PointCloud
+from standgrid.storage import file_sha256
 
 
 @dataclass(frozen=True)
@@ -88,10 +88,6 @@ def write_cell_to_outbox(task: OutboxTile) -> tuple[TileInfo, str, int]:
     with tempfile.TemporaryDirectory(prefix="standgrid-cell-") as folder:
         local = Path(folder) / task.tile.path.name
         info = write_cell(replace(task.tile, path=local))
-        digest = hashlib.sha256()
-        with open(local, "rb") as f:
-            while block := f.read(1 << 20):
-                digest.update(block)
-        size = local.stat().st_size
+        digest, size = file_sha256(local), local.stat().st_size
         task.outbox.upload(local, task.key)
-    return info, digest.hexdigest(), size
+    return info, digest, size

@@ -169,10 +169,10 @@ def _through_outbox(
     its staged path (checked by digest) and noted as already in the store, so the commit
     copies it there instead of uploading it again. Cells go in batches of at most
     ``budget`` estimated bytes (one at least); results come back in cell order."""
-    import hashlib
     from uuid import uuid4
 
     from standgrid.catalog.remote import note_in_store
+    from standgrid.storage import file_sha256
     from standgrid.tiling.cell_task import OutboxTile, write_cell_to_outbox
 
     batch: list[CellTile] = []
@@ -194,8 +194,7 @@ def _through_outbox(
         for k, staged in enumerate(batch):
             info, sha, size = results[k]
             outbox.download(tasks[k].key, staged.path)
-            digest = hashlib.sha256(staged.path.read_bytes()).hexdigest()
-            if digest != sha or staged.path.stat().st_size != size:
+            if file_sha256(staged.path) != sha or staged.path.stat().st_size != size:
                 raise TilingError(f"{outbox.href(tasks[k].key)}: damaged in transfer")
             note_in_store(outbox.href(tasks[k].key), sha)
             yield replace(info, path=staged.path)

@@ -12,6 +12,7 @@ from typing import TYPE_CHECKING, Any
 
 from standgrid.catalog import paths
 from standgrid.engine import MemoryBudget, Progress, SerialExecutor
+from standgrid.storage.objects import source_of
 from standgrid.tiling.cells import Cells, EpochWork, write_cells
 
 if TYPE_CHECKING:
@@ -401,7 +402,7 @@ def _record_missions(
             mission.name,
             epoch=epoch,
             date=ingest.date,
-            path=str(mission.path.resolve()),
+            path=source_of(mission.path),  # its URL when fetched from object storage
             georeference=ingest.placement.record(),
             placement=_note(ingest),
             payload_count=len(cloud_payloads(mission)),

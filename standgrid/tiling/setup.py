@@ -20,6 +20,7 @@ from standgrid.errors import (
     OutputOverlapsInputError,
     TilingError,
 )
+from standgrid.storage.objects import is_url, source_of
 
 if TYPE_CHECKING:
     from standgrid.catalog import Catalog, FileLock, Transaction
@@ -265,8 +266,9 @@ def refuse_other_folders(catalog: Catalog, missions: Iterable[tuple[str, Path]])
         record = known.get(name)
         if record is None or not record.path:
             continue
-        here = os.path.realpath(folder)
-        if here != os.path.realpath(record.path):
+        here = source_of(folder)  # a URL for a mission fetched from object storage
+        there = record.path if is_url(record.path) else os.path.realpath(record.path)
+        if here != there:
             raise MissionFolderConflictError(
                 f"the catalog holds a mission {name!r} tiled from another folder, "
                 f"{record.path} (now given: {here}); tiling it would replace that mission's "

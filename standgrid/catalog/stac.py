@@ -91,6 +91,12 @@ def _committed_schemas(txn: Transaction, rel: str) -> tuple[dict[str, Any], ...]
         return None
     if not isinstance(found, list) or not found:
         return None
+    wanted = {"name": str, "size": int, "type": str}
+    for entry in found:  # a damaged entry: read the tile's header instead
+        if not isinstance(entry, dict) or not all(
+            isinstance(entry.get(k), t) for k, t in wanted.items()
+        ):
+            return None
     return tuple(dict(s) for s in found)
 
 
@@ -216,6 +222,23 @@ def stac_files(root: str | os.PathLike[str]) -> set[str]:
             if name.endswith(".json") and not path.is_symlink() and path.is_file():
                 found.add(path.relative_to(base).as_posix())
     return found
+
+
+def is_stac_file(root: str | os.PathLike[str], relative: str) -> bool:
+    """Whether ``relative`` names a STAC document of the catalog at ``root``: a regular
+    ``.json`` file under ``stac/``, reached through no symbolic link and no ``..`` (checked
+    on that one path: no walk)."""
+    parts = relative.split("/")
+    if len(parts) < 2 or parts[0] != STAC or not relative.endswith(".json"):
+        return False
+    if any(p in ("", ".", "..") for p in parts):
+        return False
+    path = Path(root)
+    for part in parts:
+        path = path / part
+        if path.is_symlink():
+            return False
+    return path.is_file()
 
 
 def stage_stac(txn: Transaction) -> None:

@@ -23,7 +23,7 @@ from fastapi import APIRouter, Request
 from fastapi.responses import FileResponse, JSONResponse
 
 from standgrid.catalog import Catalog, paths
-from standgrid.catalog.stac import STAC, stac_files
+from standgrid.catalog.stac import STAC, is_stac_file, stac_files
 from standgrid.serve.problems import Problem
 from standgrid.serve.snapshot import snapshot
 
@@ -134,8 +134,10 @@ _FILE_RESPONSES: dict[int | str, dict[str, Any]] = {
 def file(request: Request, relative: str) -> Any:
     root = request.app.state.catalog_root
     with snapshot(root, with_index=False) as snap:
-        in_stac = relative.startswith(f"{STAC}/")  # walk the stac/ folder for those only
-        if relative not in published_files(snap.catalog, stac=in_stac):
+        in_stac = relative.startswith(f"{STAC}/")  # that one path checked: no walk
+        if in_stac and not is_stac_file(snap.catalog.root, relative):
+            raise Problem(404, f"the catalog publishes no file {relative!r} (see /files)")
+        if not in_stac and relative not in published_files(snap.catalog, stac=False):
             raise Problem(404, f"the catalog publishes no file {relative!r} (see /files)")
         path = snap.catalog.path(relative)
         try:

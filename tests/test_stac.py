@@ -347,3 +347,28 @@ def test_stac_of_copc_tiles_a_crs_without_epsg_and_nan_nodata() -> None:
     else:
         for rel, doc in docs.items():
             validate_dict(doc, validator=validator, href=rel)
+
+
+def test_an_epoch_without_a_date_says_so_instead_of_a_made_up_day() -> None:
+    from standgrid.catalog import paths
+    from standgrid.export.stac import StacGroup, StacLayout, StacTile, build_stac
+
+    tile = StacTile(
+        "c1",
+        "tiles/e/c1.laz",
+        5,
+        (500000.0, 5300000.0, 1.0, 500020.0, 5300020.0, 9.0),
+        ({"name": "X", "size": 8, "type": "floating"},),
+    )
+    group = StacGroup("epoch-e", "Epoch e", "e", (None,), (tile,), (), prefix="e")
+    layout = StacLayout(paths.STAC_ROOT, paths.stac_collection, paths.stac_item)
+    docs = build_stac("t", "EPSG:32632", [group], layout)
+    props = docs[paths.stac_item("epoch-e", "e-c1")]["properties"]
+    assert props["datetime"] is None and props["standgrid:date"] is None
+    assert "no date" in props["standgrid:date_note"]
+    assert props["start_datetime"] < props["end_datetime"]  # any time: no claim
+    extent = docs[paths.stac_collection("epoch-e")]["extent"]["temporal"]["interval"]
+    assert extent == [[None, None]]
+    validator = JsonSchemaSTACValidator()
+    for rel, doc in docs.items():
+        validate_dict(doc, extensions=[], validator=validator, href=rel)

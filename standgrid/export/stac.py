@@ -57,6 +57,9 @@ MEDIA_TYPES = {
 # an absolute stand-in for the catalog folder: pystac relativizes hrefs against it
 _BASE = "/catalog"
 _EPOCH_ZERO = datetime.fromtimestamp(0, UTC)
+#: The end of an interval that claims nothing (an epoch without a date).
+_NO_END = datetime(9999, 12, 31, 23, 59, 59, tzinfo=UTC)
+_NO_DATE = "the epoch has no date (tiled with an epoch label from missions without one)"
 
 
 @dataclass(frozen=True)
@@ -136,10 +139,8 @@ def _media_type(path: str) -> str | None:
     return None
 
 
-def _day(date: str | None) -> datetime:
-    """Midnight UTC of an ISO day (``YYYY-MM-DD...``), or 1970-01-01 when unknown."""
-    if not date:
-        return _EPOCH_ZERO
+def _day(date: str) -> datetime:
+    """Midnight UTC of an ISO day (``YYYY-MM-DD...``)."""
     return datetime.fromisoformat(str(date)[:10]).replace(tzinfo=UTC)
 
 
@@ -177,7 +178,23 @@ def item_id(prefix: str, name: str) -> str:
     return f"{prefix}-{name}"
 
 
-def _tile_item(tile: StacTile, prefix: str, crs: CRS, when: datetime) -> pystac.Item:
+def _dated(when: datetime | None) -> dict[str, Any]:
+    """An item's time: the epoch's day; or, for an epoch without a date, no datetime and
+    an interval claiming nothing (any time), with the reason."""
+    if when is not None:
+        return {"datetime": when}
+    return {
+        "datetime": None,
+        "start_datetime": _EPOCH_ZERO,
+        "end_datetime": _NO_END,
+    }
+
+
+def _date_note(when: datetime | None) -> dict[str, Any]:
+    return {} if when is not None else {"standgrid:date": None, "standgrid:date_note": _NO_DATE}
+
+
+def _tile_item(tile: StacTile, prefix: str, crs: CRS, when: datetime | None) -> pystac.Item:
     import pystac
     from pystac.extensions.pointcloud import (
         PhenomenologyType,
@@ -192,8 +209,8 @@ def _tile_item(tile: StacTile, prefix: str, crs: CRS, when: datetime) -> pystac.
         id=item_id(prefix, tile.cell_id),
         geometry=_polygon(box),
         bbox=[box[0], box[1], zmin, box[2], box[3], zmax],
-        datetime=when,
-        properties={"standgrid:cell_id": tile.cell_id},
+        **_dated(when),
+        properties={"standgrid:cell_id": tile.cell_id, **_date_note(when)},
     )
     pc = PointcloudExtension.ext(item, add_if_missing=True)
     pc.apply(
@@ -218,7 +235,7 @@ def _tile_item(tile: StacTile, prefix: str, crs: CRS, when: datetime) -> pystac.
     return item
 
 
-def _raster_item(raster: StacRaster, prefix: str, crs: CRS, when: datetime) -> pystac.Item:
+def _raster_item(raster: StacRaster, prefix: str, crs: CRS, when: datetime | None) -> pystac.Item:
     import pystac
     from pystac.extensions.raster import DataType, NoDataStrings, RasterBand, RasterExtension
 
@@ -227,8 +244,8 @@ def _raster_item(raster: StacRaster, prefix: str, crs: CRS, when: datetime) -> p
         id=item_id(prefix, raster.name),
         geometry=_polygon(box),
         bbox=box,
-        datetime=when,
-        properties={"title": raster.title} if raster.title else {},
+        **_dated(when),
+        properties={**({"title": raster.title} if raster.title else {}), **_date_note(when)},
     )
     proj = _projection(item, crs, raster.bounds)
     proj.shape = [int(v) for v in raster.shape]
@@ -267,8 +284,9 @@ def _union(boxes: Iterable[Sequence[float]]) -> list[float] | None:
 def _collection(group: StacGroup, crs: CRS) -> pystac.Collection:
     import pystac
 
-    dates = sorted(_day(d) for d in group.dates)
-    when = dates[0] if dates else _EPOCH_ZERO
+    dates = sorted(_day(d) for d in group.dates if d)
+    when = dates[0] if dates else None  # no date: said, not made up
+    interval: list[list[datetime | None]] = [[dates[0], dates[-1]] if dates else [None, None]]
     items = [_tile_item(t, group.prefix, crs, when) for t in sorted(group.tiles, key=_by_cell)]
     items += [_raster_item(r, group.prefix, crs, when) for r in sorted(group.rasters, key=_by_name)]
     box = _union(item.bbox for item in items if item.bbox) or [-180.0, -90.0, 180.0, 90.0]
@@ -278,7 +296,7 @@ def _collection(group: StacGroup, crs: CRS) -> pystac.Collection:
         title=group.title,
         extent=pystac.Extent(
             pystac.SpatialExtent([box]),
-            pystac.TemporalExtent([[dates[0], dates[-1]] if dates else [when, when]]),
+            pystac.TemporalExtent(interval),
         ),
         license="other",
         extra_fields=dict(group.properties) or None,

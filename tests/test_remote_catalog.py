@@ -105,6 +105,7 @@ def test_a_catalog_on_s3_is_the_catalog_on_disk(s3: str, tmp_path: Path) -> None
     assert head_after is not None and head_after.generation == 2  # nothing committed
 
 
+@pytest.mark.slow
 def test_missions_read_from_object_storage(s3: str, tmp_path: Path) -> None:
     folder = ObjectFolder.open(f"{s3}/missions/{M1.name}")
     for path in sorted(M1.rglob("*")):
@@ -210,6 +211,7 @@ def test_a_kill_during_a_commit_leaves_the_old_or_the_new_catalog(
         assert final == digest_catalog(reference)
 
 
+@pytest.mark.slow
 def test_head_is_what_readers_follow(s3: str) -> None:
     url = f"{s3}/head"
     tile([str(M1), "-o", url])
@@ -431,6 +433,7 @@ def test_serve_a_catalog_in_object_storage(s3: str) -> None:
 
 
 @pytest.mark.realdata
+@pytest.mark.slow
 def test_a_plain_scan_in_object_storage_is_tiled_into_a_catalog_there(
     s3: str, tmp_path: Path
 ) -> None:

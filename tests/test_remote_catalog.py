@@ -610,3 +610,17 @@ def test_credentials_or_dots_in_a_url_are_refused(url: str) -> None:
     with pytest.raises(StorageError) as caught:
         ObjectFolder.open(url)
     assert "secret" not in str(caught.value) and "abc" not in str(caught.value)
+
+
+def test_an_unknown_aws_profile_is_a_typed_error(
+    monkeypatch: pytest.MonkeyPatch, tmp_path: Path
+) -> None:
+    pytest.importorskip("boto3")
+    monkeypatch.delenv("AWS_ACCESS_KEY_ID", raising=False)
+    monkeypatch.setenv("AWS_PROFILE", "standgrid-no-such-profile")
+    monkeypatch.setenv("AWS_CONFIG_FILE", str(tmp_path / "config"))
+    monkeypatch.setenv("AWS_SHARED_CREDENTIALS_FILE", str(tmp_path / "credentials"))
+    result = CliRunner().invoke(cli, ["status", "s3://bucket/catalog"])
+    assert result.exit_code == 1 and "StorageError" in result.output
+    assert "standgrid-no-such-profile" in result.output and "Traceback" not in result.output
+    assert result.output.count("s3://bucket/catalog") == 1

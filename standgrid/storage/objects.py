@@ -65,6 +65,8 @@ def _reported(url: str, what: str) -> Iterator[None]:
 
     try:
         yield
+    except StorageError:  # said already, with its URL
+        raise
     except (ox.AlreadyExistsError, ox.PreconditionError) as exc:
         raise PreconditionFailed(f"{url}: {what}: changed by another writer") from exc
     except (ox.NotFoundError, FileNotFoundError) as exc:
@@ -86,14 +88,17 @@ def _open_store(url: str) -> Any:
         client = {"allow_http": True} if (endpoint or "").startswith("http://") else {}
         if not os.environ.get("AWS_ACCESS_KEY_ID") and os.environ.get("AWS_PROFILE"):
             try:
+                from botocore.exceptions import BotoCoreError
                 from obstore.auth.boto3 import Boto3CredentialProvider
-
-                options["credential_provider"] = Boto3CredentialProvider()
             except ImportError as exc:
                 raise StorageError(
                     f"{url}: AWS_PROFILE is set: reading profiles needs boto3 "
                     "(pip install boto3), or set AWS_ACCESS_KEY_ID/AWS_SECRET_ACCESS_KEY"
                 ) from exc
+            try:
+                options["credential_provider"] = Boto3CredentialProvider()
+            except BotoCoreError as exc:  # no such profile, a broken config file
+                raise StorageError(f"{url}: AWS_PROFILE: {exc}") from exc
         opener: Any = from_url  # its overloads type each store's options apart
         return opener(url.replace("s3a://", "s3://", 1), client_options=client, **options)
     return from_url(url)
